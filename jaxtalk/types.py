@@ -1,0 +1,48 @@
+"""Shape-annotated array aliases used across jaxtalk's public API (jaxtyping).
+
+Dimension names are shared so that, under the jaxtyping runtime checker used in the test suite,
+a function annotated with ``Params56`` in and ``Verts`` out checks that ``frames`` agrees.
+"""
+
+from __future__ import annotations
+
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, Shaped
+
+__all__ = [
+    "Array",
+    "Bool",
+    "Float",
+    "Int",
+    "PRNGKeyArray",
+    "Shaped",
+    "Params56",
+    "Verts",
+    "Landmarks",
+    "Features",
+    "Mask2D",
+    "PARAM_DIM",
+    "EXP_DIM",
+    "EXP_SLICE",
+    "JAW_SLICE",
+    "NECK_SLICE",
+    "MOTION_FPS",
+    "AUDIO_SAMPLE_RATE",
+    "NUM_LANDMARKS",
+]
+
+# FLAME-like head vector in DualTalk's layout: [exp 50 | jaw 3 | neck 3] (axis-angle).
+EXP_DIM = 50
+PARAM_DIM = 56
+EXP_SLICE = slice(0, 50)
+JAW_SLICE = slice(50, 53)
+NECK_SLICE = slice(53, 56)
+
+MOTION_FPS = 25
+AUDIO_SAMPLE_RATE = 16_000
+NUM_LANDMARKS = 68
+
+Params56 = Float[Array, "frames 56"]
+Verts = Float[Array, "frames verts 3"]
+Landmarks = Float[Array, "frames 68 3"]
+Features = Float[Array, "frames dim"]
+Mask2D = Bool[Array, "queries keys"]

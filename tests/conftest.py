@@ -1,0 +1,47 @@
+"""Suite-wide JAX settings and fixtures.
+
+* Rank promotion raises, so an accidental (n,) + (n, 1) broadcast is an error, not a silent (n, n).
+* ``float64`` fixture: enables x64 inside one test only (finite-difference gradient checks,
+  analytic-target checks) and restores the previous setting afterwards.
+* ``fast_compile`` fixture: turns off most XLA optimisations for tests dominated by compile time.
+"""
+
+from __future__ import annotations
+
+import os
+
+# Keep CPU tests deterministic and avoid oversubscribing the 2 CI cores.
+os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+
+import jax
+import pytest
+
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+@pytest.fixture
+def float64():
+    """Enable 64-bit JAX arrays for the duration of one test."""
+    previous = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_x64", previous)
+
+
+@pytest.fixture
+def fast_compile():
+    """Disable most XLA optimisations for one test (compile time dominates small programs)."""
+    previous = jax.config.jax_disable_most_optimizations
+    jax.config.update("jax_disable_most_optimizations", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", previous)
+
+
+@pytest.fixture
+def key():
+    return jax.random.key(0)
