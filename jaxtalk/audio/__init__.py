@@ -1,0 +1,33 @@
+"""Audio front end: file I/O and resampling, log-mel features in JAX, frame-rate conversion, and
+vector-quantised tokenizers.
+
+* ``load_audio(path, target_rate=16000)``: WAV/FLAC -> mono float32 at 16 kHz (polyphase resampling).
+* ``log_mel(audio, sample_rate=16000, n_mels=80, n_fft=400, hop_length=160)``: Slaney mel, natural log
+  with a 1e-10 floor, centred frames at 100 frames/s; jit-able, batched over leading axes.
+* ``resample_features(x, src_rate, dst_rate, num_frames=None, mode="linear"|"previous")``: any stream to
+  the motion rate; ``"previous"`` is causal.
+* ``VQTokenizer`` / ``TokenStream``: k-means token ids + embedding tables at a chosen rate and width.
+"""
+
+from jaxtalk.audio.framerate import default_num_frames, interpolation_plan, resample_features
+from jaxtalk.audio.io import check_audio, load_audio, rational_ratio, resample_audio, save_audio
+from jaxtalk.audio.melspec import hz_to_mel, log_mel, mel_filterbank, mel_to_hz, num_frames
+from jaxtalk.audio.tokenizer import TokenStream, VQTokenizer
+
+__all__ = [
+    "load_audio",
+    "save_audio",
+    "resample_audio",
+    "rational_ratio",
+    "check_audio",
+    "log_mel",
+    "mel_filterbank",
+    "hz_to_mel",
+    "mel_to_hz",
+    "num_frames",
+    "resample_features",
+    "default_num_frames",
+    "interpolation_plan",
+    "VQTokenizer",
+    "TokenStream",
+]

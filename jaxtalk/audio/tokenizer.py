@@ -1,0 +1,452 @@
+"""Vector-quantised audio tokenizers: discrete token ids plus an embedding table, at a chosen rate.
+
+Stand-ins for audio-LLM tokenizers (Mimi at 12.5 Hz, CosyVoice2 at 25 Hz) built from jaxtalk's own
+front end, so that token streams of different rates and widths can be made from any audio:
+
+1. Features per token: the log-mel stream (100 frames/s) is cut into token windows
+   ``[k / rate, (k + 1) / rate)``; each window is split into ``stack`` equal sub-windows, the log-mel
+   frames whose centre falls in a sub-window are averaged, and the ``stack`` averages are
+   concatenated (``stack * n_mels`` features). Averaging keeps the spectral envelope; stacking keeps
+   coarse order inside the window (onset vs. steady part).
+2. Features are standardised per dimension (mean/std of the fitting corpus); a k-means codebook is
+   fitted on them (``scipy.cluster.vq.kmeans2``, k-means++ init, seeded generator: deterministic).
+3. Embedding table ``(num_codes, width)``: the centred centroids times a fixed seeded random
+   isometry ``P`` (orthonormal columns if ``width <= features``, orthonormal rows otherwise), scaled to
+   unit RMS per entry. It carries the codebook's geometry: for ``width >= features`` embedding
+   distances are exactly proportional to centroid distances, for smaller widths a random projection
+   preserves them approximately (Johnson-Lindenstrauss). Two tokenizers with different seeds, rates
+   and widths thus give genuinely different token spaces over the same audio.
+
+Token count is ``ceil(samples * rate / sample_rate)``: the last token may cover a partial window,
+which is padded with silence (zeros), as Mimi pads its last frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import os
+from fractions import Fraction
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Float, Int
+from scipy.cluster.vq import kmeans2
+
+from jaxtalk.audio.framerate import resample_features
+from jaxtalk.audio.io import check_audio
+from jaxtalk.audio.melspec import _log_mel, mel_filterbank, num_frames
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array
+
+__all__ = ["TokenStream", "VQTokenizer"]
+
+_FORMAT_VERSION = 1
+# Audio is padded to a whole number of these (in seconds, rounded to whole tokens) before the jitted
+# feature kernel, so clips of many lengths share a few compiled programs. Zero padding does not change
+# the frames inside the clip (centred frames already see zeros past the end).
+_BUCKET_SECONDS = 2.0
+_MIN_FEATURE_SCALE = 1e-5
+
+
+def _fraction(value: float) -> Fraction:
+    return Fraction(str(float(value))).limit_denominator(1_000_000)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TokenStream:
+    """A token stream: per-token ids (None for continuous user embeddings), embeddings, and rate.
+
+    Attributes:
+        ids: ``(tokens,)`` int32 code ids, or ``None`` for embeddings that come without a codebook
+            (e.g. an external audio LLM's per-frame features loaded with ``from_npy``).
+        embeddings: ``(tokens, width)`` float32.
+        rate: tokens per second.
+    """
+
+    ids: Int[np.ndarray, " tokens"] | None
+    embeddings: Float[np.ndarray, "tokens width"]
+    rate: float | int
+
+    def __post_init__(self):
+        emb = self.embeddings
+        if not isinstance(emb, np.ndarray) or emb.ndim != 2 or emb.shape[0] == 0 or emb.shape[1] == 0:
+            raise ValueError(
+                f"embeddings must be a non-empty (tokens, width) array, got "
+                f"{getattr(emb, 'shape', type(emb))}"
+            )
+        if not np.all(np.isfinite(emb)):
+            raise ValueError("embeddings contain NaN or inf values")
+        if self.ids is not None and self.ids.shape != emb.shape[:1]:
+            raise ValueError(f"ids shape {self.ids.shape} does not match embeddings {emb.shape}")
+        if not np.isfinite(self.rate) or self.rate <= 0:
+            raise ValueError(f"rate must be a positive number of tokens per second, got {self.rate!r}")
+
+    def __len__(self) -> int:
+        return int(self.embeddings.shape[0])
+
+    @property
+    def width(self) -> int:
+        """Embedding width."""
+        return int(self.embeddings.shape[1])
+
+    @property
+    def duration(self) -> float:
+        """Seconds covered: ``tokens / rate``."""
+        return len(self) / self.rate
+
+    @classmethod
+    def from_npy(cls, path: str | os.PathLike, rate: float | int) -> TokenStream:
+        """Load user-supplied per-frame embeddings (a ``(frames, width)`` ``.npy``) at ``rate``.
+
+        Args:
+            path: ``.npy`` file holding a 2-D float array.
+            rate: its frame rate in Hz (e.g. 12.5 for Mimi/GLM-4-Voice, 25 for CosyVoice2, 50 for
+                HuBERT/wav2vec 2.0).
+
+        Returns:
+            ``TokenStream`` with ``ids=None`` and float32 embeddings.
+
+        Raises:
+            FileNotFoundError: if ``path`` does not exist.
+            ValueError: for a non-numeric, non-2-D, empty or NaN array, or a bad rate.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"embedding file not found: {str(path)!r}")
+        try:
+            array = np.load(path, allow_pickle=False)
+        except ValueError as err:
+            raise ValueError(f"{str(path)!r}: not a plain .npy array ({err})") from err
+        if not isinstance(array, np.ndarray) or not np.issubdtype(array.dtype, np.number):
+            raise ValueError(f"{str(path)!r}: expected a numeric array, got {type(array)}")
+        if array.ndim != 2:
+            raise ValueError(f"{str(path)!r}: expected (frames, width) embeddings, got shape {array.shape}")
+        try:
+            return cls(ids=None, embeddings=array.astype(np.float32), rate=float(rate))
+        except ValueError as err:
+            raise ValueError(f"{str(path)!r}: {err}") from err
+
+    def to_frame_rate(
+        self, fps: float | int = MOTION_FPS, num_frames: int | None = None, mode: str = "linear"
+    ) -> Float[Array, "frames width"]:
+        """The embeddings resampled to ``fps`` (see ``resample_features``; ``"previous"`` is causal)."""
+        return resample_features(self.embeddings, self.rate, fps, num_frames=num_frames, mode=mode)
+
+
+def _token_layout(samples: int, sample_rate: int, rate: float | int, hop_length: int, stack: int):
+    """Static plan: (tokens, bucketed tokens, padded samples, sub-window id of every mel frame)."""
+    tokens_per_second = _fraction(rate) / sample_rate  # tokens per sample
+    tokens = max(1, math.ceil(samples * tokens_per_second))
+    per_bucket = max(1, round(_BUCKET_SECONDS * rate))
+    bucket_tokens = -(-tokens // per_bucket) * per_bucket
+    padded = math.ceil(bucket_tokens / tokens_per_second)
+    frames = num_frames(padded, hop_length=hop_length, center=True)
+    # Frame f is centred at f * hop / sr seconds; its sub-window is floor(time * rate * stack).
+    step = Fraction(hop_length) * tokens_per_second * stack
+    segment = (np.arange(frames, dtype=np.int64) * step.numerator) // step.denominator
+    return tokens, bucket_tokens, padded, segment.astype(np.int32)
+
+
+@functools.partial(
+    jax.jit,
+    static_argnames=("num_tokens", "stack", "sample_rate", "n_mels", "n_fft", "hop_length"),
+)
+def _pooled_features(audio, segment, *, num_tokens, stack, sample_rate, n_mels, n_fft, hop_length):
+    mel = _log_mel(
+        audio, sample_rate=sample_rate, n_mels=n_mels, n_fft=n_fft, hop_length=hop_length,
+        win_length=n_fft, f_min=0.0, f_max=None, center=True, pad_mode="constant", log_floor=1e-10,
+    )
+    num_segments = num_tokens * stack
+    # Frames past the last token window carry ids >= num_segments; segment_sum drops them.
+    total = jax.ops.segment_sum(mel, segment, num_segments=num_segments)
+    count = jax.ops.segment_sum(jnp.ones_like(segment, dtype=mel.dtype), segment, num_segments=num_segments)
+    mean = total / jnp.maximum(count, 1)[:, None]
+    return mean.reshape(num_tokens, stack * n_mels)
+
+
+@jax.jit
+def _nearest_code(features, mean, scale, codebook):
+    z = (features - mean[None, :]) / scale[None, :]
+    # ||z - c||^2 up to the per-row constant ||z||^2, which does not change the argmin.
+    cross = jnp.matmul(z, codebook.T, precision=jax.lax.Precision.HIGHEST)
+    distance = jnp.sum(codebook**2, axis=1)[None, :] - 2.0 * cross
+    return jnp.argmin(distance, axis=1).astype(jnp.int32)
+
+
+def _random_isometry(features: int, width: int, seed: int) -> np.ndarray:
+    # Independent stream from the k-means one (same seed): spawn key [seed, 1].
+    rng = np.random.default_rng([seed, 1])
+    if width <= features:
+        q, _ = np.linalg.qr(rng.standard_normal((features, width)))
+        return q  # orthonormal columns: an orthogonal projection onto a random width-d subspace
+    q, _ = np.linalg.qr(rng.standard_normal((width, features)))
+    return q.T  # orthonormal rows: an exact isometric embedding R^features -> R^width
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class VQTokenizer:
+    """A fitted vector-quantising audio tokenizer (see the module docstring for the recipe).
+
+    Build with ``VQTokenizer.fit``; persist with ``save`` / ``load``.
+
+    Attributes:
+        codebook: ``(num_codes, features)`` k-means centroids in standardised feature space.
+        feature_mean: ``(features,)`` per-dimension mean used for standardising.
+        feature_scale: ``(features,)`` per-dimension std (floored) used for standardising.
+        embedding: ``(num_codes, width)`` embedding table.
+        rate: tokens per second.
+        sample_rate: audio rate in Hz the tokenizer reads.
+        n_mels, n_fft, hop_length: log-mel settings.
+        stack: sub-windows per token (``features = stack * n_mels``).
+        seed: the seed it was fitted with.
+    """
+
+    codebook: Float[np.ndarray, "codes features"]
+    feature_mean: Float[np.ndarray, " features"]
+    feature_scale: Float[np.ndarray, " features"]
+    embedding: Float[np.ndarray, "codes width"]
+    rate: float | int
+    sample_rate: int = AUDIO_SAMPLE_RATE
+    n_mels: int = 80
+    n_fft: int = 400
+    hop_length: int = 160
+    stack: int = 2
+    seed: int = 0
+
+    def __post_init__(self):
+        codes, features = self.codebook.shape
+        if features != self.stack * self.n_mels:
+            raise ValueError(
+                f"codebook has {features} features, expected stack * n_mels = {self.stack * self.n_mels}"
+            )
+        if self.feature_mean.shape != (features,) or self.feature_scale.shape != (features,):
+            raise ValueError(
+                f"feature_mean {self.feature_mean.shape} / feature_scale {self.feature_scale.shape} "
+                f"must have shape ({features},)"
+            )
+        if self.embedding.ndim != 2 or self.embedding.shape[0] != codes:
+            raise ValueError(f"embedding {self.embedding.shape} must have shape ({codes}, width)")
+        if not np.all(self.feature_scale > 0):
+            raise ValueError("feature_scale must be positive")
+        _check_layout(self.rate, self.sample_rate, self.hop_length, self.stack)
+
+    @property
+    def num_codes(self) -> int:
+        """Codebook size."""
+        return int(self.codebook.shape[0])
+
+    @property
+    def width(self) -> int:
+        """Embedding width."""
+        return int(self.embedding.shape[1])
+
+    @classmethod
+    def fit(
+        cls,
+        audios: list[np.ndarray],
+        *,
+        sample_rate: int = AUDIO_SAMPLE_RATE,
+        rate: float | int,
+        num_codes: int,
+        width: int,
+        seed: int,
+        n_mels: int = 80,
+        stack: int = 2,
+        iterations: int = 20,
+    ) -> VQTokenizer:
+        """Fit the codebook and embedding table on a list of mono clips.
+
+        Args:
+            audios: clips, each ``(samples,)`` float at ``sample_rate``.
+            sample_rate: their rate in Hz.
+            rate: tokens per second (e.g. 12.5 or 25); the token window ``1 / rate`` must hold at
+                least ``stack`` log-mel frames (``rate * stack <= 100`` at the default hop).
+            num_codes: codebook size.
+            width: embedding width.
+            seed: seeds k-means++ and the embedding projection (same inputs + seed -> same tokenizer).
+            n_mels: log-mel channels of the features.
+            stack: sub-windows per token.
+            iterations: k-means iterations.
+
+        Returns:
+            The fitted tokenizer.
+
+        Raises:
+            ValueError: for an empty list, a bad clip (names its index), bad sizes, or fewer distinct
+                token features than ``num_codes``.
+        """
+        if not isinstance(audios, (list, tuple)) or len(audios) == 0:
+            raise ValueError("fit needs a non-empty list of audio clips")
+        if num_codes < 1 or width < 1 or iterations < 1:
+            raise ValueError(
+                f"need num_codes, width, iterations >= 1, got {num_codes}, {width}, {iterations}"
+            )
+        hop_length, n_fft = round(sample_rate / 100), round(sample_rate / 40)  # 10 ms hop, 25 ms window
+        _check_layout(rate, sample_rate, hop_length, stack)
+        mel_filterbank(sample_rate, n_fft, n_mels)  # validates n_mels early
+        feats = [
+            _features(np.asarray(a), sample_rate, rate, n_mels, n_fft, hop_length, stack, f"audios[{i}]")
+            for i, a in enumerate(audios)
+        ]
+        data = np.concatenate(feats, axis=0).astype(np.float64)
+        distinct = np.unique(data, axis=0).shape[0]
+        if distinct < num_codes:
+            raise ValueError(
+                f"only {distinct} distinct token features in {data.shape[0]} tokens, fewer than "
+                f"num_codes={num_codes}; give more (or more varied) audio or fewer codes"
+            )
+        mean = data.mean(axis=0)
+        scale = np.maximum(data.std(axis=0), _MIN_FEATURE_SCALE)
+        z = (data - mean) / scale
+        centroids, _ = kmeans2(
+            z, num_codes, iter=iterations, minit="++", missing="warn", seed=np.random.default_rng(seed)
+        )
+        projected = (centroids - centroids.mean(axis=0)) @ _random_isometry(z.shape[1], width, seed)
+        rms = np.sqrt(np.mean(projected**2))
+        embedding = projected / (rms if rms > 0 else 1.0)
+        return cls(
+            codebook=centroids.astype(np.float32),
+            feature_mean=mean.astype(np.float32),
+            feature_scale=scale.astype(np.float32),
+            embedding=embedding.astype(np.float32),
+            rate=float(rate),
+            sample_rate=int(sample_rate),
+            n_mels=int(n_mels),
+            n_fft=int(n_fft),
+            hop_length=int(hop_length),
+            stack=int(stack),
+            seed=int(seed),
+        )
+
+    def features(self, audio: Float[np.ndarray | Array, " samples"]) -> Float[np.ndarray, "tokens features"]:
+        """Raw (unstandardised) pooled log-mel features, one row per token window.
+
+        Raises:
+            ValueError: for a non 1-D, empty or NaN/inf signal.
+        """
+        return _features(
+            np.asarray(audio), self.sample_rate, self.rate, self.n_mels, self.n_fft, self.hop_length,
+            self.stack, "audio",
+        )
+
+    def quantize(self, features: Float[np.ndarray | Array, "tokens features"]) -> Int[np.ndarray, " tokens"]:
+        """Nearest codebook entry (Euclidean, standardised space) of each feature row.
+
+        Raises:
+            ValueError: for features of the wrong width.
+        """
+        features = np.asarray(features, dtype=np.float32)
+        if features.ndim != 2 or features.shape[1] != self.codebook.shape[1]:
+            raise ValueError(
+                f"features must have shape (tokens, {self.codebook.shape[1]}), got {features.shape}"
+            )
+        ids = _nearest_code(features, self.feature_mean, self.feature_scale, self.codebook)
+        return np.asarray(ids)
+
+    def lookup(self, ids: Int[np.ndarray | Array, " tokens"]) -> Float[np.ndarray, "tokens width"]:
+        """Embeddings of token ids.
+
+        Raises:
+            ValueError: for ids outside ``[0, num_codes)``.
+        """
+        ids = np.asarray(ids)
+        if ids.size and (ids.min() < 0 or ids.max() >= self.num_codes):
+            raise ValueError(f"token ids must lie in [0, {self.num_codes}), got [{ids.min()}, {ids.max()}]")
+        return self.embedding[ids]
+
+    def encode(self, audio: Float[np.ndarray | Array, " samples"]) -> TokenStream:
+        """Tokenize one mono clip at ``self.sample_rate``.
+
+        Args:
+            audio: ``(samples,)`` float signal (silence is allowed: a listener's channel).
+
+        Returns:
+            ``TokenStream`` with ``ceil(samples * rate / sample_rate)`` tokens.
+
+        Raises:
+            ValueError: for a non 1-D, empty or NaN/inf signal.
+        """
+        ids = self.quantize(self.features(audio))
+        return TokenStream(ids=ids, embeddings=self.lookup(ids), rate=self.rate)
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the tokenizer to an ``.npz`` file (exact round trip through ``load``).
+
+        Returns:
+            The path written (``.npz`` appended when missing, as NumPy does).
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
+        np.savez(
+            path,
+            format_version=np.int64(_FORMAT_VERSION),
+            codebook=self.codebook,
+            feature_mean=self.feature_mean,
+            feature_scale=self.feature_scale,
+            embedding=self.embedding,
+            rate=np.float64(self.rate),
+            sample_rate=np.int64(self.sample_rate),
+            n_mels=np.int64(self.n_mels),
+            n_fft=np.int64(self.n_fft),
+            hop_length=np.int64(self.hop_length),
+            stack=np.int64(self.stack),
+            seed=np.int64(self.seed),
+        )
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> VQTokenizer:
+        """Read a tokenizer written by ``save``.
+
+        Raises:
+            FileNotFoundError: if ``path`` does not exist.
+            ValueError: if it is not a tokenizer file (lists missing keys) or its arrays disagree.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"tokenizer file not found: {str(path)!r}")
+        arrays = ("codebook", "feature_mean", "feature_scale", "embedding")
+        ints = ("sample_rate", "n_mels", "n_fft", "hop_length", "stack", "seed")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                missing = [k for k in ("format_version", "rate", *arrays, *ints) if k not in data]
+                if missing:
+                    raise ValueError(f"{str(path)!r} is not a VQTokenizer file: missing keys {missing}")
+                version = int(data["format_version"])
+                if version != _FORMAT_VERSION:
+                    raise ValueError(f"{str(path)!r}: unsupported tokenizer format version {version}")
+                kwargs = {k: np.array(data[k], dtype=np.float32) for k in arrays}
+                kwargs.update({k: int(data[k]) for k in ints})
+                kwargs["rate"] = float(data["rate"])
+        except (OSError, EOFError) as err:
+            raise ValueError(f"{str(path)!r}: cannot read tokenizer file ({err})") from err
+        return cls(**kwargs)
+
+
+def _check_layout(rate: float | int, sample_rate: int, hop_length: int, stack: int) -> None:
+    if isinstance(stack, bool) or not isinstance(stack, (int, np.integer)) or stack < 1:
+        raise ValueError(f"stack must be a positive integer, got {stack!r}")
+    if not np.isfinite(rate) or rate <= 0:
+        raise ValueError(f"rate must be a positive number of tokens per second, got {rate!r}")
+    frame_rate = sample_rate / hop_length
+    if rate * stack > frame_rate:
+        raise ValueError(
+            f"rate={rate} Hz with stack={stack} needs {rate * stack} sub-windows/s, more than the "
+            f"{frame_rate} log-mel frames/s; lower the rate or the stack"
+        )
+
+
+def _features(audio, sample_rate, rate, n_mels, n_fft, hop_length, stack, name):
+    check_audio(audio, sample_rate, min_duration=0.0, allow_silence=True, name=name)
+    tokens, bucket_tokens, padded, segment = _token_layout(audio.size, sample_rate, rate, hop_length, stack)
+    signal = np.zeros(padded, dtype=np.float32)
+    signal[: audio.size] = audio
+    pooled = _pooled_features(
+        jnp.asarray(signal), jnp.asarray(segment), num_tokens=bucket_tokens, stack=stack,
+        sample_rate=sample_rate, n_mels=n_mels, n_fft=n_fft, hop_length=hop_length,
+    )
+    return np.asarray(pooled[:tokens])

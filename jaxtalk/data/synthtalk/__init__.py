@@ -1,0 +1,41 @@
+"""SynthTalk: jaxtalk's built-in procedural speech + 3D face motion corpus (spec:
+``shared/design/SYNTHTALK.md``).
+
+``generate(size="tiny"|"small"|"full", seed=0, cache_dir=None) -> SynthTalkCorpus``. Modules:
+``phones`` (inventory, acoustic recipes, visemes), ``emotions`` (EmoVOCA face + voice effects),
+``speakers`` (styles, in- and out-of-distribution), ``script`` (phrases and timelines), ``speech``
+(source-filter synthesis), ``motion`` (coarticulation, prosody, listener reactions, stochastic parts),
+``conversation`` (turn-taking, per-channel rendering), ``corpus`` (splits, cache, tokens, geometry).
+"""
+
+from jaxtalk.data.synthtalk.corpus import (
+    SIZES,
+    SPLITS,
+    TOKEN_STREAMS,
+    TOPOLOGIES,
+    VERSION,
+    ClipInfo,
+    SizeSpec,
+    Speaker,
+    SynthTalkCorpus,
+    generate,
+)
+from jaxtalk.data.synthtalk.emotions import EMOTIONS
+from jaxtalk.data.synthtalk.phones import PHONES
+from jaxtalk.data.synthtalk.speakers import SpeakerStyle
+
+__all__ = [
+    "generate",
+    "SynthTalkCorpus",
+    "ClipInfo",
+    "Speaker",
+    "SpeakerStyle",
+    "SizeSpec",
+    "SIZES",
+    "SPLITS",
+    "TOKEN_STREAMS",
+    "TOPOLOGIES",
+    "VERSION",
+    "EMOTIONS",
+    "PHONES",
+]

@@ -1,0 +1,368 @@
+"""DiffusionNet (Sharp et al. 2022) in Flax Linen, with the mesh operators fed in as arrays.
+
+One network is written for a single frame on a single mesh: features ``(V, C)`` plus a
+:class:`DiffusionOperators` pytree. Frames are ``vmap``-ped with the operators shared
+(:func:`apply_frames`); meshes of different sizes are batched by padding to a common vertex count
+with zero-mass vertices whose eigenvector rows and gradient rows are zero (:func:`stack_operators`,
+:func:`apply_meshes`), so padding never leaks into the real vertices.
+
+Operators inside jitted code:
+* spectral diffusion uses the dense (V, k) eigenbasis: two skinny matmuls, never a V x V matrix;
+* gradients use a padded row ("ELL") layout: per vertex, the column indices and X/Y weights of its
+  one-ring, so applying them is one gather and a dense reduction, no scatter.
+
+Learned diffusion time: one scalar per channel, initialised at 0 like the reference. The reference
+clamps the stored parameter to >= 1e-8 after each step; here the forward pass uses
+``max(t, 1e-8)`` with a straight-through gradient, so ``t`` can still leave 0 (a plain ``maximum``
+would have zero gradient at the initial value and never learn).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import flax.linen as nn
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+
+from jaxtalk.geometry.operators import Operators
+from jaxtalk.types import Array, Float, Int
+
+__all__ = [
+    "DiffusionOperators",
+    "DiffusionNetConfig",
+    "to_diffusion_operators",
+    "stack_operators",
+    "spectral_diffusion",
+    "apply_gradient",
+    "LearnedTimeDiffusion",
+    "SpatialGradientFeatures",
+    "DiffusionNetBlock",
+    "DiffusionNet",
+    "apply_frames",
+    "apply_meshes",
+]
+
+
+@flax.struct.dataclass
+class DiffusionOperators:
+    """Operators of one mesh (or, with a leading axis, a padded batch of meshes) as JAX arrays.
+
+    Attributes:
+        mass: (V,) lumped mass; 0 on padding vertices.
+        evals: (k,) eigenvalues, ascending.
+        evecs: (V, k) M-orthonormal eigenvectors; zero rows on padding vertices.
+        grad_index: (V, D) int32 column index of each one-ring entry (padding slots point at 0).
+        grad_x: (V, D) X-component weights (0 in padding slots and padding rows).
+        grad_y: (V, D) Y-component weights.
+    """
+
+    mass: Float[Array, "*b verts"]
+    evals: Float[Array, "*b k"]
+    evecs: Float[Array, "*b verts k"]
+    grad_index: Int[Array, "*b verts deg"]
+    grad_x: Float[Array, "*b verts deg"]
+    grad_y: Float[Array, "*b verts deg"]
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.mass.shape[-1])
+
+
+def _csr_to_ell(grad_x: sp.csr_matrix, grad_y: sp.csr_matrix, num_rows: int, degree: int) -> tuple[np.ndarray, ...]:
+    gx = sp.csr_matrix(grad_x)
+    gy = sp.csr_matrix(grad_y)
+    if gx.shape != gy.shape or not (
+        np.array_equal(gx.indptr, gy.indptr) and np.array_equal(gx.indices, gy.indices)
+    ):
+        raise ValueError("grad_x and grad_y must share one sparsity pattern (same CSR indptr/indices)")
+    counts = np.diff(gx.indptr)
+    rows = np.repeat(np.arange(gx.shape[0]), counts)
+    slots = np.arange(gx.nnz) - gx.indptr[rows]  # position of each entry inside its row
+    index = np.zeros((num_rows, degree), dtype=np.int32)
+    wx = np.zeros((num_rows, degree), dtype=np.float32)
+    wy = np.zeros((num_rows, degree), dtype=np.float32)
+    index[rows, slots] = gx.indices
+    wx[rows, slots] = gx.data
+    wy[rows, slots] = gy.data
+    return index, wx, wy
+
+
+def _max_degree(ops: Operators) -> int:
+    return int(np.diff(sp.csr_matrix(ops.grad_x).indptr).max(initial=1))
+
+
+def to_diffusion_operators(
+    ops: Operators, *, num_vertices: int | None = None, degree: int | None = None
+) -> DiffusionOperators:
+    """Convert precomputed operators to JAX arrays, optionally padded.
+
+    Args:
+        ops: operators from :func:`jaxtalk.geometry.operators.compute_operators`.
+        num_vertices: pad to this many vertices (zero mass, zero eigenvector and gradient rows).
+        degree: pad the per-vertex one-ring width to this (default: the mesh's maximum).
+
+    Returns:
+        A :class:`DiffusionOperators` with float32 arrays.
+
+    Raises:
+        ValueError: padding sizes smaller than the mesh's.
+    """
+    n = ops.num_vertices
+    total = n if num_vertices is None else num_vertices
+    width = _max_degree(ops) if degree is None else degree
+    if total < n:
+        raise ValueError(f"num_vertices={total} is smaller than the mesh's {n} vertices")
+    if width < _max_degree(ops):
+        raise ValueError(f"degree={width} is smaller than the mesh's one-ring width {_max_degree(ops)}")
+    index, wx, wy = _csr_to_ell(ops.grad_x, ops.grad_y, total, width)
+    mass = np.zeros(total, np.float32)
+    mass[:n] = ops.mass
+    evecs = np.zeros((total, ops.k), np.float32)
+    evecs[:n] = ops.evecs
+    return DiffusionOperators(
+        mass=jnp.asarray(mass),
+        evals=jnp.asarray(ops.evals, dtype=jnp.float32),
+        evecs=jnp.asarray(evecs),
+        grad_index=jnp.asarray(index),
+        grad_x=jnp.asarray(wx),
+        grad_y=jnp.asarray(wy),
+    )
+
+
+def stack_operators(ops_list: Sequence[Operators], *, num_vertices: int | None = None) -> DiffusionOperators:
+    """Pad several meshes' operators to a common size and stack them on a leading mesh axis.
+
+    Args:
+        ops_list: operators with the same ``k``.
+        num_vertices: common vertex count (default: the largest mesh's).
+
+    Returns:
+        A :class:`DiffusionOperators` whose arrays have a leading axis of ``len(ops_list)``.
+
+    Raises:
+        ValueError: empty list or differing ``k``.
+    """
+    if not ops_list:
+        raise ValueError("stack_operators needs at least one Operators")
+    ks = {o.k for o in ops_list}
+    if len(ks) != 1:
+        raise ValueError(f"all meshes must have the same number of eigenpairs, got k in {sorted(ks)}")
+    total = max(o.num_vertices for o in ops_list) if num_vertices is None else num_vertices
+    degree = max(_max_degree(o) for o in ops_list)
+    padded = [to_diffusion_operators(o, num_vertices=total, degree=degree) for o in ops_list]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *padded)
+
+
+def spectral_diffusion(
+    x: Float[Array, "verts channels"],
+    mass: Float[Array, " verts"],
+    evals: Float[Array, " k"],
+    evecs: Float[Array, "verts k"],
+    time: Float[Array, " channels"],
+) -> Float[Array, "verts channels"]:
+    """Heat diffusion in the truncated eigenbasis: ``Phi (exp(-lambda t) * Phi^T (M x))``.
+
+    Args:
+        x: (V, C) features.
+        mass: (V,) lumped mass.
+        evals: (k,) eigenvalues.
+        evecs: (V, k) M-orthonormal eigenvectors.
+        time: (C,) diffusion time per channel (>= 0; t = 0 is the projection onto the basis).
+
+    Returns:
+        (V, C) diffused features.
+    """
+    coefs = evecs.T @ (mass[:, None] * x)  # (k, C)
+    coefs = coefs * jnp.exp(-evals[:, None] * time[None, :])
+    return evecs @ coefs
+
+
+def apply_gradient(
+    weights: Float[Array, "verts deg"],
+    index: Int[Array, "verts deg"],
+    x: Float[Array, "verts channels"],
+) -> Float[Array, "verts channels"]:
+    """One tangent gradient component in the padded one-ring layout: ``sum_d w[v,d] x[index[v,d]]``.
+
+    Args:
+        weights: (V, D) weights (``grad_x`` or ``grad_y`` of :class:`DiffusionOperators`).
+        index: (V, D) column indices.
+        x: (V, C) features.
+
+    Returns:
+        (V, C) gradient component per channel.
+    """
+    return jnp.einsum("vd,vdc->vc", weights, x[index])
+
+
+@dataclasses.dataclass(frozen=True)
+class DiffusionNetConfig:
+    """Static DiffusionNet configuration.
+
+    Attributes:
+        in_features: input channels per vertex (3 for xyz).
+        out_features: output channels per vertex.
+        width: hidden channels (C).
+        num_blocks: diffusion blocks.
+        mlp_hidden: hidden sizes of each block's per-vertex MLP (reference: (width, width)).
+        gradient_features: include the spatial gradient features.
+        min_diffusion_time: lower clamp of the learned diffusion time.
+    """
+
+    in_features: int = 3
+    out_features: int = 3
+    width: int = 128
+    num_blocks: int = 4
+    mlp_hidden: tuple[int, ...] = (128, 128)
+    gradient_features: bool = True
+    min_diffusion_time: float = 1e-8
+
+    def __post_init__(self) -> None:
+        for name in ("in_features", "out_features", "width", "num_blocks"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"DiffusionNetConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.min_diffusion_time < 0:
+            raise ValueError(f"min_diffusion_time must be >= 0, got {self.min_diffusion_time}")
+
+    @classmethod
+    def paper(cls, in_features: int = 3, out_features: int = 3) -> DiffusionNetConfig:
+        """FreeTalk STM / reference size: width 128, 4 blocks, MLP (128, 128)."""
+        return cls(in_features, out_features, width=128, num_blocks=4, mlp_hidden=(128, 128))
+
+    @classmethod
+    def small(cls, in_features: int = 3, out_features: int = 3) -> DiffusionNetConfig:
+        """A CPU-friendly size for tests and quick training: width 32, 2 blocks."""
+        return cls(in_features, out_features, width=32, num_blocks=2, mlp_hidden=(32, 32))
+
+
+class LearnedTimeDiffusion(nn.Module):
+    """Spectral diffusion with one learned time per channel (init 0, clamped >= ``min_time``)."""
+
+    channels: int
+    min_time: float = 1e-8
+
+    @nn.compact
+    def __call__(self, x: Float[Array, "verts channels"], ops: DiffusionOperators) -> Float[Array, "verts channels"]:
+        t = self.param("diffusion_time", nn.initializers.zeros, (self.channels,), jnp.float32)
+        # Straight-through clamp: forward value max(t, min), gradient as if identity (see module doc).
+        t = t + jax.lax.stop_gradient(jnp.maximum(t, self.min_time) - t)
+        return spectral_diffusion(x, ops.mass, ops.evals, ops.evecs, t)
+
+
+class SpatialGradientFeatures(nn.Module):
+    """``tanh(Re(conj(g) * (A g)))`` per channel, with g = gradX x + i gradY x and A complex-linear.
+
+    A is two real matrices (real and imaginary parts) without bias, so features are invariant to the
+    choice of tangent frame rotation only through what A learns, as in the reference.
+    """
+
+    channels: int
+
+    @nn.compact
+    def __call__(
+        self, gx: Float[Array, "verts channels"], gy: Float[Array, "verts channels"]
+    ) -> Float[Array, "verts channels"]:
+        a_re = nn.Dense(self.channels, use_bias=False, name="A_re")
+        a_im = nn.Dense(self.channels, use_bias=False, name="A_im")
+        b_re = a_re(gx) - a_im(gy)
+        b_im = a_re(gy) + a_im(gx)
+        return jnp.tanh(gx * b_re + gy * b_im)
+
+
+class DiffusionNetBlock(nn.Module):
+    """Diffusion + gradient features + per-vertex MLP over [x, x_diff, grad features], residual."""
+
+    width: int
+    mlp_hidden: tuple[int, ...]
+    gradient_features: bool = True
+    min_time: float = 1e-8
+
+    @nn.compact
+    def __call__(self, x: Float[Array, "verts channels"], ops: DiffusionOperators) -> Float[Array, "verts channels"]:
+        x_diff = LearnedTimeDiffusion(self.width, self.min_time, name="diffusion")(x, ops)
+        parts = [x, x_diff]
+        if self.gradient_features:
+            gx = apply_gradient(ops.grad_x, ops.grad_index, x_diff)
+            gy = apply_gradient(ops.grad_y, ops.grad_index, x_diff)
+            parts.append(SpatialGradientFeatures(self.width, name="gradient_features")(gx, gy))
+        h = jnp.concatenate(parts, axis=-1)
+        for i, size in enumerate(self.mlp_hidden):
+            h = nn.relu(nn.Dense(size, name=f"mlp_{i}")(h))
+        h = nn.Dense(self.width, name=f"mlp_{len(self.mlp_hidden)}")(h)
+        return h + x
+
+
+class DiffusionNet(nn.Module):
+    """Linear in -> ``num_blocks`` DiffusionNet blocks -> linear out, on one mesh and one frame.
+
+    Call with ``x`` (V, in_features) and the mesh's :class:`DiffusionOperators`; returns
+    (V, out_features). Shape mismatches raise ``ValueError`` at trace time.
+    """
+
+    config: DiffusionNetConfig
+
+    @nn.compact
+    def __call__(self, x: Float[Array, "verts c_in"], ops: DiffusionOperators) -> Float[Array, "verts c_out"]:
+        cfg = self.config
+        if x.ndim != 2 or x.shape[1] != cfg.in_features:
+            raise ValueError(f"features must have shape (V, {cfg.in_features}), got {x.shape}")
+        if ops.mass.ndim != 1 or ops.mass.shape[0] != x.shape[0]:
+            raise ValueError(
+                f"features have {x.shape[0]} vertices but operators have mass of shape {ops.mass.shape}"
+            )
+        h = nn.Dense(cfg.width, name="linear_in")(x)
+        for i in range(cfg.num_blocks):
+            h = DiffusionNetBlock(
+                cfg.width, cfg.mlp_hidden, cfg.gradient_features, cfg.min_diffusion_time, name=f"block_{i}"
+            )(h, ops)
+        return nn.Dense(cfg.out_features, name="linear_out")(h)
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def apply_frames(
+    config: DiffusionNetConfig,
+    params: dict,
+    x: Float[Array, "frames verts c_in"],
+    ops: DiffusionOperators,
+) -> Float[Array, "frames verts c_out"]:
+    """DiffusionNet over a leading frame axis with the mesh's operators shared (jitted, vmapped).
+
+    Args:
+        config: static network configuration.
+        params: the ``{"params": ...}`` variables from ``DiffusionNet(config).init``.
+        x: (T, V, in_features) per-frame features.
+        ops: one mesh's operators (no leading axis).
+
+    Returns:
+        (T, V, out_features).
+    """
+    model = DiffusionNet(config)
+    return jax.vmap(lambda xt: model.apply(params, xt, ops))(x)
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def apply_meshes(
+    config: DiffusionNetConfig,
+    params: dict,
+    x: Float[Array, "meshes verts c_in"],
+    ops: DiffusionOperators,
+) -> Float[Array, "meshes verts c_out"]:
+    """DiffusionNet over a padded batch of meshes from :func:`stack_operators` (jitted, vmapped).
+
+    Args:
+        config: static network configuration.
+        params: variables from ``DiffusionNet(config).init``.
+        x: (B, V_max, in_features) features, padding rows arbitrary (they do not affect real rows).
+        ops: stacked operators with leading axis B.
+
+    Returns:
+        (B, V_max, out_features); rows beyond each mesh's vertex count are meaningless.
+    """
+    model = DiffusionNet(config)
+    return jax.vmap(lambda xb, ob: model.apply(params, xb, ob))(x, ops)

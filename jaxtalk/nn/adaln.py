@@ -1,0 +1,167 @@
+"""adaLN (adaptive LayerNorm) residual MLP blocks, MAR's ``SimpleMLPAdaLN`` pieces.
+
+A condition vector ``c`` produces per-feature ``(shift, scale, gate)`` through ``Dense(SiLU(c))``.
+That Dense is zero-initialised, so at initialisation every residual block is the identity and the
+final layer outputs zeros: the diffusion head starts as a predictor of 0, which is what keeps early
+training stable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from jaxtalk.nn.mlp import MLP
+from jaxtalk.types import Array, Float
+
+__all__ = ["modulate", "AdaLNResBlock", "AdaLNFinalLayer"]
+
+Dtype = Any
+Initializer = Any
+
+
+def modulate(
+    x: Float[Array, "*batch features"],
+    shift: Float[Array, "*batch features"],
+    scale: Float[Array, "*batch features"],
+) -> Float[Array, "*batch features"]:
+    """``x * (1 + scale) + shift`` (adaLN modulation; the ``1 +`` makes zero modulation neutral).
+
+    Args:
+        x: ``(*batch, features)``.
+        shift: same shape as ``x``.
+        scale: same shape as ``x``.
+
+    Returns:
+        ``(*batch, features)``.
+    """
+    return x * (1 + scale) + shift
+
+
+def _modulation(
+    c: Array, features: int, chunks: int, dtype: Dtype | None, param_dtype: Dtype
+) -> list[Array]:
+    """``chunks`` zero-initialised ``(*batch, features)`` maps of ``SiLU(c)``."""
+    params = nn.Dense(
+        chunks * features,
+        dtype=dtype,
+        param_dtype=param_dtype,
+        kernel_init=nn.initializers.zeros_init(),
+        bias_init=nn.initializers.zeros_init(),
+        name="modulation",
+    )(jax.nn.silu(c))
+    return jnp.split(params, chunks, axis=-1)
+
+
+class AdaLNResBlock(nn.Module):
+    """``x + gate * MLP(LayerNorm(x) * (1 + scale) + shift)`` with ``(shift, scale, gate)`` from ``c``.
+
+    The MLP is ``Dense(width * mlp_ratio) -> SiLU -> Dense(width)`` (MAR: ratio 1). The modulation
+    Dense is zero-initialised, so the block is the identity at initialisation.
+
+    Attributes:
+        mlp_ratio: MLP hidden width / input width.
+        activation: MLP activation (SiLU in MAR).
+        layer_norm_epsilon: LayerNorm epsilon (1e-6 in MAR).
+        use_layer_norm_affine: learnable LayerNorm scale/bias (MAR's block has them).
+        dtype: computation dtype; param_dtype: parameter dtype; kernel_init: MLP kernel initialiser.
+    """
+
+    mlp_ratio: float = 1.0
+    activation: Callable[[Array], Array] = jax.nn.silu
+    layer_norm_epsilon: float = 1e-6
+    use_layer_norm_affine: bool = True
+    dtype: Dtype | None = None
+    param_dtype: Dtype = jnp.float32
+    kernel_init: Initializer = nn.initializers.xavier_uniform()
+
+    @nn.compact
+    def __call__(
+        self, x: Float[Array, "*batch features"], c: Float[Array, "*batch cond_features"]
+    ) -> Float[Array, "*batch features"]:
+        """Applies the block.
+
+        Args:
+            x: ``(*batch, features)``.
+            c: condition ``(*batch, cond_features)`` with the same leading axes as ``x``.
+
+        Returns:
+            ``(*batch, features)``.
+
+        Raises:
+            ValueError: if ``mlp_ratio`` gives a hidden width below 1.
+        """
+        width = x.shape[-1]
+        hidden = int(round(self.mlp_ratio * width))
+        if hidden < 1:
+            raise ValueError(f"mlp_ratio {self.mlp_ratio} gives hidden width {hidden} for width {width}")
+        shift, scale, gate = _modulation(c, width, 3, self.dtype, self.param_dtype)
+        h = nn.LayerNorm(
+            epsilon=self.layer_norm_epsilon,
+            use_scale=self.use_layer_norm_affine,
+            use_bias=self.use_layer_norm_affine,
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+            name="norm",
+        )(x)
+        h = MLP(
+            (hidden, width),
+            activation=self.activation,
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+            kernel_init=self.kernel_init,
+            name="mlp",
+        )(modulate(h, shift, scale))
+        return x + gate * h
+
+
+class AdaLNFinalLayer(nn.Module):
+    """``Dense(out)(LayerNorm(x) * (1 + scale) + shift)``, output and modulation zero-initialised.
+
+    The LayerNorm has no learnable affine (as in MAR/DiT); the layer outputs zeros at init.
+
+    Attributes:
+        out_features: output width.
+        layer_norm_epsilon: LayerNorm epsilon (1e-6).
+        dtype: computation dtype; param_dtype: parameter dtype.
+    """
+
+    out_features: int
+    layer_norm_epsilon: float = 1e-6
+    dtype: Dtype | None = None
+    param_dtype: Dtype = jnp.float32
+
+    @nn.compact
+    def __call__(
+        self, x: Float[Array, "*batch features"], c: Float[Array, "*batch cond_features"]
+    ) -> Float[Array, "*batch {self.out_features}"]:
+        """Applies the layer.
+
+        Args:
+            x: ``(*batch, features)``.
+            c: condition ``(*batch, cond_features)``.
+
+        Returns:
+            ``(*batch, out_features)``.
+        """
+        shift, scale = _modulation(c, x.shape[-1], 2, self.dtype, self.param_dtype)
+        h = nn.LayerNorm(
+            epsilon=self.layer_norm_epsilon,
+            use_scale=False,
+            use_bias=False,
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+            name="norm",
+        )(x)
+        return nn.Dense(
+            self.out_features,
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+            kernel_init=nn.initializers.zeros_init(),
+            bias_init=nn.initializers.zeros_init(),
+            name="out",
+        )(modulate(h, shift, scale))

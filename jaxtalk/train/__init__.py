@@ -1,0 +1,43 @@
+"""The one training loop for every jaxtalk model.
+
+* :func:`train`: AdamW (warm-up + cosine), global-norm clipping, optional EMA, frozen parameters,
+  data parallelism over a device mesh, tqdm progress, periodic evaluation, orbax checkpoints with
+  exact resumption.
+* Lower level: :class:`OptimConfig`, :func:`make_optimizer`, :func:`create_train_state`,
+  :func:`make_train_step`, :class:`Checkpointer`, :func:`save_checkpoint`,
+  :func:`restore_checkpoint`, :func:`make_mesh`, :func:`shard_batch`.
+"""
+
+from __future__ import annotations
+
+from jaxtalk.train.checkpoint import Checkpointer, latest_checkpoint_step, restore_checkpoint, save_checkpoint
+from jaxtalk.train.checks import BatchSpec, check_finite
+from jaxtalk.train.ema import ema_update
+from jaxtalk.train.loop import NonFiniteLossError, TrainResult, train
+from jaxtalk.train.optim import OptimConfig, make_optimizer, make_schedule, trainable_mask
+from jaxtalk.train.sharding import make_mesh, replicate, shard_batch
+from jaxtalk.train.state import TrainState, create_train_state
+from jaxtalk.train.step import make_train_step
+
+__all__ = [
+    "train",
+    "TrainResult",
+    "NonFiniteLossError",
+    "OptimConfig",
+    "make_schedule",
+    "make_optimizer",
+    "trainable_mask",
+    "ema_update",
+    "TrainState",
+    "create_train_state",
+    "make_train_step",
+    "Checkpointer",
+    "save_checkpoint",
+    "restore_checkpoint",
+    "latest_checkpoint_step",
+    "BatchSpec",
+    "check_finite",
+    "make_mesh",
+    "shard_batch",
+    "replicate",
+]

@@ -1,0 +1,209 @@
+"""Orbax checkpoints of the train state, the data-iterator position and a JSON metadata record.
+
+Layout: ``<dir>/<step>/{state,data,meta}``. Orbax writes each step into
+``<dir>/<step>.orbax-checkpoint-tmp...`` and renames it when complete, and lists only finalised step
+directories, so a run killed mid-save leaves the previous checkpoint as the latest one (tested).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+
+from jaxtalk.train.state import TrainState
+
+__all__ = ["Checkpointer", "save_checkpoint", "restore_checkpoint", "latest_checkpoint_step"]
+
+PyTree = Any
+
+
+def _saveable(state: TrainState) -> TrainState:
+    # Orbax stores plain arrays; the typed key is stored as its raw uint32 data.
+    return state.replace(rng=jax.random.key_data(state.rng))
+
+
+def _abstract(tree: PyTree) -> PyTree:
+    def one(x):
+        return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None))
+
+    return jax.tree.map(one, tree)
+
+
+class Checkpointer:
+    """A run's checkpoint directory: keep the last ``max_to_keep`` steps, save and restore.
+
+    Args:
+        directory: checkpoint directory (created on the first save).
+        max_to_keep: number of most recent checkpoints kept (older ones are deleted).
+        async_save: write in a background thread after copying the arrays off the device (the
+            train loop continues meanwhile); :meth:`close` waits for pending writes.
+        read_only: open for restoring only (the directory must exist).
+
+    Raises:
+        ValueError: ``max_to_keep < 1``, or ``directory`` exists and is not a directory.
+        FileNotFoundError: ``read_only`` and the directory does not exist.
+    """
+
+    def __init__(
+        self, directory: str | os.PathLike, *, max_to_keep: int = 3, async_save: bool = True, read_only: bool = False
+    ) -> None:
+        import orbax.checkpoint as ocp  # heavy import, deferred to first use
+
+        if max_to_keep < 1:
+            raise ValueError(f"max_to_keep must be >= 1, got {max_to_keep}")
+        self.directory = Path(directory).absolute()
+        if self.directory.exists() and not self.directory.is_dir():
+            raise ValueError(f"checkpoint path {self.directory} exists and is not a directory")
+        if read_only and not self.directory.is_dir():
+            raise FileNotFoundError(f"checkpoint directory {self.directory} does not exist")
+        self._ocp = ocp
+        options = ocp.CheckpointManagerOptions(
+            max_to_keep=max_to_keep,
+            create=not read_only,
+            read_only=read_only,
+            enable_async_checkpointing=async_save,
+            cleanup_tmp_directories=not read_only,  # leftovers of a killed save are removed
+        )
+        self._manager = ocp.CheckpointManager(self.directory, options=options, item_names=("state", "data", "meta"))
+
+    # ------------------------------------------------------------------ queries
+    def latest_step(self) -> int | None:
+        """Newest complete checkpoint step, or None if there is none."""
+        return self._manager.latest_step()
+
+    def all_steps(self) -> list[int]:
+        """All complete checkpoint steps, ascending."""
+        return sorted(self._manager.all_steps())
+
+    # ------------------------------------------------------------------ save / restore
+    def save(self, state: TrainState, *, data_state: dict | None = None, metadata: dict | None = None) -> None:
+        """Save ``state`` under step ``int(state.step)`` (possibly in the background).
+
+        Args:
+            state: the train state.
+            data_state: JSON-serialisable data-iterator position (``get_state()``).
+            metadata: JSON-serialisable record (config, model name, batch spec...).
+        """
+        ocp = self._ocp
+        step = int(state.step)
+        self._manager.save(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(_saveable(state)),
+                data=ocp.args.JsonSave(data_state or {}),
+                meta=ocp.args.JsonSave({"step": step, **(metadata or {})}),
+            ),
+            force=True,
+        )
+
+    def restore(self, template: TrainState, step: int | None = None) -> tuple[TrainState, dict, dict]:
+        """Restore a checkpoint into the structure, dtypes and shardings of ``template``.
+
+        Args:
+            template: a state with the same structure (e.g. a fresh :func:`create_train_state`).
+            step: which step (default: the latest).
+
+        Returns:
+            ``(state, data_state, metadata)``.
+
+        Raises:
+            FileNotFoundError: the directory holds no complete checkpoint, or ``step`` is absent.
+            ValueError: the checkpoint is corrupt or does not fit ``template`` (names the path).
+        """
+        ocp = self._ocp
+        self._manager.wait_until_finished()
+        steps = self.all_steps()
+        if not steps:
+            raise FileNotFoundError(f"no complete checkpoint in {self.directory}")
+        step = steps[-1] if step is None else int(step)
+        if step not in steps:
+            raise FileNotFoundError(f"no checkpoint for step {step} in {self.directory} (have {steps})")
+        path = self.directory / str(step)
+        saved_template = _saveable(template)
+        try:
+            restored = self._manager.restore(
+                step,
+                args=ocp.args.Composite(
+                    state=ocp.args.StandardRestore(_abstract(saved_template)),
+                    data=ocp.args.JsonRestore(),
+                    meta=ocp.args.JsonRestore(),
+                ),
+            )
+            raw = restored.state
+            if jax.tree.structure(raw) != jax.tree.structure(saved_template):
+                raise ValueError(
+                    f"structure {jax.tree.structure(raw)} != expected {jax.tree.structure(saved_template)}"
+                )
+        except Exception as err:  # orbax/tensorstore raise many types; name the path for the user
+            raise ValueError(f"checkpoint {path} is corrupt or does not match the train state: {err}") from err
+        impl = jax.random.key_impl(template.rng)
+        state = raw.replace(rng=jax.random.wrap_key_data(raw.rng, impl=impl))
+        return state, dict(restored.data or {}), dict(restored.meta or {})
+
+    def wait(self) -> None:
+        """Block until background saves are written."""
+        self._manager.wait_until_finished()
+
+    def close(self) -> None:
+        """Finish pending saves and release the manager."""
+        self._manager.wait_until_finished()
+        self._manager.close()
+
+    def __enter__(self) -> Checkpointer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def save_checkpoint(
+    directory: str | os.PathLike,
+    state: TrainState,
+    *,
+    data_state: dict | None = None,
+    metadata: dict | None = None,
+    max_to_keep: int = 3,
+) -> None:
+    """Save ``state`` at step ``int(state.step)`` into ``directory`` and wait until it is written.
+
+    Args:
+        directory: checkpoint directory (created if missing).
+        state: train state.
+        data_state: JSON-serialisable data-iterator position.
+        metadata: JSON-serialisable record stored beside the arrays.
+        max_to_keep: checkpoints kept in the directory.
+    """
+    with Checkpointer(directory, max_to_keep=max_to_keep, async_save=False) as ckpt:
+        ckpt.save(state, data_state=data_state, metadata=metadata)
+
+
+def restore_checkpoint(
+    directory: str | os.PathLike, template: TrainState, *, step: int | None = None
+) -> tuple[TrainState, dict, dict]:
+    """Restore the latest (or a given) checkpoint of ``directory`` shaped like ``template``.
+
+    Args:
+        directory: checkpoint directory.
+        template: state with the target structure, dtypes and shardings.
+        step: step to restore (default: latest).
+
+    Returns:
+        ``(state, data_state, metadata)``.
+
+    Raises:
+        FileNotFoundError: missing directory or no complete checkpoint in it (names the path).
+        ValueError: corrupt or incompatible checkpoint (names the path).
+    """
+    with Checkpointer(directory, read_only=True) as ckpt:
+        return ckpt.restore(template, step)
+
+
+def latest_checkpoint_step(directory: str | os.PathLike) -> int | None:
+    """Newest complete checkpoint step in ``directory`` (None if missing or empty)."""
+    if not Path(directory).is_dir():
+        return None
+    with Checkpointer(directory, read_only=True) as ckpt:
+        return ckpt.latest_step()

@@ -1,0 +1,83 @@
+"""The training state pytree."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from jaxtalk.types import Array, Int, PRNGKeyArray
+
+__all__ = ["TrainState", "create_train_state"]
+
+PyTree = Any
+
+
+@struct.dataclass
+class TrainState:
+    """Everything that changes during training; a pytree, donated to each jitted step.
+
+    Attributes:
+        step: number of optimiser steps taken (int32 scalar).
+        params: model parameters.
+        opt_state: optax optimiser state.
+        ema_params: moving average of ``params`` (None when EMA is off).
+        rng: base PRNG key; step ``s`` uses ``fold_in(rng, s)``, so resuming needs only ``step``.
+    """
+
+    step: Int[Array, ""]
+    params: PyTree
+    opt_state: PyTree
+    ema_params: PyTree | None
+    rng: PRNGKeyArray
+
+    @property
+    def eval_params(self) -> PyTree:
+        """The parameters to evaluate or sample with: the EMA when it exists, else ``params``."""
+        return self.params if self.ema_params is None else self.ema_params
+
+
+def create_train_state(
+    params: PyTree, tx: optax.GradientTransformation, key: PRNGKeyArray, *, ema: bool = False
+) -> TrainState:
+    """Fresh state at step 0.
+
+    The parameters and the key are copied, so donating the state to the train step never invalidates the
+    caller's ``params`` arrays.
+
+    Args:
+        params: initial parameters (pytree of float arrays).
+        tx: optimiser from :func:`jaxtalk.train.make_optimizer`.
+        key: base PRNG key for the per-step keys (a typed key, ``jax.random.key``).
+        ema: keep an EMA of the parameters (initialised to ``params``).
+
+    Returns:
+        The state.
+
+    Raises:
+        ValueError: no parameter leaves, a non-floating or non-finite parameter, or a raw
+            ``uint32`` key instead of a typed key.
+    """
+    leaves = jax.tree_util.tree_flatten_with_path(params)[0]
+    if not leaves:
+        raise ValueError("params has no array leaves")
+    for path, leaf in leaves:
+        arr = jnp.asarray(leaf)
+        if not jnp.issubdtype(arr.dtype, jnp.floating):
+            raise ValueError(f"parameter {jax.tree_util.keystr(path)} has dtype {arr.dtype}; parameters must be floating")
+        if not bool(jnp.all(jnp.isfinite(arr))):
+            raise ValueError(f"parameter {jax.tree_util.keystr(path)} contains NaN or inf at initialisation")
+    if not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        raise ValueError(f"key must be a typed PRNG key (jax.random.key), got dtype {key.dtype}")
+    params = jax.tree.map(lambda x: jnp.array(x, copy=True), params)
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=params,
+        opt_state=tx.init(params),
+        ema_params=jax.tree.map(lambda x: jnp.array(x, copy=True), params) if ema else None,
+        # A copy too: the state is donated, and the caller may reuse its key.
+        rng=jax.random.wrap_key_data(jnp.array(jax.random.key_data(key), copy=True), impl=jax.random.key_impl(key)),
+    )

@@ -1,0 +1,158 @@
+"""DiffusionNet in Flax: diffusion limits, gradient layout, equivariance, padding, frame vmap."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+
+from jaxtalk.geometry import diffusionnet as dn
+from jaxtalk.geometry.operators import compute_operators
+
+
+def bumpy_sphere(subdivisions: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    m = trimesh.creation.icosphere(subdivisions)
+    rng = np.random.default_rng(seed)
+    return np.asarray(m.vertices) * (1 + 0.1 * rng.random((len(m.vertices), 1))), np.asarray(m.faces)
+
+
+@pytest.fixture(scope="module")
+def mesh_ops():
+    v, f = bumpy_sphere(2, 0)
+    return v, f, compute_operators(v, f, 24)
+
+
+CFG = dn.DiffusionNetConfig(in_features=3, out_features=2, width=8, num_blocks=2, mlp_hidden=(8,))
+
+
+def init_params(ops_j, x, key, cfg=CFG):
+    params = dn.DiffusionNet(cfg).init(key, x, ops_j)
+    # Non-zero diffusion times so that the test exercises the spectral path, not only t = 1e-8.
+    return jax.tree_util.tree_map_with_path(
+        lambda path, p: p + 0.05 * (1 + jnp.arange(p.shape[0])) if "diffusion_time" in str(path) else p, params
+    )
+
+
+def test_zero_time_diffusion_is_projection_onto_eigenbasis(mesh_ops):
+    _, _, ops = mesh_ops
+    d = dn.to_diffusion_operators(ops)
+    x = jnp.asarray(np.random.default_rng(0).standard_normal((ops.num_vertices, 4)), jnp.float32)
+    out = dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.zeros(4))
+    phi = ops.evecs.astype(np.float64)
+    proj = phi @ (phi.T @ (ops.mass[:, None] * np.asarray(x, np.float64)))
+    np.testing.assert_allclose(out, proj, atol=1e-4)
+    # Projection is idempotent, and leaves functions in the span unchanged.
+    again = dn.spectral_diffusion(out, d.mass, d.evals, d.evecs, jnp.zeros(4))
+    np.testing.assert_allclose(again, out, atol=1e-4)
+
+
+def test_long_time_diffusion_tends_to_mass_weighted_mean(mesh_ops):
+    _, _, ops = mesh_ops
+    d = dn.to_diffusion_operators(ops)
+    x = jnp.asarray(np.random.default_rng(1).standard_normal((ops.num_vertices, 3)), jnp.float32)
+    out = dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.full(3, 1e3))
+    mean = (ops.mass[:, None] * np.asarray(x)).sum(0) / ops.mass.sum()
+    np.testing.assert_allclose(out, np.broadcast_to(mean, out.shape), atol=1e-4)
+    # Intermediate times interpolate: the deviation from the mean shrinks monotonically.
+    dev = [float(jnp.abs(dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.full(3, t)) - mean).max()) for t in (0.01, 0.1, 1.0)]
+    assert dev[0] > dev[1] > dev[2]
+
+
+def test_gradient_layout_matches_sparse_matvec(mesh_ops):
+    _, _, ops = mesh_ops
+    d = dn.to_diffusion_operators(ops, num_vertices=ops.num_vertices + 5, degree=20)
+    x = np.random.default_rng(2).standard_normal((ops.num_vertices + 5, 3)).astype(np.float32)
+    gx = dn.apply_gradient(d.grad_x, d.grad_index, jnp.asarray(x))
+    gy = dn.apply_gradient(d.grad_y, d.grad_index, jnp.asarray(x))
+    n = ops.num_vertices
+    np.testing.assert_allclose(gx[:n], ops.grad_x @ x[:n], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(gy[:n], ops.grad_y @ x[:n], rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(gx[n:], 0.0)
+
+
+def test_outputs_permute_with_vertices(mesh_ops, key):
+    v, f, ops = mesh_ops
+    perm = np.random.default_rng(3).permutation(len(v))
+    ops_p = compute_operators(v[perm], np.argsort(perm)[f], 24)
+    x = jnp.asarray(v, jnp.float32)
+    d, d_p = dn.to_diffusion_operators(ops), dn.to_diffusion_operators(ops_p)
+    params = init_params(d, x, key)
+    model = dn.DiffusionNet(CFG)
+    out = model.apply(params, x, d)
+    out_p = model.apply(params, x[perm], d_p)
+    np.testing.assert_allclose(out_p, out[perm], atol=2e-4, rtol=1e-3)
+
+
+def test_padding_does_not_change_real_vertices(key):
+    meshes = [bumpy_sphere(1, 4), bumpy_sphere(2, 5)]
+    ops_list = [compute_operators(v, f, 16) for v, f in meshes]
+    stacked = dn.stack_operators(ops_list, num_vertices=180)
+    rng = np.random.default_rng(6)
+    x = np.zeros((2, 180, 3), np.float32)
+    for i, (v, _) in enumerate(meshes):
+        x[i, : len(v)] = v
+        x[i, len(v) :] = rng.standard_normal((180 - len(v), 3))  # garbage in padding rows
+    single = [dn.to_diffusion_operators(o) for o in ops_list]
+    params = init_params(single[0], x[0, : len(meshes[0][0])], key)
+    batched = dn.apply_meshes(CFG, params, jnp.asarray(x), stacked)
+    for i, (v, _) in enumerate(meshes):
+        alone = dn.DiffusionNet(CFG).apply(params, jnp.asarray(v, jnp.float32), single[i])
+        np.testing.assert_allclose(batched[i, : len(v)], alone, atol=1e-5)
+
+
+def test_apply_frames_matches_per_frame_apply(mesh_ops, key):
+    v, _, ops = mesh_ops
+    d = dn.to_diffusion_operators(ops)
+    frames = jnp.asarray(v[None] * np.linspace(0.5, 1.5, 4)[:, None, None], jnp.float32)
+    params = init_params(d, frames[0], key)
+    out = dn.apply_frames(CFG, params, frames, d)
+    assert out.shape == (4, len(v), 2)
+    for t in range(4):
+        np.testing.assert_allclose(out[t], dn.DiffusionNet(CFG).apply(params, frames[t], d), atol=1e-5)
+
+
+def test_diffusion_time_starts_at_zero_and_receives_gradient(mesh_ops, key):
+    v, _, ops = mesh_ops
+    d = dn.to_diffusion_operators(ops)
+    x = jnp.asarray(v, jnp.float32)
+    params = dn.DiffusionNet(CFG).init(key, x, d)
+    assert float(jnp.abs(params["params"]["block_0"]["diffusion"]["diffusion_time"]).max()) == 0.0
+
+    def loss(p):
+        return jnp.sum(dn.DiffusionNet(CFG).apply(p, x, d) ** 2)
+
+    grads = jax.grad(loss)(params)
+    # A plain maximum(t, 1e-8) would give exactly zero here and t could never move.
+    assert float(jnp.abs(grads["params"]["block_0"]["diffusion"]["diffusion_time"]).max()) > 0
+
+
+def test_time_gradient_matches_finite_differences(mesh_ops, float64):
+    _, _, ops = mesh_ops
+    d = jax.tree.map(lambda a: a.astype(jnp.float64) if a.dtype == jnp.float32 else a, dn.to_diffusion_operators(ops))
+    x = jnp.asarray(np.random.default_rng(7).standard_normal((ops.num_vertices, 2)))
+
+    def f(t):
+        return jnp.sum(jnp.sin(dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, t)))
+
+    t0 = jnp.array([0.05, 0.2])
+    g = jax.grad(f)(t0)
+    eps = 1e-6
+    fd = [(f(t0.at[i].add(eps)) - f(t0.at[i].add(-eps))) / (2 * eps) for i in range(2)]
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_shape_errors_are_clear(mesh_ops, key):
+    _, _, ops = mesh_ops
+    d = dn.to_diffusion_operators(ops)
+    with pytest.raises(ValueError, match=r"features must have shape \(V, 3\)"):
+        dn.DiffusionNet(CFG).init(key, jnp.zeros((ops.num_vertices, 4)), d)
+    with pytest.raises(ValueError, match="features have 10 vertices"):
+        dn.DiffusionNet(CFG).init(key, jnp.zeros((10, 3)), d)
+    with pytest.raises(ValueError, match="num_vertices=10 is smaller"):
+        dn.to_diffusion_operators(ops, num_vertices=10)
+    with pytest.raises(ValueError, match="same number of eigenpairs"):
+        dn.stack_operators([ops, ops.truncated(8)])
+    with pytest.raises(ValueError, match="width must be >= 1"):
+        dn.DiffusionNetConfig(width=0)

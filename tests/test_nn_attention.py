@@ -1,0 +1,172 @@
+"""Attention with an additive bias: brute-force reference, masking, caching == full pass."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.nn import BLOCKED, MultiHeadAttention, bias_from_mask, dot_product_attention
+
+
+def _reference_attention(q, k, v, bias):
+    """Per-head NumPy loop in float64: softmax(q k^T / sqrt(d) + bias) v."""
+    q, k, v, bias = (np.asarray(a, np.float64) for a in (q, k, v, bias))
+    *batch, q_len, heads, d = q.shape
+    out = np.zeros((*batch, q_len, heads, v.shape[-1]))
+    for idx in np.ndindex(*batch):
+        for h in range(heads):
+            logits = q[idx][:, h] @ k[idx][:, h].T / np.sqrt(d) + np.broadcast_to(
+                bias, (*batch, heads, q_len, k.shape[-3])
+            )[idx][h]
+            w = np.exp(logits - logits.max(-1, keepdims=True))
+            w /= w.sum(-1, keepdims=True)
+            out[idx][:, h] = w @ v[idx][:, h]
+    return out
+
+
+def _block_causal(length: int, chunk: int) -> np.ndarray:
+    """Query i sees key j iff j < (i // chunk + 1) * chunk (CosyVoice's chunk mask)."""
+    i = np.arange(length)[:, None]
+    j = np.arange(length)[None, :]
+    return j < (i // chunk + 1) * chunk
+
+
+def test_dot_product_attention_matches_bruteforce_with_two_batch_axes(key):
+    kq, kk, kv, kb = jax.random.split(key, 4)
+    q = jax.random.normal(kq, (2, 3, 5, 2, 4))
+    k = jax.random.normal(kk, (2, 3, 7, 2, 4))
+    v = jax.random.normal(kv, (2, 3, 7, 2, 6))
+    bias = jax.random.normal(kb, (3, 1, 5, 7))  # broadcast over the first batch axis and heads
+    out = dot_product_attention(q, k, v, bias)
+    assert out.shape == (2, 3, 5, 2, 6)
+    np.testing.assert_allclose(out, _reference_attention(q, k, v, bias), atol=1e-5)
+
+
+def test_blocked_keys_are_ignored_exactly_like_removing_them(key):
+    kq, kk, kv = jax.random.split(key, 3)
+    q = jax.random.normal(kq, (4, 2, 8))
+    k = jax.random.normal(kk, (6, 2, 8))
+    v = jax.random.normal(kv, (6, 2, 8))
+    visible = np.array([True, False, True, True, False, True])
+    bias = bias_from_mask(np.broadcast_to(visible, (4, 6)))
+    masked = dot_product_attention(q, k, v, bias)
+    removed = dot_product_attention(q, k[visible], v[visible])
+    np.testing.assert_allclose(masked, removed, atol=1e-6)
+
+
+def test_bias_from_mask_values_and_fully_blocked_row_is_finite(key):
+    mask = np.array([[True, False], [False, False]])
+    np.testing.assert_array_equal(bias_from_mask(mask), [[0.0, BLOCKED], [BLOCKED, BLOCKED]])
+    q = k = v = jax.random.normal(key, (2, 1, 4))
+    out = dot_product_attention(q, k, v, bias_from_mask(mask))
+    assert np.all(np.isfinite(out))
+    # A row with every key blocked falls back to a uniform average instead of NaN.
+    np.testing.assert_allclose(out[1], v.mean(0), atol=1e-6)
+
+
+def test_key_value_permutation_invariance(key):
+    """Attention without a bias is a set operation over (key, value) pairs."""
+    x = jax.random.normal(key, (5, 12))
+    memory = jax.random.normal(jax.random.fold_in(key, 1), (9, 10))
+    mha = MultiHeadAttention(num_heads=3, head_dim=4)
+    params = mha.init(key, x, memory)
+    perm = np.random.default_rng(0).permutation(9)
+    np.testing.assert_allclose(
+        mha.apply(params, x, memory), mha.apply(params, x, memory[perm]), atol=1e-5
+    )
+
+
+def test_parameter_shapes_no_qkv_bias_and_default_out_width(key):
+    x = jnp.zeros((2, 5, 16))
+    mha = MultiHeadAttention(num_heads=8, head_dim=4, qkv_bias=False)
+    params = mha.init(key, x)["params"]
+    assert set(params) == {"query", "key", "value", "out"}
+    for name in ("query", "key", "value"):
+        assert set(params[name]) == {"kernel"}
+        assert params[name]["kernel"].shape == (16, 8, 4)
+    assert params["out"]["kernel"].shape == (8, 4, 16)
+    y = MultiHeadAttention(num_heads=2, head_dim=3, out_features=7).init_with_output(key, x)[0]
+    assert y.shape == (2, 5, 7)
+
+
+def test_module_matches_reference_built_from_its_parameters(key):
+    x = jax.random.normal(key, (2, 5, 6))
+    mha = MultiHeadAttention(num_heads=2, head_dim=3)
+    params = mha.init(key, x)["params"]
+    bias = jax.random.normal(jax.random.fold_in(key, 2), (5, 5))
+    proj = lambda p: np.einsum("btf,fhd->bthd", x, p["kernel"]) + p["bias"]  # noqa: E731
+    heads = _reference_attention(proj(params["query"]), proj(params["key"]), proj(params["value"]), bias)
+    expected = np.einsum("bthd,hdf->btf", heads, params["out"]["kernel"]) + params["out"]["bias"]
+    np.testing.assert_allclose(mha.apply({"params": params}, x, bias=bias), expected, atol=1e-5)
+
+
+def test_chunked_decoding_with_kv_cache_equals_full_pass(key, fast_compile):
+    """Block-causal self-attention run chunk by chunk with a cache == one pass over the sequence."""
+    length, chunk = 12, 4
+    x = jax.random.normal(key, (2, length, 16))
+    mha = MultiHeadAttention(num_heads=4, head_dim=8, qkv_bias=False)
+    params = mha.init(key, x)
+    bias = bias_from_mask(_block_causal(length, chunk))
+    full = jax.jit(lambda p, x: mha.apply(p, x, bias=bias))(params, x)
+
+    @jax.jit
+    def step(params, x_chunk, cache, bias_rows):
+        return mha.apply(params, x_chunk, bias=bias_rows, kv_cache=cache, return_kv=True)
+
+    outputs, cache = [], None
+    for start in range(0, length, chunk):
+        stop = start + chunk
+        rows = bias[start:stop, :stop]
+        if cache is None:
+            out, cache = mha.apply(params, x[:, start:stop], bias=rows, return_kv=True)
+        else:
+            out, cache = step(params, x[:, start:stop], cache, rows)
+        outputs.append(out)
+        assert cache[0].shape == (2, stop, 4, 8)
+    np.testing.assert_allclose(jnp.concatenate(outputs, axis=1), full, atol=1e-5)
+    # The full pass's own keys are the cache's keys.
+    _, (full_k, _) = mha.apply(params, x, return_kv=True)
+    np.testing.assert_allclose(cache[0], full_k, atol=1e-6)
+
+
+def test_cross_attention_with_precomputed_memory(key):
+    x = jax.random.normal(key, (3, 4, 8))
+    memory = jax.random.normal(jax.random.fold_in(key, 1), (3, 6, 5))
+    mha = MultiHeadAttention(num_heads=2, head_dim=4)
+    params = mha.init(key, x, memory)
+    keys, values = mha.apply(params, memory, method=MultiHeadAttention.project_kv)
+    reused = mha.apply(params, x, keys, values, method=MultiHeadAttention.attend)
+    np.testing.assert_allclose(reused, mha.apply(params, x, memory), atol=1e-6)
+
+
+def test_attention_dropout_is_active_only_when_not_deterministic(key):
+    x = jax.random.normal(key, (2, 6, 8))
+    mha = MultiHeadAttention(num_heads=2, head_dim=4, dropout_rate=0.5)
+    params = mha.init(key, x)
+    plain = MultiHeadAttention(num_heads=2, head_dim=4).apply(params, x)
+    np.testing.assert_allclose(mha.apply(params, x, deterministic=True), plain, atol=1e-6)
+    rngs = {"dropout": jax.random.key(3)}
+    dropped = mha.apply(params, x, deterministic=False, rngs=rngs)
+    assert np.abs(dropped - plain).max() > 1e-3
+    np.testing.assert_array_equal(dropped, mha.apply(params, x, deterministic=False, rngs=rngs))
+
+
+def test_attention_errors(key):
+    x = jnp.zeros((2, 5, 8))
+    mha = MultiHeadAttention(num_heads=2, head_dim=4)
+    params = mha.init(key, x)
+    with pytest.raises(ValueError, match="does not broadcast"):
+        mha.apply(params, x, bias=jnp.zeros((5, 4)))
+    with pytest.raises(ValueError, match="more axes"):
+        mha.apply(params, x, bias=jnp.zeros((1, 2, 2, 5, 5)))
+    bad_cache = (jnp.zeros((2, 3, 4, 4)), jnp.zeros((2, 3, 4, 4)))  # 4 heads, module has 2
+    with pytest.raises(ValueError, match="kv_cache"):
+        mha.apply(params, x, kv_cache=bad_cache)
+    with pytest.raises(ValueError, match="boolean"):
+        bias_from_mask(np.ones((2, 2), np.float32))
+    with pytest.raises(ValueError, match="dropout_rng"):
+        dot_product_attention(jnp.zeros((3, 1, 2)), jnp.zeros((3, 1, 2)), jnp.zeros((3, 1, 2)), dropout_rate=0.1)
+    with pytest.raises(ValueError, match="positive"):
+        MultiHeadAttention(num_heads=0, head_dim=4).init(key, x)
