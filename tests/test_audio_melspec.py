@@ -116,12 +116,16 @@ def test_reflect_and_uncentred_framing(float64):
     centred = np.asarray(log_mel(jnp.asarray(x)))
     # Uncentred frame f covers x[f*hop : f*hop + 400]: brute-force framing + rfft.
     window = get_window("hann", 400)
-    frames = np.stack([x[f * 160 : f * 160 + 400] * window for f in range(1 + (x.size - 400) // 160)])
+    frames = np.stack(
+        [x[f * 160 : f * 160 + 400] * window for f in range(1 + (x.size - 400) // 160)]
+    )
     ref = np.log(np.maximum(np.abs(np.fft.rfft(frames, axis=1)) ** 2 @ mel_filterbank(), 1e-10))
     assert uncentred.shape == (1 + (x.size - 400) // 160, 80)
     np.testing.assert_allclose(uncentred, ref[: uncentred.shape[0]], atol=1e-4)
     reflect = np.asarray(log_mel(jnp.asarray(x), pad_mode="reflect"))
-    np.testing.assert_allclose(reflect[2:-2], centred[2:-2], atol=1e-9)  # padding only touches the edges
+    np.testing.assert_allclose(
+        reflect[2:-2], centred[2:-2], atol=1e-9
+    )  # padding only touches the edges
     assert not np.allclose(reflect[0], centred[0])
 
 

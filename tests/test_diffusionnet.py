@@ -27,11 +27,20 @@ def mesh_ops():
 CFG = dn.DiffusionNetConfig(in_features=3, out_features=2, width=8, num_blocks=2, mlp_hidden=(8,))
 
 
-def init_params(ops_j, x, key, cfg=CFG):
-    params = dn.DiffusionNet(cfg).init(key, x, ops_j)
-    # Non-zero diffusion times so that the test exercises the spectral path, not only t = 1e-8.
+
+@jax.jit
+def apply_one(params, x, ops):
+    return dn.DiffusionNet(CFG).apply(params, x, ops)
+
+
+@pytest.fixture(scope="module")
+def params(mesh_ops):
+    """One set of weights for every test (they do not depend on the vertex count)."""
+    v, _, ops = mesh_ops
+    init = jax.jit(dn.DiffusionNet(CFG).init)(jax.random.key(0), jnp.asarray(v, jnp.float32), dn.to_diffusion_operators(ops))
+    # Non-zero diffusion times so that the tests exercise the spectral path, not only t = 1e-8.
     return jax.tree_util.tree_map_with_path(
-        lambda path, p: p + 0.05 * (1 + jnp.arange(p.shape[0])) if "diffusion_time" in str(path) else p, params
+        lambda path, p: p + 0.05 * (1 + jnp.arange(p.shape[0])) if "diffusion_time" in str(path) else p, init
     )
 
 
@@ -56,7 +65,7 @@ def test_long_time_diffusion_tends_to_mass_weighted_mean(mesh_ops):
     mean = (ops.mass[:, None] * np.asarray(x)).sum(0) / ops.mass.sum()
     np.testing.assert_allclose(out, np.broadcast_to(mean, out.shape), atol=1e-4)
     # Intermediate times interpolate: the deviation from the mean shrinks monotonically.
-    dev = [float(jnp.abs(dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.full(3, t)) - mean).max()) for t in (0.01, 0.1, 1.0)]
+    dev = [float(jnp.abs(dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.full(3, t)) - mean[None, :]).max()) for t in (0.01, 0.1, 1.0)]
     assert dev[0] > dev[1] > dev[2]
 
 
@@ -72,20 +81,18 @@ def test_gradient_layout_matches_sparse_matvec(mesh_ops):
     np.testing.assert_array_equal(gx[n:], 0.0)
 
 
-def test_outputs_permute_with_vertices(mesh_ops, key):
+def test_outputs_permute_with_vertices(mesh_ops, params):
     v, f, ops = mesh_ops
     perm = np.random.default_rng(3).permutation(len(v))
     ops_p = compute_operators(v[perm], np.argsort(perm)[f], 24)
     x = jnp.asarray(v, jnp.float32)
     d, d_p = dn.to_diffusion_operators(ops), dn.to_diffusion_operators(ops_p)
-    params = init_params(d, x, key)
-    model = dn.DiffusionNet(CFG)
-    out = model.apply(params, x, d)
-    out_p = model.apply(params, x[perm], d_p)
+    out = apply_one(params, x, d)
+    out_p = apply_one(params, x[perm], d_p)
     np.testing.assert_allclose(out_p, out[perm], atol=2e-4, rtol=1e-3)
 
 
-def test_padding_does_not_change_real_vertices(key):
+def test_padding_does_not_change_real_vertices(params):
     meshes = [bumpy_sphere(1, 4), bumpy_sphere(2, 5)]
     ops_list = [compute_operators(v, f, 16) for v, f in meshes]
     stacked = dn.stack_operators(ops_list, num_vertices=180)
@@ -95,35 +102,33 @@ def test_padding_does_not_change_real_vertices(key):
         x[i, : len(v)] = v
         x[i, len(v) :] = rng.standard_normal((180 - len(v), 3))  # garbage in padding rows
     single = [dn.to_diffusion_operators(o) for o in ops_list]
-    params = init_params(single[0], x[0, : len(meshes[0][0])], key)
     batched = dn.apply_meshes(CFG, params, jnp.asarray(x), stacked)
     for i, (v, _) in enumerate(meshes):
-        alone = dn.DiffusionNet(CFG).apply(params, jnp.asarray(v, jnp.float32), single[i])
+        alone = apply_one(params, jnp.asarray(v, jnp.float32), single[i])
         np.testing.assert_allclose(batched[i, : len(v)], alone, atol=1e-5)
 
 
-def test_apply_frames_matches_per_frame_apply(mesh_ops, key):
+def test_apply_frames_matches_per_frame_apply(mesh_ops, params):
     v, _, ops = mesh_ops
     d = dn.to_diffusion_operators(ops)
     frames = jnp.asarray(v[None] * np.linspace(0.5, 1.5, 4)[:, None, None], jnp.float32)
-    params = init_params(d, frames[0], key)
     out = dn.apply_frames(CFG, params, frames, d)
     assert out.shape == (4, len(v), 2)
     for t in range(4):
-        np.testing.assert_allclose(out[t], dn.DiffusionNet(CFG).apply(params, frames[t], d), atol=1e-5)
+        np.testing.assert_allclose(out[t], apply_one(params, frames[t], d), atol=1e-5)
 
 
-def test_diffusion_time_starts_at_zero_and_receives_gradient(mesh_ops, key):
+def test_diffusion_time_starts_at_zero_and_receives_gradient(mesh_ops, params):
     v, _, ops = mesh_ops
     d = dn.to_diffusion_operators(ops)
     x = jnp.asarray(v, jnp.float32)
-    params = dn.DiffusionNet(CFG).init(key, x, d)
-    assert float(jnp.abs(params["params"]["block_0"]["diffusion"]["diffusion_time"]).max()) == 0.0
-
-    def loss(p):
-        return jnp.sum(dn.DiffusionNet(CFG).apply(p, x, d) ** 2)
-
-    grads = jax.grad(loss)(params)
+    fresh = jax.jit(dn.DiffusionNet(CFG).init)(jax.random.key(1), x, d)
+    assert float(jnp.abs(fresh["params"]["block_0"]["diffusion"]["diffusion_time"]).max()) == 0.0
+    # The weights of ``params`` with the times set back to their initial value 0.
+    at_zero = jax.tree_util.tree_map_with_path(
+        lambda path, p: jnp.zeros_like(p) if "diffusion_time" in str(path) else p, params
+    )
+    grads = jax.grad(lambda p: jnp.sum(apply_one(p, x, d) ** 2))(at_zero)
     # A plain maximum(t, 1e-8) would give exactly zero here and t could never move.
     assert float(jnp.abs(grads["params"]["block_0"]["diffusion"]["diffusion_time"]).max()) > 0
 
@@ -143,7 +148,7 @@ def test_time_gradient_matches_finite_differences(mesh_ops, float64):
     np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 
-def test_shape_errors_are_clear(mesh_ops, key):
+def test_shape_errors_are_clear(mesh_ops, key):  # errors are raised at trace time, before compiling
     _, _, ops = mesh_ops
     d = dn.to_diffusion_operators(ops)
     with pytest.raises(ValueError, match=r"features must have shape \(V, 3\)"):

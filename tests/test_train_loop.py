@@ -192,7 +192,7 @@ def test_nan_batch_is_rejected_before_its_step(key):
     with pytest.raises(ValueError, match=r"\['x'\] at step 3 has 1 NaN/inf"):
         train(_mlp_loss, _mlp_params(key), _Batches(batches), CFG, key=key, progress=False)
     # With the check off, the NaN reaches the loss and the loop stops naming the step.
-    with pytest.raises(NonFiniteLossError, match="at step 3") as info:
+    with pytest.raises(NonFiniteLossError, match="at step 3") as info, pytest.warns(UserWarning, match="ended after step 3"):
         train(_mlp_loss, _mlp_params(key), _Batches(batches), CFG, key=key, progress=False, check_batches=False)
     assert info.value.step == 3 and [h["step"] for h in info.value.history] == [1, 2]
 

@@ -9,9 +9,25 @@ vector-quantised tokenizers.
 * ``VQTokenizer`` / ``TokenStream``: k-means token ids + embedding tables at a chosen rate and width.
 """
 
-from jaxtalk.audio.framerate import default_num_frames, interpolation_plan, resample_features
-from jaxtalk.audio.io import check_audio, load_audio, rational_ratio, resample_audio, save_audio
-from jaxtalk.audio.melspec import hz_to_mel, log_mel, mel_filterbank, mel_to_hz, num_frames
+from jaxtalk.audio.framerate import (
+    default_num_frames,
+    interpolation_plan,
+    resample_features,
+)
+from jaxtalk.audio.io import (
+    check_audio,
+    load_audio,
+    rational_ratio,
+    resample_audio,
+    save_audio,
+)
+from jaxtalk.audio.melspec import (
+    hz_to_mel,
+    log_mel,
+    mel_filterbank,
+    mel_to_hz,
+    num_frames,
+)
 from jaxtalk.audio.tokenizer import TokenStream, VQTokenizer
 
 __all__ = [

@@ -46,7 +46,11 @@ def default_num_frames(num_input: int, src_rate: float | int, dst_rate: float | 
 
 
 def interpolation_plan(
-    num_input: int, src_rate: float | int, dst_rate: float | int, num_frames: int, mode: str = "linear"
+    num_input: int,
+    src_rate: float | int,
+    dst_rate: float | int,
+    num_frames: int,
+    mode: str = "linear",
 ) -> tuple[Int[np.ndarray, " out"], Int[np.ndarray, " out"], Float[np.ndarray, " out"]]:
     """Gather indices and weights: ``out[j] = (1 - w[j]) * x[lo[j]] + w[j] * x[hi[j]]``.
 
@@ -72,7 +76,11 @@ def interpolation_plan(
         raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
     if num_input < 1:
         raise ValueError(f"need at least one input frame, got {num_input}")
-    if isinstance(num_frames, bool) or not isinstance(num_frames, (int, np.integer)) or num_frames < 1:
+    if (
+        isinstance(num_frames, bool)
+        or not isinstance(num_frames, (int, np.integer))
+        or num_frames < 1
+    ):
         raise ValueError(f"num_frames must be a positive integer, got {num_frames!r}")
     ratio = _as_fraction(src_rate, "src_rate") / _as_fraction(dst_rate, "dst_rate")
     num, den = ratio.numerator, ratio.denominator
@@ -126,6 +134,8 @@ def resample_features(
         ValueError: for a non-2-D or empty stream, NaN/inf values (when ``x`` is concrete), a
             non-positive rate or length, or an unknown mode.
     """
+    # Check finiteness on the host when the input is NumPy (no device round trip, no compile).
+    finite = bool(np.all(np.isfinite(x))) if isinstance(x, np.ndarray) else None
     if not isinstance(x, jax.core.Tracer):
         x = jnp.asarray(x)
     if x.ndim != 2:
@@ -135,6 +145,8 @@ def resample_features(
     if num_frames is None:
         num_frames = default_num_frames(x.shape[0], src_rate, dst_rate)
     lo, hi, weight = interpolation_plan(x.shape[0], src_rate, dst_rate, num_frames, mode)
-    if not isinstance(x, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(x))):
+    if finite is None and not isinstance(x, jax.core.Tracer):
+        finite = bool(jnp.all(jnp.isfinite(x)))
+    if finite is False:
         raise ValueError("resample_features: the stream contains NaN or inf values")
     return _blend(x, jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(weight, dtype=x.dtype))

@@ -41,8 +41,8 @@ def rational_ratio(src_rate: float | int, dst_rate: float | int) -> tuple[int, i
         dst_rate: output rate in Hz (> 0).
 
     Returns:
-        ``(up, down)``, coprime positive integers, exact for integer rates up to 32768 Hz (and others whose ratio
-        has small terms), otherwise the best approximation with ``down <= 32768``.
+        ``(up, down)``, coprime positive integers: exact for integer rates up to 32768 Hz (and
+        others whose ratio has small terms), otherwise the best approximation with down <= 32768.
 
     Raises:
         ValueError: for a non-positive or non-finite rate.
@@ -111,7 +111,9 @@ def check_audio(
         ValueError: naming ``name`` and the offending property.
     """
     if audio.ndim != 1:
-        raise ValueError(f"{name}: expected mono audio of shape (samples,), got shape {audio.shape}")
+        raise ValueError(
+            f"{name}: expected mono audio of shape (samples,), got shape {audio.shape}"
+        )
     if audio.size == 0:
         raise ValueError(f"{name}: audio is empty (0 samples)")
     finite = np.isfinite(audio)

@@ -119,12 +119,32 @@ def _hann_window(win_length: int, n_fft: int) -> np.ndarray:
 @functools.partial(
     jax.jit,
     static_argnames=(
-        "sample_rate", "n_mels", "n_fft", "hop_length", "win_length", "f_min", "f_max", "center",
-        "pad_mode", "log_floor",
+        "sample_rate",
+        "n_mels",
+        "n_fft",
+        "hop_length",
+        "win_length",
+        "f_min",
+        "f_max",
+        "center",
+        "pad_mode",
+        "log_floor",
     ),
 )
-def _log_mel(audio, *, sample_rate, n_mels, n_fft, hop_length, win_length, f_min, f_max, center,
-             pad_mode, log_floor):
+def _log_mel(
+    audio,
+    *,
+    sample_rate,
+    n_mels,
+    n_fft,
+    hop_length,
+    win_length,
+    f_min,
+    f_max,
+    center,
+    pad_mode,
+    log_floor,
+):
     batch_shape, samples = audio.shape[:-1], audio.shape[-1]
     x = audio.reshape(-1, samples)
     if center:
@@ -185,14 +205,20 @@ def log_mel(
         ValueError: for an empty or NaN/inf signal, a signal too short for the framing, or invalid
             STFT/mel settings (names the value).
     """
+    # Check finiteness on the host when the input is NumPy (no device round trip, no compile).
+    host_finite = bool(np.all(np.isfinite(audio))) if isinstance(audio, np.ndarray) else None
     if not isinstance(audio, jax.core.Tracer):
         audio = jnp.asarray(audio)
     if audio.ndim < 1 or audio.shape[-1] == 0:
-        raise ValueError(f"log_mel needs a (*batch, samples) signal with samples > 0, got {audio.shape}")
+        raise ValueError(
+            f"log_mel needs a (*batch, samples) signal with samples > 0, got {audio.shape}"
+        )
     if not jnp.issubdtype(audio.dtype, jnp.floating):
         raise ValueError(f"log_mel needs a float signal, got dtype {audio.dtype}")
     if n_fft < 2 or hop_length < 1:
-        raise ValueError(f"need n_fft >= 2 and hop_length >= 1, got n_fft={n_fft}, hop_length={hop_length}")
+        raise ValueError(
+            f"need n_fft >= 2 and hop_length >= 1, got n_fft={n_fft}, hop_length={hop_length}"
+        )
     win_length = n_fft if win_length is None else win_length
     if not 1 <= win_length <= n_fft:
         raise ValueError(f"need 1 <= win_length <= n_fft={n_fft}, got win_length={win_length}")
@@ -208,13 +234,27 @@ def log_mel(
     if not center and samples < n_fft:
         raise ValueError(f"center=False needs at least n_fft = {n_fft} samples, got {samples}")
     # Validates the mel settings (and caches the bank) before tracing.
-    mel_filterbank(int(sample_rate), int(n_fft), int(n_mels), float(f_min),
-                   None if f_max is None else float(f_max))
-    if not isinstance(audio, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(audio))):
+    mel_filterbank(
+        int(sample_rate),
+        int(n_fft),
+        int(n_mels),
+        float(f_min),
+        None if f_max is None else float(f_max),
+    )
+    if host_finite is None and not isinstance(audio, jax.core.Tracer):
+        host_finite = bool(jnp.all(jnp.isfinite(audio)))
+    if host_finite is False:
         raise ValueError("log_mel: audio contains NaN or inf samples")
     return _log_mel(
-        audio, sample_rate=int(sample_rate), n_mels=int(n_mels), n_fft=int(n_fft),
-        hop_length=int(hop_length), win_length=int(win_length), f_min=float(f_min),
-        f_max=None if f_max is None else float(f_max), center=bool(center), pad_mode=pad_mode,
+        audio,
+        sample_rate=int(sample_rate),
+        n_mels=int(n_mels),
+        n_fft=int(n_fft),
+        hop_length=int(hop_length),
+        win_length=int(win_length),
+        f_min=float(f_min),
+        f_max=None if f_max is None else float(f_max),
+        center=bool(center),
+        pad_mode=pad_mode,
         log_floor=float(log_floor),
     )

@@ -36,7 +36,7 @@ import numpy as np
 from jaxtyping import Float, Int
 from scipy.cluster.vq import kmeans2
 
-from jaxtalk.audio.framerate import resample_features
+from jaxtalk.audio.framerate import _as_fraction, resample_features
 from jaxtalk.audio.io import check_audio
 from jaxtalk.audio.melspec import _log_mel, mel_filterbank, num_frames
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array
@@ -49,10 +49,6 @@ _FORMAT_VERSION = 1
 # the frames inside the clip (centred frames already see zeros past the end).
 _BUCKET_SECONDS = 2.0
 _MIN_FEATURE_SCALE = 1e-5
-
-
-def _fraction(value: float) -> Fraction:
-    return Fraction(str(float(value))).limit_denominator(1_000_000)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -72,7 +68,12 @@ class TokenStream:
 
     def __post_init__(self):
         emb = self.embeddings
-        if not isinstance(emb, np.ndarray) or emb.ndim != 2 or emb.shape[0] == 0 or emb.shape[1] == 0:
+        if (
+            not isinstance(emb, np.ndarray)
+            or emb.ndim != 2
+            or emb.shape[0] == 0
+            or emb.shape[1] == 0
+        ):
             raise ValueError(
                 f"embeddings must be a non-empty (tokens, width) array, got "
                 f"{getattr(emb, 'shape', type(emb))}"
@@ -82,7 +83,9 @@ class TokenStream:
         if self.ids is not None and self.ids.shape != emb.shape[:1]:
             raise ValueError(f"ids shape {self.ids.shape} does not match embeddings {emb.shape}")
         if not np.isfinite(self.rate) or self.rate <= 0:
-            raise ValueError(f"rate must be a positive number of tokens per second, got {self.rate!r}")
+            raise ValueError(
+                f"rate must be a positive number of tokens per second, got {self.rate!r}"
+            )
 
     def __len__(self) -> int:
         return int(self.embeddings.shape[0])
@@ -123,7 +126,9 @@ class TokenStream:
         if not isinstance(array, np.ndarray) or not np.issubdtype(array.dtype, np.number):
             raise ValueError(f"{str(path)!r}: expected a numeric array, got {type(array)}")
         if array.ndim != 2:
-            raise ValueError(f"{str(path)!r}: expected (frames, width) embeddings, got shape {array.shape}")
+            raise ValueError(
+                f"{str(path)!r}: expected (frames, width) embeddings, got shape {array.shape}"
+            )
         try:
             return cls(ids=None, embeddings=array.astype(np.float32), rate=float(rate))
         except ValueError as err:
@@ -138,14 +143,14 @@ class TokenStream:
 
 def _token_layout(samples: int, sample_rate: int, rate: float | int, hop_length: int, stack: int):
     """Static plan: (tokens, bucketed tokens, padded samples, sub-window id of every mel frame)."""
-    tokens_per_second = _fraction(rate) / sample_rate  # tokens per sample
-    tokens = max(1, math.ceil(samples * tokens_per_second))
+    tokens_per_sample = _as_fraction(rate, "rate") / sample_rate
+    tokens = max(1, math.ceil(samples * tokens_per_sample))
     per_bucket = max(1, round(_BUCKET_SECONDS * rate))
     bucket_tokens = -(-tokens // per_bucket) * per_bucket
-    padded = math.ceil(bucket_tokens / tokens_per_second)
+    padded = math.ceil(bucket_tokens / tokens_per_sample)
     frames = num_frames(padded, hop_length=hop_length, center=True)
     # Frame f is centred at f * hop / sr seconds; its sub-window is floor(time * rate * stack).
-    step = Fraction(hop_length) * tokens_per_second * stack
+    step = Fraction(hop_length) * tokens_per_sample * stack
     segment = (np.arange(frames, dtype=np.int64) * step.numerator) // step.denominator
     return tokens, bucket_tokens, padded, segment.astype(np.int32)
 
@@ -156,13 +161,24 @@ def _token_layout(samples: int, sample_rate: int, rate: float | int, hop_length:
 )
 def _pooled_features(audio, segment, *, num_tokens, stack, sample_rate, n_mels, n_fft, hop_length):
     mel = _log_mel(
-        audio, sample_rate=sample_rate, n_mels=n_mels, n_fft=n_fft, hop_length=hop_length,
-        win_length=n_fft, f_min=0.0, f_max=None, center=True, pad_mode="constant", log_floor=1e-10,
+        audio,
+        sample_rate=sample_rate,
+        n_mels=n_mels,
+        n_fft=n_fft,
+        hop_length=hop_length,
+        win_length=n_fft,
+        f_min=0.0,
+        f_max=None,
+        center=True,
+        pad_mode="constant",
+        log_floor=1e-10,
     )
     num_segments = num_tokens * stack
     # Frames past the last token window carry ids >= num_segments; segment_sum drops them.
     total = jax.ops.segment_sum(mel, segment, num_segments=num_segments)
-    count = jax.ops.segment_sum(jnp.ones_like(segment, dtype=mel.dtype), segment, num_segments=num_segments)
+    count = jax.ops.segment_sum(
+        jnp.ones_like(segment, dtype=mel.dtype), segment, num_segments=num_segments
+    )
     mean = total / jnp.maximum(count, 1)[:, None]
     return mean.reshape(num_tokens, stack * n_mels)
 
@@ -284,11 +300,16 @@ class VQTokenizer:
             raise ValueError(
                 f"need num_codes, width, iterations >= 1, got {num_codes}, {width}, {iterations}"
             )
-        hop_length, n_fft = round(sample_rate / 100), round(sample_rate / 40)  # 10 ms hop, 25 ms window
+        hop_length, n_fft = (
+            round(sample_rate / 100),
+            round(sample_rate / 40),
+        )  # 10 ms hop, 25 ms window
         _check_layout(rate, sample_rate, hop_length, stack)
         mel_filterbank(sample_rate, n_fft, n_mels)  # validates n_mels early
         feats = [
-            _features(np.asarray(a), sample_rate, rate, n_mels, n_fft, hop_length, stack, f"audios[{i}]")
+            _features(
+                np.asarray(a), sample_rate, rate, n_mels, n_fft, hop_length, stack, f"audios[{i}]"
+            )
             for i, a in enumerate(audios)
         ]
         data = np.concatenate(feats, axis=0).astype(np.float64)
@@ -302,7 +323,12 @@ class VQTokenizer:
         scale = np.maximum(data.std(axis=0), _MIN_FEATURE_SCALE)
         z = (data - mean) / scale
         centroids, _ = kmeans2(
-            z, num_codes, iter=iterations, minit="++", missing="warn", seed=np.random.default_rng(seed)
+            z,
+            num_codes,
+            iter=iterations,
+            minit="++",
+            missing="warn",
+            seed=np.random.default_rng(seed),
         )
         projected = (centroids - centroids.mean(axis=0)) @ _random_isometry(z.shape[1], width, seed)
         rms = np.sqrt(np.mean(projected**2))
@@ -321,18 +347,28 @@ class VQTokenizer:
             seed=int(seed),
         )
 
-    def features(self, audio: Float[np.ndarray | Array, " samples"]) -> Float[np.ndarray, "tokens features"]:
+    def features(
+        self, audio: Float[np.ndarray | Array, " samples"]
+    ) -> Float[np.ndarray, "tokens features"]:
         """Raw (unstandardised) pooled log-mel features, one row per token window.
 
         Raises:
             ValueError: for a non 1-D, empty or NaN/inf signal.
         """
         return _features(
-            np.asarray(audio), self.sample_rate, self.rate, self.n_mels, self.n_fft, self.hop_length,
-            self.stack, "audio",
+            np.asarray(audio),
+            self.sample_rate,
+            self.rate,
+            self.n_mels,
+            self.n_fft,
+            self.hop_length,
+            self.stack,
+            "audio",
         )
 
-    def quantize(self, features: Float[np.ndarray | Array, "tokens features"]) -> Int[np.ndarray, " tokens"]:
+    def quantize(
+        self, features: Float[np.ndarray | Array, "tokens features"]
+    ) -> Int[np.ndarray, " tokens"]:
         """Nearest codebook entry (Euclidean, standardised space) of each feature row.
 
         Raises:
@@ -354,7 +390,9 @@ class VQTokenizer:
         """
         ids = np.asarray(ids)
         if ids.size and (ids.min() < 0 or ids.max() >= self.num_codes):
-            raise ValueError(f"token ids must lie in [0, {self.num_codes}), got [{ids.min()}, {ids.max()}]")
+            raise ValueError(
+                f"token ids must lie in [0, {self.num_codes}), got [{ids.min()}, {ids.max()}]"
+            )
         return self.embedding[ids]
 
     def encode(self, audio: Float[np.ndarray | Array, " samples"]) -> TokenStream:
@@ -415,10 +453,14 @@ class VQTokenizer:
             with np.load(path, allow_pickle=False) as data:
                 missing = [k for k in ("format_version", "rate", *arrays, *ints) if k not in data]
                 if missing:
-                    raise ValueError(f"{str(path)!r} is not a VQTokenizer file: missing keys {missing}")
+                    raise ValueError(
+                        f"{str(path)!r} is not a VQTokenizer file: missing keys {missing}"
+                    )
                 version = int(data["format_version"])
                 if version != _FORMAT_VERSION:
-                    raise ValueError(f"{str(path)!r}: unsupported tokenizer format version {version}")
+                    raise ValueError(
+                        f"{str(path)!r}: unsupported tokenizer format version {version}"
+                    )
                 kwargs = {k: np.array(data[k], dtype=np.float32) for k in arrays}
                 kwargs.update({k: int(data[k]) for k in ints})
                 kwargs["rate"] = float(data["rate"])
@@ -442,11 +484,19 @@ def _check_layout(rate: float | int, sample_rate: int, hop_length: int, stack: i
 
 def _features(audio, sample_rate, rate, n_mels, n_fft, hop_length, stack, name):
     check_audio(audio, sample_rate, min_duration=0.0, allow_silence=True, name=name)
-    tokens, bucket_tokens, padded, segment = _token_layout(audio.size, sample_rate, rate, hop_length, stack)
+    tokens, bucket_tokens, padded, segment = _token_layout(
+        audio.size, sample_rate, rate, hop_length, stack
+    )
     signal = np.zeros(padded, dtype=np.float32)
     signal[: audio.size] = audio
     pooled = _pooled_features(
-        jnp.asarray(signal), jnp.asarray(segment), num_tokens=bucket_tokens, stack=stack,
-        sample_rate=sample_rate, n_mels=n_mels, n_fft=n_fft, hop_length=hop_length,
+        jnp.asarray(signal),
+        jnp.asarray(segment),
+        num_tokens=bucket_tokens,
+        stack=stack,
+        sample_rate=sample_rate,
+        n_mels=n_mels,
+        n_fft=n_fft,
+        hop_length=hop_length,
     )
     return np.asarray(pooled[:tokens])

@@ -84,41 +84,15 @@ class MotionClip:
     subject: str | None = None
 
     def __post_init__(self):
-        if not np.isfinite(self.fps) or self.fps <= 0:
-            raise ValueError(f"{self.name}: fps must be positive, got {self.fps!r}")
-        streams = {k: getattr(self, k) for k in ("params", "vertices", "features")}
-        present = {k: v for k, v in streams.items() if v is not None}
-        if not present:
-            raise ValueError(f"{self.name}: a MotionClip needs params, vertices or features")
-        expected_ndim = {"params": 2, "vertices": 3, "features": 2}
-        for key, value in present.items():
-            if not isinstance(value, np.ndarray) or value.ndim != expected_ndim[key]:
-                raise ValueError(
-                    f"{self.name}: {key} must be a {expected_ndim[key]}-D array, got "
-                    f"{getattr(value, 'shape', type(value))}"
-                )
-            if value.shape[0] == 0:
-                raise ValueError(f"{self.name}: {key} has zero frames")
-            if not np.all(np.isfinite(value)):
-                raise ValueError(f"{self.name}: {key} contains NaN or inf values")
-        if self.params is not None and self.params.shape[1] != PARAM_DIM:
-            raise ValueError(f"{self.name}: params must be (frames, {PARAM_DIM}), got {self.params.shape}")
-        if self.vertices is not None and self.vertices.shape[2] != 3:
-            raise ValueError(f"{self.name}: vertices must be (frames, verts, 3), got {self.vertices.shape}")
-        lengths = {k: v.shape[0] for k, v in present.items()}
-        if len(set(lengths.values())) > 1:
-            raise ValueError(f"{self.name}: streams disagree on the number of frames: {lengths}")
-        if self.template is not None:
-            verts = None if self.vertices is None else self.vertices.shape[1]
-            if self.template.ndim != 2 or self.template.shape[1] != 3 or (
-                verts is not None and self.template.shape[0] != verts
-            ):
-                raise ValueError(
-                    f"{self.name}: template must be (verts, 3) matching the vertices"
-                    f"{'' if verts is None else f' ({verts})'}, got {self.template.shape}"
-                )
-        if self.audio is not None and (self.audio.ndim != 1 or self.audio.size == 0):
-            raise ValueError(f"{self.name}: audio must be a non-empty (samples,) array, got {self.audio.shape}")
+        _check_clip_fields(
+            self.name,
+            self.fps,
+            self.params,
+            self.vertices,
+            self.template,
+            self.features,
+            self.audio,
+        )
 
     @property
     def num_frames(self) -> int:
@@ -161,6 +135,63 @@ class MotionClip:
         )
 
 
+def _check_clip_fields(name, fps, params, vertices, template, features, audio) -> None:
+    # Plain (unannotated) so that readers can run it before MotionClip's typed __init__: bad files
+    # then fail with this ValueError rather than a type-checker error.
+    if not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"{name}: fps must be positive, got {fps!r}")
+    streams = {"params": params, "vertices": vertices, "features": features}
+    present = {k: v for k, v in streams.items() if v is not None}
+    if not present:
+        raise ValueError(f"{name}: a MotionClip needs params, vertices or features")
+    expected_ndim = {"params": 2, "vertices": 3, "features": 2}
+    for key, value in present.items():
+        if not isinstance(value, np.ndarray) or value.ndim != expected_ndim[key]:
+            raise ValueError(
+                f"{name}: {key} must be a {expected_ndim[key]}-D array, got "
+                f"{getattr(value, 'shape', type(value))}"
+            )
+        if value.shape[0] == 0:
+            raise ValueError(f"{name}: {key} has zero frames")
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"{name}: {key} contains NaN or inf values")
+    if params is not None and params.shape[1] != PARAM_DIM:
+        raise ValueError(f"{name}: params must be (frames, {PARAM_DIM}), got {params.shape}")
+    if vertices is not None and vertices.shape[2] != 3:
+        raise ValueError(f"{name}: vertices must be (frames, verts, 3), got {vertices.shape}")
+    lengths = {k: v.shape[0] for k, v in present.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"{name}: streams disagree on the number of frames: {lengths}")
+    if template is not None:
+        verts = None if vertices is None else vertices.shape[1]
+        if (
+            template.ndim != 2
+            or template.shape[1] != 3
+            or (verts is not None and template.shape[0] != verts)
+        ):
+            raise ValueError(
+                f"{name}: template must be (verts, 3) matching the vertices"
+                f"{'' if verts is None else f' ({verts})'}, got {template.shape}"
+            )
+    if audio is not None and (audio.ndim != 1 or audio.size == 0):
+        raise ValueError(f"{name}: audio must be a non-empty (samples,) array, got {audio.shape}")
+
+
+def _make_clip(path: Path, **fields) -> MotionClip:
+    """Validate the fields (ValueError naming the file) and build the clip."""
+    try:
+        _check_clip_fields(
+            fields["name"],
+            fields["fps"],
+            *(fields.get(k) for k in ("params", "vertices", "template")),
+            fields.get("features"),
+            fields.get("audio"),
+        )
+    except ValueError as err:
+        raise ValueError(f"{str(path)!r}: {err}") from err
+    return MotionClip(**fields)
+
+
 def _open_npz(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise FileNotFoundError(f"motion file not found: {str(path)!r}")
@@ -168,7 +199,9 @@ def _open_npz(path: Path) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
     except (ValueError, OSError, EOFError) as err:
-        raise ValueError(f"{str(path)!r}: cannot read as a (pickle-free) .npz file ({err})") from err
+        raise ValueError(
+            f"{str(path)!r}: cannot read as a (pickle-free) .npz file ({err})"
+        ) from err
 
 
 def _require_keys(data: dict, keys: tuple[str, ...], path: Path, layout: str) -> None:
@@ -182,7 +215,9 @@ def _require_keys(data: dict, keys: tuple[str, ...], path: Path, layout: str) ->
 def _float_array(value, what: str, path: Path, ndim: int) -> np.ndarray:
     array = np.asarray(value)
     if not np.issubdtype(array.dtype, np.number) or array.ndim != ndim:
-        raise ValueError(f"{str(path)!r}: {what} must be a numeric {ndim}-D array, got {array.dtype} {array.shape}")
+        raise ValueError(
+            f"{str(path)!r}: {what} must be a numeric {ndim}-D array, got {array.dtype} {array.shape}"
+        )
     return array.astype(np.float32)
 
 
@@ -200,7 +235,10 @@ def _load_audio_beside(wav: Path | None, load: bool, require: bool, source: Path
 def dualtalk_to_params56(
     exp: Float[np.ndarray, "frames 50"], pose: Float[np.ndarray, "frames 6"]
 ) -> Float[np.ndarray, "frames 56"]:
-    """DualTalk's ``exp``/``pose`` to jaxtalk's ``[exp | jaw | neck]`` (jaw = pose[:, 3:], neck = pose[:, :3])."""
+    """DualTalk's ``exp``/``pose`` to jaxtalk's ``[exp | jaw | neck]``.
+
+    Jaw is ``pose[:, 3:]`` and neck (global head rotation) is ``pose[:, :3]``.
+    """
     return np.concatenate([exp, pose[:, 3:6], pose[:, 0:3]], axis=1)
 
 
@@ -233,22 +271,28 @@ def read_dualtalk(
     exp = _float_array(data["exp"], "exp", path, 2)
     pose = _float_array(data["pose"], "pose", path, 2)
     if exp.shape[1] != EXP_DIM or pose.shape[1] != 6:
-        raise ValueError(f"{str(path)!r}: expected exp (T, {EXP_DIM}) and pose (T, 6), got {exp.shape}, {pose.shape}")
+        raise ValueError(
+            f"{str(path)!r}: expected exp (T, {EXP_DIM}) and pose (T, 6), got {exp.shape}, {pose.shape}"
+        )
     if exp.shape[0] != pose.shape[0]:
-        raise ValueError(f"{str(path)!r}: exp has {exp.shape[0]} frames but pose has {pose.shape[0]}")
+        raise ValueError(
+            f"{str(path)!r}: exp has {exp.shape[0]} frames but pose has {pose.shape[0]}"
+        )
     audio, wav = _load_audio_beside(path.with_suffix(".wav"), load_audio, require_audio, path)
     partner = None
     for own, other in (("_speaker1", "_speaker2"), ("_speaker2", "_speaker1")):
         if path.stem.endswith(own):
             candidate = path.with_name(path.stem[: -len(own)] + other + ".wav")
             partner = candidate if candidate.is_file() else None
-    try:
-        return MotionClip(
-            name=path.stem, fps=float(fps), params=dualtalk_to_params56(exp, pose), audio=audio,
-            audio_path=wav, partner_audio_path=partner,
-        )
-    except ValueError as err:
-        raise ValueError(f"{str(path)!r}: {err}") from err
+    return _make_clip(
+        path,
+        name=path.stem,
+        fps=float(fps),
+        params=dualtalk_to_params56(exp, pose),
+        audio=audio,
+        audio_path=wav,
+        partner_audio_path=partner,
+    )
 
 
 def read_vocaset_templates(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -284,7 +328,9 @@ def read_vocaset_templates(path: str | os.PathLike) -> dict[str, np.ndarray]:
         if template.ndim == 1 and template.size % 3 == 0:
             template = template.reshape(-1, 3)
         if template.ndim != 2 or template.shape[1] != 3:
-            raise ValueError(f"{str(path)!r}: template of {subject!r} must be (V, 3), got {template.shape}")
+            raise ValueError(
+                f"{str(path)!r}: template of {subject!r} must be (V, 3), got {template.shape}"
+            )
         out[str(subject)] = template.astype(np.float32)
     return out
 
@@ -331,7 +377,9 @@ def read_vocaset(
     if verts.ndim == 2 and verts.shape[1] % 3 == 0:
         verts = verts.reshape(verts.shape[0], -1, 3)
     if verts.ndim != 3 or verts.shape[2] != 3:
-        raise ValueError(f"{str(path)!r}: expected (T, V*3) or (T, V, 3) vertices, got shape {verts.shape}")
+        raise ValueError(
+            f"{str(path)!r}: expected (T, V*3) or (T, V, 3) vertices, got shape {verts.shape}"
+        )
     root = path.parent.parent
     subject = path.stem.rsplit("_", 1)[0] if "_" in path.stem else path.stem
     if templates is None:
@@ -352,13 +400,16 @@ def read_vocaset(
             )
     wav = Path(wav_path) if wav_path is not None else root / "wav" / f"{path.stem}.wav"
     audio, wav = _load_audio_beside(wav, load_audio, require_audio, path)
-    try:
-        clip = MotionClip(
-            name=path.stem, fps=float(fps), vertices=verts.astype(np.float32), template=template,
-            audio=audio, audio_path=wav, subject=subject,
-        )
-    except ValueError as err:
-        raise ValueError(f"{str(path)!r}: {err}") from err
+    clip = _make_clip(
+        path,
+        name=path.stem,
+        fps=float(fps),
+        vertices=verts.astype(np.float32),
+        template=template,
+        audio=audio,
+        audio_path=wav,
+        subject=subject,
+    )
     return clip if target_fps is None else clip.resampled(target_fps)
 
 
@@ -375,11 +426,14 @@ def read_npz(path: str | os.PathLike, *, load_audio: bool = True) -> MotionClip:
     _require_keys(data, ("fps",), path, "generic motion npz")
     if not any(k in data for k in ("params", "vertices", "features")):
         raise ValueError(
-            f"{str(path)!r}: needs at least one of 'params', 'vertices', 'features' (found {sorted(data)})"
+            f"{str(path)!r}: needs at least one of 'params', 'vertices', 'features' "
+            f"(found {sorted(data)})"
         )
     fps = np.asarray(data["fps"])
     if fps.shape != () or not np.issubdtype(fps.dtype, np.number):
-        raise ValueError(f"{str(path)!r}: 'fps' must be a numeric scalar, got {fps.dtype} {fps.shape}")
+        raise ValueError(
+            f"{str(path)!r}: 'fps' must be a numeric scalar, got {fps.dtype} {fps.shape}"
+        )
     streams = {
         key: _float_array(data[key], key, path, ndim)
         for key, ndim in (("params", 2), ("vertices", 3), ("features", 2), ("template", 2))
@@ -394,13 +448,15 @@ def read_npz(path: str | os.PathLike, *, load_audio: bool = True) -> MotionClip:
         audio_path = path.parent / str(data["audio_path"])
         audio, audio_path = _load_audio_beside(audio_path, load_audio, load_audio, path)
     name = str(data["name"]) if "name" in data else path.stem
-    try:
-        return MotionClip(
-            name=name, fps=float(fps), audio=audio, audio_path=audio_path, sample_rate=sample_rate,
-            **streams,
-        )
-    except ValueError as err:
-        raise ValueError(f"{str(path)!r}: {err}") from err
+    return _make_clip(
+        path,
+        name=name,
+        fps=float(fps),
+        audio=audio,
+        audio_path=audio_path,
+        sample_rate=sample_rate,
+        **streams,
+    )
 
 
 def save_npz(path: str | os.PathLike, clip: MotionClip) -> Path:
@@ -453,4 +509,6 @@ def read_clip(path: str | os.PathLike, **kwargs) -> MotionClip:
         if "fps" in keys:
             return read_npz(path, **kwargs)
         raise ValueError(f"{str(path)!r}: unrecognised npz layout (keys {sorted(keys)})")
-    raise ValueError(f"{str(path)!r}: unsupported file type {path.suffix!r} (expected .npz or .npy)")
+    raise ValueError(
+        f"{str(path)!r}: unsupported file type {path.suffix!r} (expected .npz or .npy)"
+    )

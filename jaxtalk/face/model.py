@@ -173,7 +173,9 @@ class LinearFaceModel:
         return len(self.parents)
 
     # ---- evaluation ------------------------------------------------------------------------------
-    def vertices(self, params: Float[ArrayLike, "56"]) -> Float[Array, "verts 3"]:
+    # Inputs are annotated loosely ("...") so that a wrong shape reaches the explicit ValueError below,
+    # which names the expected layout; outputs carry the exact shapes.
+    def vertices(self, params: Float[ArrayLike, "..."]) -> Float[Array, "verts 3"]:
         """Posed vertices of one frame.
 
         Args:
@@ -188,7 +190,7 @@ class LinearFaceModel:
         _check_params(params, batched=False)
         return _vertices_jit(self, params)
 
-    def vertices_seq(self, params: Float[ArrayLike, "frames 56"]) -> Float[Array, "frames verts 3"]:
+    def vertices_seq(self, params: Float[ArrayLike, "..."]) -> Float[Array, "frames verts 3"]:
         """Posed vertices of a sequence of frames (``vertices`` vmapped over frames).
 
         Args:
@@ -203,7 +205,7 @@ class LinearFaceModel:
         _check_params(params, batched=True)
         return _vertices_seq_jit(self, params)
 
-    def landmarks(self, params: Float[ArrayLike, "56"]) -> Float[Array, "68 3"]:
+    def landmarks(self, params: Float[ArrayLike, "..."]) -> Float[Array, "68 3"]:
         """The 68 semantic landmarks (iBUG order) of one posed frame.
 
         Args:
@@ -218,7 +220,7 @@ class LinearFaceModel:
         _check_params(params, batched=False)
         return _landmarks_jit(self, params)
 
-    def landmarks_seq(self, params: Float[ArrayLike, "frames 56"]) -> Float[Array, "frames 68 3"]:
+    def landmarks_seq(self, params: Float[ArrayLike, "..."]) -> Float[Array, "frames 68 3"]:
         """The 68 landmarks of a sequence of frames.
 
         Args:
@@ -233,7 +235,7 @@ class LinearFaceModel:
         _check_params(params, batched=True)
         return _landmarks_seq_jit(self, params)
 
-    def landmarks_from_vertices(self, vertices: Float[ArrayLike, "*batch verts 3"]) -> Float[Array, "*batch 68 3"]:
+    def landmarks_from_vertices(self, vertices: Float[ArrayLike, "..."]) -> Float[Array, "*batch 68 3"]:
         """Landmarks read off already-posed vertices (barycentric interpolation).
 
         Args:

@@ -16,8 +16,8 @@ Expression components are displacement fields ``(du, dv, dn)`` over the domain (
 domain units, ``dn`` in metres along the outward normal) pushed onto the surface through its Jacobian:
 small tangential slides of skin plus bulges. Units are chosen like FLAME's: one unit of a component
 moves skin by about 1-3 mm at its peak, except ``blink_l``/``blink_r``, where 1.0 means a fully
-closed lid (the upper lid travels the 7-8 mm eye opening) so a rule-based driver can write blinks as
-0-1 pulses. The jaw rotates about a joint behind the face (x-axis pitch; positive opens), with
+closed lid (the lids meet a quarter of the way up the 7-8 mm eye opening) so a rule-based driver
+can write blinks as 0-1 pulses. The jaw rotates about a joint behind the face (x-axis pitch; positive opens), with
 weights that switch sharply across the lip seam (the lower lip follows the jaw, the upper does not)
 and smoothly over the chin and lower cheeks; 0.3 rad drops the lower lip by about 2.5 cm.
 """
@@ -224,22 +224,26 @@ def face_grid(resolution: str = "default") -> FaceGrid:
 
 
 # ---- expression basis ---------------------------------------------------------------------------
-def _lid_profile(u, v, cx):
-    """Eyelid motion profile for the eye centred at u = cx, and the eye opening per column.
+def _lid_fields(u, v, cx):
+    """Blink and eye-widening fields (dv, domain units) for the eye centred at u = cx.
 
-    Returns ``(profile, opening)``: ``profile`` is 0 at and below the lower lid, rises linearly to 1
-    at the upper lid and decays over the lid skin above; ``opening`` is the upper-minus-lower lid
-    height (domain units) of the column, 0 outside the eye.
+    A blink collapses the lid opening onto a line a quarter of the way up from the lower lid: the
+    upper lid travels 3/4 of the opening, the lower lid 1/4, and the skin above/below follows with a
+    short fall-off. The field is linear in v across the opening, so its interpolation on a coarse
+    mesh still closes the lids. Eye widening lifts the upper lid and the lid skin above it.
     """
     q = (u - cx) / EYE_HW
     shape = np.sqrt(np.clip(1.0 - q**2, 0.0, None))
     upper = V_EYE + EYE_HH * shape
     lower = V_EYE - _LOWER_LID * EYE_HH * shape
     opening = upper - lower
-    inside = np.clip((v - lower) / np.maximum(opening, 1e-12), 0.0, 1.0)
+    h = np.clip((v - lower) / np.maximum(opening, 1e-12), 0.0, 1.0)
     above = np.exp(-((np.maximum(v - upper, 0.0) / 0.07) ** 2))
-    profile = np.where(v > upper, above, inside) * (shape > 0)
-    return profile, opening, shape
+    below = np.exp(-((np.maximum(lower - v, 0.0) / 0.04) ** 2))
+    meet = 0.25
+    blink = opening * np.where(v > upper, -(1 - meet) * above, np.where(v < lower, meet * below, meet - h))
+    widen = shape * np.where(v > upper, above, h)
+    return blink, widen
 
 
 def _expression_fields(u: np.ndarray, v: np.ndarray, seam_width: float) -> dict[str, tuple]:
@@ -286,9 +290,9 @@ def _expression_fields(u: np.ndarray, v: np.ndarray, seam_width: float) -> dict[
         f[f"brow_inner_up_{tag}"] = (zero, 0.03 * inner, zero)
         f[f"brow_outer_up_{tag}"] = (zero, 0.025 * outer, zero)
         f[f"brow_down_{tag}"] = (-0.01 * side * brow_in, -0.02 * brow, 0.001 * brow)
-        profile, opening, shape = _lid_profile(u, v, side * U_EYE)
-        f[f"blink_{tag}"] = (zero, -opening * profile, zero)
-        f[f"eye_wide_{tag}"] = (zero, 0.02 * shape * profile, zero)
+        blink, widen = _lid_fields(u, v, side * U_EYE)
+        f[f"blink_{tag}"] = (zero, blink, zero)
+        f[f"eye_wide_{tag}"] = (zero, 0.02 * widen, zero)
         cheek = _gauss(u, v, side * 0.42, -0.1, 0.17, 0.15)
         f[f"cheek_raise_{tag}"] = (zero, 0.02 * cheek, 0.002 * cheek)
         puff = _gauss(u, v, side * 0.38, -0.38, 0.15, 0.15)
@@ -368,7 +372,10 @@ def _jaw_weights(grid: FaceGrid) -> np.ndarray:
     ramp = np.clip((u - 0.8 * MOUTH_HW) / (0.7 * MOUTH_HW), 0.0, 1.0)
     ramp = ramp * ramp * (3 - 2 * ramp)
     width = _seam_width(grid) * 0.6 + (0.08 - _seam_width(grid) * 0.6) * ramp
-    return 0.5 * (1.0 + np.tanh((line - v) / (2.0 * width)))
+    weight = 0.5 * (1.0 + np.tanh((line - v) / (2.0 * width)))
+    # Taper to exactly zero above the jaw line (temples and upper face never follow the jaw).
+    taper = np.clip((line + 0.2 - v) / 0.15, 0.0, 1.0)
+    return weight * taper * taper * (3 - 2 * taper)
 
 
 # ---- regions and landmarks ----------------------------------------------------------------------
@@ -539,5 +546,6 @@ def builtin_face(identity: int = 0, *, resolution: str = "default") -> LinearFac
         parents=_PARENTS,
         neck_joint=1,
         jaw_joint=2,
-        name=f"builtin(identity={int(identity)}, resolution={resolution})",
+        # Static metadata: keep it identity-free so all identities share compiled programs.
+        name="builtin",
     )

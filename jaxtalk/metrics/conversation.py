@@ -76,7 +76,7 @@ def _features(x: AnyArray, name: str, min_rows: int = 1) -> np.ndarray:
     return arr
 
 
-def gaussian_statistics(features: Float[AnyArray, "samples dim"]) -> tuple[np.ndarray, np.ndarray]:
+def gaussian_statistics(features: Float[AnyArray, "samples *dim"]) -> tuple[np.ndarray, np.ndarray]:
     """Mean and covariance of a feature set, as DualTalk fits them.
 
     Args:
@@ -149,11 +149,11 @@ def gaussian_frechet_distance(mu1: Float[AnyArray, " dim"], cov1: Float[AnyArray
     return float(diff @ diff + np.trace(cov1) + np.trace(cov2) - 2.0 * np.trace(covmean))
 
 
-def frechet_distance(x: Float[AnyArray, "samples_x dim"], y: Float[AnyArray, "samples_y dim"]) -> float:
+def frechet_distance(x: Float[AnyArray, "samples_x *dim"], y: Float[AnyArray, "samples_y *dim"]) -> float:
     """Frechet distance between Gaussians fit (``gaussian_statistics``) to two feature sets.
 
     Args:
-        x: ``(N, D)`` samples, e.g. predicted frames of one group.
+        x: ``(N, D)`` samples, e.g. predicted frames of one group (1-D: ``(N, 1)``).
         y: ``(M, D)`` samples, e.g. ground-truth frames.
 
     Returns:

@@ -33,7 +33,8 @@ from jaxtalk.types import Array
 
 __all__ = ["lve", "mve", "fdd", "fdd_batch", "mod", "dtw", "dfd", "delta_m", "delta_cd", "jitter"]
 
-Index = Int[AnyArray, " n"] | Sequence[int]
+# Region index arrays: "_region" is documentation only (unchecked), so two regions may differ in size.
+Index = Int[AnyArray, " _region"] | Sequence[int]
 
 
 def _vertex_pair(pred: AnyArray, gt: AnyArray, min_frames: int = 1) -> tuple[jax.Array, jax.Array]:

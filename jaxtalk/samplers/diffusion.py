@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.samplers.flow import ApplyFn, _check_cond, _check_finite, guided_apply
+from jaxtalk.samplers.flow import ApplyFn, FloatLike, ShapedLike, _check_cond, _check_finite, guided_apply
 from jaxtalk.samplers.schedules import RespacedSchedule
 from jaxtalk.types import Array, Float, PRNGKeyArray
 
@@ -349,14 +349,14 @@ def _prepare(noise, cond, schedule, key, uncond, cfg_scale, eta, prediction, cli
 
 def sample_ddim(
     apply_fn: ApplyFn,
-    noise: Float[Array, "batch *dims"],
+    noise: FloatLike["batch *dims"],
     cond: Any,
     schedule: RespacedSchedule,
     key: PRNGKeyArray | Any,
     *,
     uncond: Any = None,
-    cfg_scale: Float[Array, ""] | float = 0.0,
-    eta: Float[Array, ""] | float = 0.0,
+    cfg_scale: ShapedLike["*scale"] | float | int = 0.0,
+    eta: ShapedLike["*scale"] | float | int = 0.0,
     prediction: str = "x0",
     clip: Sequence[ClipGroup] = (),
     variance: str = "fixed_small",
@@ -404,13 +404,13 @@ def sample_ddim(
 
 def sample_ddpm(
     apply_fn: ApplyFn,
-    noise: Float[Array, "batch *dims"],
+    noise: FloatLike["batch *dims"],
     cond: Any,
     schedule: RespacedSchedule,
     key: PRNGKeyArray | Any,
     *,
     uncond: Any = None,
-    cfg_scale: Float[Array, ""] | float = 0.0,
+    cfg_scale: ShapedLike["*scale"] | float | int = 0.0,
     prediction: str = "x0",
     clip: Sequence[ClipGroup] = (),
     variance: str = "fixed_small",

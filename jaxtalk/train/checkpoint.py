@@ -20,9 +20,16 @@ __all__ = ["Checkpointer", "save_checkpoint", "restore_checkpoint", "latest_chec
 PyTree = Any
 
 
-def _saveable(state: TrainState) -> TrainState:
-    # Orbax stores plain arrays; the typed key is stored as its raw uint32 data.
-    return state.replace(rng=jax.random.key_data(state.rng))
+def _saveable(state: TrainState) -> dict[str, PyTree]:
+    # A plain dict (orbax maps over the tree with None leaves, which a typed class would reject)
+    # and the typed key stored as its raw uint32 data.
+    return {
+        "step": state.step,
+        "params": state.params,
+        "opt_state": state.opt_state,
+        "ema_params": state.ema_params,
+        "rng": jax.random.key_data(state.rng),
+    }
 
 
 def _abstract(tree: PyTree) -> PyTree:
@@ -140,7 +147,13 @@ class Checkpointer:
         except Exception as err:  # orbax/tensorstore raise many types; name the path for the user
             raise ValueError(f"checkpoint {path} is corrupt or does not match the train state: {err}") from err
         impl = jax.random.key_impl(template.rng)
-        state = raw.replace(rng=jax.random.wrap_key_data(raw.rng, impl=impl))
+        state = TrainState(
+            step=raw["step"],
+            params=raw["params"],
+            opt_state=raw["opt_state"],
+            ema_params=raw["ema_params"],
+            rng=jax.random.wrap_key_data(raw["rng"], impl=impl),
+        )
         return state, dict(restored.data or {}), dict(restored.meta or {})
 
     def wait(self) -> None:
@@ -148,8 +161,13 @@ class Checkpointer:
         self._manager.wait_until_finished()
 
     def close(self) -> None:
-        """Finish pending saves and release the manager."""
+        """Finish pending saves (and the background removal of killed saves' tmp dirs); release."""
         self._manager.wait_until_finished()
+        # Orbax awaits its tmp-dir cleanup only inside save(); a run that saves nothing must not
+        # leave it pending at exit. (Private hook, guarded: absent in other orbax versions.)
+        await_cleanup = getattr(self._manager, "_maybe_await_cleanup_tmp_directory", None)
+        if await_cleanup is not None:
+            await_cleanup()
         self._manager.close()
 
     def __enter__(self) -> Checkpointer:

@@ -12,6 +12,7 @@ fetched values, so it never lets a NaN state reach a checkpoint.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import time
@@ -146,11 +147,10 @@ def train(
         variable_axes = tuple(getattr(data_iter, "variable_axes", ()))
 
     mask = trainable_mask(init_params, trainable)
-    tx = make_optimizer(config, mask)
+    tx, step_fn = _step_for(loss_fn, config, jax.tree.structure(mask), tuple(jax.tree.leaves(mask)), mesh)
     state = create_train_state(init_params, tx, key, ema=config.ema_decay is not None)
     if mesh is not None:
         state = replicate(state, mesh)
-    step_fn = make_train_step(loss_fn, tx, config, mask=mask, mesh=mesh)
 
     meta = {"config": config.to_dict(), **(metadata or {})}
     ckpt = None
@@ -199,6 +199,20 @@ def train(
             ckpt.close()
 
 
+@functools.lru_cache(maxsize=16)
+def _step_for(
+    loss_fn: LossFn, config: OptimConfig, mask_def: Any, mask_leaves: tuple[bool, ...], mesh: Mesh | None
+) -> tuple[Any, Callable]:
+    """The optimiser and jitted step for these static settings, built once per process.
+
+    A new closure per :func:`train` call would miss jit's cache and recompile; resuming or
+    re-running with the same loss function, config, mask and mesh reuses the compiled step.
+    """
+    mask = jax.tree.unflatten(mask_def, mask_leaves)
+    tx = make_optimizer(config, mask)
+    return tx, make_train_step(loss_fn, tx, config, mask=mask, mesh=mesh)
+
+
 @dataclasses.dataclass
 class _Loop:
     """Mutable driver state of one :func:`train` call (host side only)."""
@@ -224,6 +238,7 @@ class _Loop:
 
         self.history: list[dict] = []
         self.pending: list[tuple[int, dict]] = []
+        self.postfix: dict[str, str] = {}
         self.start = time.perf_counter()
         self.window = (int(self.state.step), self.start)  # (step, time) at the last fetch
         self.last_saved = self.ckpt.latest_step() if self.ckpt is not None else None
@@ -299,7 +314,8 @@ class _Loop:
         self.window = (last_step, now)
         self.pending = []
         self.bar.update(last_step - self.bar.n)
-        self.bar.set_postfix(loss=f"{self.history[-1]['loss']:.4g}", steps_per_s=f"{rate:.3g}", refresh=False)
+        self.postfix.update(loss=f"{self.history[-1]['loss']:.4g}", steps_per_s=f"{rate:.3g}")
+        self.bar.set_postfix(self.postfix, refresh=False)
 
     def _evaluate(self, step: int) -> None:
         self._flush()
@@ -310,7 +326,8 @@ class _Loop:
             self.history[-1]["eval"] = values
         else:
             self.history.append({"step": step, "eval": values, "time": time.perf_counter() - self.start})
-        self.bar.set_postfix({f"eval_{k}": f"{v:.4g}" for k, v in values.items()}, refresh=False)
+        self.postfix.update({f"eval_{k}": f"{v:.4g}" for k, v in values.items()})
+        self.bar.set_postfix(self.postfix, refresh=False)
 
     def _save(self, step: int, data_state: dict | None) -> None:
         # Flush first: a NaN loss raises here, before the NaN state can be written.

@@ -6,6 +6,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -65,10 +66,12 @@ def create_train_state(
     if not leaves:
         raise ValueError("params has no array leaves")
     for path, leaf in leaves:
-        arr = jnp.asarray(leaf)
-        if not jnp.issubdtype(arr.dtype, jnp.floating):
-            raise ValueError(f"parameter {jax.tree_util.keystr(path)} has dtype {arr.dtype}; parameters must be floating")
-        if not bool(jnp.all(jnp.isfinite(arr))):
+        if not jnp.issubdtype(jnp.result_type(leaf), jnp.floating):
+            raise ValueError(
+                f"parameter {jax.tree_util.keystr(path)} has dtype {jnp.result_type(leaf)}; parameters must be floating"
+            )
+        # On the host: a one-off pass that would otherwise compile a tiny kernel per leaf shape.
+        if not np.isfinite(np.asarray(leaf)).all():
             raise ValueError(f"parameter {jax.tree_util.keystr(path)} contains NaN or inf at initialisation")
     if not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         raise ValueError(f"key must be a typed PRNG key (jax.random.key), got dtype {key.dtype}")

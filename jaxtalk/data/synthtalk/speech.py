@@ -16,7 +16,7 @@ import numpy as np
 from scipy import signal
 
 from jaxtalk.data.synthtalk.emotions import VoiceChange
-from jaxtalk.data.synthtalk.phones import recipe
+from jaxtalk.data.synthtalk.phones import PHONE_INDEX, recipe
 from jaxtalk.data.synthtalk.script import Timeline
 from jaxtalk.data.synthtalk.speakers import SpeakerStyle
 
@@ -26,6 +26,17 @@ _XFADE = 0.008    # s, half-width of the cross-fade between neighbouring phones
 _PREROLL = 0.01   # s, filter warm-up before a slice so resonators do not start from rest
 _STOP_CLOSURE = 0.6  # fraction of a stop spent in closure before the burst
 _LEVEL = 0.08     # overall output scale (open vowel RMS of order 0.1)
+# F2 loci by place of articulation: a vowel next to a consonant has its F2 pulled toward the locus
+# and its F1 lowered (acoustic coarticulation), so the vowel itself tells which consonant is near,
+# as in real speech (labials pull F2 down, velars up).
+_F2_LOCUS = {"p": 750.0, "b": 750.0, "m": 800.0, "f": 1000.0, "v": 1000.0, "th": 1500.0,
+             "t": 1800.0, "d": 1800.0, "s": 1800.0, "z": 1800.0, "n": 1750.0, "l": 1300.0,
+             "k": 2300.0, "g": 2300.0, "sh": 2000.0, "w": 650.0, "r": 1250.0}
+_LOCUS = np.full(len(PHONE_INDEX), np.nan)
+for _p, _f in _F2_LOCUS.items():
+    _LOCUS[PHONE_INDEX[_p]] = _f
+_LABIALS = frozenset(PHONE_INDEX[p] for p in ("p", "b", "m", "f", "v", "w"))
+_PULL = 0.15  # fraction of the way to each neighbouring locus
 
 
 def f0_contour(timeline: Timeline, style: SpeakerStyle, voice: VoiceChange,
@@ -88,10 +99,25 @@ def _band(low: float, high: float, sample_rate: int) -> tuple[np.ndarray, np.nda
     return b, a
 
 
-def _render_phone(phone: int, lo: int, hi: int, s: int, e: int, source: np.ndarray,
-                  noise: np.ndarray, style: SpeakerStyle, voice: VoiceChange,
+def _coarticulated_formants(phone: int, prev: int, nxt: int) -> tuple[float, ...]:
+    r = recipe(phone)
+    if r.kind != "vowel":
+        return r.formants
+    f = np.array(r.formants)
+    for nb in (prev, nxt):
+        if nb in _LABIALS:
+            # Closing or rounding the lips lengthens the tract: every formant drops.
+            f *= 0.86
+        elif not np.isnan(_LOCUS[nb]):
+            f[1] += _PULL * (_LOCUS[nb] - r.formants[1])
+            f[0] *= 0.94
+    return tuple(round(float(x), 1) for x in f)
+
+
+def _render_phone(phone: int, prev: int, nxt: int, lo: int, hi: int, s: int, e: int,
+                  source: np.ndarray, noise: np.ndarray, style: SpeakerStyle, voice: VoiceChange,
                   sample_rate: int) -> np.ndarray:
-    """Samples ``[lo, hi)`` of one phone whose nominal extent is ``[s, e)``."""
+    """Samples ``[lo, hi)`` of one phone whose nominal extent is ``[s, e)`` (neighbours prev/nxt)."""
     r = recipe(phone)
     out = np.zeros(hi - lo)
     if r.kind == "silence":
@@ -99,7 +125,8 @@ def _render_phone(phone: int, lo: int, hi: int, s: int, e: int, source: np.ndarr
     warm = min(lo, int(_PREROLL * sample_rate))
     t = np.arange(lo, hi)
     if r.voiced and r.formants:
-        b, a = _cascade(r.formants, r.bandwidths, round(style.formant_scale, 4), sample_rate)
+        b, a = _cascade(_coarticulated_formants(phone, prev, nxt), r.bandwidths,
+                        round(style.formant_scale, 4), sample_rate)
         x = source[lo - warm:hi]
         if voice.breathiness > 0:
             x = x + voice.breathiness * noise[lo - warm:hi]
@@ -144,11 +171,15 @@ def synthesize(timeline: Timeline, style: SpeakerStyle, voice: VoiceChange,
     h = int(_XFADE * sample_rate)
     starts = np.round(timeline.starts * sample_rate).astype(np.int64)
     ends = np.round(timeline.ends * sample_rate).astype(np.int64)
-    for phone, s, e in zip(timeline.phones, starts, ends):
+    ph = timeline.phones
+    prevs = np.concatenate([[ph[0]], ph[:-1]])
+    nexts = np.concatenate([ph[1:], [ph[-1]]])
+    for phone, prev, nxt, s, e in zip(ph, prevs, nexts, starts, ends):
         if recipe(int(phone)).kind == "silence" or e <= s:
             continue
         lo, hi = max(s - h, 0), min(e + h, n)
-        seg = _render_phone(int(phone), lo, hi, s, e, source, noise, style, voice, sample_rate)
+        seg = _render_phone(int(phone), int(prev), int(nxt), lo, hi, s, e, source, noise, style,
+                            voice, sample_rate)
         # Complementary raised-cosine ramps centred on each boundary: neighbours sum to one.
         t = np.arange(lo, hi)
         w = _ramp((t - s) / h) * _ramp((e - t) / h)

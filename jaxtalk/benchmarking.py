@@ -1,0 +1,293 @@
+"""Benchmark harness: compile vs run time, XLA FLOP counts, the machine's matmul peak, tables, JSON.
+
+Conventions (diffrax ``benchmarks/``): compile time is measured separately (``lower`` + ``compile``
+of ``jax.jit(fn)``), run time is the median (and min) of repeats of the COMPILED executable, every
+run ends with ``block_until_ready``, and warm-up runs are discarded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "Timing",
+    "time_jitted",
+    "xla_flops",
+    "measure_matmul_peak",
+    "machine_info",
+    "format_table",
+    "print_table",
+    "write_json",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Timing:
+    """Timing of one jitted function on fixed arguments (seconds).
+
+    Attributes:
+        compile_s: tracing + lowering + XLA compilation (``jax.jit(fn).lower(*args).compile()``).
+        lower_s: the tracing + lowering part of ``compile_s``.
+        run_median_s: median wall time of the timed runs of the compiled executable.
+        run_min_s: fastest timed run.
+        runs: every timed run, in order.
+    """
+
+    compile_s: float
+    lower_s: float
+    run_median_s: float
+    run_min_s: float
+    runs: tuple[float, ...]
+
+
+def _positive(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def _compile(fn: Callable[..., Any], args: Sequence[Any]) -> tuple[Any, float, float]:
+    t0 = time.perf_counter()
+    lowered = jax.jit(fn).lower(*args)
+    t1 = time.perf_counter()
+    compiled = lowered.compile()
+    t2 = time.perf_counter()
+    return compiled, t1 - t0, t2 - t0
+
+
+def time_jitted(fn: Callable[..., Any], *args: Any, repeats: int = 10, warmup: int = 2) -> Timing:
+    """Compile ``fn`` for ``args`` (timed), then time ``repeats`` runs after ``warmup`` untimed ones.
+
+    Args:
+        fn: a jit-able function of ``args`` (already-jitted functions are fine). Static arguments
+            must be bound beforehand (e.g. ``functools.partial``).
+        *args: example arguments (arrays / pytrees of arrays).
+        repeats: timed runs (> 0).
+        warmup: untimed runs before timing (>= 0).
+
+    Returns:
+        :class:`Timing`.
+
+    Raises:
+        ValueError: ``repeats <= 0`` or ``warmup < 0``.
+    """
+    _positive("repeats", repeats)
+    if isinstance(warmup, bool) or not isinstance(warmup, (int, np.integer)) or warmup < 0:
+        raise ValueError(f"warmup must be an integer >= 0, got {warmup!r}")
+    compiled, lower_s, compile_s = _compile(fn, args)
+    for _ in range(warmup):
+        jax.block_until_ready(compiled(*args))
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        runs.append(time.perf_counter() - t0)
+    return Timing(
+        compile_s=compile_s,
+        lower_s=lower_s,
+        run_median_s=statistics.median(runs),
+        run_min_s=min(runs),
+        runs=tuple(runs),
+    )
+
+
+def xla_flops(fn: Callable[..., Any], *args: Any) -> float | None:
+    """FLOPs of one call of ``jax.jit(fn)(*args)`` from XLA's compiled cost analysis.
+
+    Args:
+        fn: a jit-able function.
+        *args: example arguments.
+
+    Returns:
+        The ``"flops"`` entry of the cost analysis, or None when the backend reports none. A dot of
+        ``(m, k) x (k, n)`` counts ``2 m k n``. XLA counts the body of a loop (``lax.scan``,
+        ``while_loop``) ONCE, not once per trip: for a scanned sampler, measure one step and
+        multiply by the number of steps.
+    """
+    compiled, _, _ = _compile(fn, args)
+    cost = compiled.cost_analysis()
+    if isinstance(cost, (list, tuple)):  # older jax returned one dict per device program
+        cost = cost[0] if cost else None
+    if not cost or "flops" not in cost:
+        return None
+    flops = float(cost["flops"])
+    return flops if math.isfinite(flops) and flops >= 0 else None
+
+
+def measure_matmul_peak(dtype: Any = jnp.float32, n: int = 2048, repeats: int = 10) -> float:
+    """Achievable matmul throughput of the default device: ``2 n^3 / best time`` of an n x n matmul.
+
+    Args:
+        dtype: operand dtype.
+        n: matrix size (> 0).
+        repeats: timed runs (> 0); the BEST run is used (peak, not typical).
+
+    Returns:
+        FLOP/s.
+
+    Raises:
+        ValueError: non-positive ``n`` or ``repeats``.
+    """
+    n = _positive("n", n)
+    repeats = _positive("repeats", repeats)
+    k1, k2 = jax.random.split(jax.random.key(0))
+    a = jax.random.normal(k1, (n, n), dtype)
+    b = jax.random.normal(k2, (n, n), dtype)
+    timing = time_jitted(jnp.matmul, a, b, repeats=repeats, warmup=2)
+    return 2.0 * n**3 / timing.run_min_s
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_info() -> dict[str, Any]:
+    """Describe the machine and software a benchmark ran on.
+
+    Returns:
+        dict with ``cpu_model``, ``cpu_cores`` (logical, usable by this process), ``load_avg_1m``
+        (others' work inflates timings), ``platform``, ``python``, ``jax``, ``jaxlib``, ``numpy``,
+        ``backend``, ``device_kind``, ``device_count``, ``x64``.
+    """
+    import jaxlib
+
+    devices = jax.devices()
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count()
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = None
+    return {
+        "cpu_model": _cpu_model(),
+        "cpu_cores": cores,
+        "load_avg_1m": load,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "numpy": np.__version__,
+        "backend": jax.default_backend(),
+        "device_kind": devices[0].device_kind,
+        "device_count": len(devices),
+        "x64": bool(jax.config.read("jax_enable_x64")),
+    }
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, (bool, np.bool_)):
+        return str(bool(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        if not math.isfinite(v):
+            return str(v)
+        return f"{v:.4g}"
+    return str(value)
+
+
+def format_table(rows: list[dict[str, Any]], title: str) -> str:
+    """Render rows as a fixed-width text table (columns in first-seen key order).
+
+    Numbers are right-aligned (floats with 4 significant digits), text left-aligned, missing or
+    None cells shown as ``-``.
+
+    Args:
+        rows: one dict per row.
+        title: printed above the table.
+
+    Returns:
+        The table as a string (no trailing newline).
+
+    Raises:
+        ValueError: no rows.
+    """
+    if not rows:
+        raise ValueError(f"format_table needs at least one row (table {title!r})")
+    columns: list[str] = []
+    for row in rows:
+        columns.extend(k for k in row if k not in columns)
+    cells = [[_cell(row.get(c)) for c in columns] for row in rows]
+    numeric = [
+        all(
+            r.get(c) is None
+            or (isinstance(r.get(c), (int, float, np.number)) and not isinstance(r.get(c), (bool, np.bool_)))
+            for r in rows
+        )
+        for c in columns
+    ]
+    widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(columns)]
+
+    def line(values: list[str]) -> str:
+        parts = [v.rjust(w) if num else v.ljust(w) for v, w, num in zip(values, widths, numeric)]
+        return " | ".join(parts).rstrip()
+
+    rule = "-+-".join("-" * w for w in widths)
+    return "\n".join([title, line(columns), rule, *(line(r) for r in cells)])
+
+
+def print_table(rows: list[dict[str, Any]], title: str) -> None:
+    """Print :func:`format_table` of ``rows``."""
+    print(format_table(rows, title), flush=True)
+
+
+def _to_json(value: Any) -> Any:
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    if isinstance(value, (np.ndarray, jax.Array)):
+        return np.asarray(value).tolist()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot write {type(value).__name__} to JSON")
+
+
+def write_json(path: str | os.PathLike[str], payload: dict[str, Any]) -> Path:
+    """Write ``payload`` plus ``machine_info`` as indented JSON, creating parent directories.
+
+    Args:
+        path: output file.
+        payload: JSON-able dict (NumPy/JAX scalars and arrays, dataclasses such as :class:`Timing`
+            and paths are converted). A ``machine_info`` key is added unless present.
+
+    Returns:
+        The written path.
+
+    Raises:
+        ValueError: payload not a dict.
+    """
+    if not isinstance(payload, dict):
+        raise ValueError(f"payload must be a dict, got {type(payload).__name__}")
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    full = {"machine_info": machine_info(), **payload} if "machine_info" not in payload else payload
+    out.write_text(json.dumps(full, indent=2, default=_to_json) + "\n")
+    return out

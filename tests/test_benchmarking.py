@@ -1,0 +1,95 @@
+"""Benchmark harness: FLOP counts, timing record, table formatting, JSON output."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk import benchmarking as bm
+
+
+@pytest.mark.parametrize("n", [16, 48])
+def test_xla_flops_of_matmul_is_2n3(n):
+    a = jnp.ones((n, n))
+    assert bm.xla_flops(jnp.matmul, a, a) == pytest.approx(2 * n**3, rel=1e-6)
+    b = jnp.ones((n, 2 * n))
+    assert bm.xla_flops(lambda x, y: x @ y, a, b) == pytest.approx(2 * n * n * 2 * n, rel=1e-6)
+
+
+def test_xla_flops_counts_a_scan_body_once():
+    # Documented behaviour the sampler benchmark relies on (it multiplies one step by N).
+    a = jnp.ones((16, 16))
+
+    def f(x):
+        return jax.lax.scan(lambda c, _: (c @ c, None), x, None, length=10)[0]
+
+    assert bm.xla_flops(f, a) == pytest.approx(2 * 16**3, rel=0.01)
+
+
+def test_time_jitted_record():
+    calls = []
+
+    def f(x):
+        calls.append(1)  # trace-time side effect: compiled once, then only executed
+        return jnp.sin(x) @ x
+
+    x = jnp.ones((32, 32))
+    t = bm.time_jitted(f, x, repeats=5, warmup=1)
+    assert len(calls) == 1
+    assert len(t.runs) == 5 and all(r > 0 for r in t.runs)
+    assert t.run_min_s == min(t.runs) and t.run_median_s == float(np.median(t.runs))
+    assert 0 < t.lower_s <= t.compile_s
+    with pytest.raises(ValueError, match="repeats"):
+        bm.time_jitted(f, x, repeats=0)
+    with pytest.raises(ValueError, match="warmup"):
+        bm.time_jitted(f, x, warmup=-1)
+
+
+def test_measure_matmul_peak_is_plausible():
+    peak = bm.measure_matmul_peak(n=128, repeats=3)
+    assert 1e6 < peak < 1e15
+    with pytest.raises(ValueError, match="n must"):
+        bm.measure_matmul_peak(n=0)
+
+
+def test_format_table_layout():
+    rows = [
+        {"sampler": "euler", "steps": 1, "run_ms": 1.23456, "note": None},
+        {"sampler": "ddim", "steps": 20, "run_ms": 123.0, "extra": True},
+    ]
+    text = bm.format_table(rows, "Title")
+    expected = "\n".join(
+        [
+            "Title",
+            "sampler | steps | run_ms | note | extra",
+            "--------+-------+--------+------+------",
+            "euler   |     1 |  1.235 |    - | -",
+            "ddim    |    20 |    123 |    - | True",
+        ]
+    )
+    assert text == expected
+    with pytest.raises(ValueError, match="at least one row"):
+        bm.format_table([], "empty")
+
+
+def test_print_table(capsys):
+    bm.print_table([{"a": 1}], "T")
+    assert capsys.readouterr().out == "T\na\n-\n1\n"
+
+
+def test_write_json_creates_dirs_and_adds_machine_info(tmp_path):
+    timing = bm.Timing(compile_s=1.0, lower_s=0.5, run_median_s=0.2, run_min_s=0.1, runs=(0.1, 0.2, 0.3))
+    path = tmp_path / "a" / "b" / "out.json"
+    written = bm.write_json(path, {"rows": [{"x": np.float32(1.5), "n": np.int64(3)}], "timing": timing, "arr": np.arange(3)})
+    assert written == path and path.exists()
+    data = json.loads(path.read_text())
+    assert data["rows"] == [{"x": 1.5, "n": 3}]
+    assert data["timing"]["runs"] == [0.1, 0.2, 0.3]
+    assert data["arr"] == [0, 1, 2]
+    info = data["machine_info"]
+    assert info["jax"] == jax.__version__ and info["backend"] == jax.default_backend()
+    assert info["cpu_cores"] >= 1 and isinstance(info["cpu_model"], str)
