@@ -23,7 +23,7 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 @pytest.fixture
 def float64():
     """Enable 64-bit JAX arrays for the duration of one test."""
-    previous = jax.config.jax_enable_x64
+    previous = jax.config.read("jax_enable_x64")
     jax.config.update("jax_enable_x64", True)
     try:
         yield
@@ -34,7 +34,7 @@ def float64():
 @pytest.fixture
 def fast_compile():
     """Disable most XLA optimisations for one test (compile time dominates small programs)."""
-    previous = jax.config.jax_disable_most_optimizations
+    previous = jax.config.read("jax_disable_most_optimizations")
     jax.config.update("jax_disable_most_optimizations", True)
     try:
         yield

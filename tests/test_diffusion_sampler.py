@@ -204,9 +204,9 @@ def test_public_steps_and_trajectory():
     assert traj.shape == (6, B, T, D)
     tables = dif._tables(r.astype(jnp.float32), jnp.float32)
     state = dif.init(z)
+    step = jax.jit(lambda st, row, k: dif.ddim_step(st, row, k, apply_fn=apply_fn, cond=cond, eta=0.5))
     for j, k in enumerate(jax.random.split(key, 5)):  # a caller's own loop
-        row = dif.StepTables(*(f[j] for f in tables))
-        state = dif.ddim_step(state, row, k, apply_fn=apply_fn, cond=cond, eta=0.5)
+        state = step(state, dif.StepTables(*(f[j] for f in tables)), k)
         np.testing.assert_allclose(np.asarray(state.x), np.asarray(traj[j + 1]), atol=1e-5)
     np.testing.assert_array_equal(np.asarray(traj[-1]), np.asarray(x))
 

@@ -147,8 +147,9 @@ def test_public_step_loop_matches_scan_and_trajectory():
     assert traj.shape == (6, B, T, D)
     state = flow.init(jnp.asarray(z), ts[0])
     np.testing.assert_array_equal(np.asarray(traj[0]), z)
+    step = jax.jit(lambda st, t1: flow.step(st, t1, apply_fn=apply_fn, cond={"c": jnp.asarray(c)}))
     for k in range(1, 6):  # a caller's own loop over the public step (streaming use)
-        state = flow.step(state, ts[k], apply_fn=apply_fn, cond={"c": jnp.asarray(c)})
+        state = step(state, ts[k])
         np.testing.assert_allclose(np.asarray(traj[k]), np.asarray(state.x), atol=1e-6)
     np.testing.assert_array_equal(np.asarray(traj[-1]), np.asarray(x))
 
@@ -220,6 +221,29 @@ def test_traced_knobs_do_not_recompile():
     # A static change (the number of steps) does recompile: the counter is live.
     flow.sample_euler(apply_fn, z, cond, cosine_grid(7), uncond=uncond, cfg_scale=0.5)
     assert len(traces) == 2
+
+
+def test_parameters_in_a_partial_are_traced_not_recompiled():
+    traces = []
+
+    def velocity(params, x, t, cond):
+        traces.append(1)
+        return jnp.tanh(x @ params["w"] + cond["c"]) * t[:, None, None]
+
+    z, c, _, _ = _inputs()
+    ts = cosine_grid(4)
+    rng = np.random.default_rng(0)
+    outs = [
+        flow.sample_euler(
+            jax.tree_util.Partial(velocity, {"w": jnp.asarray(rng.normal(size=(D, D)), jnp.float32)}),
+            z, {"c": c}, ts,
+        )
+        for _ in range(3)
+    ]
+    assert len(traces) == 1
+    assert not np.allclose(np.asarray(outs[0]), np.asarray(outs[1]))
+    with pytest.raises(ValueError, match="callable"):
+        flow.as_model(3)
 
 
 def test_cfg_is_one_batched_call_and_zero_scale_is_conditional():

@@ -6,8 +6,7 @@ import jaxtyping
 import numpy as np
 import pytest
 
-from jaxtalk.metrics import alignment
-from jaxtalk.metrics import trajectory_dfd, trajectory_dtw
+from jaxtalk.metrics import alignment, trajectory_dfd, trajectory_dtw
 
 
 @pytest.fixture

@@ -6,9 +6,9 @@ import jaxtyping
 import numpy as np
 import pytest
 
-from jaxtalk.metrics import conversation
 from jaxtalk.metrics import (
     PUBLISHED_SCALE,
+    conversation,
     conversation_metrics,
     frechet_distance,
     gaussian_frechet_distance,
@@ -203,7 +203,7 @@ def test_sid_conventions_are_named_and_differ():
 def test_list_of_files_is_the_mean_of_files_and_truncation():
     files = [(random_params(12, s), random_params(12, s + 10), random_params(12, s + 20)) for s in range(2)]
     per_file = [conversation_metrics(*f, sid_convention=None) for f in files]
-    both = conversation_metrics(*[list(col) for col in zip(*files)], sid_convention=None)
+    both = conversation_metrics(*[list(col) for col in zip(*files, strict=True)], sid_convention=None)
     for key in both:
         assert both[key] == pytest.approx((per_file[0][key] + per_file[1][key]) / 2)
     pred, gt, partner = files[0]

@@ -8,7 +8,7 @@ import jaxtyping
 import numpy as np
 import pytest
 
-from jaxtalk.metrics import delta_cd, delta_m, dfd, dtw, fdd, fdd_batch, jitter, lve, mod, mve
+from jaxtalk.metrics import delta_cd, delta_m, dfd, dtw, fdd, fdd_batch, jitter, lve, mod, mve, vertex
 
 
 @pytest.fixture
@@ -195,6 +195,16 @@ def test_delta_m_hand(float64):
 )
 def test_delta_cd_hand(float64, step_pred, step_gt, expected):
     assert float(delta_cd(drift(3, step_pred), drift(3, step_gt))) == pytest.approx(expected)
+
+
+def test_delta_cd_eps_is_traced(float64):
+    # eps is a swept numeric knob: changing it must not recompile. 0.5 per frame is "still" at
+    # eps = 1 (both still -> 0) but a direction at eps = 0.1 (opposite -> 2).
+    pred, gt = drift(3, [0.5, 0, 0]), drift(3, [-0.5, 0, 0])
+    assert float(delta_cd(pred, gt, eps=1.0)) == 0.0
+    size = vertex._delta_cd._cache_size()
+    assert float(delta_cd(pred, gt, eps=0.1)) == pytest.approx(2.0)
+    assert vertex._delta_cd._cache_size() == size
 
 
 def test_delta_region_subset(float64):

@@ -1,4 +1,8 @@
-"""Attention with an additive bias: brute-force reference, masking, caching == full pass."""
+"""Attention with an additive bias and the transformer blocks built on it.
+
+Brute-force references, masking semantics, cached (chunk-by-chunk) decoding == one full pass, and the
+pre-LN wiring of the blocks checked against a composition of their parts.
+"""
 
 from __future__ import annotations
 
@@ -6,8 +10,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.special import erf
 
-from jaxtalk.nn import BLOCKED, MultiHeadAttention, bias_from_mask, dot_product_attention
+from jaxtalk.nn import (
+    BLOCKED,
+    DecoderBlock,
+    MultiHeadAttention,
+    TransformerBlock,
+    bias_from_mask,
+    dot_product_attention,
+)
+
+
+@pytest.fixture(autouse=True)
+def _fast_compile():
+    # Tiny programs: XLA compile time dominates. (Same as conftest's `fast_compile`, which reads the
+    # flag through an attribute that jax 0.10 no longer has.)
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)
+    yield
+    jax.config.update("jax_disable_most_optimizations", previous)
 
 
 def _reference_attention(q, k, v, bias):
@@ -171,3 +193,118 @@ def test_attention_errors(key):
         dot_product_attention(jnp.zeros((3, 1, 2)), jnp.zeros((3, 1, 2)), jnp.zeros((3, 1, 2)), dropout_rate=0.1)
     with pytest.raises(ValueError, match="positive"):
         MultiHeadAttention(num_heads=0, head_dim=4).init(key, x)
+
+
+# ---------------------------------------------------------------------------------------------
+# Transformer blocks
+
+
+def _layer_norm(x, p, eps=1e-5):
+    x = np.asarray(x, np.float64)
+    mu = x.mean(-1, keepdims=True)
+    var = x.var(-1, keepdims=True)
+    return (x - mu) / np.sqrt(var + eps) * np.asarray(p["scale"]) + np.asarray(p["bias"])
+
+
+def _feed_forward(x, p):
+    h = x @ np.asarray(p["dense_0"]["kernel"]) + np.asarray(p["dense_0"]["bias"])
+    h = 0.5 * h * (1 + erf(h / np.sqrt(2)))  # exact GELU
+    return h @ np.asarray(p["dense_1"]["kernel"]) + np.asarray(p["dense_1"]["bias"])
+
+
+def _attention(p, x, memory=None, bias=None):
+    mha = MultiHeadAttention(num_heads=2, head_dim=4)
+    return np.asarray(mha.apply({"params": p}, jnp.asarray(x, jnp.float32), memory, bias=bias))
+
+
+def test_blocks_are_pre_layer_norm_compositions_of_their_parts(key):
+    x = jax.random.normal(key, (2, 5, 8))
+    memory = jax.random.normal(jax.random.fold_in(key, 1), (2, 3, 6))
+    bias = jax.random.normal(jax.random.fold_in(key, 2), (5, 5))
+    cross_bias = jax.random.normal(jax.random.fold_in(key, 3), (5, 3))
+
+    block = TransformerBlock(num_heads=2, head_dim=4)
+    p = block.init(key, x)["params"]
+    h = np.asarray(x) + _attention(
+        p["self_attention"]["attention"], _layer_norm(x, p["self_attention"]["norm"]), bias=bias
+    )
+    ff = p["feed_forward"]
+    expected = h + _feed_forward(_layer_norm(h, ff["norm"]), ff["feed_forward"]["mlp"])
+    np.testing.assert_allclose(block.apply({"params": p}, x, bias=bias), expected, atol=2e-5)
+
+    decoder = DecoderBlock(num_heads=2, head_dim=4)
+    p = decoder.init(key, x, memory)["params"]
+    h = np.asarray(x) + _attention(
+        p["self_attention"]["attention"], _layer_norm(x, p["self_attention"]["norm"]), bias=bias
+    )
+    ca = p["cross_attention"]
+    h = h + _attention(ca["attention"], _layer_norm(h, ca["norm"]), memory, bias=cross_bias)
+    ff = p["feed_forward"]
+    expected = h + _feed_forward(_layer_norm(h, ff["norm"]), ff["feed_forward"]["mlp"])
+    out = decoder.apply({"params": p}, x, memory, self_bias=bias, cross_bias=cross_bias)
+    np.testing.assert_allclose(out, expected, atol=2e-5)
+
+
+def test_stacked_blocks_decode_chunk_by_chunk_like_the_full_pass(key):
+    """Two decoder blocks, each carrying its own self-attention cache across chunks."""
+    length, chunk = 9, 3
+    x = jax.random.normal(key, (2, length, 8))
+    memory = jax.random.normal(jax.random.fold_in(key, 1), (2, 4, 8))
+    blocks = [DecoderBlock(num_heads=2, head_dim=4, qkv_bias=False) for _ in range(2)]
+    params = [b.init(jax.random.fold_in(key, i), x, memory) for i, b in enumerate(blocks)]
+    bias = bias_from_mask(_block_causal(length, chunk))
+
+    full = x
+    for b, p in zip(blocks, params):
+        full = b.apply(p, full, memory, self_bias=bias)
+
+    caches = [None, None]
+    outputs = []
+    for start in range(0, length, chunk):
+        stop = start + chunk
+        h = x[:, start:stop]
+        for i, (b, p) in enumerate(zip(blocks, params)):
+            h, caches[i] = b.apply(
+                p, h, memory, self_bias=bias[start:stop, :stop], kv_cache=caches[i], return_kv=True
+            )
+        outputs.append(h)
+    np.testing.assert_allclose(jnp.concatenate(outputs, axis=1), full, atol=1e-5)
+
+
+def test_band_bias_limits_what_a_frame_sees(key):
+    length, radius = 8, 2
+    x = jax.random.normal(key, (length, 8))
+    i, j = np.indices((length, length))
+    bias = bias_from_mask(np.abs(i - j) <= radius)
+    block = TransformerBlock(num_heads=2, head_dim=4)
+    params = block.init(key, x)
+    apply = jax.jit(lambda x: block.apply(params, x, bias=bias))
+    # A random (not constant) change: LayerNorm would erase a constant shift of the frame.
+    delta = apply(x.at[0].add(jax.random.normal(jax.random.fold_in(key, 1), (8,)))) - apply(x)
+    changed = np.abs(np.asarray(delta)).max(axis=-1) > 1e-6
+    np.testing.assert_array_equal(changed, np.arange(length) <= radius)
+
+
+def test_cross_bias_hides_memory_frames(key):
+    x = jax.random.normal(key, (4, 8))
+    memory = jax.random.normal(jax.random.fold_in(key, 1), (6, 8))
+    visible = np.array([True, True, True, False, False, True])
+    cross_bias = bias_from_mask(np.broadcast_to(visible, (4, 6)))
+    decoder = DecoderBlock(num_heads=2, head_dim=4)
+    params = decoder.init(key, x, memory)
+    apply = jax.jit(lambda m: decoder.apply(params, x, m, cross_bias=cross_bias))
+    base = apply(memory)
+    np.testing.assert_allclose(apply(memory.at[3:5].set(5.0)), base, atol=1e-6)
+    assert np.abs(apply(memory.at[0].set(5.0)) - base).max() > 1e-3
+
+
+def test_block_dropout_needs_deterministic_false(key):
+    x = jax.random.normal(key, (2, 5, 8))
+    block = TransformerBlock(num_heads=2, head_dim=4, dropout_rate=0.3, attention_dropout_rate=0.3)
+    params = block.init(key, x)
+    plain = TransformerBlock(num_heads=2, head_dim=4).apply(params, x)
+    np.testing.assert_allclose(block.apply(params, x), plain, atol=1e-6)
+    dropped = block.apply(params, x, deterministic=False, rngs={"dropout": jax.random.key(1)})
+    assert np.abs(dropped - plain).max() > 1e-3
+    with pytest.raises(Exception, match="dropout"):
+        block.apply(params, x, deterministic=False)  # no "dropout" RNG stream given

@@ -21,6 +21,7 @@ from jaxtalk.audio.io import (
     resample_audio,
     save_audio,
 )
+from jaxtalk.audio.kmeans import KMeansResult, kmeans, nearest_centroid
 from jaxtalk.audio.melspec import (
     hz_to_mel,
     log_mel,
@@ -44,6 +45,9 @@ __all__ = [
     "resample_features",
     "default_num_frames",
     "interpolation_plan",
+    "kmeans",
+    "KMeansResult",
+    "nearest_centroid",
     "VQTokenizer",
     "TokenStream",
 ]

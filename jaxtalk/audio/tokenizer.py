@@ -9,7 +9,8 @@ front end, so that token streams of different rates and widths can be made from 
    concatenated (``stack * n_mels`` features). Averaging keeps the spectral envelope; stacking keeps
    coarse order inside the window (onset vs. steady part).
 2. Features are standardised per dimension (mean/std of the fitting corpus); a k-means codebook is
-   fitted on them (``scipy.cluster.vq.kmeans2``, k-means++ init, seeded generator: deterministic).
+   fitted on them (``jaxtalk.audio.kmeans``: k-means++ seeding from ``jax.random.key(seed)``, then
+   Lloyd iterations; deterministic).
 3. Embedding table ``(num_codes, width)``: the centred centroids times a fixed seeded random
    isometry ``P`` (orthonormal columns if ``width <= features``, orthonormal rows otherwise), scaled to
    unit RMS per entry. It carries the codebook's geometry: for ``width >= features`` embedding
@@ -34,10 +35,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Float, Int
-from scipy.cluster.vq import kmeans2
 
 from jaxtalk.audio.framerate import _as_fraction, resample_features
 from jaxtalk.audio.io import check_audio
+from jaxtalk.audio.kmeans import kmeans, nearest_centroid
 from jaxtalk.audio.melspec import _log_mel, mel_filterbank, num_frames
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array
 
@@ -185,15 +186,12 @@ def _pooled_features(audio, segment, *, num_tokens, stack, sample_rate, n_mels, 
 
 @jax.jit
 def _nearest_code(features, mean, scale, codebook):
-    z = (features - mean[None, :]) / scale[None, :]
-    # ||z - c||^2 up to the per-row constant ||z||^2, which does not change the argmin.
-    cross = jnp.matmul(z, codebook.T, precision=jax.lax.Precision.HIGHEST)
-    distance = jnp.sum(codebook**2, axis=1)[None, :] - 2.0 * cross
-    return jnp.argmin(distance, axis=1).astype(jnp.int32)
+    return nearest_centroid((features - mean[None, :]) / scale[None, :], codebook)
 
 
 def _random_isometry(features: int, width: int, seed: int) -> np.ndarray:
-    # Independent stream from the k-means one (same seed): spawn key [seed, 1].
+    # NumPy stream keyed by [seed, 1]: reproducible on any machine, separate from the JAX key
+    # that seeds k-means.
     rng = np.random.default_rng([seed, 1])
     if width <= features:
         q, _ = np.linalg.qr(rng.standard_normal((features, width)))
@@ -271,7 +269,7 @@ class VQTokenizer:
         seed: int,
         n_mels: int = 80,
         stack: int = 2,
-        iterations: int = 20,
+        iterations: int = 25,
     ) -> VQTokenizer:
         """Fit the codebook and embedding table on a list of mono clips.
 
@@ -300,6 +298,9 @@ class VQTokenizer:
             raise ValueError(
                 f"need num_codes, width, iterations >= 1, got {num_codes}, {width}, {iterations}"
             )
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**32:
+            # jax.random.key silently keeps only the low 32 bits (2**32 would collide with 0).
+            raise ValueError(f"seed must be an integer in [0, 2**32), got {seed!r}")
         hop_length, n_fft = (
             round(sample_rate / 100),
             round(sample_rate / 40),
@@ -322,14 +323,11 @@ class VQTokenizer:
         mean = data.mean(axis=0)
         scale = np.maximum(data.std(axis=0), _MIN_FEATURE_SCALE)
         z = (data - mean) / scale
-        centroids, _ = kmeans2(
-            z,
-            num_codes,
-            iter=iterations,
-            minit="++",
-            missing="warn",
-            seed=np.random.default_rng(seed),
+        fitted = kmeans(
+            jnp.asarray(z, dtype=jnp.float32), num_codes, key=jax.random.key(seed),
+            iterations=iterations,
         )
+        centroids = np.asarray(fitted.centroids, dtype=np.float64)
         projected = (centroids - centroids.mean(axis=0)) @ _random_isometry(z.shape[1], width, seed)
         rms = np.sqrt(np.mean(projected**2))
         embedding = projected / (rms if rms > 0 else 1.0)

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import os
 import pickle
-from typing import Any, Literal
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -156,7 +156,7 @@ def load_flame(
     *,
     shape_params: np.ndarray | None = None,
     landmarks: str | os.PathLike | tuple[np.ndarray, np.ndarray] | None = None,
-    head_joint: Literal["global", "neck"] = "global",
+    head_joint: str = "global",
     use_posedirs: bool = True,
     regions: dict[str, np.ndarray] | None = None,
 ) -> LinearFaceModel:

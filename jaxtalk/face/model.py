@@ -37,6 +37,7 @@ ArrayLike = Array | np.ndarray
 _SMALL_ANGLE_SQ = 1e-6
 
 
+@jax.jit
 def rodrigues(axis_angle: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Rotation matrices from axis-angle vectors (Rodrigues' formula), safe and smooth at angle 0.
 
@@ -314,7 +315,7 @@ def _vertices_one(model: LinearFaceModel, params: Float[Array, "56"]) -> Float[A
     axis_angles = axis_angles.at[model.neck_joint].set(neck).at[model.jaw_joint].set(jaw)
     rotations = rodrigues(axis_angles)
     if model.pose_basis is not None:
-        pose_feature = (rotations[1:] - jnp.eye(3, dtype=dtype)).reshape(-1)
+        pose_feature = (rotations[1:] - jnp.broadcast_to(jnp.eye(3, dtype=dtype), rotations[1:].shape)).reshape(-1)
         rest = rest + jnp.asarray(model.pose_basis, dtype) @ pose_feature
 
     world_r, world_t = _world_transforms(rotations, joints, model.parents)

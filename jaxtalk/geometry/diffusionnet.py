@@ -159,6 +159,7 @@ def stack_operators(ops_list: Sequence[Operators], *, num_vertices: int | None =
     return jax.tree.map(lambda *xs: jnp.stack(xs), *padded)
 
 
+@jax.jit
 def spectral_diffusion(
     x: Float[Array, "verts channels"],
     mass: Float[Array, " verts"],
@@ -183,6 +184,7 @@ def spectral_diffusion(
     return evecs @ coefs
 
 
+@jax.jit
 def apply_gradient(
     weights: Float[Array, "verts deg"],
     index: Int[Array, "verts deg"],

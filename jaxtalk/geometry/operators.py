@@ -275,6 +275,7 @@ def eigen_decomposition(
     shift: float = 1e-8,
     max_retries: int = 4,
     tol: float = 0.0,
+    blas_threads: int | None = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The ``k`` smallest generalised eigenpairs of ``L phi = lambda M phi`` (M = diag(mass)).
 
@@ -293,6 +294,9 @@ def eigen_decomposition(
         shift: relative diagonal shift.
         max_retries: how many times to grow the shift after a failure.
         tol: ARPACK relative tolerance (0 = machine precision).
+        blas_threads: BLAS threads during the solve (``None``: leave as is). ARPACK's work is
+            BLAS-2 on tall, skinny blocks, which gains little from threads and slows down several
+            fold when the cores are shared (measured: 49 s vs 7 s at 6.7k vertices under load).
 
     Returns:
         ``(evals (k,) float64 ascending >= 0, evecs (V, k) float64 M-orthonormal)``.
@@ -317,6 +321,16 @@ def eigen_decomposition(
     mass_mat = sp.diags(mass)
     scale = float(np.max(np.abs(lap.diagonal()) / mass)) or 1.0
     s = shift * scale
+    from threadpoolctl import threadpool_limits  # local: only this solve needs it
+
+    with threadpool_limits(limits=blas_threads, user_api="blas"):
+        return _shifted_eigsh(lap, mass_mat, k, s, solver, max_retries, tol)
+
+
+def _shifted_eigsh(
+    lap: sp.csr_matrix, mass_mat: sp.spmatrix | sp.sparray, k: int, s: float, solver: str, max_retries: int, tol: float
+) -> tuple[np.ndarray, np.ndarray]:
+    n = lap.shape[0]
     attempts: list[str] = []
     for _ in range(max_retries + 1):
         try:

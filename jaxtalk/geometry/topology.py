@@ -57,7 +57,7 @@ class TopologyVariant:
     base_faces: np.ndarray
 
     def transfer(
-        self, base_vertex_seq: Float[Array | np.ndarray, "*frames base_verts 3"]
+        self, base_vertex_seq: Float[Array | np.ndarray, "..."]
     ) -> Float[Array | np.ndarray, "*frames verts 3"]:
         """Carry base-mesh vertex positions over to this variant (barycentric interpolation).
 
@@ -362,12 +362,14 @@ _BUILDERS = {
 
 
 def make_variant(
-    vertices: Float[Array | np.ndarray, "verts 3"],
-    faces: Int[Array | np.ndarray, "tris 3"],
+    vertices: Float[Array | np.ndarray, "..."],
+    faces: Int[Array | np.ndarray, "..."],
     kind: str,
     seed: int = 0,
 ) -> TopologyVariant:
     """Remesh a base mesh and keep the exact map from the variant onto the base surface.
+
+    Inputs are annotated loosely so malformed arrays reach the explicit ``ValueError`` checks.
 
     Args:
         vertices: base rest vertices, ``(V, 3)``.

@@ -1,11 +1,12 @@
 """Vertex-space metrics of speech-driven face animation: LVE, MVE, FDD, MOD, DTW, DFD, delta_M,
 delta_Cd and jitter.
 
-Conventions (``/work/shared/design/REFERENCE_NOTES.md``, "Metrics"): inputs are vertex sequences
-``(frames, verts, 3)`` in the face model's units (metres for the built-in face and FLAME), regions
-are 1-D arrays of vertex indices (``LinearFaceModel.regions``). No unit scaling is applied: papers
-print these in their own scaled units (e.g. LVE x 1e-5); scale the returned values as the table you
-compare with does.
+Conventions follow the public reference code (CodeTalker / FaceDiffuser / ScanTalk evaluation
+scripts) where one exists; definitions the papers give only in words are stated in each docstring.
+Inputs are vertex sequences ``(frames, verts, 3)`` in the face model's units (metres for the
+built-in face and FLAME); regions are 1-D arrays of vertex indices (``LinearFaceModel.regions``).
+No unit scaling is applied: papers print these in their own scaled units, so scale the returned
+values as the table you compare with does.
 
 Every function validates its inputs on the host (clear ``ValueError``), then runs a jitted kernel.
 Value checks (NaN) are skipped for tracers, so the differentiable metrics can be used inside a
@@ -141,6 +142,9 @@ def lve(pred: Float[AnyArray, "frames verts 3"], gt: Float[AnyArray, "frames ver
 
 def mve(pred: Float[AnyArray, "frames verts 3"], gt: Float[AnyArray, "frames verts 3"]) -> Float[Array, ""]:
     """Mean vertex error: the L2 error of each vertex, averaged over frames and vertices.
+
+    (FreeTalk's metric list expands MVE as "Max Vertex Error"; jaxtalk follows the reference code
+    convention of the notes, the mean.)
 
     Args:
         pred: predicted vertices ``(T, V, 3)``.

@@ -8,7 +8,7 @@ and pre-split PRNG keys; the model enters as ``apply_fn(x, t, cond)``.
 from __future__ import annotations
 
 from jaxtalk.samplers.diffusion import ClipGroup, sample_ddim, sample_ddpm
-from jaxtalk.samplers.flow import guided_apply, sample_euler
+from jaxtalk.samplers.flow import as_model, guided_apply, sample_euler
 from jaxtalk.samplers.schedules import (
     DiffusionSchedule,
     RespacedSchedule,
@@ -21,6 +21,7 @@ from jaxtalk.samplers.schedules import (
 
 __all__ = [
     "ClipGroup",
+    "as_model",
     "DiffusionSchedule",
     "RespacedSchedule",
     "cosine_grid",

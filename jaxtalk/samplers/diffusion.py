@@ -29,7 +29,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.samplers.flow import ApplyFn, FloatLike, ShapedLike, _check_cond, _check_finite, guided_apply
+from jaxtalk.samplers.flow import (
+    ApplyFn,
+    FloatLike,
+    ShapedLike,
+    _check_cond,
+    _check_finite,
+    as_model,
+    guided_apply,
+)
 from jaxtalk.samplers.schedules import RespacedSchedule
 from jaxtalk.types import Array, Float, PRNGKeyArray
 
@@ -280,7 +288,7 @@ def _tables(s: RespacedSchedule, dtype: Any) -> StepTables:
 
 @functools.partial(
     jax.jit,
-    static_argnames=("apply_fn", "kind", "prediction", "clip", "variance", "return_trajectory", "remat"),
+    static_argnames=("kind", "prediction", "clip", "variance", "return_trajectory", "remat"),
 )
 def _sample(
     apply_fn, noise, cond, schedule, key, uncond, cfg_scale, eta,
@@ -366,12 +374,13 @@ def sample_ddim(
     """DDIM sampling over the respaced steps of ``schedule`` (from ``x_T = noise`` to x0).
 
     Step j (j = 0..N-1, noisiest first) uses key ``jax.random.split(key, N)[j]``. Static (recompile):
-    ``apply_fn`` identity, shapes, ``N``, ``prediction``, ``clip``, ``variance``, flags. Traced: the
+    the function of ``apply_fn`` (see :func:`~jaxtalk.samplers.flow.as_model`), shapes, ``N``, ``prediction``, ``clip``, ``variance``, flags. Traced: the
     schedule VALUES, ``cfg_scale``, ``eta``. Differentiable and vmap-able.
 
     Args:
         apply_fn: ``apply_fn(x (B, ...), t (B,), cond) -> (B, ...)`` (``(..., 2D)`` with learned
-            variance); ``t`` holds the original training timestep.
+            variance); ``t`` holds the original training timestep. Preferably a
+            ``jax.tree_util.Partial(fn, params)`` so parameters are traced.
         noise: ``(B, ...)`` standard normal ``x_T``.
         cond: conditioning pytree with leading axis B.
         schedule: :func:`~jaxtalk.samplers.schedules.respace` output (float64 NumPy tables are
@@ -397,7 +406,7 @@ def sample_ddim(
         noise, cond, schedule, key, uncond, cfg_scale, eta, prediction, clip, variance
     )
     return _sample(
-        apply_fn, noise, cond, schedule, key, uncond, cfg_scale, eta,
+        as_model(apply_fn), noise, cond, schedule, key, uncond, cfg_scale, eta,
         "ddim", prediction, clip, variance, bool(return_trajectory), bool(remat),
     )
 
@@ -437,6 +446,6 @@ def sample_ddpm(
         noise, cond, schedule, key, uncond, cfg_scale, 0.0, prediction, clip, variance
     )
     return _sample(
-        apply_fn, noise, cond, schedule, key, uncond, cfg_scale, eta,
+        as_model(apply_fn), noise, cond, schedule, key, uncond, cfg_scale, eta,
         "ddpm", prediction, clip, variance, bool(return_trajectory), bool(remat),
     )

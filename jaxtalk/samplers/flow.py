@@ -25,6 +25,7 @@ from jaxtalk.types import Array, Float, Shaped
 __all__ = [
     "ApplyFn",
     "FlowState",
+    "as_model",
     "guided_apply",
     "init",
     "step",
@@ -46,6 +47,21 @@ ShapedLike = _Like(Shaped)
 
 ApplyFn = Callable[[Any, Any, Any], Any]
 """``apply_fn(x: (B, ...), t: (B,), cond: pytree with leading B) -> prediction shaped like x``."""
+
+
+def as_model(apply_fn: ApplyFn) -> jax.tree_util.Partial:
+    """The model as a pytree that can cross ``jit`` as an ordinary argument.
+
+    A ``jax.tree_util.Partial(fn, params)`` keeps ``params`` as traced leaves (new parameters do not
+    recompile, and they are not baked into the executable as constants); any other callable is
+    wrapped as ``Partial(fn)``, whose identity is part of the jit cache key (so the same function
+    object must be passed again to reuse the compiled sampler).
+    """
+    if isinstance(apply_fn, jax.tree_util.Partial):
+        return apply_fn
+    if not callable(apply_fn):
+        raise ValueError(f"apply_fn must be callable, got {type(apply_fn).__name__}")
+    return jax.tree_util.Partial(apply_fn)
 
 
 class FlowState(NamedTuple):
@@ -178,7 +194,7 @@ def step(
 
 
 @functools.partial(
-    jax.jit, static_argnames=("apply_fn", "sigma_min", "return_trajectory", "remat")
+    jax.jit, static_argnames=("sigma_min", "return_trajectory", "remat")
 )
 def _sample_euler(
     apply_fn, noise, cond, ts, uncond, cfg_scale, known, known_mask, sigma_min, return_trajectory, remat
@@ -229,14 +245,16 @@ def sample_euler(
 ) -> Float[Array, "batch *dims"] | tuple[Float[Array, "batch *dims"], Float[Array, "grid batch *dims"]]:
     """Sample a conditional flow-matching model with Euler steps over the time grid ``ts``.
 
-    jit-compiled; recompiles only when a static thing changes: ``apply_fn`` (by identity: pass the
-    same function object), shapes/dtypes (including ``len(ts)``), pytree structure (e.g. ``uncond``
+    jit-compiled; recompiles only when a static thing changes: the function of ``apply_fn`` (by
+    identity: pass the same object; wrap parameters as ``jax.tree_util.Partial(fn, params)`` so they
+    are traced, see :func:`as_model`), shapes/dtypes (including ``len(ts)``), pytree structure (e.g. ``uncond``
     None or not), ``sigma_min``, ``return_trajectory``, ``remat``. ``cfg_scale`` and the VALUES of
     ``ts`` are traced. Differentiable (w.r.t. ``noise``, ``cond``, ``cfg_scale``, ``ts``) and
     vmap-able.
 
     Args:
-        apply_fn: velocity model ``apply_fn(x (B, ...), t (B,), cond) -> (B, ...)``.
+        apply_fn: velocity model ``apply_fn(x (B, ...), t (B,), cond) -> (B, ...)``; preferably a
+            ``jax.tree_util.Partial(fn, params)``.
         noise: ``(B, ...)`` the starting Gaussian sample z (draw it with ``jax.random.normal``).
         cond: conditioning pytree; every leaf has leading axis B.
         ts: ``(N + 1,)`` increasing times, normally from 0 to 1 (e.g. :func:`cosine_grid`); N steps.
@@ -273,7 +291,7 @@ def sample_euler(
     _check_cond(cond, uncond, noise.shape[0])
     known, known_mask = _check_known(known, known_mask, noise)
     return _sample_euler(
-        apply_fn, noise, cond, ts, uncond, cfg_scale, known, known_mask,
+        as_model(apply_fn), noise, cond, ts, uncond, cfg_scale, known, known_mask,
         float(sigma_min), bool(return_trajectory), bool(remat),
     )
 

@@ -145,7 +145,8 @@ class Checkpointer:
                     f"structure {jax.tree.structure(raw)} != expected {jax.tree.structure(saved_template)}"
                 )
         except Exception as err:  # orbax/tensorstore raise many types; name the path for the user
-            raise ValueError(f"checkpoint {path} is corrupt or does not match the train state: {err}") from err
+            detail = str(err).splitlines()[0][:400] if str(err) else type(err).__name__  # tensorstore specs are huge
+            raise ValueError(f"checkpoint {path} is corrupt or does not match the train state: {detail}") from err
         impl = jax.random.key_impl(template.rng)
         state = TrainState(
             step=raw["step"],

@@ -106,7 +106,8 @@ def train(
         key: base PRNG key (step ``s`` gets ``fold_in(key, s)``).
         max_steps: stop when ``state.step`` reaches this (default ``config.total_steps``).
         ckpt_dir: checkpoint directory (None: no checkpoints).
-        resume: continue from the newest checkpoint in ``ckpt_dir`` if there is one.
+        resume: continue from the newest checkpoint in ``ckpt_dir`` if there is one (False with
+            existing checkpoints is an error rather than a silent overwrite).
         save_every: also checkpoint every this many steps (the final step is always saved).
         keep_checkpoints: how many recent checkpoints to keep.
         async_checkpoints: write checkpoints in the background.
@@ -159,6 +160,11 @@ def train(
     if ckpt_dir is not None:
         ckpt = Checkpointer(ckpt_dir, max_to_keep=keep_checkpoints, async_save=async_checkpoints)
     try:
+        if ckpt is not None and not resume and ckpt.latest_step() is not None:
+            raise ValueError(
+                f"checkpoint directory {ckpt.directory} already holds checkpoints (latest step "
+                f"{ckpt.latest_step()}); pass resume=True to continue it or choose an empty directory"
+            )
         if ckpt is not None and resume and ckpt.latest_step() is not None:
             state, data_state, saved_meta = ckpt.restore(state)
             if has_position and data_state:

@@ -83,7 +83,7 @@ class SizeSpec:
 
 SIZES: dict[str, SizeSpec] = {
     # CI: about 4 minutes of audio.
-    "tiny": SizeSpec((6, 2, 2, 2), 2, 5.0, (2, 1, 1, 1), 12.0, 32, 1e9),
+    "tiny": SizeSpec((10, 2, 3, 2), 2, 5.0, (1, 1, 1, 1), 10.0, 32, 1e9),
     # Demo and experiments: about 30 minutes.
     "small": SizeSpec((24, 4, 4, 4), 4, 8.0, (12, 2, 2, 2), 20.0, 128, 1e9),
     # Hours, rendered lazily.

@@ -60,7 +60,7 @@ def _frame_times(num_frames: int, fps: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=1024)
-def _spring(tau: float, rate: float) -> tuple[np.ndarray, np.ndarray]:
+def _spring(tau: float, rate: float | int) -> tuple[np.ndarray, np.ndarray]:
     # Critically damped second-order system = two identical first-order low-passes in cascade.
     pole = np.exp(-1.0 / (tau * rate))
     return np.array([(1.0 - pole) ** 2]), np.array([1.0, -2.0 * pole, pole * pole])
@@ -150,7 +150,7 @@ def listener_reaction(other: Timeline | None, other_emotion: np.ndarray, style: 
 
 
 @functools.lru_cache(maxsize=64)
-def _first_order(tau: float, rate: float) -> tuple[np.ndarray, np.ndarray]:
+def _first_order(tau: float, rate: float | int) -> tuple[np.ndarray, np.ndarray]:
     pole = np.exp(-1.0 / (tau * rate))
     return np.array([1.0 - pole]), np.array([1.0, -pole])
 
@@ -192,7 +192,7 @@ def stochastic(rng: np.random.Generator, style: SpeakerStyle, num_frames: int,
     out[:, NECK_SLICE] += 0.5 * amp * sway_noise
 
     drift = _smooth_noise(rng, (num_frames, len(_DRIFT_DIMS)), 0.08, fps)
-    scale = np.where(_DRIFT_DIMS >= GROUPS["residual"][0], 0.3, 0.2)
+    scale = np.where(_DRIFT_DIMS >= GROUPS["residual"][0], 0.15, 0.12)
     out[:, _DRIFT_DIMS] += drift * scale
     return out, expect
 

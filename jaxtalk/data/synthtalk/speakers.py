@@ -120,7 +120,7 @@ def sample_style(rng: np.random.Generator, *, ood: bool = False) -> SpeakerStyle
             knobs[k] = float(rng.uniform(lo, hi))
     # Higher voices come from shorter vocal tracts: tie the formant scale to f0 plus a personal part.
     rel = (knobs["f0"] - 95.0) / (230.0 - 95.0)
-    formant_scale = float(0.9 + 0.25 * rel + rng.uniform(-0.04, 0.04))
+    formant_scale = float(0.95 + 0.12 * rel + rng.uniform(-0.02, 0.02))
     jaw_asym = float(rng.uniform(-0.08, 0.08))
     return SpeakerStyle(**knobs, formant_scale=formant_scale, jaw_asym=jaw_asym,
                         rest=_resting_face(rng))

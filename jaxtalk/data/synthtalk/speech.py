@@ -174,7 +174,7 @@ def synthesize(timeline: Timeline, style: SpeakerStyle, voice: VoiceChange,
     ph = timeline.phones
     prevs = np.concatenate([[ph[0]], ph[:-1]])
     nexts = np.concatenate([ph[1:], [ph[-1]]])
-    for phone, prev, nxt, s, e in zip(ph, prevs, nexts, starts, ends):
+    for phone, prev, nxt, s, e in zip(ph, prevs, nexts, starts.tolist(), ends.tolist()):
         if recipe(int(phone)).kind == "silence" or e <= s:
             continue
         lo, hi = max(s - h, 0), min(e + h, n)
