@@ -13,7 +13,6 @@ Usage: python experiments/bench_samplers.py [--out PATH] [--repeats N]
 from __future__ import annotations
 
 import argparse
-import functools
 from pathlib import Path
 
 import jax
@@ -52,22 +51,24 @@ def mlp(params: dict[str, jax.Array], x: jax.Array, t: jax.Array, cond: dict[str
 
 
 def euler(params, noise, cond, uncond, ts, w):
-    return flow.sample_euler(functools.partial(mlp, params), noise, cond, ts, uncond=uncond, cfg_scale=w)
+    return flow.sample_euler(jax.tree_util.Partial(mlp, params), noise, cond, ts, uncond=uncond, cfg_scale=w)
 
 
 def ddim(params, noise, cond, uncond, sched, key, w):
     return diffusion.sample_ddim(
-        functools.partial(mlp, params), noise, cond, sched, key, uncond=uncond, cfg_scale=w, eta=0.0
+        jax.tree_util.Partial(mlp, params), noise, cond, sched, key, uncond=uncond, cfg_scale=w, eta=0.0
     )
 
 
 def one_guided_step(params, x, cond, uncond, w):
     t = jnp.full((x.shape[0],), 0.5, x.dtype)
-    return flow.guided_apply(functools.partial(mlp, params), x, t, cond, uncond, w)
+    return flow.guided_apply(jax.tree_util.Partial(mlp, params), x, t, cond, uncond, w)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--out", type=Path, default=Path("experiments/results/bench_samplers.json"))
     parser.add_argument("--repeats", type=int, default=20)
     args = parser.parse_args()
@@ -90,9 +91,15 @@ def main() -> None:
     for sampler in ("euler", "ddim"):
         for n in STEPS:
             if sampler == "euler":
-                fn, call_args = euler, (params, noise, cond, uncond, jnp.asarray(cosine_grid(n), jnp.float32), w)
+                fn, call_args = (
+                    euler,
+                    (params, noise, cond, uncond, jnp.asarray(cosine_grid(n), jnp.float32), w),
+                )
             else:
-                fn, call_args = ddim, (params, noise, cond, uncond, respace(base, n).astype(jnp.float32), k_sample, w)
+                fn, call_args = (
+                    ddim,
+                    (params, noise, cond, uncond, respace(base, n).astype(jnp.float32), k_sample, w),
+                )
             timing = bm.time_jitted(fn, *call_args, repeats=args.repeats, warmup=2)
             flops = None if step_flops is None else step_flops * n
             achieved = None if flops is None else flops / timing.run_median_s
@@ -111,7 +118,8 @@ def main() -> None:
             )
 
     title = (
-        f"Samplers, MLP {DIM}->{HIDDEN}->{HIDDEN}->{DIM} x {FRAMES} frames x batch {BATCH}, CFG (batch 2/step); "
+        f"Samplers, MLP {DIM}->{HIDDEN}->{HIDDEN}->{DIM} x {FRAMES} frames x batch {BATCH}, "
+        "CFG (batch 2/step); "
         f"float32 matmul peak {peak / 1e9:.1f} GFLOP/s; backend {jax.default_backend()}"
     )
     bm.print_table(rows, title)
@@ -119,7 +127,14 @@ def main() -> None:
         args.out,
         {
             "benchmark": "samplers",
-            "config": {"frames": FRAMES, "batch": BATCH, "dim": DIM, "cond": COND, "hidden": HIDDEN, "cfg": True},
+            "config": {
+                "frames": FRAMES,
+                "batch": BATCH,
+                "dim": DIM,
+                "cond": COND,
+                "hidden": HIDDEN,
+                "cfg": True,
+            },
             "matmul_peak_flops": peak,
             "xla_flops_per_guided_step": step_flops,
             "repeats": args.repeats,

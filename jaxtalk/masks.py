@@ -156,9 +156,7 @@ def _valid_from(lengths_or_valid: Any, num_frames: int | None) -> Bool[Array, "b
         if arr.ndim != 2:
             raise ValueError(f"valid mask must have shape (batch, frames), got shape {arr.shape}")
         if num_frames is not None and arr.shape[1] != num_frames:
-            raise ValueError(
-                f"valid mask has {arr.shape[1]} frames but num_frames={num_frames}"
-            )
+            raise ValueError(f"valid mask has {arr.shape[1]} frames but num_frames={num_frames}")
         return jnp.asarray(arr)
     if arr.ndim != 1:
         raise ValueError(f"lengths must have shape (batch,), got shape {arr.shape}")
@@ -222,13 +220,9 @@ def combine(
     if static_mask.ndim != 2 or static_mask.shape[0] != static_mask.shape[1]:
         raise ValueError(f"static_mask must be square (T, T), got shape {static_mask.shape}")
     if valid.ndim != 2 or valid.shape[1] != static_mask.shape[0]:
-        raise ValueError(
-            f"valid must have shape (batch, {static_mask.shape[0]}), got shape {valid.shape}"
-        )
+        raise ValueError(f"valid must have shape (batch, {static_mask.shape[0]}), got shape {valid.shape}")
     if static_mask.dtype != bool or valid.dtype != bool:
-        raise ValueError(
-            f"masks must be bool, got static_mask {static_mask.dtype} and valid {valid.dtype}"
-        )
+        raise ValueError(f"masks must be bool, got static_mask {static_mask.dtype} and valid {valid.dtype}")
     static = jnp.asarray(static_mask)[None, :, :]
     v = jnp.asarray(valid)
     allowed = static & v[:, :, None] & v[:, None, :]

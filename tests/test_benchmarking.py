@@ -84,7 +84,9 @@ def test_print_table(capsys):
 def test_write_json_creates_dirs_and_adds_machine_info(tmp_path):
     timing = bm.Timing(compile_s=1.0, lower_s=0.5, run_median_s=0.2, run_min_s=0.1, runs=(0.1, 0.2, 0.3))
     path = tmp_path / "a" / "b" / "out.json"
-    written = bm.write_json(path, {"rows": [{"x": np.float32(1.5), "n": np.int64(3)}], "timing": timing, "arr": np.arange(3)})
+    written = bm.write_json(
+        path, {"rows": [{"x": np.float32(1.5), "n": np.int64(3)}], "timing": timing, "arr": np.arange(3)}
+    )
     assert written == path and path.exists()
     data = json.loads(path.read_text())
     assert data["rows"] == [{"x": 1.5, "n": 3}]

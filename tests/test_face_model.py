@@ -124,6 +124,9 @@ def test_sequence_api_is_the_per_frame_api_vmapped(face):
     for t in range(4):
         np.testing.assert_allclose(seq[t], np.asarray(face.vertices(params[t])), atol=1e-6)
         np.testing.assert_allclose(lms[t], np.asarray(face.landmarks(params[t])), atol=1e-6)
+    # The landmark path poses only the landmark triangles: same as reading them off all vertices.
+    np.testing.assert_allclose(lms, np.asarray(face.landmarks_from_vertices(seq)), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.vmap(face.vertices)(params)), seq, atol=1e-6)
 
 
 def test_model_crosses_jit_and_identities_share_one_compilation(face):
@@ -169,3 +172,18 @@ def test_nan_inside_a_sequence_is_reported(face):
     p[3, 51] = np.inf
     with pytest.raises(ValueError, match=r"index \[3, 51\]"):
         face.vertices_seq(p)
+
+
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        ({"parents": (0, 0, 1)}, "parents must list each joint after its parent"),
+        ({"jaw_joint": 1}, "neck_joint and jaw_joint must differ"),
+        ({"neck_joint": 5}, "must index one of the 3 joints"),
+    ],
+)
+def test_inconsistent_models_are_rejected(face, changes, match):
+    import dataclasses
+
+    with pytest.raises(ValueError, match=match):
+        dataclasses.replace(face, **changes)

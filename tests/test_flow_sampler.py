@@ -11,14 +11,9 @@ import pytest
 from jaxtalk.samplers import flow
 from jaxtalk.samplers.schedules import cosine_grid, uniform_grid
 
-@pytest.fixture(autouse=True)
-def _fast_xla():
-    # Compile time dominates these tiny programs. (conftest's `fast_compile` reads
-    # `jax.config.jax_disable_most_optimizations`, which jax 0.10 no longer exposes as an attribute.)
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+
+# Compile time dominates these small programs.
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 SIGMA_MIN = 1e-6
@@ -132,8 +127,14 @@ def test_scan_matches_numpy_loop(float64):
     for kw in cases:
         got = flow.sample_euler(apply_fn, jnp.asarray(z), {"c": jnp.asarray(c)}, jnp.asarray(ts), **kw)
         ref = euler_reference(
-            apply_np, z, c, None if "uncond" not in kw else np.asarray(kw["uncond"]["c"]),
-            kw.get("cfg_scale", 0.0), ts, kw.get("known"), kw.get("known_mask"),
+            apply_np,
+            z,
+            c,
+            None if "uncond" not in kw else np.asarray(kw["uncond"]["c"]),
+            kw.get("cfg_scale", 0.0),
+            ts,
+            kw.get("known"),
+            kw.get("known_mask"),
         )
         assert got.dtype == jnp.float64
         np.testing.assert_allclose(np.asarray(got), ref, atol=1e-6, rtol=0)
@@ -164,8 +165,13 @@ def test_grad_wrt_condition_matches_finite_differences(float64):
 
     def loss(cond, w):
         x = flow.sample_euler(
-            apply_fn, jnp.asarray(z), {"c": cond}, ts,
-            uncond={"c": jnp.zeros_like(cond)}, cfg_scale=w, remat=remat,
+            apply_fn,
+            jnp.asarray(z),
+            {"c": cond},
+            ts,
+            uncond={"c": jnp.zeros_like(cond)},
+            cfg_scale=w,
+            remat=remat,
         )
         return jnp.sum(weights * jnp.sin(x))
 
@@ -236,7 +242,9 @@ def test_parameters_in_a_partial_are_traced_not_recompiled():
     outs = [
         flow.sample_euler(
             jax.tree_util.Partial(velocity, {"w": jnp.asarray(rng.normal(size=(D, D)), jnp.float32)}),
-            z, {"c": c}, ts,
+            z,
+            {"c": c},
+            ts,
         )
         for _ in range(3)
     ]
@@ -261,8 +269,12 @@ def test_cfg_is_one_batched_call_and_zero_scale_is_conditional():
     state = flow.init(jnp.asarray(z))
     for k in range(1, 6):
         state = flow.step(
-            state, jnp.asarray(ts[k], jnp.float32), apply_fn=apply_fn, cond={"c": jnp.asarray(c)},
-            uncond={"c": jnp.zeros((B, T, D))}, cfg_scale=0.7,
+            state,
+            jnp.asarray(ts[k], jnp.float32),
+            apply_fn=apply_fn,
+            cond={"c": jnp.asarray(c)},
+            uncond={"c": jnp.zeros((B, T, D))},
+            cfg_scale=0.7,
         )
         assert calls == [(2 * B, T, D)] * k
 

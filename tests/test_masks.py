@@ -110,7 +110,9 @@ def test_padding_and_combine_match_definition():
     np.testing.assert_array_equal(
         np.asarray(masks.padding_mask(lengths, t)), np.asarray(masks.combine(np.ones((t, t), bool), valid))
     )
-    np.testing.assert_array_equal(np.asarray(masks.padding_mask(jnp.asarray(valid))), np.asarray(masks.padding_mask(lengths, t)))
+    np.testing.assert_array_equal(
+        np.asarray(masks.padding_mask(jnp.asarray(valid))), np.asarray(masks.padding_mask(lengths, t))
+    )
 
 
 def test_padding_works_under_jit_and_softmax_has_no_nan():

@@ -75,8 +75,9 @@ def test_respace_tables_and_posterior():
     for i in range(5):
         a, ap = r.alphas_cumprod[i], r.alphas_cumprod_prev[i]
         beta = 1 - a / ap
-        # Gaussian conditioning by hand: x_t = sqrt(a/ap) x_prev + sqrt(beta) n, x_prev = sqrt(ap) x0 + sqrt(1-ap) e.
-        # Posterior precision = 1/(1-ap) + (a/ap)/beta; mean = var * (sqrt(ap) x0/(1-ap) + sqrt(a/ap) x_t / beta).
+        # Gaussian conditioning by hand: x_t = sqrt(a/ap) x_prev + sqrt(beta) n and
+        # x_prev = sqrt(ap) x0 + sqrt(1-ap) e, so the posterior precision is 1/(1-ap) + (a/ap)/beta
+        # and the mean is var * (sqrt(ap) x0 / (1-ap) + sqrt(a/ap) x_t / beta).
         if i == 0:
             assert r.posterior_variance[0] == 0.0
             assert r.posterior_coef_x0[0] == pytest.approx(1.0)

@@ -51,17 +51,24 @@ def test_disk_cache_roundtrip_is_atomic_and_used(tmp_path, corpus, monkeypatch):
     assert loaded.fingerprint(tokens=False) == first.fingerprint(tokens=False) == corpus.fingerprint(tokens=False)
 
 
-def test_lazy_full_size_renders_units_on_demand(tmp_path):
-    full = synthtalk.generate("full", seed=3, cache_dir=tmp_path)
-    assert sum(c.seconds for c in full.clips) > 3 * 3600  # hours of corpus, planned not rendered
-    assert not any(tmp_path.iterdir())
-    i = full.split("test")[0]
-    audio = full.audio(i)
-    assert audio.shape == (full.clips[i].num_samples,)
-    files = list((tmp_path / full.key).iterdir())
-    assert len(files) == 1 and files[0].name == f"unit_{full.clips[i].unit:06d}.npz"
-    again = synthtalk.generate("full", seed=3, cache_dir=tmp_path)
-    np.testing.assert_array_equal(again.motion(i), full.motion(i))
+def test_lazy_size_renders_units_on_demand(tmp_path):
+    full = synthtalk.SIZES["full"]
+    hours = (sum(full.speakers) * full.clips_per_speaker * full.clip_seconds
+             + 2 * sum(full.conversations) * full.conversation_seconds) / 3600
+    assert full.lazy and hours > 3
+    spec = dataclasses.replace(full, speakers=(2, 1, 1, 1), clips_per_speaker=1, clip_seconds=3.0,
+                               conversations=(1, 0, 0, 0), conversation_seconds=6.0)
+    lazy = synthtalk.generate(spec, seed=3, cache_dir=tmp_path)
+    assert lazy.size.startswith("custom") and not any(tmp_path.iterdir())  # planned, not rendered
+    i = lazy.split("test")[0]
+    assert lazy.audio(i).shape == (lazy.clips[i].num_samples,)
+    files = list((tmp_path / lazy.key).iterdir())
+    assert [f.name for f in files] == [f"unit_{lazy.clips[i].unit:06d}.npz"]
+    again = synthtalk.generate(spec, seed=3, cache_dir=tmp_path)
+    np.testing.assert_array_equal(again.motion(i), lazy.motion(i))
+    eager = synthtalk.generate(dataclasses.replace(spec, lazy=False), seed=3)
+    # Units are rendered from their own streams: lazily or eagerly, the same bytes.
+    np.testing.assert_array_equal(eager.audio(i), lazy.audio(i))
 
 
 # -------------------------------------------------------------------------------- structure
@@ -128,20 +135,27 @@ def test_calibration_against_real_flame_statistics(corpus):
     assert np.all((neck_std >= 0.02) & (neck_std <= 0.12)), neck_std
     vel = np.concatenate([np.diff(corpus.motion(i)[:, :50], axis=0) for i in range(len(corpus))])
     assert 0.05 <= vel.std() <= 0.3, vel.std()
-    assert np.all(vel.std(0) <= 0.3)
+    # Per dim, within the range of the real tracks (0.07-0.45 per frame).
+    assert np.all((vel.std(0) >= 0.02) & (vel.std(0) <= 0.45)), vel.std(0)
 
 
 # ------------------------------------------------------------------------------------ oracle
 def test_oracle_is_the_deterministic_part(corpus):
-    mse_oracle, mse_mean = [], []
-    for i in range(len(corpus)):
+    train = np.concatenate([corpus.motion(i) for i in corpus.split("train")])
+    mean_pose = train.mean(0)
+    err = {"oracle": [], "mean_pose": [], "clip_mean": []}
+    for i in corpus.split("test"):
         m, o = corpus.motion(i), corpus.oracle(i)
         # Articulators carry no noise: identical. Blinks in the oracle are their constant mean.
         np.testing.assert_array_equal(m[:, motion.ARTICULATORS], o[:, motion.ARTICULATORS])
         assert np.ptp(o[:, GROUPS["blink"]], axis=0).max() < 1e-6
-        mse_oracle.append(((m - o) ** 2).mean())
-        mse_mean.append(((m - m.mean(0)) ** 2).mean())
-    assert np.mean(mse_oracle) < 0.5 * np.mean(mse_mean)
+        assert np.abs(m - o).max() > 0.1  # but motion does have a stochastic part
+        err["oracle"].append(((m - o) ** 2).mean())
+        err["mean_pose"].append(((m - mean_pose) ** 2).mean())
+        err["clip_mean"].append(((m - m.mean(0)) ** 2).mean())
+    mse = {k: float(np.mean(v)) for k, v in err.items()}
+    assert mse["oracle"] < 0.25 * mse["mean_pose"], mse
+    assert mse["oracle"] < 0.8 * mse["clip_mean"], mse
 
 
 def test_blink_expectation_matches_long_run_average():
@@ -299,8 +313,8 @@ def test_silent_mouth_does_not_move(corpus):
             info = corpus.clips[i]
             t = np.arange(info.num_frames) / FPS
             speaking = info.timeline.speaking(np.arange(info.num_frames * 10) / (FPS * 10))
-            # Frames farther than 0.3 s from any own speech.
-            near = np.convolve(speaking.astype(float), np.ones(2 * 75 + 1), mode="same") > 0
+            # Frames farther than 0.4 s from any own speech.
+            near = np.convolve(speaking.astype(float), np.ones(2 * 100 + 1), mode="same") > 0
             quiet = ~near[:: 10][: len(t)]
             m = corpus.motion(i)[quiet][:, motion.ARTICULATORS]
             assert quiet.sum() > 5

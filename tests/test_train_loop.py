@@ -11,6 +11,9 @@ import pytest
 from jaxtalk.data.batching import BatchIterator
 from jaxtalk.train import NonFiniteLossError, OptimConfig, make_schedule, train
 
+# Compile time dominates these tiny programs; all runs compared within a test share the setting.
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 # ---------------------------------------------------------------- tiny problems
 
 

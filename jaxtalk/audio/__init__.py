@@ -6,7 +6,9 @@ vector-quantised tokenizers.
   with a 1e-10 floor, centred frames at 100 frames/s; jit-able, batched over leading axes.
 * ``resample_features(x, src_rate, dst_rate, num_frames=None, mode="linear"|"previous")``: any stream to
   the motion rate; ``"previous"`` is causal.
-* ``VQTokenizer`` / ``TokenStream``: k-means token ids + embedding tables at a chosen rate and width.
+* ``VQTokenizer`` / ``TokenStream``: k-means token ids + embedding tables at a chosen rate and width;
+  ``TokenStream.from_npy`` brings in user-supplied per-frame embeddings (e.g. an audio LLM's).
+* ``kmeans``: jitted k-means++ / Lloyd used to fit the codebooks.
 """
 
 from jaxtalk.audio.framerate import (

@@ -85,9 +85,7 @@ def _kmeans(points, key, *, num_codes, iterations):
         count = jax.ops.segment_sum(jnp.ones_like(assignment, points.dtype), assignment, num_codes)
         # An empty cluster keeps its previous centre (it cannot happen right after ++ seeding on
         # distinct points, and rarely later).
-        updated = jnp.where(
-            count[:, None] > 0, total / jnp.maximum(count, 1.0)[:, None], centroids
-        )
+        updated = jnp.where(count[:, None] > 0, total / jnp.maximum(count, 1.0)[:, None], centroids)
         return updated, inertia
 
     centroids, inertia = jax.lax.scan(lloyd, centroids, None, length=iterations)
@@ -126,7 +124,9 @@ def kmeans(
     if points.ndim != 2 or points.shape[0] == 0 or points.shape[1] == 0:
         raise ValueError(f"kmeans needs a non-empty (points, features) array, got {points.shape}")
     if not 1 <= num_codes <= points.shape[0]:
-        raise ValueError(f"num_codes must be in [1, {points.shape[0]}] (the points), got {num_codes}")
+        raise ValueError(
+            f"num_codes must be in [1, {points.shape[0]}] (the points), got {num_codes}"
+        )
     if iterations < 1:
         raise ValueError(f"iterations must be >= 1, got {iterations}")
     return _kmeans(points, key, num_codes=int(num_codes), iterations=int(iterations))

@@ -50,6 +50,7 @@ _FORMAT_VERSION = 1
 # the frames inside the clip (centred frames already see zeros past the end).
 _BUCKET_SECONDS = 2.0
 _MIN_FEATURE_SCALE = 1e-5
+_QUANTIZE_ROWS = 256
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -298,7 +299,11 @@ class VQTokenizer:
             raise ValueError(
                 f"need num_codes, width, iterations >= 1, got {num_codes}, {width}, {iterations}"
             )
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**32:
+        if (
+            isinstance(seed, bool)
+            or not isinstance(seed, (int, np.integer))
+            or not 0 <= seed < 2**32
+        ):
             # jax.random.key silently keeps only the low 32 bits (2**32 would collide with 0).
             raise ValueError(f"seed must be an integer in [0, 2**32), got {seed!r}")
         hop_length, n_fft = (
@@ -324,7 +329,9 @@ class VQTokenizer:
         scale = np.maximum(data.std(axis=0), _MIN_FEATURE_SCALE)
         z = (data - mean) / scale
         fitted = kmeans(
-            jnp.asarray(z, dtype=jnp.float32), num_codes, key=jax.random.key(seed),
+            jnp.asarray(z, dtype=jnp.float32),
+            num_codes,
+            key=jax.random.key(seed),
             iterations=iterations,
         )
         centroids = np.asarray(fitted.centroids, dtype=np.float64)
@@ -377,8 +384,14 @@ class VQTokenizer:
             raise ValueError(
                 f"features must have shape (tokens, {self.codebook.shape[1]}), got {features.shape}"
             )
-        ids = _nearest_code(features, self.feature_mean, self.feature_scale, self.codebook)
-        return np.asarray(ids)
+        # Pad rows to a multiple of _QUANTIZE_ROWS so clips of many lengths share compiled programs.
+        rows = features.shape[0]
+        padded = np.zeros(
+            (-(-max(rows, 1) // _QUANTIZE_ROWS) * _QUANTIZE_ROWS, features.shape[1]), np.float32
+        )
+        padded[:rows] = features
+        ids = _nearest_code(padded, self.feature_mean, self.feature_scale, self.codebook)
+        return np.asarray(ids)[:rows]
 
     def lookup(self, ids: Int[np.ndarray | Array, " tokens"]) -> Float[np.ndarray, "tokens width"]:
         """Embeddings of token ids.

@@ -9,6 +9,9 @@ A frame's 56-d head vector ``[exp 50 | jaw 3 | neck 3]`` becomes vertices in fou
 4. linear blend skinning down a small kinematic tree: the neck rotation turns the whole head about the
    neck joint, the jaw rotation (about the jaw joint, a child of the neck) opens the mouth.
 
+One implementation serves a frame ``(56,)`` and a sequence ``(T, 56)`` (any leading batch axes, so it
+also vmaps); it is written so XLA fuses the skinning into a single pass over the vertices.
+
 Rotations are axis-angle vectors turned into matrices by a Rodrigues formula that is exact and has
 finite gradients at angle 0 (the rest pose, where every motion sequence starts).
 
@@ -123,6 +126,20 @@ class LinearFaceModel:
             )
         if self.neck_joint == self.jaw_joint:
             raise ValueError(f"neck_joint and jaw_joint must differ, both are {self.neck_joint}")
+        num_verts = np.shape(self.template)[0]
+        expected = {
+            "template": (num_verts, 3),
+            "exp_basis": (num_verts, 3, EXP_DIM),
+            "weights": (num_verts, num_joints),
+            "joint_exp_basis": (num_joints, 3, EXP_DIM),
+            "landmark_vertices": (68, 3),
+            "landmark_bary": (68, 3),
+        }
+        for field, shape in expected.items():
+            if tuple(np.shape(getattr(self, field))) != shape:
+                raise ValueError(f"{field} must have shape {shape}, got {np.shape(getattr(self, field))}")
+        if np.ndim(self.faces) != 2 or np.shape(self.faces)[1] != 3:
+            raise ValueError(f"faces must have shape (F, 3), got {np.shape(self.faces)}")
         if tuple(np.shape(self.joints)) != (num_joints, 3):
             raise ValueError(f"joints must have shape ({num_joints}, 3), got {np.shape(self.joints)}")
         if np.shape(self.exp_basis)[-1] != EXP_DIM:
@@ -264,12 +281,6 @@ class LinearFaceModel:
             changes["pose_basis"] = cast(self.pose_basis)
         return dataclasses.replace(self, **changes)
 
-    def with_template(self, template: Float[ArrayLike, "verts 3"], joints: Float[ArrayLike, "joints 3"]) -> LinearFaceModel:
-        """A copy with a new rest shape (an identity) and its joints, same topology and bases."""
-        if np.shape(template) != np.shape(self.template):
-            raise ValueError(f"template must have shape {np.shape(self.template)}, got {np.shape(template)}")
-        return dataclasses.replace(self, template=template, joints=joints)
-
 
 def _check_params(params: Any, *, batched: bool) -> None:
     shape = np.shape(params)
@@ -283,54 +294,100 @@ def _check_params(params: Any, *, batched: bool) -> None:
         raise ValueError(f"params holds NaN or inf (first at index {bad})")
 
 
+def _add(a: Array, b: Array) -> Array:
+    """a + b with b broadcast explicitly to a's (batched) shape (rank promotion is an error here)."""
+    return a + jnp.broadcast_to(b, a.shape)
+
+
 def _world_transforms(
-    rotations: Float[Array, "joints 3 3"], joints: Float[Array, "joints 3"], parents: tuple[int, ...]
-) -> tuple[Float[Array, "joints 3 3"], Float[Array, "joints 3"]]:
-    """Per-joint rigid maps ``x -> R x + t`` from rest to posed, composed down the kinematic tree."""
+    rotations: Float[Array, "*batch joints 3 3"], joints: Float[Array, "*batch joints 3"], parents: tuple[int, ...]
+) -> Float[Array, "*batch joints 12"]:
+    """Per-joint rigid maps ``x -> R x + t`` from rest to posed, composed down the kinematic tree.
+
+    Returns ``[R (row-major 9) | t (3)]`` per joint.
+    """
     world_r: list[Array] = []
     world_t: list[Array] = []
     # A Python loop over the (static, <= 5) joints of the tree, not over frames.
     for j, parent in enumerate(parents):
-        local_t = joints[j] - rotations[j] @ joints[j]  # rotation about joint j
+        r_j, joint = rotations[..., j, :, :], joints[..., j, :]
+        local_t = joint - jnp.einsum("...ab,...b->...a", r_j, joint)  # rotation about joint j
         if parent < 0:
-            world_r.append(rotations[j])
+            world_r.append(r_j)
             world_t.append(local_t)
         else:
-            world_r.append(world_r[parent] @ rotations[j])
-            world_t.append(world_r[parent] @ local_t + world_t[parent])
-    return jnp.stack(world_r), jnp.stack(world_t)
+            world_r.append(world_r[parent] @ r_j)
+            world_t.append(jnp.einsum("...ab,...b->...a", world_r[parent], local_t) + world_t[parent])
+    batch = rotations.shape[:-3]
+    r = jnp.stack(world_r, axis=-3).reshape(*batch, len(parents), 9)
+    return jnp.concatenate([r, jnp.stack(world_t, axis=-2)], axis=-1)
 
 
-def _vertices_one(model: LinearFaceModel, params: Float[Array, "56"]) -> Float[Array, "verts 3"]:
+def _pose(model: LinearFaceModel, params: Float[Array, "*batch 56"]) -> Float[Array, "*batch verts 3"]:
+    """Vertices for any leading batch of frames (one frame: no batch axes)."""
     dtype = jnp.result_type(model.template, params)
     params = jnp.asarray(params, dtype)
-    exp = params[:EXP_DIM]
-    jaw = params[EXP_DIM : EXP_DIM + 3]
-    neck = params[EXP_DIM + 3 : EXP_DIM + 6]
-    template = jnp.asarray(model.template, dtype)
-    rest = template + jnp.asarray(model.exp_basis, dtype) @ exp
-    joints = jnp.asarray(model.joints, dtype) + jnp.asarray(model.joint_exp_basis, dtype) @ exp
-
-    axis_angles = jnp.zeros((model.num_joints, 3), dtype)
-    axis_angles = axis_angles.at[model.neck_joint].set(neck).at[model.jaw_joint].set(jaw)
+    batch = params.shape[:-1]
+    exp = params[..., :EXP_DIM]
+    jaw = params[..., EXP_DIM : EXP_DIM + 3]
+    neck = params[..., EXP_DIM + 3 : EXP_DIM + 6]
+    rest = _add(
+        jnp.einsum("...k,vck->...vc", exp, jnp.asarray(model.exp_basis, dtype)),
+        jnp.asarray(model.template, dtype),
+    )
+    joints = _add(
+        jnp.einsum("...k,jck->...jc", exp, jnp.asarray(model.joint_exp_basis, dtype)),
+        jnp.asarray(model.joints, dtype),
+    )
+    axis_angles = jnp.zeros((*batch, model.num_joints, 3), dtype)
+    axis_angles = axis_angles.at[..., model.neck_joint, :].set(neck).at[..., model.jaw_joint, :].set(jaw)
     rotations = rodrigues(axis_angles)
     if model.pose_basis is not None:
-        pose_feature = (rotations[1:] - jnp.broadcast_to(jnp.eye(3, dtype=dtype), rotations[1:].shape)).reshape(-1)
-        rest = rest + jnp.asarray(model.pose_basis, dtype) @ pose_feature
+        eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), rotations[..., 1:, :, :].shape)
+        pose_feature = (rotations[..., 1:, :, :] - eye).reshape(*batch, -1)
+        rest = rest + jnp.einsum("...p,vcp->...vc", pose_feature, jnp.asarray(model.pose_basis, dtype))
 
-    world_r, world_t = _world_transforms(rotations, joints, model.parents)
+    transforms = _world_transforms(rotations, joints, model.parents)  # (..., J, 12)
+    # Skinning written as scalar-weighted sums over joints (not an einsum to a (..., V, 12) array
+    # and a 3x3 product per vertex): XLA fuses it into one pass over the vertices, which is what
+    # bounds the speed on CPU.
     weights = jnp.asarray(model.weights, dtype)
-    blended_r = jnp.einsum("vj,jab->vab", weights, world_r)
-    blended_t = weights @ world_t
-    return jnp.einsum("vab,vb->va", blended_r, rest) + blended_t
+    shape = (*batch, weights.shape[0])
+    w = [jnp.broadcast_to(weights[:, j], shape) for j in range(model.num_joints)]
+
+    def blend(m: int) -> Array:
+        # Entry m of the blended [R | t] per vertex: sum_j w_vj G_jm.
+        return sum(
+            w[j] * jnp.broadcast_to(transforms[..., j, m].reshape(*batch, 1), shape)
+            for j in range(model.num_joints)
+        )
+
+    x, y, z = rest[..., 0], rest[..., 1], rest[..., 2]
+    out = [blend(3 * a) * x + blend(3 * a + 1) * y + blend(3 * a + 2) * z + blend(9 + a) for a in range(3)]
+    return jnp.stack(out, axis=-1)
 
 
-def _landmarks_one(model: LinearFaceModel, params: Float[Array, "56"]) -> Float[Array, "68 3"]:
-    return model.landmarks_from_vertices(_vertices_one(model, params))
+def _pose_landmarks(model: LinearFaceModel, params: Float[Array, "*batch 56"]) -> Float[Array, "*batch 68 3"]:
+    # Pose only the (at most 204) vertices the landmarks sit on, not the whole mesh.
+    corners = jnp.asarray(model.landmark_vertices).reshape(-1)
+    verts = _pose(_restrict(model, corners), params)
+    verts = verts.reshape(*verts.shape[:-2], -1, 3, 3)
+    return jnp.einsum("...lkc,lk->...lc", verts, jnp.asarray(model.landmark_bary, verts.dtype))
 
 
-_vertices_jit = jax.jit(_vertices_one)
-_vertices_seq_jit = jax.jit(jax.vmap(_vertices_one, in_axes=(None, 0)))
-_landmarks_jit = jax.jit(_landmarks_one)
-_landmarks_seq_jit = jax.jit(jax.vmap(_landmarks_one, in_axes=(None, 0)))
+def _restrict(model: LinearFaceModel, index: Int[Array, "n"]) -> LinearFaceModel:
+    """The model restricted to a subset of vertices (rows of every per-vertex array)."""
+    per_vertex = ("template", "exp_basis", "weights", "pose_basis")
+    children, aux = model.tree_flatten()
+    # Rebuilt through tree_unflatten: a vertex subset is not a valid standalone model (the faces
+    # and landmarks still index the full mesh), so it must skip the constructor's checks.
+    children = [
+        jnp.take(jnp.asarray(c), index, axis=0) if name in per_vertex and c is not None else c
+        for name, c in zip(LinearFaceModel._LEAVES, children)
+    ]
+    return LinearFaceModel.tree_unflatten(aux, children)
 
+
+# One program per input rank: (56,) for a frame, (T, 56) for a sequence.
+_vertices_jit = _vertices_seq_jit = jax.jit(_pose)
+_landmarks_jit = _landmarks_seq_jit = jax.jit(_pose_landmarks)

@@ -321,9 +321,9 @@ def _residual_field(u, v, direction, a, b):
     return 0.015 * phi, zero, zero
 
 
-def _push(u, v, field) -> np.ndarray:
-    du, dv, dn = field
-    xu, xv, n = _surface_frame(u, v)
+def _push(frame, field) -> np.ndarray:
+    """Displacements (metres, (V, 3)) of a (du, dv, dn) field given the surface frame (xu, xv, n)."""
+    (xu, xv, n), (du, dv, dn) = frame, field
     return du[:, None] * xu + dv[:, None] * xv + dn[:, None] * n
 
 
@@ -340,7 +340,8 @@ def _expression_basis(grid: FaceGrid) -> np.ndarray:
         raise AssertionError("residual modes and layout disagree")
     for name, spec in zip(residual_names, _RESIDUALS):
         named[name] = _residual_field(u, v, *spec)
-    basis = np.stack([_push(u, v, named[name]) for name in EXP_NAMES], axis=-1)
+    frame = _surface_frame(u, v)
+    basis = np.stack([_push(frame, named[name]) for name in EXP_NAMES], axis=-1)
     # Normalise each component to its peak displacement per unit (FLAME-like millimetres); blinks
     # keep their geometric scale (1.0 = lid closed).
     peak = np.linalg.norm(basis, axis=1).max(axis=0)
@@ -452,7 +453,7 @@ def _landmark_inner_lips(grid: FaceGrid) -> np.ndarray:
 _NUM_SHAPE_MODES = 10
 
 
-def _identity_offsets(grid: FaceGrid, coeffs: np.ndarray) -> np.ndarray:
+def _identity_offsets(grid: FaceGrid, frame, coeffs: np.ndarray) -> np.ndarray:
     """Local shape-mode offsets (metres) for shape coefficients ``coeffs[3:]``."""
     u, v = grid.u, grid.v
     zero = np.zeros_like(u)
@@ -475,7 +476,7 @@ def _identity_offsets(grid: FaceGrid, coeffs: np.ndarray) -> np.ndarray:
     assert len(modes) == _NUM_SHAPE_MODES - 3
     offsets = np.zeros((len(u), 3))
     for c, mode in zip(coeffs[3:], modes):
-        offsets += c * _push(u, v, mode)
+        offsets += c * _push(frame, mode)
     return offsets
 
 
@@ -497,6 +498,7 @@ def _mean_face_numpy(resolution: str) -> dict[str, object]:
     return {
         "grid": grid,
         "template": template,
+        "frame": _surface_frame(grid.u, grid.v),
         "exp_basis": _expression_basis(grid),
         "weights": weights,
         "regions": _regions(grid, jaw),
@@ -529,7 +531,7 @@ def builtin_face(identity: int = 0, *, resolution: str = "default") -> LinearFac
     grid: FaceGrid = base["grid"]  # type: ignore[assignment]
     coeffs = _shape_coefficients(int(identity))
     scale = 1.0 + np.array([0.04, 0.04, 0.05]) * coeffs[:3]
-    template = (base["template"] + _identity_offsets(grid, coeffs)) * scale
+    template = (base["template"] + _identity_offsets(grid, base["frame"], coeffs)) * scale
     joints = _JOINTS * scale
     num_joints = len(_PARENTS)
     return LinearFaceModel(

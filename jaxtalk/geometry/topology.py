@@ -76,12 +76,13 @@ class TopologyVariant:
         if len(shape) < 2 or shape[-1] != 3 or shape[-2] < num_base:
             raise ValueError(f"base_vertex_seq must end in (V >= {num_base}, 3), got {shape}")
         corners = self.base_faces[self.face_index]  # (V', 3)
+        # Three gathers weighted by one barycentric column each: no (..., V', 3, 3) temporary.
         if isinstance(base_vertex_seq, np.ndarray):
-            gathered = base_vertex_seq[..., corners, :]  # (..., V', 3, 3)
-            return np.einsum("...vkc,vk->...vc", gathered, self.barycentric.astype(base_vertex_seq.dtype))
+            bary = self.barycentric.astype(base_vertex_seq.dtype)
+            return sum(bary[:, k, None] * base_vertex_seq[..., corners[:, k], :] for k in range(3))
         x = jnp.asarray(base_vertex_seq)
-        gathered = jnp.take(x, jnp.asarray(corners), axis=-2)
-        return jnp.einsum("...vkc,vk->...vc", gathered, jnp.asarray(self.barycentric, x.dtype))
+        bary = jnp.asarray(self.barycentric, x.dtype)
+        return sum(bary[:, k, None] * jnp.take(x, jnp.asarray(corners[:, k]), axis=-2) for k in range(3))
 
 
 def mesh_summary(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool]:

@@ -7,6 +7,7 @@ enters the program as a constant; the layer is ``A_hat X W + b`` over any leadin
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from typing import Any
 
 import flax.linen as nn
@@ -22,7 +23,8 @@ Initializer = Any
 
 
 def normalized_adjacency(
-    edges: Shaped[np.ndarray, "num_edges 2"] | Shaped[Array, "num_edges 2"] | list[tuple[int, int]],
+    # Shape (num_edges, 2) is checked below with a ValueError rather than in the annotation.
+    edges: Shaped[np.ndarray, "*dims"] | Shaped[Array, "*dims"] | Sequence[Sequence[int]],
     num_nodes: int,
     self_loops: bool = True,
 ) -> Float[np.ndarray, "{num_nodes} {num_nodes}"]:

@@ -22,8 +22,12 @@ __all__ = ["FeedForward", "TransformerBlock", "DecoderBlock"]
 
 Dtype = Any
 Initializer = Any
+# Keys/values of earlier positions, and the cache returned after a call (earlier + new positions).
 KVCache = tuple[
     Float[Array, "*batch cache_len heads head_dim"], Float[Array, "*batch cache_len heads head_dim"]
+]
+UpdatedKVCache = tuple[
+    Float[Array, "*batch total_len heads head_dim"], Float[Array, "*batch total_len heads head_dim"]
 ]
 
 
@@ -99,7 +103,7 @@ class _AttentionSublayer(nn.Module):
         kv_cache: KVCache | None,
         return_kv: bool,
         deterministic: bool,
-    ) -> Array | tuple[Array, KVCache]:
+    ) -> Array | tuple[Array, UpdatedKVCache]:
         h = nn.LayerNorm(
             epsilon=self.layer_norm_epsilon,
             dtype=self.dtype,
@@ -223,7 +227,7 @@ class TransformerBlock(nn.Module):
         deterministic: bool = True,
     ) -> (
         Float[Array, "*batch time features"]
-        | tuple[Float[Array, "*batch time features"], KVCache]
+        | tuple[Float[Array, "*batch time features"], UpdatedKVCache]
     ):
         """Applies the block.
 
@@ -267,7 +271,7 @@ class DecoderBlock(TransformerBlock):
         deterministic: bool = True,
     ) -> (
         Float[Array, "*batch time features"]
-        | tuple[Float[Array, "*batch time features"], KVCache]
+        | tuple[Float[Array, "*batch time features"], UpdatedKVCache]
     ):
         """Applies the block.
 

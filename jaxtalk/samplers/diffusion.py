@@ -168,20 +168,12 @@ def _model_x0(state, tables, apply_fn, cond, uncond, cfg_scale, prediction, clip
     d = x.shape[-1]
     if variance == "learned_range":
         # Guidance acts on the prediction channels only; the variance comes from the conditional branch.
-        if uncond is None:
-            raw_c = apply_fn(x, t, cond)
-            out = raw_c[..., :d]
-        else:
-            both = jax.tree.map(lambda c, u: jnp.concatenate([c, u], axis=0), cond, uncond)
-            raw = apply_fn(jnp.concatenate([x, x]), jnp.concatenate([t, t]), both)
-            raw_c, raw_u = jnp.split(raw, 2, axis=0)
-            w = jnp.asarray(cfg_scale, x.dtype)
-            out = (1 + w) * raw_c[..., :d] - w * raw_u[..., :d]
-        if raw_c.shape[-1] != 2 * d:
+        raw = guided_apply(apply_fn, x, t, cond, uncond, cfg_scale, guided_channels=d)
+        if raw.shape[-1] != 2 * d:
             raise ValueError(
-                f"variance='learned_range' needs a model output with {2 * d} channels, got {raw_c.shape}"
+                f"variance='learned_range' needs a model output with {2 * d} channels, got {raw.shape}"
             )
-        var_v = raw_c[..., d:]
+        out, var_v = raw[..., :d], raw[..., d:]
         frac = (var_v + 1) / 2
         log_var = frac * tables.log_beta + (1 - frac) * tables.log_var_small
     else:
@@ -233,9 +225,7 @@ def ddim_step(
     sigma = eta * _safe_sqrt((1 - abar_prev) / (1 - abar) * (1 - abar / abar_prev))
     noise = jax.random.normal(key, x.shape, x.dtype)
     x_prev = (
-        jnp.sqrt(abar_prev) * x0
-        + _safe_sqrt(1 - abar_prev - sigma**2) * eps
-        + tables.nonzero * sigma * noise
+        jnp.sqrt(abar_prev) * x0 + _safe_sqrt(1 - abar_prev - sigma**2) * eps + tables.nonzero * sigma * noise
     )
     return DiffusionState(x=x_prev, x0=x0)
 
@@ -291,12 +281,29 @@ def _tables(s: RespacedSchedule, dtype: Any) -> StepTables:
     static_argnames=("kind", "prediction", "clip", "variance", "return_trajectory", "remat"),
 )
 def _sample(
-    apply_fn, noise, cond, schedule, key, uncond, cfg_scale, eta,
-    kind, prediction, clip, variance, return_trajectory, remat,
+    apply_fn,
+    noise,
+    cond,
+    schedule,
+    key,
+    uncond,
+    cfg_scale,
+    eta,
+    kind,
+    prediction,
+    clip,
+    variance,
+    return_trajectory,
+    remat,
 ):
     kwargs = dict(
-        apply_fn=apply_fn, cond=cond, uncond=uncond, cfg_scale=cfg_scale,
-        prediction=prediction, clip=clip, variance=variance,
+        apply_fn=apply_fn,
+        cond=cond,
+        uncond=uncond,
+        cfg_scale=cfg_scale,
+        prediction=prediction,
+        clip=clip,
+        variance=variance,
     )
     if kind == "ddim":
         step_fn = functools.partial(ddim_step, eta=eta, **kwargs)
@@ -350,7 +357,9 @@ def _prepare(noise, cond, schedule, key, uncond, cfg_scale, eta, prediction, cli
     if cfg_scale.ndim != 0 or eta.ndim != 0:
         raise ValueError(f"cfg_scale and eta must be scalars, got shapes {cfg_scale.shape} and {eta.shape}")
     _check_cond(cond, uncond, noise.shape[0])
-    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or key.shape == (2,))):
+    if not (
+        isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or key.shape == (2,))
+    ):
         raise ValueError(f"key must be a JAX PRNG key, got {type(key).__name__} {getattr(key, 'shape', '')}")
     return noise, schedule, cfg_scale, eta, clip
 
@@ -374,8 +383,9 @@ def sample_ddim(
     """DDIM sampling over the respaced steps of ``schedule`` (from ``x_T = noise`` to x0).
 
     Step j (j = 0..N-1, noisiest first) uses key ``jax.random.split(key, N)[j]``. Static (recompile):
-    the function of ``apply_fn`` (see :func:`~jaxtalk.samplers.flow.as_model`), shapes, ``N``, ``prediction``, ``clip``, ``variance``, flags. Traced: the
-    schedule VALUES, ``cfg_scale``, ``eta``. Differentiable and vmap-able.
+    the function of ``apply_fn`` (see :func:`~jaxtalk.samplers.flow.as_model`), shapes, ``N``,
+    ``prediction``, ``clip``, ``variance``, flags. Traced: the schedule VALUES, ``cfg_scale``, ``eta``.
+    Differentiable and vmap-able.
 
     Args:
         apply_fn: ``apply_fn(x (B, ...), t (B,), cond) -> (B, ...)`` (``(..., 2D)`` with learned
@@ -406,8 +416,20 @@ def sample_ddim(
         noise, cond, schedule, key, uncond, cfg_scale, eta, prediction, clip, variance
     )
     return _sample(
-        as_model(apply_fn), noise, cond, schedule, key, uncond, cfg_scale, eta,
-        "ddim", prediction, clip, variance, bool(return_trajectory), bool(remat),
+        as_model(apply_fn),
+        noise,
+        cond,
+        schedule,
+        key,
+        uncond,
+        cfg_scale,
+        eta,
+        "ddim",
+        prediction,
+        clip,
+        variance,
+        bool(return_trajectory),
+        bool(remat),
     )
 
 
@@ -446,6 +468,18 @@ def sample_ddpm(
         noise, cond, schedule, key, uncond, cfg_scale, 0.0, prediction, clip, variance
     )
     return _sample(
-        as_model(apply_fn), noise, cond, schedule, key, uncond, cfg_scale, eta,
-        "ddpm", prediction, clip, variance, bool(return_trajectory), bool(remat),
+        as_model(apply_fn),
+        noise,
+        cond,
+        schedule,
+        key,
+        uncond,
+        cfg_scale,
+        eta,
+        "ddpm",
+        prediction,
+        clip,
+        variance,
+        bool(return_trajectory),
+        bool(remat),
     )

@@ -32,6 +32,7 @@ __all__ = [
     "sample_euler",
 ]
 
+
 # Public entry points take JAX or NumPy arrays. Shapes/dtypes that the code validates itself are
 # annotated loosely so that a bad value reaches the ValueError that names it.
 class _Like:
@@ -49,13 +50,22 @@ ApplyFn = Callable[[Any, Any, Any], Any]
 """``apply_fn(x: (B, ...), t: (B,), cond: pytree with leading B) -> prediction shaped like x``."""
 
 
-def as_model(apply_fn: ApplyFn) -> jax.tree_util.Partial:
+def as_model(apply_fn: ApplyFn | Any) -> jax.tree_util.Partial:
     """The model as a pytree that can cross ``jit`` as an ordinary argument.
 
     A ``jax.tree_util.Partial(fn, params)`` keeps ``params`` as traced leaves (new parameters do not
     recompile, and they are not baked into the executable as constants); any other callable is
     wrapped as ``Partial(fn)``, whose identity is part of the jit cache key (so the same function
     object must be passed again to reuse the compiled sampler).
+
+    Args:
+        apply_fn: a callable ``apply_fn(x, t, cond)`` or a ``jax.tree_util.Partial``.
+
+    Returns:
+        A ``jax.tree_util.Partial``.
+
+    Raises:
+        ValueError: ``apply_fn`` is not callable.
     """
     if isinstance(apply_fn, jax.tree_util.Partial):
         return apply_fn
@@ -95,6 +105,7 @@ def guided_apply(
     cond: Any,
     uncond: Any = None,
     cfg_scale: Float[Array, ""] | float = 0.0,
+    guided_channels: int | None = None,
 ) -> Float[Array, "batch *out"]:
     """Model prediction with classifier-free guidance in ONE batched call of ``apply_fn``.
 
@@ -109,6 +120,8 @@ def guided_apply(
         cond: conditioning pytree, every leaf with leading axis B.
         uncond: the unconditional pytree (same structure and shapes), or None for no guidance.
         cfg_scale: ``()`` guidance weight w (traced).
+        guided_channels: if given, guide only the first ``guided_channels`` entries of the output's
+            last axis and take the rest from the conditional branch (e.g. a learned variance).
 
     Returns:
         ``(B, ...)`` the guided prediction.
@@ -119,7 +132,10 @@ def guided_apply(
     out = apply_fn(jnp.concatenate([x, x], axis=0), jnp.concatenate([t, t], axis=0), both)
     out_c, out_u = jnp.split(out, 2, axis=0)
     w = jnp.asarray(cfg_scale, out.dtype)
-    return (1 + w) * out_c - w * out_u
+    guided = (1 + w) * out_c - w * out_u
+    if guided_channels is not None:
+        guided = jnp.concatenate([guided[..., :guided_channels], out_c[..., guided_channels:]], axis=-1)
+    return guided
 
 
 def _path(z: Any, x1: Any, t: Any, sigma_min: float) -> Any:
@@ -193,9 +209,7 @@ def step(
     return FlowState(x=x, z=z, t=t1)
 
 
-@functools.partial(
-    jax.jit, static_argnames=("sigma_min", "return_trajectory", "remat")
-)
+@functools.partial(jax.jit, static_argnames=("sigma_min", "return_trajectory", "remat"))
 def _sample_euler(
     apply_fn, noise, cond, ts, uncond, cfg_scale, known, known_mask, sigma_min, return_trajectory, remat
 ):
@@ -247,10 +261,10 @@ def sample_euler(
 
     jit-compiled; recompiles only when a static thing changes: the function of ``apply_fn`` (by
     identity: pass the same object; wrap parameters as ``jax.tree_util.Partial(fn, params)`` so they
-    are traced, see :func:`as_model`), shapes/dtypes (including ``len(ts)``), pytree structure (e.g. ``uncond``
-    None or not), ``sigma_min``, ``return_trajectory``, ``remat``. ``cfg_scale`` and the VALUES of
-    ``ts`` are traced. Differentiable (w.r.t. ``noise``, ``cond``, ``cfg_scale``, ``ts``) and
-    vmap-able.
+    are traced, see :func:`as_model`), shapes/dtypes (including ``len(ts)``), pytree structure (e.g.
+    ``uncond`` None or not), ``sigma_min``, ``return_trajectory``, ``remat``. ``cfg_scale`` and the
+    VALUES of ``ts`` are traced. Differentiable (w.r.t. ``noise``, ``cond``, ``cfg_scale``, ``ts``)
+    and vmap-able. Concrete inputs are checked for NaN/inf (one small device sync per call).
 
     Args:
         apply_fn: velocity model ``apply_fn(x (B, ...), t (B,), cond) -> (B, ...)``; preferably a
@@ -291,8 +305,17 @@ def sample_euler(
     _check_cond(cond, uncond, noise.shape[0])
     known, known_mask = _check_known(known, known_mask, noise)
     return _sample_euler(
-        as_model(apply_fn), noise, cond, ts, uncond, cfg_scale, known, known_mask,
-        float(sigma_min), bool(return_trajectory), bool(remat),
+        as_model(apply_fn),
+        noise,
+        cond,
+        ts,
+        uncond,
+        cfg_scale,
+        known,
+        known_mask,
+        float(sigma_min),
+        bool(return_trajectory),
+        bool(remat),
     )
 
 
@@ -323,9 +346,7 @@ def _check_known(known: Any, known_mask: Any, noise: Any) -> tuple[Any, Any]:
         raise ValueError(f"known must have the noise shape {noise.shape}, got {known.shape}")
     if known_mask.dtype != bool:
         raise ValueError(f"known_mask must be bool, got {known_mask.dtype}")
-    if known_mask.ndim != noise.ndim or any(
-        m not in (1, n) for m, n in zip(known_mask.shape, noise.shape)
-    ):
+    if known_mask.ndim != noise.ndim or any(m not in (1, n) for m, n in zip(known_mask.shape, noise.shape)):
         raise ValueError(
             f"known_mask shape {known_mask.shape} must have rank {noise.ndim} and broadcast to {noise.shape}"
         )

@@ -27,7 +27,7 @@ from jax.sharding import Mesh
 from jaxtalk.train.checks import BatchSpec, check_finite
 from jaxtalk.train.checkpoint import Checkpointer
 from jaxtalk.train.optim import OptimConfig, Trainable, make_optimizer, trainable_mask
-from jaxtalk.train.sharding import check_batch_divisible, replicate, shard_batch
+from jaxtalk.train.sharding import replicate, shard_batch
 from jaxtalk.train.state import TrainState, create_train_state
 from jaxtalk.train.step import LossFn, make_train_step
 from jaxtalk.types import PRNGKeyArray
@@ -287,8 +287,7 @@ class _Loop:
         if self.check_batches:
             check_finite(batch, step=step)
         if self.mesh is not None:
-            check_batch_divisible(batch, self.mesh)
-            return shard_batch(batch, self.mesh)
+            return shard_batch(batch, self.mesh)  # raises if the batch does not divide the devices
         return batch
 
     def _flush(self) -> None:

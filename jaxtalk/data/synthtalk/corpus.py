@@ -82,7 +82,7 @@ class SizeSpec:
 
 
 SIZES: dict[str, SizeSpec] = {
-    # CI: about 4 minutes of audio.
+    # CI: about 5 minutes of audio.
     "tiny": SizeSpec((10, 2, 3, 2), 2, 5.0, (1, 1, 1, 1), 10.0, 32, 1e9),
     # Demo and experiments: about 30 minutes.
     "small": SizeSpec((24, 4, 4, 4), 4, 8.0, (12, 2, 2, 2), 20.0, 128, 1e9),
@@ -255,6 +255,11 @@ class SynthTalkCorpus:
     sample_rate: int = AUDIO_SAMPLE_RATE
 
     def __init__(self, size: str, seed: int, spec: SizeSpec, cache_dir: Path | None):
+        for name, counts in (("speakers", spec.speakers), ("conversations", spec.conversations)):
+            if len(counts) != len(SPLITS) or min(counts) < 0:
+                raise ValueError(f"SizeSpec.{name} must give {len(SPLITS)} non-negative counts, got {counts}")
+        if spec.speakers[0] < 1 or spec.clips_per_speaker < 1 or spec.clip_seconds <= 0:
+            raise ValueError(f"SizeSpec needs train speakers, clips and a positive clip length: {spec}")
         self.size, self.seed, self.spec = size, seed, spec
         self.speakers, self.clips, self._units = _plan(spec, seed)
         self.identities = spec.identities
@@ -481,6 +486,8 @@ class SynthTalkCorpus:
         Raises:
             ValueError: for an unknown identity or topology.
         """
+        if topology not in TOPOLOGIES:
+            raise ValueError(f"unknown topology {topology!r}; known: {TOPOLOGIES}")
         face = self.face(identity)
         m, n = self._padded(self._check(clip))
         verts = np.asarray(face.vertices_seq(m))[:n]
@@ -545,11 +552,13 @@ class SynthTalkCorpus:
         )
 
 
-def generate(size: str = "tiny", seed: int = 0, cache_dir: str | os.PathLike | None = None) -> SynthTalkCorpus:
+def generate(size: str | SizeSpec = "tiny", seed: int = 0,
+             cache_dir: str | os.PathLike | None = None) -> SynthTalkCorpus:
     """Generate (or load from the disk cache) the SynthTalk corpus.
 
     Args:
-        size: "tiny" (CI, ~4 min of audio), "small" (~30 min) or "full" (hours, rendered lazily).
+        size: "tiny" (CI, ~5 min of audio), "small" (~30 min), "full" (hours, rendered lazily), or a
+            custom ``SizeSpec``.
         seed: the same seed gives byte-identical arrays.
         cache_dir: where to cache rendered arrays and fitted tokenizers (keyed by version, size,
             seed; files written atomically). None: keep everything in memory.
@@ -560,12 +569,17 @@ def generate(size: str = "tiny", seed: int = 0, cache_dir: str | os.PathLike | N
     Raises:
         ValueError: for an unknown size or a negative / non-integer seed.
     """
-    if size not in SIZES:
-        raise ValueError(f"unknown SynthTalk size {size!r}; choose from {sorted(SIZES)}")
+    if isinstance(size, SizeSpec):
+        spec = size
+        # A custom size is named by its content so the cache never mixes two specs.
+        name = "custom" + hashlib.sha256(repr(spec).encode()).hexdigest()[:10]
+    elif size in SIZES:
+        spec, name = SIZES[size], size
+    else:
+        raise ValueError(f"unknown SynthTalk size {size!r}; choose from {sorted(SIZES)} or a SizeSpec")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    spec = SIZES[size]
-    corpus = SynthTalkCorpus(size, int(seed), spec, Path(cache_dir) if cache_dir is not None else None)
+    corpus = SynthTalkCorpus(name, int(seed), spec, Path(cache_dir) if cache_dir is not None else None)
     if not spec.lazy and not corpus._load_bundle():
         corpus.materialize()
         corpus._save_bundle()

@@ -40,8 +40,8 @@ ARTICULATORS: np.ndarray = np.concatenate([np.arange(0, 9), GROUPS["cheek"][2:],
 # Dims a listener mirrors from the other's emotion (corners, brows, eyes, cheek raise, nose; no
 # blinks, no articulators).
 _MIRRORED = np.concatenate([np.arange(9, 18), np.arange(20, 24), np.arange(26, 28)])
-# Idle drift lives on non-articulatory dims so a silent mouth stays still.
-_DRIFT_DIMS = np.concatenate([np.arange(9, 18), np.arange(20, 24), np.arange(26, 50)])
+# Idle drift lives off the mouth so a silent mouth stays still.
+_DRIFT_DIMS = np.concatenate([np.arange(12, 18), np.arange(20, 24), np.arange(26, 50)])
 _BLINK_KERNEL = np.array([0.35, 0.85, 1.0, 0.85, 0.55, 0.3, 0.12])
 _BLINK_AMPLITUDE = 1.8
 _NECK_PITCH, _NECK_YAW, _NECK_ROLL = NECK_SLICE.start, NECK_SLICE.start + 1, NECK_SLICE.start + 2

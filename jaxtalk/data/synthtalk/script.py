@@ -71,25 +71,23 @@ def make_phrase(rng: np.random.Generator, style: SpeakerStyle, voice: VoiceChang
     Each word's stressed vowel is lengthened; about a third of the words carry a pitch accent (at
     least one per phrase), and the phrase-final vowel is lengthened.
     """
-    phones: list[int] = []
-    stressed: list[int] = []  # positions in `phones` of stressed vowels
-    n_words = int(rng.integers(2, 7))
-    for _ in range(n_words):
-        n_syl = int(rng.integers(1, 4))
-        stress_syl = int(rng.integers(n_syl))
-        for s in range(n_syl):
-            if rng.random() < 0.8:
-                phones.append(int(rng.choice(ONSETS)))
-            if s == stress_syl:
-                stressed.append(len(phones))
-            phones.append(int(rng.choice(VOWELS)))
-            if rng.random() < 0.35:
-                phones.append(int(rng.choice(CODAS)))
-    ph = np.asarray(phones, dtype=np.int32)
+    # All draws up front (vectorised): a syllable is three slots [onset?, vowel, coda?].
+    n_syl = rng.integers(1, 4, int(rng.integers(2, 7)))
+    total = int(n_syl.sum())
+    first = np.concatenate([[0], np.cumsum(n_syl)[:-1]])
+    stressed_syl = first + np.floor(rng.random(len(n_syl)) * n_syl).astype(np.int64)
+    slots = np.stack([
+        np.where(rng.random(total) < 0.8, ONSETS[rng.integers(len(ONSETS), size=total)], -1),
+        VOWELS[rng.integers(len(VOWELS), size=total)],
+        np.where(rng.random(total) < 0.35, CODAS[rng.integers(len(CODAS), size=total)], -1),
+    ], axis=1).reshape(-1)
+    present = slots >= 0
+    position = np.cumsum(present) - 1  # index in the phone list of each present slot
+    ph = slots[present].astype(np.int32)
+    st = position[3 * stressed_syl + 1]
     dur = _DURATIONS[ph] * _scale(style, voice) * rng.lognormal(0.0, 0.15, len(ph))
-    st = np.asarray(stressed)
     dur[st] *= 1.35
-    last_vowel = int(np.flatnonzero(np.isin(ph, VOWELS))[-1])
+    last_vowel = int(position[3 * total - 2])
     dur[last_vowel] *= 1.4
     accented = rng.random(len(st)) < 0.35
     accented[int(rng.integers(len(st)))] = True
