@@ -134,6 +134,9 @@ def bench_diffusionnet(n: int, repeats: int) -> dict:
         return jax.vmap(lambda xt: dn.DiffusionNet(cfg).apply(p, xt, o))(frames_x)
 
     t = bm.time_jitted(run, params, xs, ops, repeats=repeats, warmup=1)
+    flops = bm.xla_flops(run, params, xs, ops)
+    # The machine's achievable float32 matmul rate right now: the ceiling for this matmul-bound net.
+    peak = bm.measure_matmul_peak(n=1024, repeats=5)
     return {
         "vertices": len(v),
         "frames": FRAMES,
@@ -142,6 +145,9 @@ def bench_diffusionnet(n: int, repeats: int) -> dict:
         "compile_s": t.compile_s,
         "run_median_s": t.run_median_s,
         "s_per_frame": t.run_median_s / FRAMES,
+        "gflop_per_frame": None if flops is None else flops / FRAMES / 1e9,
+        "achieved_gflops": None if flops is None else flops / t.run_median_s / 1e9,
+        "matmul_peak_gflops": peak / 1e9,
         "ref_pytorch_s_per_frame": 0.127,
     }
 

@@ -88,6 +88,11 @@ def test_gradient_layout_matches_sparse_matvec(mesh_ops):
     np.testing.assert_allclose(gx[:n], ops.grad_x @ x[:n], rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(gy[:n], ops.grad_y @ x[:n], rtol=1e-5, atol=1e-5)
     np.testing.assert_array_equal(gx[n:], 0.0)
+    # The network's path: gradients of diffused features through the precomputed G @ Phi.
+    coefs = jnp.asarray(np.random.default_rng(8).standard_normal((ops.k, 3)), jnp.float32)
+    x_diff = d.evecs @ coefs
+    np.testing.assert_allclose(d.grad_evecs_x @ coefs, dn.apply_gradient(d.grad_x, d.grad_index, x_diff), atol=1e-4)
+    np.testing.assert_allclose(d.grad_evecs_y @ coefs, dn.apply_gradient(d.grad_y, d.grad_index, x_diff), atol=1e-4)
 
 
 def test_outputs_permute_with_vertices(mesh_ops, params):

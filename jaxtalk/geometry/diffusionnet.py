@@ -8,8 +8,12 @@ with zero-mass vertices whose eigenvector rows and gradient rows are zero (:func
 
 Operators inside jitted code:
 * spectral diffusion uses the dense (V, k) eigenbasis: two skinny matmuls, never a V x V matrix;
-* gradients use a padded row ("ELL") layout: per vertex, the column indices and X/Y weights of its
-  one-ring, so applying them is one gather and a dense reduction, no scatter.
+* gradients of diffused features go through the eigenbasis: x_diff = Phi c lies in the span of
+  Phi, so ``G x_diff = (G Phi) c`` with ``G Phi`` (V, k) precomputed once per mesh. Inside the
+  network that turns a sparse gather over (frames, V, degree, C) into one dense matmul per block
+  (exact, not an approximation). For features outside the span, :func:`apply_gradient` applies the
+  sparse operator in a padded row ("ELL") layout: per vertex the column indices and X/Y weights
+  of its one-ring, i.e. one gather and a dense reduction, no scatter.
 
 Learned diffusion time: one scalar per channel, initialised at 0 like the reference. The reference
 clamps the stored parameter to >= 1e-8 after each step; here the forward pass uses
@@ -60,6 +64,8 @@ class DiffusionOperators:
         grad_index: (V, D) int32 column index of each one-ring entry (padding slots point at 0).
         grad_x: (V, D) X-component weights (0 in padding slots and padding rows).
         grad_y: (V, D) Y-component weights.
+        grad_evecs_x: (V, k) ``grad_x @ evecs`` (zero rows on padding vertices).
+        grad_evecs_y: (V, k) ``grad_y @ evecs``.
     """
 
     mass: Float[Array, "*b verts"]
@@ -68,6 +74,8 @@ class DiffusionOperators:
     grad_index: Int[Array, "*b verts deg"]
     grad_x: Float[Array, "*b verts deg"]
     grad_y: Float[Array, "*b verts deg"]
+    grad_evecs_x: Float[Array, "*b verts k"]
+    grad_evecs_y: Float[Array, "*b verts k"]
 
     @property
     def num_vertices(self) -> int:
@@ -125,6 +133,10 @@ def to_diffusion_operators(
     mass[:n] = ops.mass
     evecs = np.zeros((total, ops.k), np.float32)
     evecs[:n] = ops.evecs
+    grad_evecs = np.zeros((2, total, ops.k), np.float32)
+    phi = np.asarray(ops.evecs, np.float64)  # product in float64, stored float32
+    grad_evecs[0, :n] = sp.csr_matrix(ops.grad_x, dtype=np.float64) @ phi
+    grad_evecs[1, :n] = sp.csr_matrix(ops.grad_y, dtype=np.float64) @ phi
     return DiffusionOperators(
         mass=jnp.asarray(mass),
         evals=jnp.asarray(ops.evals, dtype=jnp.float32),
@@ -132,6 +144,8 @@ def to_diffusion_operators(
         grad_index=jnp.asarray(index),
         grad_x=jnp.asarray(wx),
         grad_y=jnp.asarray(wy),
+        grad_evecs_x=jnp.asarray(grad_evecs[0]),
+        grad_evecs_y=jnp.asarray(grad_evecs[1]),
     )
 
 
@@ -159,6 +173,13 @@ def stack_operators(ops_list: Sequence[Operators], *, num_vertices: int | None =
     return jax.tree.map(lambda *xs: jnp.stack(xs), *padded)
 
 
+def _diffused_coefficients(
+    x: Float[Array, "verts channels"], ops: DiffusionOperators, time: Float[Array, " channels"]
+) -> Float[Array, "k channels"]:
+    coefs = ops.evecs.T @ (ops.mass[:, None] * x)
+    return coefs * jnp.exp(-ops.evals[:, None] * time[None, :])
+
+
 @jax.jit
 def spectral_diffusion(
     x: Float[Array, "verts channels"],
@@ -180,8 +201,7 @@ def spectral_diffusion(
         (V, C) diffused features.
     """
     coefs = evecs.T @ (mass[:, None] * x)  # (k, C)
-    coefs = coefs * jnp.exp(-evals[:, None] * time[None, :])
-    return evecs @ coefs
+    return evecs @ (coefs * jnp.exp(-evals[:, None] * time[None, :]))
 
 
 @jax.jit
@@ -244,17 +264,27 @@ class DiffusionNetConfig:
 
 
 class LearnedTimeDiffusion(nn.Module):
-    """Spectral diffusion with one learned time per channel (init 0, clamped >= ``min_time``)."""
+    """Spectral diffusion with one learned time per channel (init 0, clamped >= ``min_time``).
+
+    Returns the diffused features and, when ``with_gradients``, their tangent gradient components
+    computed through the eigenbasis (see the module docstring).
+    """
 
     channels: int
     min_time: float = 1e-8
+    with_gradients: bool = False
 
     @nn.compact
-    def __call__(self, x: Float[Array, "verts channels"], ops: DiffusionOperators) -> Float[Array, "verts channels"]:
+    def __call__(
+        self, x: Float[Array, "verts channels"], ops: DiffusionOperators
+    ) -> Float[Array, "verts channels"] | tuple[Float[Array, "verts channels"], ...]:
         t = self.param("diffusion_time", nn.initializers.zeros, (self.channels,), jnp.float32)
         # Straight-through clamp: forward value max(t, min), gradient as if identity (see module doc).
         t = t + jax.lax.stop_gradient(jnp.maximum(t, self.min_time) - t)
-        return spectral_diffusion(x, ops.mass, ops.evals, ops.evecs, t)
+        coefs = _diffused_coefficients(x, ops, t)
+        if not self.with_gradients:
+            return ops.evecs @ coefs
+        return ops.evecs @ coefs, ops.grad_evecs_x @ coefs, ops.grad_evecs_y @ coefs
 
 
 class SpatialGradientFeatures(nn.Module):
@@ -287,12 +317,12 @@ class DiffusionNetBlock(nn.Module):
 
     @nn.compact
     def __call__(self, x: Float[Array, "verts channels"], ops: DiffusionOperators) -> Float[Array, "verts channels"]:
-        x_diff = LearnedTimeDiffusion(self.width, self.min_time, name="diffusion")(x, ops)
-        parts = [x, x_diff]
+        diffusion = LearnedTimeDiffusion(self.width, self.min_time, self.gradient_features, name="diffusion")
         if self.gradient_features:
-            gx = apply_gradient(ops.grad_x, ops.grad_index, x_diff)
-            gy = apply_gradient(ops.grad_y, ops.grad_index, x_diff)
-            parts.append(SpatialGradientFeatures(self.width, name="gradient_features")(gx, gy))
+            x_diff, gx, gy = diffusion(x, ops)
+            parts = [x, x_diff, SpatialGradientFeatures(self.width, name="gradient_features")(gx, gy)]
+        else:
+            parts = [x, diffusion(x, ops)]
         h = jnp.concatenate(parts, axis=-1)
         for i, size in enumerate(self.mlp_hidden):
             h = nn.relu(nn.Dense(size, name=f"mlp_{i}")(h))

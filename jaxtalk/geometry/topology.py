@@ -82,7 +82,11 @@ class TopologyVariant:
             return sum(bary[:, k, None] * base_vertex_seq[..., corners[:, k], :] for k in range(3))
         x = jnp.asarray(base_vertex_seq)
         bary = jnp.asarray(self.barycentric, x.dtype)
-        return sum(bary[:, k, None] * jnp.take(x, jnp.asarray(corners[:, k]), axis=-2) for k in range(3))
+        out_shape = (*x.shape[:-2], len(corners), 3)
+        return sum(
+            jnp.broadcast_to(bary[:, k, None], out_shape) * jnp.take(x, jnp.asarray(corners[:, k]), axis=-2)
+            for k in range(3)
+        )
 
 
 def mesh_summary(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool]:

@@ -120,7 +120,7 @@ def face_offset(emotion: str, intensity: int) -> np.ndarray:
         else:
             out[EXP_INDEX[name]] = value
     # Mouth corners also carry speech; keep the emotional share of their motion moderate.
-    out[_MOUTH_EMOTION] *= 0.3
+    out[_MOUTH_EMOTION] *= 0.2
     return s * out
 
 

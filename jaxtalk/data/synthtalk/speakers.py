@@ -94,7 +94,7 @@ def _resting_face(rng: np.random.Generator) -> np.ndarray:
     # person's resting shape (as FLAME's higher PCA components do). Eyelids rest open.
     rest[:28] = rng.normal(0.0, 0.25, 28)
     # Lips at rest differ less between people than brows or cheeks do.
-    rest[GROUPS["mouth_exp"]] *= 0.4
+    rest[GROUPS["mouth_exp"]] *= 0.2
     rest[GROUPS["blink"]] = rng.normal(0.0, 0.05, 2)
     rest[GROUPS["residual"]] = rng.normal(0.0, 0.5, len(GROUPS["residual"]))
     rest[JAW_OPEN_INDEX] = rng.uniform(0.01, 0.04)

@@ -125,11 +125,11 @@ def _render_phone(phone: int, prev: int, nxt: int, lo: int, hi: int, s: int, e: 
     warm = min(lo, int(_PREROLL * sample_rate))
     t = np.arange(lo, hi)
     if r.voiced and r.formants:
-        b, a = _cascade(_coarticulated_formants(phone, prev, nxt), r.bandwidths,
-                        round(style.formant_scale, 4), sample_rate)
         x = source[lo - warm:hi]
         if voice.breathiness > 0:
             x = x + voice.breathiness * noise[lo - warm:hi]
+        b, a = _cascade(_coarticulated_formants(phone, prev, nxt), r.bandwidths, style.formant_scale,
+                        sample_rate)
         out += r.gain * signal.lfilter(b, a, x)[warm:]
     if r.noise_band is not None:
         b, a = _band(*r.noise_band, sample_rate)

@@ -1,0 +1,15 @@
+"""TIMAR: turn-level interleaved masked autoregression with a per-frame diffusion head.
+
+Modules: ``config`` (presets), ``tokens`` (turn layout, separators, interleave), ``encoder``
+(embedding + turn-causal fusion), ``head`` (per-frame adaLN diffusion head, vmapped), ``model``
+(parameters, window pass), ``loss`` (masking, CFG dropout, grouped x0 diffusion loss), ``sample``
+(respaced DDIM/DDPM with traced CFG), ``stream`` (turn-by-turn engine with a KV cache), ``data``
+(SynthTalk conversations -> turn windows, normalisation).
+"""
+
+from jaxtalk.models.timar.config import TimarConfig
+from jaxtalk.models.timar.loss import make_loss_fn, timar_loss
+from jaxtalk.models.timar.model import encode_window, init_params
+from jaxtalk.models.timar.sample import sample
+
+__all__ = ["TimarConfig", "init_params", "encode_window", "timar_loss", "make_loss_fn", "sample"]

@@ -1,0 +1,149 @@
+"""TIMAR configuration: a frozen (hashable, jit-static) dataclass with ``paper`` and ``small`` presets.
+
+Numbers from the paper (``shared/papers/timar.txt``, Sec. 4 and Appendix 7): shared token width
+``d_t = 1024``, a 16-layer x 16-head encoder, a diffusion head of K = 3 adaLN residual blocks of width
+``d_m = 1024``, 1-s turns at 25 fps, 8 turns per training clip, mask ratio r = 0.7 (the public code
+draws it from a truncated normal on [0.7, 1.0], mean 1.0, std 0.25, as MAR does), ``p_cfg = 0.1``,
+1000 cosine diffusion steps, x0-prediction, 5 sampling steps in the evaluation. The CFG scale of the
+evaluation is not given in the text: jaxtalk's default (1.5) is a config field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from jaxtalk.types import EXP_SLICE, JAW_SLICE, MOTION_FPS, NECK_SLICE, PARAM_DIM
+
+__all__ = ["TimarConfig", "NUM_SEPARATORS", "NUM_SPANS", "LOSS_GROUPS"]
+
+# Turn open/close plus an open/close pair around each of the four modality spans.
+NUM_SEPARATORS = 10
+NUM_SPANS = 4
+# The diffusion loss is computed per group of the 56-d head vector and summed (Appendix 7.2).
+LOSS_GROUPS: tuple[tuple[str, int, int], ...] = (
+    ("exp", EXP_SLICE.start, EXP_SLICE.stop),
+    ("jaw", JAW_SLICE.start, JAW_SLICE.stop),
+    ("neck", NECK_SLICE.start, NECK_SLICE.stop),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class TimarConfig:
+    """Static TIMAR settings (any change recompiles).
+
+    Attributes:
+        width: shared token width d_t (= encoder width d_e).
+        num_layers: encoder blocks.
+        num_heads: attention heads (``width`` must be divisible by it).
+        mlp_ratio: encoder feed-forward width / ``width``.
+        speech_dim: width of the per-frame speech feature fed to the learnable projection (80 for
+            jaxtalk's log-mel front end, 1024 for wav2vec 2.0 large).
+        param_dim: head-motion vector width (56 = exp 50 | jaw 3 | neck 3).
+        frames_per_turn: motion frames per turn (1 s at 25 fps).
+        max_turns: turns in the positional table: the longest window (context n + current turn).
+        head: ``"diffusion"`` (the paper) or ``"mlp"`` (the Table 2 ablation: direct regression).
+        head_width: diffusion-head width d_m.
+        head_blocks: adaLN residual blocks K.
+        attention: ``"turn_causal"`` (TLCA) or ``"bidirectional"`` (the Table 2 ablation).
+        num_timesteps: diffusion training steps.
+        schedule: ``"cosine"`` or ``"linear"`` beta table.
+        learn_sigma: the head also predicts the variance interpolation (improved diffusion's
+            learned range, trained with the variational bound as MAR/TIMAR do).
+        vlb_weight: weight of the variational-bound term when ``learn_sigma``.
+        mask_ratio_min: lower end of the truncated normal of the mask ratio (upper end 1).
+        mask_ratio_std: its standard deviation (mean 1.0).
+        cfg_prob: probability that an example's user tokens are all replaced by the fake token.
+        sample_steps: default respaced sampling steps.
+        cfg_scale: default guidance scale omega (paper's convention: 0 = unconditional,
+            1 = conditional, > 1 = guided).
+        dropout_rate: dropout in the encoder (residual branches and attention).
+    """
+
+    width: int = 128
+    num_layers: int = 4
+    num_heads: int = 4
+    mlp_ratio: float = 4.0
+    speech_dim: int = 80
+    param_dim: int = PARAM_DIM
+    frames_per_turn: int = MOTION_FPS
+    max_turns: int = 8
+    head: str = "diffusion"
+    head_width: int = 128
+    head_blocks: int = 3
+    attention: str = "turn_causal"
+    num_timesteps: int = 1000
+    schedule: str = "cosine"
+    learn_sigma: bool = False
+    vlb_weight: float = 1.0
+    mask_ratio_min: float = 0.7
+    mask_ratio_std: float = 0.25
+    cfg_prob: float = 0.1
+    sample_steps: int = 5
+    cfg_scale: float = 1.5
+    dropout_rate: float = 0.0
+
+    def __post_init__(self) -> None:
+        positive = ("width", "num_layers", "num_heads", "speech_dim", "param_dim", "frames_per_turn",
+                    "max_turns", "head_width", "head_blocks", "num_timesteps", "sample_steps")
+        for name in positive:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"TimarConfig.{name} must be a positive integer, got {value!r}")
+        if self.width % self.num_heads:
+            raise ValueError(f"TimarConfig.width {self.width} is not divisible by num_heads {self.num_heads}")
+        if self.param_dim != PARAM_DIM:
+            raise ValueError(f"TimarConfig.param_dim must be {PARAM_DIM} (exp 50 | jaw 3 | neck 3), got {self.param_dim}")
+        if self.head not in ("diffusion", "mlp"):
+            raise ValueError(f"TimarConfig.head must be 'diffusion' or 'mlp', got {self.head!r}")
+        if self.attention not in ("turn_causal", "bidirectional"):
+            raise ValueError(f"TimarConfig.attention must be 'turn_causal' or 'bidirectional', got {self.attention!r}")
+        if self.schedule not in ("cosine", "linear"):
+            raise ValueError(f"TimarConfig.schedule must be 'cosine' or 'linear', got {self.schedule!r}")
+        if not 0.0 <= self.mask_ratio_min <= 1.0:
+            raise ValueError(f"TimarConfig.mask_ratio_min must lie in [0, 1], got {self.mask_ratio_min}")
+        if not (self.mask_ratio_std > 0 and math.isfinite(self.mask_ratio_std)):
+            raise ValueError(f"TimarConfig.mask_ratio_std must be positive, got {self.mask_ratio_std}")
+        if not 0.0 <= self.cfg_prob < 1.0:
+            raise ValueError(f"TimarConfig.cfg_prob must lie in [0, 1), got {self.cfg_prob}")
+        if self.sample_steps > self.num_timesteps:
+            raise ValueError(f"TimarConfig.sample_steps {self.sample_steps} exceeds num_timesteps {self.num_timesteps}")
+        if not 0.0 <= self.dropout_rate < 1.0:
+            raise ValueError(f"TimarConfig.dropout_rate must lie in [0, 1), got {self.dropout_rate}")
+
+    @property
+    def tokens_per_turn(self) -> int:
+        """4 spans of ``frames_per_turn`` tokens plus the 10 separators (110 at 25 fps)."""
+        return NUM_SPANS * self.frames_per_turn + NUM_SEPARATORS
+
+    @property
+    def head_out_dim(self) -> int:
+        """Diffusion-head output width: the x0 estimate, plus the variance channels if learned."""
+        return 2 * self.param_dim if self.learn_sigma else self.param_dim
+
+    @classmethod
+    def paper(cls, **overrides) -> TimarConfig:
+        """The paper's sizes: 1024 wide, 16 layers, 16 heads, head K = 3 x 1024, wav2vec 2.0 features.
+
+        Args:
+            **overrides: any field to change.
+
+        Returns:
+            The config.
+        """
+        base = dict(width=1024, num_layers=16, num_heads=16, speech_dim=1024, head_width=1024,
+                    head_blocks=3, learn_sigma=True)
+        return cls(**(base | overrides))
+
+    @classmethod
+    def small(cls, **overrides) -> TimarConfig:
+        """A CPU-sized model (trains in minutes on 2 cores) on jaxtalk's 80-band log-mel features.
+
+        Args:
+            **overrides: any field to change.
+
+        Returns:
+            The config.
+        """
+        base = dict(width=128, num_layers=4, num_heads=4, speech_dim=80, head_width=128, head_blocks=3)
+        return cls(**(base | overrides))

@@ -1,0 +1,210 @@
+"""TIMAR's token embedding and turn-level causal fusion encoder (Flax Linen).
+
+Tokens: per-frame speech features go through one learnable projection ``P_speech`` (shared by user
+and agent), head-motion frames through a 2-layer ReLU MLP ``F_head`` (hidden ``d_t / 2``), both to the
+shared width ``d_t``; agent-motion tokens may be replaced by the learned mask token, all user tokens
+of an example by the learned fake token (CFG); the four spans are interleaved with ten learned
+separators (:mod:`~jaxtalk.models.timar.tokens`). Fusion: ``LayerNorm``, a learned positional
+embedding ``P1`` over the whole window, pre-LN transformer blocks with the turn-causal mask as an
+additive bias, a final ``LayerNorm``. The diffusion head's positional embedding ``P2`` (per agent
+frame of the window) lives here too.
+
+Every method takes its window's first turn slot (``first_turn``, may be traced), so a streaming step
+can encode the current turn alone at its slot of the window, continuing the keys/values of the past
+turns (:mod:`~jaxtalk.models.timar.stream`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from jaxtalk.models.timar.config import NUM_SEPARATORS, TimarConfig
+from jaxtalk.models.timar.tokens import interleave, turn_layout
+from jaxtalk.nn import MLP, TransformerBlock, bias_from_mask
+from jaxtalk.types import Array, Bool, Float, Int
+
+__all__ = ["TimarEncoder", "KVCache", "init_encoder"]
+
+# Per encoder layer: (keys, values), each (batch, length, heads, head_dim).
+KVCache = tuple[tuple[Float[Array, "batch length heads head_dim"], Float[Array, "batch length heads head_dim"]], ...]
+
+
+class TimarEncoder(nn.Module):
+    """Token embedding + turn-causal transformer encoder + the diffusion head's positional table.
+
+    Attributes:
+        config: the model config.
+    """
+
+    config: TimarConfig
+
+    def setup(self) -> None:
+        c = self.config
+        w = c.width
+        small = nn.initializers.normal(stddev=0.02)
+        self.speech_proj = nn.Dense(w, name="speech_proj")
+        self.motion_encoder = MLP((max(w // 2, 1), w), activation=jax.nn.relu, name="motion_encoder")
+        self.separators = self.param("separators", small, (NUM_SEPARATORS, w))
+        self.mask_token = self.param("mask_token", small, (w,))
+        self.fake_token = self.param("fake_token", small, (w,))
+        self.pos_embed = self.param("pos_embed", small, (c.max_turns * c.tokens_per_turn, w))
+        self.head_pos_embed = self.param("head_pos_embed", small, (c.max_turns * c.frames_per_turn, w))
+        self.in_norm = nn.LayerNorm(name="in_norm")
+        self.blocks = [
+            TransformerBlock(
+                num_heads=c.num_heads,
+                head_dim=w // c.num_heads,
+                mlp_ratio=c.mlp_ratio,
+                dropout_rate=c.dropout_rate,
+                attention_dropout_rate=c.dropout_rate,
+                name=f"block_{i}",
+            )
+            for i in range(c.num_layers)
+        ]
+        self.out_norm = nn.LayerNorm(name="out_norm")
+
+    def embed(
+        self,
+        user_speech: Float[Array, "batch turns frames speech_dim"],
+        user_motion: Float[Array, "batch turns frames param_dim"],
+        agent_speech: Float[Array, "batch turns frames speech_dim"],
+        agent_motion: Float[Array, "batch turns frames param_dim"] | None,
+        agent_mask: Bool[Array, "batch turns frames"] | None,
+        user_drop: Bool[Array, " batch"] | None,
+    ) -> Float[Array, "batch turns tokens width"]:
+        """Interleaved token embeddings of whole turns (no positional embedding yet).
+
+        Args:
+            user_speech, agent_speech: ``(B, N, F, speech_dim)`` per-frame speech features.
+            user_motion: ``(B, N, F, 56)`` the user's head motion.
+            agent_motion: ``(B, N, F, 56)`` the agent's head motion, or None when every agent
+                frame is masked (sampling).
+            agent_mask: ``(B, N, F)`` True where the agent frame is replaced by the mask token
+                (ignored when ``agent_motion`` is None).
+            user_drop: ``(B,)`` True where every user token is replaced by the fake token.
+
+        Returns:
+            ``(B, N, 4F + 10, width)`` tokens.
+        """
+        us = self.speech_proj(user_speech)
+        as_ = self.speech_proj(agent_speech)
+        um = self.motion_encoder(user_motion)
+        if agent_motion is None:
+            am = jnp.broadcast_to(self.mask_token.astype(us.dtype), us.shape)
+        else:
+            am = self.motion_encoder(agent_motion)
+            if agent_mask is not None:
+                am = jnp.where(agent_mask[..., None], self.mask_token.astype(am.dtype), am)
+        if user_drop is not None:
+            drop = user_drop[:, None, None, None]
+            us = jnp.where(drop, self.fake_token.astype(us.dtype), us)
+            um = jnp.where(drop, self.fake_token.astype(um.dtype), um)
+        return interleave(us, um, as_, am, self.separators)
+
+    def encode(
+        self,
+        tokens: Float[Array, "batch turns tokens width"],
+        first_turn: Int[Array, ""] | int,
+        bias: Float[Array, "*bias_dims"],
+        kv_cache: KVCache | None = None,
+        return_kv: bool = False,
+        deterministic: bool = True,
+    ) -> Float[Array, "batch turns tokens width"] | tuple[Float[Array, "batch turns tokens width"], KVCache]:
+        """Fuse tokens of consecutive turns placed at window slots ``first_turn, first_turn + 1, ...``.
+
+        Args:
+            tokens: ``(B, Nq, 4F + 10, width)`` from :meth:`embed`.
+            first_turn: window slot of the first turn (positional table offset; may be traced).
+            bias: additive attention bias broadcastable to ``(B, heads, Nq (4F+10), keys)`` where
+                ``keys`` is the cache length plus ``Nq (4F + 10)``.
+            kv_cache: per layer, keys/values of earlier tokens (prepended to the new ones).
+            return_kv: also return per-layer keys/values (cache + new).
+            deterministic: disables dropout (training passes False with a ``"dropout"`` RNG).
+
+        Returns:
+            ``(B, Nq, 4F + 10, width)`` fused features (and the keys/values with ``return_kv``).
+        """
+        b, nq, tpt, w = tokens.shape
+        x = tokens.reshape(b, nq * tpt, w)
+        start = jnp.asarray(first_turn, jnp.int32) * tpt
+        pos = jax.lax.dynamic_slice_in_dim(self.pos_embed, start, nq * tpt, axis=0)
+        x = self.in_norm(x) + pos[None].astype(x.dtype)
+        caches = []
+        for i, block in enumerate(self.blocks):
+            cache = None if kv_cache is None else kv_cache[i]
+            out = block(x, bias=bias, kv_cache=cache, return_kv=return_kv, deterministic=deterministic)
+            if return_kv:
+                x, kv = out
+                caches.append(kv)
+            else:
+                x = out
+        x = self.out_norm(x).reshape(b, nq, tpt, w)
+        return (x, tuple(caches)) if return_kv else x
+
+    def head_condition(
+        self, features: Float[Array, "batch turns tokens width"], first_turn: Int[Array, ""] | int
+    ) -> Float[Array, "batch turns frames width"]:
+        """The diffusion head's condition: agent-motion features plus ``P2`` of their frames.
+
+        Args:
+            features: ``(B, Nq, 4F + 10, width)`` output of :meth:`encode`.
+            first_turn: window slot of the first turn.
+
+        Returns:
+            ``(B, Nq, F, width)``.
+        """
+        b, nq, _, w = features.shape
+        f = self.config.frames_per_turn
+        z = features[:, :, turn_layout(f).agent_motion]
+        start = jnp.asarray(first_turn, jnp.int32) * f
+        pos = jax.lax.dynamic_slice_in_dim(self.head_pos_embed, start, nq * f, axis=0)
+        return z + pos.reshape(1, nq, f, w).astype(z.dtype)
+
+    def __call__(
+        self,
+        user_speech: Float[Array, "batch turns frames speech_dim"],
+        user_motion: Float[Array, "batch turns frames param_dim"],
+        agent_speech: Float[Array, "batch turns frames speech_dim"],
+        agent_motion: Float[Array, "batch turns frames param_dim"] | None = None,
+        agent_mask: Bool[Array, "batch turns frames"] | None = None,
+        user_drop: Bool[Array, " batch"] | None = None,
+        deterministic: bool = True,
+    ) -> Float[Array, "batch turns frames width"]:
+        """Whole-window pass: embed, fuse with the config's mask, return the head conditions.
+
+        Args:
+            user_speech, user_motion, agent_speech, agent_motion, agent_mask, user_drop: see
+                :meth:`embed`.
+            deterministic: disables dropout.
+
+        Returns:
+            ``(B, N, F, width)`` head conditions of every agent frame.
+        """
+        tokens = self.embed(user_speech, user_motion, agent_speech, agent_motion, agent_mask, user_drop)
+        n = tokens.shape[1]
+        mask = turn_layout(self.config.frames_per_turn).attention_mask(
+            n, causal=self.config.attention == "turn_causal"
+        )
+        bias = bias_from_mask(mask)
+        features = self.encode(tokens, 0, bias, deterministic=deterministic)
+        return self.head_condition(features, 0)
+
+
+def init_encoder(config: TimarConfig, key: Any) -> dict[str, Any]:
+    """Initialise the encoder's parameters on a one-turn dummy window.
+
+    Args:
+        config: model config.
+        key: PRNG key.
+
+    Returns:
+        The encoder's parameter pytree.
+    """
+    f = config.frames_per_turn
+    speech = jnp.zeros((1, 1, f, config.speech_dim), jnp.float32)
+    motion = jnp.zeros((1, 1, f, config.param_dim), jnp.float32)
+    return TimarEncoder(config).init(key, speech, motion, speech, motion)["params"]

@@ -1,0 +1,202 @@
+"""TIMAR sampling: respaced DDIM/DDPM of every agent frame with the per-frame head, and CFG.
+
+The encoder runs once (conditional and unconditional windows stacked as one batch); the diffusion
+head then denoises all frames in parallel with :func:`jaxtalk.samplers.sample_ddim` /
+:func:`~jaxtalk.samplers.sample_ddpm` (x0-prediction, ``num_steps`` respaced steps of the 1000-step
+schedule). Guidance follows the paper's Eq. (9): ``out_u + omega (out_c - out_u)``, i.e. the shared
+sampler's ``w = omega - 1``; ``omega`` is a traced array, so a sweep over scales is a ``vmap`` of
+:func:`sample` (the encoder, which does not depend on the scale, is not repeated) and never
+recompiles.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.models.timar.config import TimarConfig
+from jaxtalk.models.timar.head import apply_head
+from jaxtalk.models.timar.inputs import check_streams, from_turns, to_turns
+from jaxtalk.models.timar.model import encode_window
+from jaxtalk.samplers import make_schedule, respace, sample_ddim, sample_ddpm
+from jaxtalk.samplers.schedules import RespacedSchedule
+from jaxtalk.types import Array, Float, PRNGKeyArray
+
+__all__ = ["SAMPLERS", "respaced_schedule", "conditions", "sample_frames", "sample"]
+
+SAMPLERS = ("ddim", "ddpm")
+
+
+@functools.lru_cache(maxsize=32)
+def respaced_schedule(schedule: str, num_timesteps: int, num_steps: int) -> RespacedSchedule:
+    """The float64 respaced tables (cached: built once per step count).
+
+    Args:
+        schedule: ``"cosine"`` or ``"linear"``.
+        num_timesteps: training steps T.
+        num_steps: sampling steps N (1 <= N <= T).
+
+    Returns:
+        :class:`~jaxtalk.samplers.schedules.RespacedSchedule`.
+    """
+    return respace(make_schedule(schedule, num_timesteps), num_steps)
+
+
+@functools.lru_cache(maxsize=16)
+def _head_fn(config: TimarConfig) -> Any:
+    # One function object per config, so the samplers' jit cache is hit on every call.
+    def head_fn(head_params: Any, x: Array, t: Array, cond: dict[str, Array]) -> Array:
+        tt = jnp.broadcast_to(t.reshape(t.shape + (1,) * (x.ndim - 2)), x.shape[:-1])
+        return apply_head(config, head_params, cond["z"], x, tt)
+
+    return head_fn
+
+
+def conditions(
+    config: TimarConfig,
+    params: dict[str, Any],
+    user_speech: Float[Array, "batch turns frames speech_dim"],
+    user_motion: Float[Array, "batch turns frames param_dim"],
+    agent_speech: Float[Array, "batch turns frames speech_dim"],
+    *,
+    guidance: bool = True,
+) -> tuple[Float[Array, "batch turns frames width"], Float[Array, "batch turns frames width"] | None]:
+    """Conditional (and unconditional) head conditions of a window, all agent frames masked.
+
+    Args:
+        config: model config.
+        params: model parameters.
+        user_speech, user_motion, agent_speech: ``(B, N, F, ...)`` turn-split streams.
+        guidance: also compute the unconditional features (user tokens -> fake token).
+
+    Returns:
+        ``(z_cond, z_uncond)``, each ``(B, N, F, width)``; ``z_uncond`` is None without guidance.
+    """
+    b = user_speech.shape[0]
+    if not guidance:
+        return encode_window(config, params, user_speech, user_motion, agent_speech), None
+    two = lambda x: jnp.concatenate([x, x], axis=0)  # noqa: E731
+    drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
+    z = encode_window(config, params, two(user_speech), two(user_motion), two(agent_speech), None, None, drop)
+    return z[:b], z[b:]
+
+
+def sample_frames(
+    config: TimarConfig,
+    params: dict[str, Any],
+    z_cond: Float[Array, "batch *frames width"],
+    z_uncond: Float[Array, "batch *frames width"] | None,
+    key: PRNGKeyArray,
+    *,
+    cfg_scale: Float[Array, ""] | float,
+    num_steps: int,
+    sampler: str = "ddim",
+    eta: Float[Array, ""] | float = 0.0,
+) -> Float[Array, "batch *frames param_dim"]:
+    """Sample every frame's head parameters from its condition (jit-able building block).
+
+    Args:
+        config: model config.
+        params: model parameters.
+        z_cond: ``(B, *F, width)`` head conditions.
+        z_uncond: unconditional conditions of the same shape, or None (no guidance).
+        key: PRNG key (initial noise and, for DDPM / eta > 0, the step noise).
+        cfg_scale: ``()`` omega (traced); ignored without ``z_uncond``.
+        num_steps: respaced steps (static).
+        sampler: ``"ddim"`` or ``"ddpm"`` (static).
+        eta: ``()`` DDIM stochasticity (traced).
+
+    Returns:
+        ``(B, *F, 56)`` samples (the MLP head's prediction for the ``"mlp"`` ablation).
+    """
+    omega = jnp.asarray(cfg_scale, jnp.float32)
+    if config.head == "mlp":
+        out = apply_head(config, params["head"], z_cond)
+        if z_uncond is not None:
+            out_u = apply_head(config, params["head"], z_uncond)
+            out = out_u + omega * (out - out_u)
+        return out
+    k_noise, k_steps = jax.random.split(key)
+    noise = jax.random.normal(k_noise, z_cond.shape[:-1] + (config.param_dim,), jnp.float32)
+    model = jax.tree_util.Partial(_head_fn(config), params["head"])
+    schedule = respaced_schedule(config.schedule, config.num_timesteps, num_steps)
+    kwargs = dict(
+        uncond=None if z_uncond is None else {"z": z_uncond},
+        cfg_scale=omega - 1.0,
+        prediction="x0",
+        variance="learned_range" if config.learn_sigma else "fixed_small",
+    )
+    if sampler == "ddim":
+        return sample_ddim(model, noise, {"z": z_cond}, schedule, k_steps, eta=eta, **kwargs)
+    return sample_ddpm(model, noise, {"z": z_cond}, schedule, k_steps, **kwargs)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance"))
+def _sample(config, params, us, um, as_, key, cfg_scale, eta, num_steps, sampler, guidance):
+    f = config.frames_per_turn
+    z_c, z_u = conditions(config, params, to_turns(us, f), to_turns(um, f), to_turns(as_, f), guidance=guidance)
+    x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta)
+    return from_turns(x)
+
+
+def sample(
+    config: TimarConfig,
+    params: dict[str, Any],
+    user_speech: Float[Array, "batch frames speech_dim"] | Float[np.ndarray, "batch frames speech_dim"],
+    user_motion: Float[Array, "batch frames param_dim"] | Float[np.ndarray, "batch frames param_dim"],
+    agent_speech: Float[Array, "batch frames speech_dim"] | Float[np.ndarray, "batch frames speech_dim"],
+    key: PRNGKeyArray,
+    *,
+    cfg_scale: Float[Array, ""] | float | None = None,
+    num_steps: int | None = None,
+    sampler: str = "ddim",
+    eta: Float[Array, ""] | float = 0.0,
+    guidance: bool = True,
+) -> Float[Array, "batch frames param_dim"]:
+    """Agent head motion for a whole window of N <= ``max_turns`` turns in one pass.
+
+    Every agent frame is masked and the encoder is turn-causal, so turn t's output depends only on
+    turns <= t: this equals streaming with a context of at least N - 1 turns (no sliding).
+
+    Args:
+        config: model config.
+        params: model parameters.
+        user_speech, agent_speech: ``(B, N F, speech_dim)`` per-frame speech features.
+        user_motion: ``(B, N F, 56)`` the user's (normalised) head motion.
+        key: PRNG key.
+        cfg_scale: ``()`` guidance omega (traced; default ``config.cfg_scale``).
+        num_steps: respaced diffusion steps (static; default ``config.sample_steps``).
+        sampler: ``"ddim"`` or ``"ddpm"``.
+        eta: DDIM stochasticity (traced).
+        guidance: run the unconditional branch (False: conditional only, ``cfg_scale`` ignored).
+
+    Returns:
+        ``(B, N F, 56)`` sampled agent motion (in the training normalisation).
+
+    Raises:
+        ValueError: bad streams (lengths, shapes, NaN, more turns than ``max_turns``), an unknown
+            sampler or a bad step count.
+    """
+    check_streams(
+        config,
+        {"user_speech": user_speech, "user_motion": user_motion, "agent_speech": agent_speech},
+        max_turns=config.max_turns,
+    )
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; expected one of {SAMPLERS}")
+    num_steps = config.sample_steps if num_steps is None else num_steps
+    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= config.num_timesteps:
+        raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
+    cfg = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, jnp.float32)
+    if cfg.ndim:
+        raise ValueError(f"cfg_scale must be a scalar (vmap over it for a sweep), got shape {cfg.shape}")
+    return _sample(
+        config, params,
+        jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
+        jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32),
+        num_steps, sampler, bool(guidance),
+    )

@@ -1,0 +1,200 @@
+"""TokTalk configuration: one frozen dataclass, with ``paper``, ``small`` and ``tiny`` presets.
+
+Everything here is static (it sets shapes, loop lengths or the compiled program); numeric knobs a user
+sweeps at fixed shapes (CFG weight, the time grid values, the style vector) are traced arguments of
+the sampling functions instead. Defaults not given in the paper come from ``papers/NOTES.md``
+(chunk 10 frames, overlap 5, 10 Euler steps on the cosine grid, w = 0.7, sigma_min 1e-6, condition
+dropout 0.2) and the CosyVoice decoder's sizes from ``design/REFERENCE_NOTES.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from jaxtalk.types import MOTION_FPS, PARAM_DIM
+
+__all__ = ["TokTalkConfig"]
+
+
+def _check(name: str, ok: bool, value: object) -> None:
+    if not ok:
+        raise ValueError(f"TokTalkConfig.{name} is invalid: {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TokTalkConfig:
+    """Static settings of the TokTalk model, its training and its samplers.
+
+    Attributes:
+        param_dim: motion width (56: ``[exp 50 | jaw 3 | neck 3]``).
+        fps: motion frame rate.
+        token_rate: base token stream rate in Hz (Mimi / SynthTalk stream "A": 12.5).
+        token_dim: base token embedding width (SynthTalk stream "A": 64).
+        channels: width of every U-Net stage (the reference decoder: 256).
+        num_mid_blocks: middle stages (reference: 12).
+        transformer_blocks: transformer blocks per stage (reference: 4).
+        num_heads, head_dim: attention heads and their width (reference: 8 x 64).
+        mlp_ratio: feed-forward width / channels (4).
+        time_frequency_dim: sinusoidal time features (320) fed to the time MLP.
+        time_embed_dim: time embedding width (1024).
+        num_groups: group-norm groups in the ResNet blocks (8).
+        causal: causal convolutions and per-frame LayerNorm (CosyVoice2's streaming decoder) instead
+            of centred convolutions and masked GroupNorm (CosyVoice's offline decoder).
+        style_dim: style vector width (MSMD: 256).
+        style_hidden: style encoder width (MSMD: 512).
+        style_heads: style encoder attention heads (8).
+        style_frames: length of the reference clip used in training (frames).
+        style_min_frames: shortest accepted reference clip (frames).
+        kl_weight: weight of the style encoder's KL term (MSMD: 1e-7).
+        adapter_width, adapter_layers, adapter_heads: adaptation layer transformer sizes.
+        adapter_kernel: taps of the adapter's input convolution.
+        chunk_frames: streaming chunk (even: one stride-2 down/up pair halves it).
+        overlap_frames: frames of previous output re-used as known frames for the next chunk.
+        context_frames: bounded left context of the streaming window (a multiple of chunk_frames).
+        num_steps: Euler steps at inference.
+        cfg_scale: default classifier-free guidance weight w (traced at sampling time).
+        sigma_min: minimum noise of the CFM path.
+        cond_dropout: probability of dropping audio, style and known frames together (CFG training).
+        known_prob: probability that a training example gets a known-frames segment.
+        known_max_fraction: longest known segment as a fraction of the example's length.
+        chunk_mask_prob: probability that a training batch uses the chunk mask (else the full mask).
+        dropout: dropout rate in the transformer blocks (training only).
+    """
+
+    param_dim: int = PARAM_DIM
+    fps: int = MOTION_FPS
+    token_rate: float = 12.5
+    token_dim: int = 64
+    channels: int = 256
+    num_mid_blocks: int = 12
+    transformer_blocks: int = 4
+    num_heads: int = 8
+    head_dim: int = 64
+    mlp_ratio: float = 4.0
+    time_frequency_dim: int = 320
+    time_embed_dim: int = 1024
+    num_groups: int = 8
+    causal: bool = False
+    style_dim: int = 256
+    style_hidden: int = 512
+    style_heads: int = 8
+    style_frames: int = 50
+    style_min_frames: int = 10
+    kl_weight: float = 1e-7
+    adapter_width: int = 256
+    adapter_layers: int = 2
+    adapter_heads: int = 4
+    adapter_kernel: int = 3
+    chunk_frames: int = 10
+    overlap_frames: int = 5
+    context_frames: int = 40
+    num_steps: int = 10
+    cfg_scale: float = 0.7
+    sigma_min: float = 1e-6
+    cond_dropout: float = 0.2
+    known_prob: float = 0.5
+    known_max_fraction: float = 0.3
+    chunk_mask_prob: float = 0.5
+    dropout: float = 0.0
+
+    def __post_init__(self) -> None:
+        positive = (
+            "param_dim", "fps", "token_dim", "channels", "transformer_blocks", "num_heads", "head_dim",
+            "time_frequency_dim", "time_embed_dim", "num_groups", "style_dim", "style_hidden",
+            "style_heads", "style_frames", "style_min_frames", "adapter_width", "adapter_layers",
+            "adapter_heads", "adapter_kernel", "chunk_frames", "num_steps",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            _check(name, isinstance(value, int) and not isinstance(value, bool) and value > 0, value)
+        _check("num_mid_blocks", isinstance(self.num_mid_blocks, int) and self.num_mid_blocks >= 0,
+               self.num_mid_blocks)
+        _check("token_rate", math.isfinite(self.token_rate) and self.token_rate > 0, self.token_rate)
+        _check("channels", self.channels % self.num_groups == 0, (self.channels, self.num_groups))
+        _check("style_hidden", self.style_hidden % self.style_heads == 0, (self.style_hidden, self.style_heads))
+        _check("adapter_width", self.adapter_width % self.adapter_heads == 0,
+               (self.adapter_width, self.adapter_heads))
+        if self.chunk_frames % 2:
+            raise ValueError(
+                f"chunk_frames={self.chunk_frames} must be even: the decoder's stride-2 downsampling "
+                "needs whole chunks of chunk_frames / 2 at the half rate"
+            )
+        _check("overlap_frames", 0 <= self.overlap_frames <= self.context_frames, self.overlap_frames)
+        if self.context_frames < 0 or self.context_frames % self.chunk_frames:
+            raise ValueError(
+                f"context_frames={self.context_frames} must be a non-negative multiple of "
+                f"chunk_frames={self.chunk_frames} (the streaming window is whole chunks)"
+            )
+        _check("style_min_frames", self.style_min_frames <= self.style_frames, self.style_min_frames)
+        for name in ("cond_dropout", "known_prob", "known_max_fraction", "chunk_mask_prob", "dropout"):
+            value = getattr(self, name)
+            _check(name, 0.0 <= value <= 1.0, value)
+        _check("sigma_min", 0.0 <= self.sigma_min < 1.0, self.sigma_min)
+        _check("kl_weight", self.kl_weight >= 0.0, self.kl_weight)
+
+    # ------------------------------------------------------------------------------- presets
+    @classmethod
+    def paper(cls, **overrides: object) -> TokTalkConfig:
+        """The reference decoder's sizes (about 82M parameters with a 56-d target)."""
+        return dataclasses.replace(cls(), **overrides)
+
+    @classmethod
+    def small(cls, **overrides: object) -> TokTalkConfig:
+        """Learns SynthTalk in minutes on 2 CPU cores and streams in real time there."""
+        base = cls(
+            channels=64,
+            num_mid_blocks=2,
+            transformer_blocks=1,
+            num_heads=4,
+            head_dim=16,
+            time_frequency_dim=64,
+            time_embed_dim=128,
+            style_dim=32,
+            style_hidden=64,
+            style_heads=4,
+            adapter_width=64,
+            adapter_layers=1,
+            adapter_heads=4,
+            context_frames=20,
+        )
+        return dataclasses.replace(base, **overrides)
+
+    @classmethod
+    def tiny(cls, **overrides: object) -> TokTalkConfig:
+        """Smallest sensible sizes, for fast unit tests (compile time dominates)."""
+        base = cls(
+            channels=16,
+            num_mid_blocks=1,
+            transformer_blocks=1,
+            num_heads=2,
+            head_dim=8,
+            mlp_ratio=2.0,
+            time_frequency_dim=16,
+            time_embed_dim=16,
+            num_groups=4,
+            style_dim=8,
+            style_hidden=16,
+            style_heads=2,
+            style_frames=20,
+            style_min_frames=8,
+            adapter_width=16,
+            adapter_layers=1,
+            adapter_heads=2,
+            chunk_frames=4,
+            overlap_frames=2,
+            context_frames=8,
+            num_steps=3,
+        )
+        return dataclasses.replace(base, **overrides)
+
+    # ------------------------------------------------------------------------------- derived
+    @property
+    def frames_per_token(self) -> float:
+        """Motion frames per base token (2 for 12.5 Hz tokens at 25 fps)."""
+        return self.fps / self.token_rate
+
+    @property
+    def window_frames(self) -> int:
+        """Frames the streaming engine feeds the decoder per chunk: left context + chunk."""
+        return self.context_frames + self.chunk_frames

@@ -1,0 +1,331 @@
+"""TokTalk as pure functions: parameter init, the conditioning pytree, the velocity, style and adapter.
+
+Parameters are a plain dict ``{"decoder": ..., "style": ..., "adapter": ...}`` (the adapter only
+after stage 2 or when asked for); every function takes ``(params, config, ...)`` with ``config`` a
+static frozen dataclass.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.audio.framerate import default_num_frames, interpolation_plan
+from jaxtalk.models.toktalk.adapter import Adapter
+from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.models.toktalk.decoder import Decoder
+from jaxtalk.models.toktalk.style import StyleEncoder
+from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
+
+__all__ = [
+    "Condition",
+    "init_params",
+    "interpolate_tokens",
+    "frames_for_tokens",
+    "velocity",
+    "encode_style",
+    "adapt_tokens",
+    "check_tokens",
+    "check_finite",
+]
+
+PyTree = Any
+
+
+class Condition(NamedTuple):
+    """Everything the decoder is conditioned on; every leaf has the batch as its leading axis.
+
+    Attributes:
+        tokens: ``(B, T, token_dim)`` token embeddings at the motion frame rate.
+        style: ``(B, style_dim)`` style vectors.
+        known: ``(B, T, param_dim)`` known frames (values elsewhere ignored).
+        known_mask: ``(B, T)`` True on known frames.
+        keep: ``(B,)`` 1 = conditional, 0 = unconditional (CFG / condition dropout).
+        mask: ``(B, T)`` True on real frames.
+        chunked: ``(B,)`` True for block-causal chunk attention, False for full attention.
+    """
+
+    tokens: Float[Array, "batch frames token"]
+    style: Float[Array, "batch style"]
+    known: Float[Array, "batch frames param"]
+    known_mask: Bool[Array, "batch frames"]
+    keep: Float[Array, " batch"]
+    mask: Bool[Array, "batch frames"]
+    chunked: Bool[Array, " batch"]
+
+    def unconditional(self) -> Condition:
+        """The same condition with tokens, style and known frames dropped (``keep = 0``)."""
+        return self._replace(keep=jnp.zeros_like(self.keep))
+
+
+def _is_concrete(x: Any) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def check_finite(name: str, x: Any) -> None:
+    """Raises a ValueError naming ``name`` if a concrete array holds NaN or inf (tracers pass).
+
+    Args:
+        name: what the array is, for the message.
+        x: array (NumPy or JAX) or tracer.
+
+    Raises:
+        ValueError: NaN or inf in a concrete ``x``.
+    """
+    if _is_concrete(x) and not bool(np.all(np.isfinite(np.asarray(x)))):
+        raise ValueError(f"{name} contains NaN or inf values")
+
+
+def frames_for_tokens(num_tokens: int, token_rate: float, fps: int) -> int:
+    """Motion frames covered by ``num_tokens`` tokens at ``token_rate`` (``round(n * fps / rate)``)."""
+    return default_num_frames(int(num_tokens), token_rate, fps)
+
+
+def check_tokens(
+    tokens: Any, *, width: int, rate: float, fps: int, num_frames: int | None = None, name: str = "tokens"
+) -> int:
+    """Validates a ``(B, Tt, width)`` token batch and returns the number of motion frames it covers.
+
+    Args:
+        tokens: token embeddings (array or tracer).
+        width: expected embedding width.
+        rate: the stream's token rate (Hz).
+        fps: motion frame rate.
+        num_frames: if given, the number of frames the caller expects; must match the rate.
+        name: the argument's name for messages.
+
+    Returns:
+        Number of motion frames ``T``.
+
+    Raises:
+        ValueError: wrong rank or width, NaN/inf, empty, or a token count that does not cover
+            ``num_frames`` frames at ``rate`` (the stream has another rate than configured).
+    """
+    shape = tuple(np.shape(tokens))
+    if len(shape) != 3:
+        raise ValueError(f"{name} must have shape (batch, tokens, {width}), got {shape}")
+    if shape[2] != width:
+        raise ValueError(f"{name} have width {shape[2]}, expected {width} (token_dim of this stream)")
+    if shape[0] == 0 or shape[1] == 0:
+        raise ValueError(f"{name} are empty: shape {shape}")
+    check_finite(name, tokens)
+    frames = frames_for_tokens(shape[1], rate, fps)
+    if num_frames is not None and frames != num_frames:
+        raise ValueError(
+            f"{shape[1]} {name} at {rate} Hz cover {frames} frames at {fps} fps, but {num_frames} frames "
+            f"were expected: is the token rate wrong (expected {rate} Hz, i.e. "
+            f"{num_frames * rate / fps:g} tokens)?"
+        )
+    return frames
+
+
+def interpolate_tokens(
+    tokens: Float[Array, "batch tokens width"], src_rate: float, dst_rate: float, num_frames: int
+) -> Float[Array, "batch frames width"]:
+    """Linear time interpolation of a batched stream to another rate (exact rational positions).
+
+    Args:
+        tokens: ``(B, Tt, W)``.
+        src_rate: its rate (Hz).
+        dst_rate: wanted rate (Hz).
+        num_frames: output length (static).
+
+    Returns:
+        ``(B, num_frames, W)``; frames past the last token hold it.
+    """
+    lo, hi, w = interpolation_plan(tokens.shape[1], src_rate, dst_rate, num_frames, "linear")
+    w = jnp.asarray(w, tokens.dtype)[None, :, None]
+    return tokens[:, lo] * (1 - w) + tokens[:, hi] * w
+
+
+def init_params(
+    config: TokTalkConfig, key: PRNGKeyArray, *, adapter_src_dim: int | None = None
+) -> dict[str, PyTree]:
+    """Fresh parameters of the decoder and style encoder (and an adapter for ``adapter_src_dim``).
+
+    Args:
+        config: model settings.
+        key: PRNG key.
+        adapter_src_dim: width of the source token space to adapt from (None: no adapter).
+
+    Returns:
+        ``{"decoder": ..., "style": ...}`` plus ``"adapter"`` when requested.
+    """
+    k_dec, k_sty, k_ad = jax.random.split(key, 3)
+    b, t = 1, 2 * config.chunk_frames
+    z = jnp.zeros((b, t, config.param_dim))
+    cond = Condition(
+        tokens=jnp.zeros((b, t, config.token_dim)),
+        style=jnp.zeros((b, config.style_dim)),
+        known=z,
+        known_mask=jnp.zeros((b, t), bool),
+        keep=jnp.ones((b,)),
+        mask=jnp.ones((b, t), bool),
+        chunked=jnp.zeros((b,), bool),
+    )
+    params = {
+        "decoder": Decoder(config).init(k_dec, z, jnp.zeros((b,)), *cond)["params"],
+        "style": StyleEncoder(config).init(k_sty, jnp.zeros((b, config.style_frames, config.param_dim)))[
+            "params"
+        ],
+    }
+    if adapter_src_dim is not None:
+        params["adapter"] = init_adapter(config, k_ad, adapter_src_dim)
+    return params
+
+
+def init_adapter(config: TokTalkConfig, key: PRNGKeyArray, src_dim: int) -> PyTree:
+    """Fresh adapter parameters for a source token space of width ``src_dim``."""
+    return Adapter(config).init(key, jnp.zeros((1, 8, int(src_dim))))["params"]
+
+
+def velocity(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    x: Float[Array, "batch frames param"],
+    t: Float[Array, " batch"],
+    cond: Condition,
+    *,
+    dropout_key: PRNGKeyArray | None = None,
+) -> Float[Array, "batch frames param"]:
+    """The decoder's velocity prediction (``dropout_key`` given = training mode).
+
+    Args:
+        params: model parameters (uses ``params["decoder"]``).
+        config: model settings.
+        x: ``(B, T, param_dim)`` noisy motion.
+        t: ``(B,)`` flow times.
+        cond: :class:`Condition`.
+        dropout_key: PRNG key for dropout; None = deterministic.
+
+    Returns:
+        ``(B, T, param_dim)``.
+    """
+    rngs = None if dropout_key is None else {"dropout": dropout_key}
+    return Decoder(config).apply(
+        {"params": params["decoder"]}, x, t, *cond, deterministic=dropout_key is None, rngs=rngs
+    )
+
+
+def _sampler_velocity(config: TokTalkConfig, params: PyTree, x: Array, t: Array, cond: Condition) -> Array:
+    return velocity(params, config, x, t, cond)
+
+
+def sampler_model(config: TokTalkConfig, params: dict[str, PyTree]) -> jax.tree_util.Partial:
+    """``apply_fn(x, t, cond)`` for :mod:`jaxtalk.samplers.flow`, with ``params`` as traced leaves."""
+    return jax.tree_util.Partial(functools.partial(_sampler_velocity, config), params)
+
+
+def style_distribution(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    clip: Float[Array, "batch frames param"],
+    mask: Bool[Array, "batch frames"] | None = None,
+    *,
+    dropout_key: PRNGKeyArray | None = None,
+) -> tuple[Float[Array, "batch style"], Float[Array, "batch style"]]:
+    """``(mu, logvar)`` of the style encoder for reference clips (no validation; jit-friendly)."""
+    rngs = None if dropout_key is None else {"dropout": dropout_key}
+    return StyleEncoder(config).apply(
+        {"params": params["style"]}, clip, mask, deterministic=dropout_key is None, rngs=rngs
+    )
+
+
+def check_style_clip(clip: Any, config: TokTalkConfig) -> None:
+    """Validates a ``(B, S, param_dim)`` reference clip.
+
+    Raises:
+        ValueError: wrong rank or width, shorter than ``style_min_frames``, NaN/inf.
+    """
+    shape = tuple(np.shape(clip))
+    if len(shape) != 3 or shape[2] != config.param_dim or shape[0] == 0:
+        raise ValueError(f"style clip must have shape (batch, frames, {config.param_dim}), got {shape}")
+    if shape[1] < config.style_min_frames:
+        raise ValueError(
+            f"style clip has {shape[1]} frames, shorter than the minimum style_min_frames="
+            f"{config.style_min_frames}"
+        )
+    check_finite("style clip", clip)
+
+
+def encode_style(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    clip: Float[Array, "batch frames param"],
+    mask: Bool[Array, "batch frames"] | None = None,
+) -> Float[Array, "batch style"]:
+    """The style vector (the encoder's mean) of reference motion clips.
+
+    Args:
+        params: model parameters.
+        config: model settings.
+        clip: ``(B, S, param_dim)`` reference motion, ``S >= style_min_frames``.
+        mask: ``(B, S)`` True on real frames (None: all real).
+
+    Returns:
+        ``(B, style_dim)``.
+
+    Raises:
+        ValueError: bad clip shape, too short, NaN/inf.
+    """
+    check_style_clip(clip, config)
+    return _encode_style(params, jnp.asarray(clip), None if mask is None else jnp.asarray(mask), config)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _encode_style(params: PyTree, clip: Array, mask: Array | None, config: TokTalkConfig) -> Array:
+    return style_distribution(params, config, clip, mask)[0]
+
+
+def adapter_forward(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    src: Float[Array, "batch src_tokens src"],
+    src_rate: float,
+    *,
+    dropout_key: PRNGKeyArray | None = None,
+) -> Float[Array, "batch tokens token"]:
+    """Source tokens -> base-space tokens at the base rate (no validation; jit-friendly)."""
+    num = default_num_frames(src.shape[1], src_rate, config.token_rate)
+    at_base = interpolate_tokens(src, src_rate, config.token_rate, num)
+    rngs = None if dropout_key is None else {"dropout": dropout_key}
+    return Adapter(config).apply(
+        {"params": params["adapter"]}, at_base, deterministic=dropout_key is None, rngs=rngs
+    )
+
+
+def adapt_tokens(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    src: Float[Array, "batch src_tokens src"],
+    src_rate: float,
+) -> Float[Array, "batch tokens token"]:
+    """Maps another token space onto the base one (time-interpolated to the base rate first).
+
+    Args:
+        params: model parameters with an ``"adapter"`` entry (stage 2).
+        config: model settings.
+        src: ``(B, Ts, src_dim)`` source token embeddings.
+        src_rate: their rate in Hz.
+
+    Returns:
+        ``(B, Tt, token_dim)`` base-space embeddings at ``config.token_rate``.
+
+    Raises:
+        ValueError: no adapter in ``params``, a source width the adapter was not trained for,
+            bad shapes, NaN/inf.
+    """
+    if "adapter" not in params:
+        raise ValueError("params has no 'adapter' entry: train stage 2 (train_adapter) first")
+    src_dim = int(params["adapter"]["conv"]["conv"]["kernel"].shape[1])
+    check_tokens(src, width=src_dim, rate=src_rate, fps=config.fps, name="source tokens")
+    return _adapt(params, jnp.asarray(src), float(src_rate), config)
+
+
+@functools.partial(jax.jit, static_argnames=("src_rate", "config"))
+def _adapt(params: PyTree, src: Array, src_rate: float, config: TokTalkConfig) -> Array:
+    return adapter_forward(params, config, src, src_rate)
