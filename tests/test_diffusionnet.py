@@ -138,14 +138,14 @@ def test_diffusion_time_starts_at_zero_and_receives_gradient(mesh_ops, params):
     assert float(jnp.abs(params["params"]["block_0"]["diffusion"]["diffusion_time"]).min()) > 0  # fixture moved it
     layer = dn.LearnedTimeDiffusion(3)
     x = jnp.asarray(v, jnp.float32)
-    variables = layer.init(jax.random.key(1), x, d)
+    variables = jax.jit(layer.init)(jax.random.key(1), x, d)
     assert float(jnp.abs(variables["params"]["diffusion_time"]).max()) == 0.0
     target = dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.full(3, 0.3))
-    grads = jax.grad(lambda p: jnp.sum((layer.apply(p, x, d) - target) ** 2))(variables)
+    grads = jax.jit(jax.grad(lambda p: jnp.sum((layer.apply(p, x, d) - target) ** 2)))(variables)
     # A plain maximum(t, 1e-8) would give exactly zero here and t could never move; the
     # straight-through clamp passes d loss / d t, which is negative (the target is smoother).
     assert float(grads["params"]["diffusion_time"].max()) < 0
-    out = layer.apply(variables, x, d)  # forward value uses t = 1e-8 ~ projection
+    out = jax.jit(layer.apply)(variables, x, d)  # forward value uses t = 1e-8 ~ projection
     proj = dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.zeros(3))
     np.testing.assert_allclose(out, proj, atol=1e-5)
 
@@ -159,9 +159,10 @@ def test_time_gradient_matches_finite_differences(mesh_ops, float64):
         return jnp.sum(jnp.sin(dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, t)))
 
     t0 = jnp.array([0.05, 0.2])
-    g = jax.grad(f)(t0)
+    g = jax.jit(jax.grad(f))(t0)
     eps = 1e-6
-    fd = [(f(t0.at[i].add(eps)) - f(t0.at[i].add(-eps))) / (2 * eps) for i in range(2)]
+    f_jit = jax.jit(f)
+    fd = [(f_jit(t0.at[i].add(eps)) - f_jit(t0.at[i].add(-eps))) / (2 * eps) for i in range(2)]
     np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 

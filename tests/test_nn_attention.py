@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_nn_support import fast_xla, random_params  # noqa: F401
 from scipy.special import erf
 
 from jaxtalk.nn import (
@@ -22,14 +23,7 @@ from jaxtalk.nn import (
 )
 
 
-@pytest.fixture(autouse=True)
-def _fast_compile():
-    # Tiny programs: XLA compile time dominates. (Same as conftest's `fast_compile`, which reads the
-    # flag through an attribute that jax 0.10 no longer has.)
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+pytestmark = pytest.mark.usefixtures("fast_xla")
 
 
 def _reference_attention(q, k, v, bias):
@@ -93,7 +87,7 @@ def test_key_value_permutation_invariance(key):
     x = jax.random.normal(key, (5, 12))
     memory = jax.random.normal(jax.random.fold_in(key, 1), (9, 10))
     mha = MultiHeadAttention(num_heads=3, head_dim=4)
-    params = mha.init(key, x, memory)
+    params = random_params(mha, x, memory)
     perm = np.random.default_rng(0).permutation(9)
     np.testing.assert_allclose(
         mha.apply(params, x, memory), mha.apply(params, x, memory[perm]), atol=1e-5
@@ -103,20 +97,20 @@ def test_key_value_permutation_invariance(key):
 def test_parameter_shapes_no_qkv_bias_and_default_out_width(key):
     x = jnp.zeros((2, 5, 16))
     mha = MultiHeadAttention(num_heads=8, head_dim=4, qkv_bias=False)
-    params = mha.init(key, x)["params"]
+    params = jax.eval_shape(mha.init, key, x)["params"]
     assert set(params) == {"query", "key", "value", "out"}
     for name in ("query", "key", "value"):
         assert set(params[name]) == {"kernel"}
         assert params[name]["kernel"].shape == (16, 8, 4)
     assert params["out"]["kernel"].shape == (8, 4, 16)
-    y = MultiHeadAttention(num_heads=2, head_dim=3, out_features=7).init_with_output(key, x)[0]
+    y, _ = jax.eval_shape(MultiHeadAttention(num_heads=2, head_dim=3, out_features=7).init_with_output, key, x)
     assert y.shape == (2, 5, 7)
 
 
 def test_module_matches_reference_built_from_its_parameters(key):
     x = jax.random.normal(key, (2, 5, 6))
     mha = MultiHeadAttention(num_heads=2, head_dim=3)
-    params = mha.init(key, x)["params"]
+    params = random_params(mha, x)["params"]
     bias = jax.random.normal(jax.random.fold_in(key, 2), (5, 5))
     p = jax.tree_util.tree_map(np.asarray, params)
     proj = lambda q: np.einsum("btf,fhd->bthd", x, q["kernel"]) + q["bias"]  # noqa: E731
@@ -130,7 +124,7 @@ def test_chunked_decoding_with_kv_cache_equals_full_pass(key):
     length, chunk = 12, 4
     x = jax.random.normal(key, (2, length, 16))
     mha = MultiHeadAttention(num_heads=4, head_dim=8, qkv_bias=False)
-    params = mha.init(key, x)
+    params = random_params(mha, x)
     bias = bias_from_mask(_block_causal(length, chunk))
     full = jax.jit(lambda p, x: mha.apply(p, x, bias=bias))(params, x)
 
@@ -158,7 +152,7 @@ def test_cross_attention_with_precomputed_memory(key):
     x = jax.random.normal(key, (3, 4, 8))
     memory = jax.random.normal(jax.random.fold_in(key, 1), (3, 6, 5))
     mha = MultiHeadAttention(num_heads=2, head_dim=4)
-    params = mha.init(key, x, memory)
+    params = random_params(mha, x, memory)
     keys, values = mha.apply(params, memory, method=MultiHeadAttention.project_kv)
     reused = mha.apply(params, x, keys, values, method=MultiHeadAttention.attend)
     np.testing.assert_allclose(reused, mha.apply(params, x, memory), atol=1e-6)
@@ -167,7 +161,7 @@ def test_cross_attention_with_precomputed_memory(key):
 def test_attention_dropout_is_active_only_when_not_deterministic(key):
     x = jax.random.normal(key, (2, 6, 8))
     mha = MultiHeadAttention(num_heads=2, head_dim=4, dropout_rate=0.5)
-    params = mha.init(key, x)
+    params = random_params(mha, x)
     plain = MultiHeadAttention(num_heads=2, head_dim=4).apply(params, x)
     np.testing.assert_allclose(mha.apply(params, x, deterministic=True), plain, atol=1e-6)
     rngs = {"dropout": jax.random.key(3)}
@@ -179,7 +173,7 @@ def test_attention_dropout_is_active_only_when_not_deterministic(key):
 def test_attention_errors(key):
     x = jnp.zeros((2, 5, 8))
     mha = MultiHeadAttention(num_heads=2, head_dim=4)
-    params = mha.init(key, x)
+    params = random_params(mha, x)
     with pytest.raises(ValueError, match="does not broadcast"):
         mha.apply(params, x, bias=jnp.zeros((5, 4)))
     with pytest.raises(ValueError, match="more axes"):
@@ -192,7 +186,7 @@ def test_attention_errors(key):
     with pytest.raises(ValueError, match="dropout_rng"):
         dot_product_attention(jnp.zeros((3, 1, 2)), jnp.zeros((3, 1, 2)), jnp.zeros((3, 1, 2)), dropout_rate=0.1)
     with pytest.raises(ValueError, match="positive"):
-        MultiHeadAttention(num_heads=0, head_dim=4).init(key, x)
+        jax.eval_shape(MultiHeadAttention(num_heads=0, head_dim=4).init, key, x)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -224,7 +218,7 @@ def test_blocks_are_pre_layer_norm_compositions_of_their_parts(key):
     cross_bias = jax.random.normal(jax.random.fold_in(key, 3), (5, 3))
 
     block = TransformerBlock(num_heads=2, head_dim=4)
-    p = block.init(key, x)["params"]
+    p = random_params(block, x)["params"]
     h = np.asarray(x) + _attention(
         p["self_attention"]["attention"], _layer_norm(x, p["self_attention"]["norm"]), bias=bias
     )
@@ -233,7 +227,7 @@ def test_blocks_are_pre_layer_norm_compositions_of_their_parts(key):
     np.testing.assert_allclose(block.apply({"params": p}, x, bias=bias), expected, atol=2e-5)
 
     decoder = DecoderBlock(num_heads=2, head_dim=4)
-    p = decoder.init(key, x, memory)["params"]
+    p = random_params(decoder, x, memory)["params"]
     h = np.asarray(x) + _attention(
         p["self_attention"]["attention"], _layer_norm(x, p["self_attention"]["norm"]), bias=bias
     )
@@ -251,7 +245,7 @@ def test_stacked_blocks_decode_chunk_by_chunk_like_the_full_pass(key):
     x = jax.random.normal(key, (2, length, 8))
     memory = jax.random.normal(jax.random.fold_in(key, 1), (2, 4, 8))
     blocks = [DecoderBlock(num_heads=2, head_dim=4, qkv_bias=False) for _ in range(2)]
-    params = [b.init(jax.random.fold_in(key, i), x, memory) for i, b in enumerate(blocks)]
+    params = [random_params(b, x, memory, seed=i) for i, b in enumerate(blocks)]
     bias = bias_from_mask(_block_causal(length, chunk))
 
     full = x
@@ -277,7 +271,7 @@ def test_band_bias_limits_what_a_frame_sees(key):
     i, j = np.indices((length, length))
     bias = bias_from_mask(np.abs(i - j) <= radius)
     block = TransformerBlock(num_heads=2, head_dim=4)
-    params = block.init(key, x)
+    params = random_params(block, x)
     apply = jax.jit(lambda x: block.apply(params, x, bias=bias))
     # A random (not constant) change: LayerNorm would erase a constant shift of the frame.
     delta = apply(x.at[0].add(jax.random.normal(jax.random.fold_in(key, 1), (8,)))) - apply(x)
@@ -291,7 +285,7 @@ def test_cross_bias_hides_memory_frames(key):
     visible = np.array([True, True, True, False, False, True])
     cross_bias = bias_from_mask(np.broadcast_to(visible, (4, 6)))
     decoder = DecoderBlock(num_heads=2, head_dim=4)
-    params = decoder.init(key, x, memory)
+    params = random_params(decoder, x, memory)
     apply = jax.jit(lambda m: decoder.apply(params, x, m, cross_bias=cross_bias))
     base = apply(memory)
     np.testing.assert_allclose(apply(memory.at[3:5].set(5.0)), base, atol=1e-6)
@@ -301,7 +295,7 @@ def test_cross_bias_hides_memory_frames(key):
 def test_block_dropout_needs_deterministic_false(key):
     x = jax.random.normal(key, (2, 5, 8))
     block = TransformerBlock(num_heads=2, head_dim=4, dropout_rate=0.3, attention_dropout_rate=0.3)
-    params = block.init(key, x)
+    params = random_params(block, x)
     plain = TransformerBlock(num_heads=2, head_dim=4).apply(params, x)
     np.testing.assert_allclose(block.apply(params, x), plain, atol=1e-6)
     dropped = block.apply(params, x, deterministic=False, rngs={"dropout": jax.random.key(1)})

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_nn_support import fast_xla, random_params  # noqa: F401
 
 from jaxtalk.nn import (
     MLP,
@@ -19,14 +20,7 @@ from jaxtalk.nn import (
 )
 
 
-@pytest.fixture(autouse=True)
-def _fast_compile():
-    # Tiny programs: XLA compile time dominates. (Same as conftest's `fast_compile`, which reads the
-    # flag through an attribute that jax 0.10 no longer has.)
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+pytestmark = pytest.mark.usefixtures("fast_xla")
 
 
 # dim 4, max_period 1e4, freq_shift 0: frequencies [1, 1e4^(-1/2) = 0.01].
@@ -99,7 +93,7 @@ def test_sinusoidal_errors():
 def test_timestep_embedding_is_sinusoid_dense_silu_dense(key):
     t = jnp.array([[0.1, 0.7, 0.3], [0.0, 1.0, 0.5]])
     module = TimestepEmbedding(12, hidden_features=10, frequency_dim=8, order="sin_cos", scale=1000.0)
-    params = module.init(key, t)["params"]
+    params = random_params(module, t)["params"]
     p = jax.tree_util.tree_map(np.asarray, params)
     emb = np.asarray(sinusoidal_embedding(t, 8, scale=1000.0), np.float64)
     h = emb @ p["hidden"]["kernel"] + p["hidden"]["bias"]
@@ -200,7 +194,7 @@ def test_modulate():
 def test_mlp_layers_activation_placement_and_dropout(key):
     x = jax.random.normal(key, (2, 3, 4))
     mlp = MLP((6, 5), activation=jax.nn.relu)
-    params = mlp.init(key, x)
+    params = random_params(mlp, x)
     p = jax.tree_util.tree_map(np.asarray, params["params"])
     h = np.maximum(np.asarray(x) @ p["dense_0"]["kernel"] + p["dense_0"]["bias"], 0)
     expected = h @ p["dense_1"]["kernel"] + p["dense_1"]["bias"]
@@ -213,4 +207,4 @@ def test_mlp_layers_activation_placement_and_dropout(key):
     dropped = dropping.apply(params, x, deterministic=False, rngs={"dropout": jax.random.key(1)})
     assert np.abs(dropped - expected).max() > 1e-3
     with pytest.raises(ValueError, match="non-empty"):
-        MLP(()).init(key, x)
+        jax.eval_shape(MLP(()).init, key, x)

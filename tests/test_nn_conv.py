@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_nn_support import fast_xla, random_params  # noqa: F401
 
 from jaxtalk.nn import (
     Conv1d,
@@ -20,14 +21,7 @@ from jaxtalk.nn import (
 )
 
 
-@pytest.fixture(autouse=True)
-def _fast_compile():
-    # Tiny programs: XLA compile time dominates. (Same as conftest's `fast_compile`, which reads the
-    # flag through an attribute that jax 0.10 no longer has.)
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+pytestmark = pytest.mark.usefixtures("fast_xla")
 
 
 def _np(tree):
@@ -55,7 +49,7 @@ def _lengths_mask(lengths, time):
 def test_conv1d_matches_reference(key, kernel_size, stride, causal, pad):
     x = jax.random.normal(key, (7, 3))
     conv = Conv1d(4, kernel_size, strides=stride, causal=causal)
-    params = conv.init(key, x)
+    params = random_params(conv, x)
     p = _np(params["params"]["conv"])
     expected = _conv_reference(x, p["kernel"], p["bias"], pad, stride)
     out = conv.apply(params, x)
@@ -86,7 +80,7 @@ def test_real_frames_do_not_depend_on_the_amount_of_padding(key, module):
     real = jax.random.normal(key, (1, 5, 6))
     t_emb = jax.random.normal(jax.random.fold_in(key, 1), (1, 4))
     args = lambda x, m: (x, m, t_emb) if isinstance(module, ResnetBlock1D) else (x, m)  # noqa: E731
-    params = module.init(key, *args(real, jnp.ones((1, 5), bool)))
+    params = random_params(module, *args(real, jnp.ones((1, 5), bool)))
     outs = []
     for total in (5, 8, 13):
         garbage = 100.0 * jax.random.normal(jax.random.fold_in(key, total), (1, total - 5, 6))
@@ -104,7 +98,7 @@ def test_resnet_block_is_block_time_block_plus_residual(key):
     mask = _lengths_mask([6, 4], 6)
     t_emb = jax.random.normal(jax.random.fold_in(key, 1), (2, 7))
     module = ResnetBlock1D(8)
-    params = module.init(key, x, mask, t_emb)["params"]
+    params = random_params(module, x, mask, t_emb)["params"]
     block = Conv1dBlock(8)
     h = block.apply({"params": params["block1"]}, x, mask)
     p = _np(params["time_proj"])
@@ -143,7 +137,7 @@ def test_causal_outputs_ignore_the_future_exactly(key, name, cut, unchanged_fram
     factory, extra = make[name]
     for causal in (True, False):
         module = factory(causal)
-        params = module.init(key, x, *extra)
+        params = random_params(module, x, *extra)
         before, after = _first_changed_frame(module, params, x, cut, extra)
         if causal:
             np.testing.assert_array_equal(
@@ -160,13 +154,13 @@ def test_down_and_up_lengths(key, length, down, up):
     x = jax.random.normal(key, (2, length, 8))
     mask = _lengths_mask([length, max(length - 2, 1)], length)
     d = Downsample1D(features=4)
-    y = d.apply(d.init(key, x, mask), x, mask)
+    y = d.apply(random_params(d, x, mask), x, mask)
     assert y.shape == (2, down, 4) and downsample_mask(mask).shape == (2, down)
     u = Upsample1D(features=3)
-    z = u.apply(u.init(key, y, downsample_mask(mask)), y, downsample_mask(mask))
+    z = u.apply(random_params(u, y, downsample_mask(mask)), y, downsample_mask(mask))
     assert z.shape == (2, 2 * down, 3) and upsample_mask(downsample_mask(mask)).shape == (2, 2 * down)
     assert 2 * down - length == length % 2
-    z2 = u.apply(u.init(key, x), x)
+    z2 = u.apply(random_params(u, x), x)
     assert z2.shape == (2, up, 3)
 
 
@@ -175,7 +169,7 @@ def test_upsample_matches_transposed_conv_reference(key):
     x = jax.random.normal(key, (5, 3))
     for causal, start in ((False, 1), (True, 0)):
         module = Upsample1D(features=2, causal=causal)
-        params = module.init(key, x)
+        params = random_params(module, x)
         p = _np(params["params"]["conv"])
         full = np.zeros((2 * 5 + 2, 2))
         for m in range(5):
@@ -190,20 +184,20 @@ def test_masked_down_and_up_zero_padded_frames(key):
     x = jax.random.normal(key, (2, 6, 8))
     mask = _lengths_mask([6, 3], 6)
     d = Downsample1D()
-    y = d.apply(d.init(key, x, mask), x, mask)
+    y = d.apply(random_params(d, x, mask), x, mask)
     np.testing.assert_array_equal(y[1, 2:], 0.0)  # frames 2i >= 3
     u = Upsample1D()
-    z = u.apply(u.init(key, x, mask), x, mask)
+    z = u.apply(random_params(u, x, mask), x, mask)
     np.testing.assert_array_equal(z[1, 6:], 0.0)
 
 
 def test_conv_errors(key):
     x = jnp.zeros((2, 6, 8))
     with pytest.raises(ValueError, match="causal Conv1dBlock cannot use a group norm"):
-        Conv1dBlock(8, causal=True, norm="group").init(key, x)
+        jax.eval_shape(Conv1dBlock(8, causal=True, norm="group").init, key, x)
     with pytest.raises(ValueError, match="does not divide"):
-        Conv1dBlock(12, num_groups=8).init(key, x)
+        jax.eval_shape(Conv1dBlock(12, num_groups=8).init, key, x)
     with pytest.raises(ValueError, match="kernel_size"):
-        Conv1d(4, 0).init(key, x)
+        jax.eval_shape(Conv1d(4, 0).init, key, x)
     with pytest.raises(ValueError, match="empty time axis"):
-        Upsample1D().init(key, jnp.zeros((2, 0, 8)))
+        jax.eval_shape(Upsample1D().init, key, jnp.zeros((2, 0, 8)))

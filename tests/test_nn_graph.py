@@ -6,8 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_nn_support import fast_xla, random_params  # noqa: F401
 
 from jaxtalk.nn import GraphConv, normalized_adjacency
+pytestmark = pytest.mark.usefixtures("fast_xla")
 
 S6 = 1 / np.sqrt(6)
 # Path 0 - 1 - 2 with self-loops: degrees (2, 3, 2), entry (i, j) = 1 / sqrt(d_i d_j).
@@ -38,7 +40,7 @@ def test_graph_conv_by_hand_with_leading_axes(key):
     adjacency = normalized_adjacency(np.array([[0, 1], [1, 2]]), 3)
     layer = GraphConv(2, adjacency)
     x = jax.random.normal(key, (4, 5, 3, 6))  # (batch, frames, nodes, features)
-    params = layer.init(key, x)
+    params = random_params(layer, x)
     p = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float64), params["params"])
     expected = np.einsum("ij,bfjc,cd->bfid", PATH_WITH_LOOPS, np.asarray(x, np.float64), p["linear"]["kernel"])
     np.testing.assert_allclose(layer.apply(params, x), expected + p["bias"], atol=1e-5)
@@ -66,4 +68,4 @@ def test_graph_errors(key):
         normalized_adjacency(np.array([[0, 1]]), 0)
     layer = GraphConv(2, normalized_adjacency(np.array([[0, 1]]), 2))
     with pytest.raises(ValueError, match="2 nodes but the input has 3"):
-        layer.init(key, jnp.zeros((3, 4)))
+        jax.eval_shape(layer.init, key, jnp.zeros((3, 4)))

@@ -25,6 +25,25 @@ def variants(base):
     return {kind: make_variant(vertices, faces, kind, seed=0) for kind in KINDS}
 
 
+def test_mesh_summary_detects_defects():
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    ok = mesh_summary(square, np.array([[0, 1, 2], [0, 2, 3]]))
+    assert ok["manifold"] and ok["boundary_loops"] == 1 and ok["components"] == 1
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    closed = mesh_summary(np.asarray(sphere.vertices), np.asarray(sphere.faces))
+    assert closed["manifold"] and closed["boundary_loops"] == 0
+    bowtie_v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [-1, 0, 0], [-1, -1, 0]], float)
+    bowtie = mesh_summary(bowtie_v, np.array([[0, 1, 2], [0, 3, 4]]))
+    assert bowtie["nonmanifold_vertices"] == 1 and not bowtie["manifold"]
+    fin_v = np.concatenate([square, [[0.5, 0.5, 1.0]]])
+    fin = mesh_summary(fin_v, np.array([[0, 1, 2], [0, 2, 3], [0, 2, 4]]))
+    assert fin["nonmanifold_edges"] == 1 and not fin["manifold"]
+    flipped = mesh_summary(square, np.array([[0, 1, 2], [0, 3, 2]]))
+    assert not flipped["winding_consistent"] and not flipped["manifold"]
+    two = mesh_summary(np.concatenate([square, square + 5]), np.array([[0, 1, 2], [4, 5, 6]]))
+    assert two["components"] == 2 and two["unreferenced_vertices"] == 2
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_variant_is_a_manifold_disk_with_its_own_vertex_count(base, variants, kind):
     vertices, faces = base

@@ -36,7 +36,7 @@ def landmark_edges() -> np.ndarray:
     """Build the 68-point graph: each part's polyline (closed for eyes and lips) plus the nose joint.
 
     Returns:
-        Undirected edges as index pairs ``(i, j)`` with ``i < j``, shape ``(E, 2)`` int32 (E = 65).
+        Undirected edges as index pairs ``(i, j)`` with ``i < j``, shape ``(E, 2)`` int32 (E = 64).
     """
     edges: list[tuple[int, int]] = []
     for first, last, closed in LANDMARK_PARTS.values():

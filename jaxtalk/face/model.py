@@ -348,14 +348,22 @@ def _pose(model: LinearFaceModel, params: Float[Array, "*batch 56"]) -> Float[Ar
         rest = rest + jnp.einsum("...p,vcp->...vc", pose_feature, jnp.asarray(model.pose_basis, dtype))
 
     transforms = _world_transforms(rotations, joints, model.parents)  # (..., J, 12)
-    # Blend [R | t] per vertex with one (V, J) x (J, 12) contraction, then apply the 3x4 maps
-    # elementwise (XLA fuses it into one pass; a 3x3 dot per vertex would be many times slower).
-    blended = jnp.einsum("vj,...jm->...vm", jnp.asarray(model.weights, dtype), transforms)
+    # Skinning written as scalar-weighted sums over joints (not an einsum to a (..., V, 12) array
+    # and a 3x3 product per vertex): XLA fuses it into one pass over the vertices, which is what
+    # bounds the speed on CPU.
+    weights = jnp.asarray(model.weights, dtype)
+    shape = (*batch, weights.shape[0])
+    w = [jnp.broadcast_to(weights[:, j], shape) for j in range(model.num_joints)]
+
+    def blend(m: int) -> Array:
+        # Entry m of the blended [R | t] per vertex: sum_j w_vj G_jm.
+        return sum(
+            w[j] * jnp.broadcast_to(transforms[..., j, m].reshape(*batch, 1), shape)
+            for j in range(model.num_joints)
+        )
+
     x, y, z = rest[..., 0], rest[..., 1], rest[..., 2]
-    out = [
-        blended[..., 3 * a] * x + blended[..., 3 * a + 1] * y + blended[..., 3 * a + 2] * z + blended[..., 9 + a]
-        for a in range(3)
-    ]
+    out = [blend(3 * a) * x + blend(3 * a + 1) * y + blend(3 * a + 2) * z + blend(9 + a) for a in range(3)]
     return jnp.stack(out, axis=-1)
 
 

@@ -50,9 +50,10 @@ V_MOUTH, MOUTH_HW = -0.42, 0.25
 V_CHIN = -0.8
 # Lower lid height as a fraction of the upper lid's height above the eye line.
 _LOWER_LID = 0.7
-# Joints of the built-in face (metres): FLAME's root/neck/jaw chain without the eyes.
-_JOINTS = np.array([[0.0, -0.20, -0.03], [0.0, -0.17, -0.03], [0.0, -0.01, 0.0]])
-_PARENTS = (-1, 0, 1)
+# Joints of the built-in face (metres): FLAME's neck -> jaw chain. FLAME's global joint (no weight
+# on the face) and eyes are left out: every joint costs a term in the skinning sum.
+_JOINTS = np.array([[0.0, -0.17, -0.03], [0.0, -0.01, 0.0]])
+_PARENTS = (-1, 0)
 
 
 def _halfwidth(v: np.ndarray) -> np.ndarray:
@@ -492,7 +493,7 @@ def _mean_face_numpy(resolution: str) -> dict[str, object]:
     grid = face_grid(resolution)
     template = _embed(grid.u, grid.v)
     jaw = _jaw_weights(grid)
-    weights = np.stack([np.zeros_like(jaw), 1.0 - jaw, jaw], axis=1)
+    weights = np.stack([1.0 - jaw, jaw], axis=1)
     lm_uv = np.concatenate([_landmark_domain_points(), _landmark_inner_lips(grid)])
     lm_vertices, lm_bary = grid.locate(lm_uv[:, 0], lm_uv[:, 1])
     return {
@@ -519,8 +520,10 @@ def builtin_face(identity: int = 0, *, resolution: str = "default") -> LinearFac
 
     Returns:
         A ``LinearFaceModel`` (float32 arrays unless 64-bit mode is on) with the 50 named expression
-        components of ``jaxtalk.layout.EXP_NAMES``, joints (root, neck, jaw), skinning weights, named
-        regions and the 68 landmarks.
+        components of ``jaxtalk.layout.EXP_NAMES``, joints (neck, jaw), skinning weights, the 68
+        landmarks and regions: "lips" (LVE), "upper_face" (FDD: above mid-nose), "mouth_upper" /
+        "mouth_lower" (paired rows just above/below the lip seam, same length and column order:
+        MOD), "eyes", "eye_l", "eye_r", "brows", "nose", "jaw" (jaw weight > 0.5), "lower_face".
 
     Raises:
         ValueError: for an unknown resolution or a non-integer identity.
@@ -546,8 +549,8 @@ def builtin_face(identity: int = 0, *, resolution: str = "default") -> LinearFac
         landmark_bary=jnp.asarray(base["landmark_bary"]),
         regions=dict(base["regions"]),  # type: ignore[arg-type]
         parents=_PARENTS,
-        neck_joint=1,
-        jaw_joint=2,
+        neck_joint=0,
+        jaw_joint=1,
         # Static metadata: keep it identity-free so all identities share compiled programs.
         name="builtin",
     )

@@ -25,6 +25,7 @@ from typing import Literal
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse
+import scipy.sparse.csgraph
 import scipy.sparse.linalg
 import scipy.spatial
 
@@ -56,6 +57,14 @@ class TopologyVariant:
     kind: str
     base_faces: np.ndarray
 
+    def _interpolation_matrix(self, num_base: int) -> scipy.sparse.csr_matrix:
+        """The sparse (V', V) barycentric interpolation matrix (3 entries per row), built once."""
+        cached = self.__dict__.get("_interp")
+        if cached is None or cached.shape[1] != num_base:
+            cached = _interpolation_rows(self, num_base)
+            object.__setattr__(self, "_interp", cached)
+        return cached
+
     def transfer(
         self, base_vertex_seq: Float[Array | np.ndarray, "..."]
     ) -> Float[Array | np.ndarray, "*frames verts 3"]:
@@ -78,8 +87,11 @@ class TopologyVariant:
         corners = self.base_faces[self.face_index]  # (V', 3)
         # Three gathers weighted by one barycentric column each: no (..., V', 3, 3) temporary.
         if isinstance(base_vertex_seq, np.ndarray):
-            bary = self.barycentric.astype(base_vertex_seq.dtype)
-            return sum(bary[:, k, None] * base_vertex_seq[..., corners[:, k], :] for k in range(3))
+            # One sparse (V', V) product over all frames and coordinates at once.
+            x = base_vertex_seq
+            flat = np.moveaxis(x, -2, 0).reshape(x.shape[-2], -1)
+            out = (self._interpolation_matrix(x.shape[-2]) @ flat).astype(x.dtype, copy=False)
+            return np.moveaxis(out.reshape(len(corners), *x.shape[:-2], 3), 0, -2)
         x = jnp.asarray(base_vertex_seq)
         bary = jnp.asarray(self.barycentric, x.dtype)
         out_shape = (*x.shape[:-2], len(corners), 3)
@@ -87,6 +99,14 @@ class TopologyVariant:
             jnp.broadcast_to(bary[:, k, None], out_shape) * jnp.take(x, jnp.asarray(corners[:, k]), axis=-2)
             for k in range(3)
         )
+
+
+def _interpolation_rows(variant: TopologyVariant, num_base: int) -> scipy.sparse.csr_matrix:
+    corners = variant.base_faces[variant.face_index]
+    rows = np.repeat(np.arange(len(corners)), 3)
+    return scipy.sparse.csr_matrix(
+        (variant.barycentric.reshape(-1), (rows, corners.reshape(-1))), shape=(len(corners), num_base)
+    )
 
 
 def mesh_summary(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | bool]:
@@ -117,10 +137,10 @@ def mesh_summary(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | boo
         graph = scipy.sparse.coo_matrix(
             (np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(len(vertices),) * 2
         )
-        n_comp, labels = scipy.sparse.csgraph.connected_components(graph, directed=False)
+        _, labels = scipy.sparse.csgraph.connected_components(graph, directed=False)
         num_loops = len(np.unique(labels[np.unique(boundary)]))
-    # Interior fans: each vertex's faces must form one connected fan (count via face adjacency).
-    nonmanifold_vertices = int(np.sum(boundary_degree > 2)) + _count_split_fans(faces, len(vertices))
+    # Pinched vertices: more than two boundary edges, or faces around the vertex in several fans.
+    nonmanifold_vertices = int(np.sum((boundary_degree > 2) | _split_fans(faces, len(vertices))))
     referenced = np.zeros(len(vertices), bool)
     referenced[faces.reshape(-1)] = True
     degenerate = int(np.sum((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])))
@@ -146,8 +166,8 @@ def mesh_summary(vertices: np.ndarray, faces: np.ndarray) -> dict[str, int | boo
     return out
 
 
-def _count_split_fans(faces: np.ndarray, num_vertices: int) -> int:
-    """Number of vertices whose incident faces form more than one edge-connected fan."""
+def _split_fans(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    """Mask of vertices whose incident faces form more than one edge-connected fan."""
     # Corner (face f, vertex v) nodes; two corners of the same vertex are joined when their faces
     # share an edge through that vertex. Components per vertex > 1 means a pinched vertex.
     num_faces = len(faces)
@@ -175,7 +195,7 @@ def _count_split_fans(faces: np.ndarray, num_vertices: int) -> int:
     fans_per_vertex = np.zeros(num_vertices, np.int64)
     pairs = np.unique(np.stack([corner_vertex, labels]), axis=1)
     np.add.at(fans_per_vertex, pairs[0], 1)
-    return int(np.sum(fans_per_vertex > 1))
+    return fans_per_vertex > 1
 
 
 def _one_hot_map(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -198,22 +218,22 @@ def _subdivided(vertices, faces, rng):
     face_index = np.zeros(len(new_vertices), np.int64)
     bary = np.zeros((len(new_vertices), 3))
     face_index[:num_base], bary[:num_base] = _one_hot_map(faces, num_base)
-    # New vertices are exact midpoints of base edges: find each edge in one base face.
-    edge_faces = {}
-    for k in range(3):
-        a, b = faces[:, k], faces[:, (k + 1) % 3]
-        for f, (i, j) in enumerate(zip(np.minimum(a, b), np.maximum(a, b))):
-            edge_faces.setdefault((int(i), int(j)), (f, k))
-    tree = scipy.spatial.cKDTree(new_vertices[num_base:])
-    keys = np.array(list(edge_faces.keys()))
+    # New vertices are exact midpoints of base edges: find each edge in one base face (corner k of
+    # face f starts edge (faces[f, k], faces[f, k+1])), then match midpoints to new vertices.
+    num_faces = len(faces)
+    starts = faces.T.reshape(-1)  # corner-major: entry k * F + f
+    ends = np.roll(faces, -1, axis=1).T.reshape(-1)
+    keys = np.stack([np.minimum(starts, ends), np.maximum(starts, ends)], axis=1)
+    keys, first = np.unique(keys, axis=0, return_index=True)
+    edge_face, edge_corner = first % num_faces, first // num_faces
     mids = 0.5 * (vertices[keys[:, 0]] + vertices[keys[:, 1]])
-    dist, idx = tree.query(mids)
+    dist, target = scipy.spatial.cKDTree(new_vertices[num_base:]).query(mids)
     if len(keys) != len(new_vertices) - num_base or dist.max() > 1e-9 * (1 + np.abs(vertices).max()):
         raise RuntimeError("subdivision produced vertices that are not base edge midpoints")
-    for (edge, (f, k)), target in zip(edge_faces.items(), idx):
-        face_index[num_base + target] = f
-        bary[num_base + target, k] = 0.5
-        bary[num_base + target, (k + 1) % 3] = 0.5
+    rows = num_base + target
+    face_index[rows] = edge_face
+    bary[rows, edge_corner] = 0.5
+    bary[rows, (edge_corner + 1) % 3] = 0.5
     # Snap to the exact interpolant (the subdivided coordinates already are, up to rounding).
     new_vertices = np.einsum("vkc,vk->vc", vertices[faces[face_index]], bary)
     return new_vertices, new_faces, face_index, bary

@@ -27,7 +27,9 @@ from jaxtalk.audio.encoders.loader import (
     hf_tensor_names,
     load_checkpoint,
     params_from_state_dict,
+    params_to_state_dict,
     read_state_dict,
+    save_checkpoint,
 )
 from jaxtalk.audio.encoders.wav2vec2 import EncoderOutput, Wav2Vec2Model, conv_output_lengths
 
@@ -42,6 +44,8 @@ __all__ = [
     "load_checkpoint",
     "read_state_dict",
     "params_from_state_dict",
+    "params_to_state_dict",
+    "save_checkpoint",
     "expected_param_shapes",
     "hf_tensor_names",
     "Wav2Vec2Model",

@@ -116,7 +116,6 @@ class EncoderConfig:
             )
         for name in (
             "hidden_size",
-            "num_hidden_layers",
             "num_attention_heads",
             "intermediate_size",
             "num_conv_pos_embeddings",
@@ -124,6 +123,9 @@ class EncoderConfig:
         ):
             if not _is_pos_int(getattr(self, name)):
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
+        layers = self.num_hidden_layers
+        if isinstance(layers, bool) or not isinstance(layers, int) or layers < 0:
+            raise ValueError(f"num_hidden_layers must be an integer >= 0, got {layers!r}")
         if self.hidden_size % self.num_attention_heads:
             raise ValueError(
                 f"hidden_size {self.hidden_size} is not divisible by num_attention_heads "
@@ -248,6 +250,17 @@ class EncoderConfig:
         except ValueError as err:
             raise ValueError(f"{str(path)!r}: {err}") from err
 
+    def to_hf_dict(self) -> dict[str, Any]:
+        """The Hugging Face ``config.json`` dict of this architecture (inverse of ``from_hf_dict``)."""
+        out: dict[str, Any] = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for name in ("conv_dim", "conv_stride", "conv_kernel"):
+            out[name] = list(out[name])
+        out["num_feat_extract_layers"] = len(self.conv_dim)
+        out["architectures"] = ["HubertModel" if self.model_type == "hubert" else "Wav2Vec2Model"]
+        if self.model_type == "wav2vec2":  # HuBERT-only options
+            del out["feat_proj_layer_norm"], out["conv_pos_batch_norm"]
+        return out
+
     # -- presets ---------------------------------------------------------------------------------
 
     @classmethod
@@ -268,6 +281,34 @@ class EncoderConfig:
             conv_bias=True,
             do_stable_layer_norm=True,
         )
+
+    @classmethod
+    def small(cls, model_type: str = "hubert", style: str = "base", **overrides: Any) -> EncoderConfig:
+        """A tiny encoder for tests and CPU demos: 3 convs (hop 20), 2 layers x 32 wide.
+
+        Args:
+            model_type: ``"wav2vec2"`` or ``"hubert"``.
+            style: ``"base"`` (group norm, post-LN) or ``"large"`` (layer norm, stable layer norm).
+            **overrides: any other field.
+        """
+        if style not in ("base", "large"):
+            raise ValueError(f"style must be 'base' or 'large', got {style!r}")
+        fields: dict[str, Any] = dict(
+            model_type=model_type,
+            hidden_size=32,
+            num_hidden_layers=2,
+            num_attention_heads=4,
+            intermediate_size=64,
+            conv_dim=(16, 24, 24),
+            conv_stride=(5, 2, 2),
+            conv_kernel=(10, 3, 3),
+            num_conv_pos_embeddings=8,
+            num_conv_pos_embedding_groups=4,
+        )
+        if style == "large":
+            fields.update(feat_extract_norm="layer", conv_bias=True, do_stable_layer_norm=True)
+        fields.update(overrides)
+        return cls(**fields)
 
 
 def _is_pos_int(value: Any) -> bool:

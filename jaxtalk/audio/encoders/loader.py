@@ -36,6 +36,8 @@ __all__ = [
     "load_checkpoint",
     "read_state_dict",
     "params_from_state_dict",
+    "params_to_state_dict",
+    "save_checkpoint",
     "expected_param_shapes",
     "hf_tensor_names",
 ]
@@ -234,6 +236,38 @@ def params_from_state_dict(
     return _unflatten(flat), tuple(sorted(ignored))
 
 
+def params_to_state_dict(config: EncoderConfig, params: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """Inverse of :func:`params_from_state_dict`: Flax params -> HF tensor names and layouts.
+
+    Exports fine-tuned params back to the Hugging Face layout (current tensor spelling, no task
+    prefix), e.g. for ``safetensors.numpy.save_file``.
+
+    Args:
+        config: the architecture.
+        params: Flax params of :class:`Wav2Vec2Model`.
+
+    Returns:
+        HF tensor name -> NumPy array (PyTorch layout).
+    """
+    out: dict[str, np.ndarray] = {}
+    for path, value in _flatten(params).items():
+        leaf = path[-1]
+        value = np.asarray(value)
+        per_layer = list(enumerate(value)) if _is_stacked(path) else [(None, value)]
+        for layer, array in per_layer:
+            name = hf_tensor_names(path, layer)[0]
+            out[name] = np.ascontiguousarray(
+                np.reshape(_from_flax(leaf, array), _torch_shape(leaf, array.shape))
+            )
+    return out
+
+
+def _from_flax(leaf: str, array: np.ndarray) -> np.ndarray:
+    if leaf in ("kernel", "weight_v") and array.ndim in (2, 3):
+        return array.T
+    return array
+
+
 def read_state_dict(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """Read every tensor of a checkpoint directory as NumPy arrays (PyTorch layout).
 
@@ -351,3 +385,45 @@ def load_checkpoint(path: str | os.PathLike[str], *, dtype: Any = np.float32) ->
     state = read_state_dict(directory)
     params, ignored = params_from_state_dict(config, state, dtype=dtype, source=repr(str(directory)))
     return Checkpoint(config, params, normalize, sample_rate, ignored, directory)
+
+
+def save_checkpoint(
+    path: str | os.PathLike[str],
+    config: EncoderConfig,
+    params: Mapping[str, Any],
+    *,
+    normalize: bool | None = None,
+    sample_rate: int = 16_000,
+) -> Path:
+    """Write a Hugging Face checkpoint directory (``config.json`` + ``model.safetensors``).
+
+    ``transformers`` loads it with ``Wav2Vec2Model.from_pretrained`` / ``HubertModel.from_pretrained``;
+    use it to export fine-tuned params.
+
+    Args:
+        path: directory (created).
+        config: the architecture.
+        params: Flax params of :class:`Wav2Vec2Model`.
+        normalize: when given, also write ``preprocessor_config.json`` with this ``do_normalize``.
+        sample_rate: the ``sampling_rate`` written there.
+
+    Returns:
+        The directory.
+    """
+    from safetensors.numpy import save_file
+
+    directory = Path(path)
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "config.json").write_text(json.dumps(config.to_hf_dict(), indent=2) + "\n")
+    save_file(params_to_state_dict(config, params), str(directory / _SAFETENSORS))
+    if normalize is not None:
+        preprocessor = {
+            "feature_extractor_type": "Wav2Vec2FeatureExtractor",
+            "do_normalize": bool(normalize),
+            "sampling_rate": int(sample_rate),
+            "feature_size": 1,
+            "padding_value": 0.0,
+            "return_attention_mask": config.feat_extract_norm == "layer",
+        }
+        (directory / "preprocessor_config.json").write_text(json.dumps(preprocessor, indent=2) + "\n")
+    return directory

@@ -1,0 +1,422 @@
+"""STM (Sparse-To-Mesh): landmark displacements -> dense vertex displacements on any mesh topology.
+
+Four stages (FreeTalk section 3.2):
+
+1. Static mesh features ``f_i`` from a DiffusionNet encoder on ``[xyz | normal]`` of the neutral
+   mesh, computed ONCE per mesh (:func:`stm_mesh_features`) and reused for every frame.
+2. Per frame, landmark features: a GCN (3 layers) on the fixed 68-landmark graph over the
+   displacements, concatenated with a sinusoidal encoding of the landmark index and projected
+   (equation 12); and the global displacement vector ``g_t`` (the 3N displacements, stacked).
+3. Cross-attention vertex -> landmarks (queries from ``f_i``, keys/values from the landmark
+   features, equations 13-14) gives ``c_{t,i}``.
+4. A DiffusionNet decoder maps ``[f_i | g_t | c_{t,i}]`` to the displacement of vertex i.
+
+Everything but the mesh encoder is written for one frame and ``vmap``-ped over frames with the mesh's
+operators shared. The model is intrinsic except for its xyz/normal input, and it never assumes a
+vertex count or order: the same parameters run on any mesh (a different V compiles a new program).
+
+Units: public functions take vertices and displacements in metres; inside, positions are multiplied
+by ``config.position_scale`` and displacements by ``config.displacement_scale``. The mesh operators
+are computed on the scaled positions (see :func:`prepare_mesh`).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import Any, NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.face import LANDMARK_EDGES
+from jaxtalk.geometry.diffusionnet import DiffusionNet, DiffusionOperators, to_diffusion_operators
+from jaxtalk.geometry.operators import compute_operators, vertex_normals
+from jaxtalk.models.freetalk.config import STMConfig
+from jaxtalk.models.freetalk.loss import motion_loss
+from jaxtalk.nn import GraphConv, MultiHeadAttention, normalized_adjacency, sinusoidal_embedding
+from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
+
+__all__ = [
+    "STMMesh",
+    "SparseToMesh",
+    "prepare_mesh",
+    "stack_meshes",
+    "check_landmark_motion",
+    "init_stm",
+    "stm_mesh_features",
+    "stm_decode",
+    "stm_apply",
+    "stm_loss",
+    "make_stm_loss",
+]
+
+PyTree = Any
+
+
+class STMMesh(NamedTuple):
+    """A neutral mesh ready for STM: scaled positions, normals and DiffusionNet operators.
+
+    With a leading mesh axis (from :func:`stack_meshes`) it describes a padded batch of meshes.
+
+    Attributes:
+        vertices: ``(V, 3)`` neutral positions in metres.
+        normals: ``(V, 3)`` unit vertex normals.
+        ops: DiffusionNet operators, computed on ``position_scale * vertices``.
+        valid: ``(V,)`` True on real vertices (False on padding).
+    """
+
+    vertices: Float[Array, "*m verts 3"]
+    normals: Float[Array, "*m verts 3"]
+    ops: DiffusionOperators
+    valid: Bool[Array, "*m verts"]
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertices.shape[-2])
+
+
+def prepare_mesh(
+    vertices: Float[np.ndarray, "verts 3"] | Float[Array, "verts 3"],
+    faces: Int[np.ndarray, "faces 3"] | Int[Array, "faces 3"],
+    config: STMConfig,
+    *,
+    num_vertices: int | None = None,
+    degree: int | None = None,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> STMMesh:
+    """Precompute everything STM needs for one neutral mesh (host side, float64 then float32).
+
+    Args:
+        vertices: ``(V, 3)`` neutral mesh in metres.
+        faces: ``(F, 3)`` triangles.
+        config: STM configuration (``position_scale``, ``num_eigenpairs``).
+        num_vertices: pad to this many vertices (zero-mass padding, see
+            :func:`jaxtalk.geometry.diffusionnet.to_diffusion_operators`).
+        degree: pad the gradient one-ring width to this.
+        cache_dir: disk cache for the operators (keyed by the mesh).
+
+    Returns:
+        An :class:`STMMesh`.
+
+    Raises:
+        ValueError: malformed or defective mesh, or fewer vertices than ``num_eigenpairs + 1``.
+        EigenDecompositionError: the eigensolve failed.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices must have shape (V, 3), got {v.shape}")
+    if v.shape[0] <= config.num_eigenpairs:
+        raise ValueError(
+            f"mesh has {v.shape[0]} vertices; STM needs more than num_eigenpairs={config.num_eigenpairs}"
+        )
+    scaled = v * config.position_scale
+    ops = compute_operators(scaled, f, config.num_eigenpairs, cache_dir=cache_dir)
+    normals = vertex_normals(scaled, f)
+    n = v.shape[0]
+    total = n if num_vertices is None else int(num_vertices)
+    dops = to_diffusion_operators(ops, num_vertices=total, degree=degree)
+    pad = ((0, total - n), (0, 0))
+    return STMMesh(
+        vertices=jnp.asarray(np.pad(v, pad), jnp.float32),
+        normals=jnp.asarray(np.pad(normals, pad), jnp.float32),
+        ops=dops,
+        valid=jnp.asarray(np.arange(total) < n),
+    )
+
+
+def stack_meshes(meshes: list[STMMesh]) -> STMMesh:
+    """Stack meshes that were prepared with the same ``num_vertices`` and ``degree`` on a mesh axis.
+
+    Args:
+        meshes: from :func:`prepare_mesh` with common padding.
+
+    Returns:
+        An :class:`STMMesh` whose arrays have a leading axis ``len(meshes)``.
+
+    Raises:
+        ValueError: empty list or differing padded shapes.
+    """
+    if not meshes:
+        raise ValueError("stack_meshes needs at least one mesh")
+    shapes = {tuple(jax.tree.map(lambda a: a.shape, m)) for m in meshes}
+    if len(shapes) != 1:
+        raise ValueError(
+            "meshes must share padded shapes (prepare them with the same num_vertices and degree); "
+            f"got {len(shapes)} different shape sets"
+        )
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *meshes)
+
+
+def check_landmark_motion(
+    displacements: Any, num_landmarks: int
+) -> Float[Array, "frames landmarks 3"] | Float[Array, "batch frames landmarks 3"]:
+    """Validate a landmark displacement sequence: ``(T, N, 3)`` or ``(B, T, N, 3)``, finite.
+
+    A flat ``(T, 3N)`` sequence (the ATS layout) is reshaped to ``(T, N, 3)``.
+
+    Args:
+        displacements: the sequence (metres).
+        num_landmarks: N.
+
+    Returns:
+        The sequence as a float32 JAX array.
+
+    Raises:
+        ValueError: wrong shape (naming it), no frames, or NaN/inf values.
+    """
+    if isinstance(displacements, jax.core.Tracer):
+        return displacements
+    arr = np.asarray(displacements)
+    if arr.ndim == 2 and arr.shape[1] == 3 * num_landmarks:
+        arr = arr.reshape(arr.shape[0], num_landmarks, 3)
+    if arr.ndim not in (3, 4) or arr.shape[-2:] != (num_landmarks, 3):
+        raise ValueError(
+            f"landmark displacements must have shape (frames, {num_landmarks}, 3) or "
+            f"(batch, frames, {num_landmarks}, 3), got {arr.shape}"
+        )
+    if arr.shape[-3] == 0:
+        raise ValueError("landmark displacement sequence has no frames")
+    if not np.issubdtype(arr.dtype, np.floating) or not np.all(np.isfinite(arr)):
+        raise ValueError("landmark displacements must be finite floats (got NaN/inf or a non-float dtype)")
+    return jnp.asarray(arr, jnp.float32)
+
+
+class _LandmarkEncoder(nn.Module):
+    """``l~_{t,j} = phi([GCN(Delta L_t)_j | PE(j)])`` for one frame (equation 12)."""
+
+    config: STMConfig
+
+    @nn.compact
+    def __call__(self, disp: Array) -> Array:
+        cfg = self.config
+        h = disp
+        if cfg.uses_gcn:
+            adjacency = normalized_adjacency(LANDMARK_EDGES, cfg.num_landmarks)
+            for i in range(cfg.gcn_layers):
+                h = GraphConv(cfg.gcn_hidden, adjacency, name=f"gcn_{i}")(h)
+                if i < cfg.gcn_layers - 1:
+                    h = nn.gelu(h)
+        index = sinusoidal_embedding(jnp.arange(cfg.num_landmarks), cfg.index_encoding_dim, max_period=100.0)
+        return nn.Dense(cfg.attention_dim, name="phi")(jnp.concatenate([h, index.astype(h.dtype)], axis=-1))
+
+
+class SparseToMesh(nn.Module):
+    """The STM network. ``mesh_features`` runs once per mesh; ``decode_frame`` once per frame.
+
+    Attributes:
+        config: static :class:`STMConfig`.
+    """
+
+    config: STMConfig
+
+    def setup(self) -> None:
+        cfg = self.config
+        self.encoder = DiffusionNet(cfg.encoder_config(), name="encoder")
+        if cfg.uses_attention:
+            self.landmarks = _LandmarkEncoder(cfg, name="landmarks")
+            self.cross_attention = MultiHeadAttention(
+                num_heads=cfg.attention_heads,
+                head_dim=cfg.attention_dim // cfg.attention_heads,
+                out_features=cfg.attention_dim,
+                name="cross_attention",
+            )
+        self.decoder = DiffusionNet(cfg.decoder_config(), name="decoder")
+
+    def mesh_features(self, vertices: Array, normals: Array, ops: DiffusionOperators) -> Array:
+        """``f_i = E_M([x_i | n_i])``, ``(V, mesh_feature_dim)``."""
+        x = jnp.concatenate([vertices * self.config.position_scale, normals], axis=-1)
+        return self.encoder(x, ops)
+
+    def decode_frame(self, features: Array, disp: Array, ops: DiffusionOperators) -> Array:
+        """Vertex displacements (model units) of one frame from landmark displacements (model units)."""
+        cfg = self.config
+        v = features.shape[0]
+        parts = [features]
+        if cfg.uses_global:
+            parts.append(jnp.broadcast_to(disp.reshape(1, -1), (v, cfg.motion_dim)))
+        if cfg.uses_attention:
+            parts.append(self.cross_attention(features, self.landmarks(disp)))
+        return self.decoder(jnp.concatenate(parts, axis=-1), ops)
+
+    def __call__(self, vertices: Array, normals: Array, ops: DiffusionOperators, disp: Array) -> Array:
+        return self.decode_frame(self.mesh_features(vertices, normals, ops), disp, ops)
+
+
+def init_stm(config: STMConfig, key: PRNGKeyArray, mesh: STMMesh) -> PyTree:
+    """Initial STM parameters (their shapes do not depend on the mesh, which only drives the trace).
+
+    Args:
+        config: static configuration.
+        key: PRNG key.
+        mesh: any prepared mesh (single, no leading axis).
+
+    Returns:
+        The ``{"params": ...}`` variables of :class:`SparseToMesh`.
+    """
+    model = SparseToMesh(config)
+    disp = jnp.zeros((config.num_landmarks, 3))
+    return jax.jit(lambda k: model.init(k, mesh.vertices, mesh.normals, mesh.ops, disp))(key)
+
+
+def _check_mesh(mesh: STMMesh) -> None:
+    if not isinstance(mesh, STMMesh):
+        raise ValueError(f"mesh must be an STMMesh from prepare_mesh, got {type(mesh).__name__}")
+    if mesh.vertices.ndim != 2:
+        raise ValueError(f"expected a single mesh (vertices (V, 3)), got vertices of shape {mesh.vertices.shape}")
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def _mesh_features(params, config: STMConfig, mesh: STMMesh):
+    model = SparseToMesh(config)
+    return model.apply(params, mesh.vertices, mesh.normals, mesh.ops, method=SparseToMesh.mesh_features)
+
+
+def stm_mesh_features(params: PyTree, config: STMConfig, mesh: STMMesh) -> Float[Array, "verts features"]:
+    """Static per-vertex features of a neutral mesh (run once per mesh; jitted).
+
+    Args:
+        params: STM variables.
+        config: static configuration.
+        mesh: from :func:`prepare_mesh`.
+
+    Returns:
+        ``(V, mesh_feature_dim)``.
+
+    Raises:
+        ValueError: not a single prepared mesh.
+    """
+    _check_mesh(mesh)
+    return _mesh_features(params, config, mesh)
+
+
+def _decode(params, config: STMConfig, features, disp, ops):
+    # disp (T, N, 3) metres -> (T, V, 3) metres; frames vmapped with features and operators shared.
+    model = SparseToMesh(config)
+    scaled = disp * config.displacement_scale
+
+    def frame(d):
+        return model.apply(params, features, d, ops, method=SparseToMesh.decode_frame)
+
+    return jax.vmap(frame)(scaled) / config.displacement_scale
+
+
+_decode_jit = jax.jit(_decode, static_argnames="config")
+
+
+def stm_decode(
+    params: PyTree,
+    config: STMConfig,
+    features: Float[Array, "verts features"],
+    displacements: Any,
+    mesh: STMMesh,
+) -> Float[Array, "frames verts 3"]:
+    """Vertex displacements for a landmark displacement sequence on a mesh with precomputed features.
+
+    Args:
+        params: STM variables.
+        config: static configuration.
+        features: ``(V, mesh_feature_dim)`` from :func:`stm_mesh_features` on ``mesh``.
+        displacements: ``(T, N, 3)`` landmark displacements in metres (``(T, 3N)`` accepted).
+        mesh: the prepared mesh.
+
+    Returns:
+        ``(T, V, 3)`` vertex displacements in metres; the animated mesh is ``mesh.vertices + out``.
+
+    Raises:
+        ValueError: a landmark sequence of the wrong shape or with NaN/inf, or features that do not
+            match the mesh.
+    """
+    _check_mesh(mesh)
+    disp = check_landmark_motion(displacements, config.num_landmarks)
+    if disp.ndim != 3:
+        raise ValueError(f"stm_decode takes one sequence (frames, {config.num_landmarks}, 3), got {disp.shape}")
+    if features.shape != (mesh.num_vertices, config.mesh_feature_dim):
+        raise ValueError(
+            f"features must have shape ({mesh.num_vertices}, {config.mesh_feature_dim}) for this mesh, "
+            f"got {features.shape}"
+        )
+    return _decode_jit(params, config, features, disp, mesh.ops)
+
+
+def stm_apply(
+    params: PyTree, config: STMConfig, mesh: STMMesh, displacements: Any
+) -> Float[Array, "frames verts 3"]:
+    """Mesh features then per-frame decoding: ``STM(M, (Delta L_t)_t) = (Delta V_t)_t``.
+
+    Args:
+        params: STM variables.
+        config: static configuration.
+        mesh: from :func:`prepare_mesh`.
+        displacements: ``(T, N, 3)`` landmark displacements in metres.
+
+    Returns:
+        ``(T, V, 3)`` vertex displacements in metres.
+
+    Raises:
+        ValueError: as :func:`stm_decode`.
+    """
+    return stm_decode(params, config, stm_mesh_features(params, config, mesh), displacements, mesh)
+
+
+def stm_loss(
+    params: PyTree,
+    config: STMConfig,
+    meshes: STMMesh,
+    batch: dict[str, Any],
+    key: PRNGKeyArray | None = None,
+) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
+    """Motion loss of STM on a batch of windows, each on one of a stack of padded meshes.
+
+    Args:
+        params: STM variables.
+        config: static configuration.
+        meshes: :func:`stack_meshes` output (leading mesh axis M, common padded V).
+        batch: ``"mesh"`` ``(B,)`` int mesh index, ``"landmarks"`` ``(B, T, N, 3)`` landmark
+            displacements (metres), ``"vertices"`` ``(B, T, V, 3)`` vertex displacements (metres,
+            padding rows ignored), optional ``"mask"`` ``(B, T)``.
+        key: unused (the loss is deterministic); accepted for the training loop's signature.
+
+    Returns:
+        ``(loss, metrics)`` in model units (``displacement_scale`` x metres).
+    """
+    del key
+    model = SparseToMesh(config)
+    mesh_idx = jnp.asarray(batch["mesh"], jnp.int32)
+    picked = jax.tree.map(lambda a: a[mesh_idx], meshes)
+    features = jax.vmap(
+        lambda m: model.apply(params, m.vertices, m.normals, m.ops, method=SparseToMesh.mesh_features)
+    )(picked)
+    landmarks = jnp.asarray(batch["landmarks"], jnp.float32)
+    pred = jax.vmap(lambda f, d, ops: _decode(params, config, f, d, ops))(features, landmarks, picked.ops)
+    target = jnp.asarray(batch["vertices"], jnp.float32)
+    mask = jnp.asarray(batch["mask"], bool) if "mask" in batch else None
+    s = config.displacement_scale
+    return motion_loss(
+        pred * s,
+        target * s,
+        mask,
+        picked.valid,
+        velocity_weight=config.velocity_weight,
+        acceleration_weight=config.acceleration_weight,
+    )
+
+
+def make_stm_loss(config: STMConfig, meshes: STMMesh):
+    """``loss_fn(params, batch, key)`` for :func:`jaxtalk.train.train` with the meshes bound.
+
+    Args:
+        config: static configuration.
+        meshes: stacked training meshes.
+
+    Returns:
+        The loss function.
+    """
+    return functools.partial(_bound_loss, config, meshes)
+
+
+def _bound_loss(config: STMConfig, meshes: STMMesh, params: PyTree, batch: dict[str, Any], key: PRNGKeyArray):
+    return stm_loss(params, config, meshes, batch, key)

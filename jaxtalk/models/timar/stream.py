@@ -1,0 +1,318 @@
+"""Turn-by-turn streaming (Sec. 3.5) with a key/value cache of past turns.
+
+The window holds the n previous turns and the current one (``context = n``, e.g. 0, 1, 3, 7; the
+window of n + 1 turns must fit ``max_turns``). Past agent motion stays MASKED in the window (the
+model's own outputs are never fed back), so a past turn's tokens are fixed once it has arrived.
+While the window is not full (turn index t <= n), turn t sits at slot t and, under turn-causal
+attention, the keys/values of slots < t cannot depend on it: they are cached per layer in a
+fixed-size buffer, and turn t's step encodes only its own 110 tokens against that cache. Once the
+window slides (t > n) every turn moves to a new positional slot, so the window is recomputed in full
+(a constant n + 1 turns of work per step). The bidirectional ablation always recomputes.
+
+The state is an explicit pytree; :func:`stream_step` is one jitted program for every turn (the
+cached / full choice is a ``lax.cond`` on the traced turn counter). CFG stacks the conditional and
+the unconditional window (user tokens -> fake token) along the batch axis.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.models.timar.config import TimarConfig
+from jaxtalk.models.timar.encoder import TimarEncoder
+from jaxtalk.models.timar.inputs import check_streams
+from jaxtalk.models.timar.sample import SAMPLERS, sample_frames
+from jaxtalk.models.timar.tokens import turn_layout
+from jaxtalk.nn import bias_from_mask
+from jaxtalk.types import Array, Float, Int, PRNGKeyArray
+
+__all__ = ["StreamState", "stream_init", "stream_condition", "stream_step", "stream_conversation"]
+
+
+class StreamState(NamedTuple):
+    """Carried state of the streaming sampler (``S = 2B`` with guidance, else ``B``).
+
+    Attributes:
+        tokens: ``(S, n + 1, 4F + 10, width)`` embedded tokens of the window's turns (agent motion
+            masked), slot order; unfilled slots are zeros.
+        keys, values: per encoder layer, ``(S, n (4F + 10), heads, head_dim)`` cached keys/values
+            of slots ``0..n-1`` (valid for slots < turn while the window has not slid).
+        turn: ``()`` int32, turns processed so far.
+    """
+
+    tokens: Float[Array, "streams slots tokens width"]
+    keys: tuple[Float[Array, "streams cache heads head_dim"], ...]
+    values: tuple[Float[Array, "streams cache heads head_dim"], ...]
+    turn: Int[Array, ""]
+
+
+def _check_context(config: TimarConfig, context: int) -> int:
+    if isinstance(context, bool) or not isinstance(context, (int, np.integer)) or context < 0:
+        raise ValueError(f"context must be a non-negative integer number of turns, got {context!r}")
+    if context + 1 > config.max_turns:
+        raise ValueError(
+            f"context n={context} needs a window of {context + 1} turns but the positional table has "
+            f"max_turns={config.max_turns}"
+        )
+    return int(context)
+
+
+def stream_init(config: TimarConfig, batch: int, context: int, *, guidance: bool = True) -> StreamState:
+    """An empty stream.
+
+    Args:
+        config: model config.
+        batch: B conversations streamed together.
+        context: n previous turns kept in the window.
+        guidance: keep the unconditional branch too (CFG).
+
+    Returns:
+        :class:`StreamState` at turn 0.
+
+    Raises:
+        ValueError: ``context`` negative or too long for ``max_turns``, ``batch < 1``.
+    """
+    n = _check_context(config, context)
+    if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
+        raise ValueError(f"batch must be a positive integer, got {batch!r}")
+    s = 2 * batch if guidance else batch
+    tpt = config.tokens_per_turn
+    hd = config.width // config.num_heads
+    # One distinct buffer per layer and per keys/values: the step donates (reuses) them in place.
+    cache = lambda: jnp.zeros((s, n * tpt, config.num_heads, hd), jnp.float32)  # noqa: E731
+    return StreamState(
+        tokens=jnp.zeros((s, n + 1, tpt, config.width), jnp.float32),
+        keys=tuple(cache() for _ in range(config.num_layers)),
+        values=tuple(cache() for _ in range(config.num_layers)),
+        turn=jnp.zeros((), jnp.int32),
+    )
+
+
+def _encoder_call(config: TimarConfig, params: Any, method: str, *args: Any, **kwargs: Any) -> Any:
+    return TimarEncoder(config).apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
+
+
+def _condition(config, params, state, us, um, as_, guidance):
+    n = state.tokens.shape[1] - 1
+    tpt = config.tokens_per_turn
+    b = us.shape[0]
+    add_turn = lambda x: x[:, None]  # noqa: E731  (B, F, D) -> (B, 1, F, D)
+    us, um, as_ = add_turn(us), add_turn(um), add_turn(as_)
+    drop = None
+    if guidance:
+        two = lambda x: jnp.concatenate([x, x], axis=0)  # noqa: E731
+        us, um, as_ = two(us), two(um), two(as_)
+        drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
+    tok = _encoder_call(config, params, "embed", us, um, as_, None, None, drop)  # (S, 1, tpt, w)
+    t = state.turn
+    slot = jnp.minimum(t, n)
+    written = jax.lax.dynamic_update_slice_in_dim(state.tokens, tok, slot, axis=1)
+    shifted = jnp.concatenate([state.tokens[:, 1:], tok], axis=1)
+    tokens = jnp.where(t > n, shifted, written)
+    causal = config.attention == "turn_causal"
+    layout = turn_layout(config.frames_per_turn)
+    static_mask = jnp.asarray(layout.attention_mask(n + 1, causal=causal))
+    key_slot = jnp.asarray(np.repeat(np.arange(n + 1), tpt))
+
+    def full(_: Any) -> tuple[Array, Any, Any]:
+        visible = static_mask & (key_slot <= slot)[None, :]
+        feats = _encoder_call(config, params, "encode", tokens, 0, bias_from_mask(visible))
+        z = _encoder_call(config, params, "head_condition", feats, 0)
+        return jax.lax.dynamic_index_in_dim(z, slot, axis=1, keepdims=False), state.keys, state.values
+
+    def cached(_: Any) -> tuple[Array, Any, Any]:
+        cache_slot = jnp.asarray(np.repeat(np.arange(n), tpt))
+        visible = jnp.concatenate([cache_slot < t, jnp.ones((tpt,), bool)])
+        caches = tuple(zip(state.keys, state.values))
+        feats, kvs = _encoder_call(
+            config, params, "encode", tok, t, bias_from_mask(visible)[None, :], caches, True
+        )
+        z = _encoder_call(config, params, "head_condition", feats, t)[:, 0]
+        # The newest turn's keys/values go to its slot; at t == n the cache is full and never read
+        # again (the next turn slides), so it is left as is.
+        keep = t >= n
+        new_k = tuple(
+            jnp.where(keep, k_old, jax.lax.dynamic_update_slice_in_dim(k_old, k_all[:, n * tpt:], t * tpt, axis=1))
+            for k_old, (k_all, _) in zip(state.keys, kvs)
+        )
+        new_v = tuple(
+            jnp.where(keep, v_old, jax.lax.dynamic_update_slice_in_dim(v_old, v_all[:, n * tpt:], t * tpt, axis=1))
+            for v_old, (_, v_all) in zip(state.values, kvs)
+        )
+        return z, new_k, new_v
+
+    if causal and n > 0:
+        z, keys, values = jax.lax.cond(t <= n, cached, full, None)
+    else:
+        z, keys, values = full(None)
+    return StreamState(tokens, keys, values, t + 1), z
+
+
+@functools.partial(jax.jit, static_argnames=("config", "guidance"))
+def _condition_jit(config, params, state, us, um, as_, guidance):
+    return _condition(config, params, state, us, um, as_, guidance)
+
+
+def _check_turn(config: TimarConfig, state: StreamState, us: Any, um: Any, as_: Any, guidance: bool) -> None:
+    f = config.frames_per_turn
+    for name, x in (("user_speech", us), ("user_motion", um), ("agent_speech", as_)):
+        if np.ndim(x) != 3 or np.shape(x)[1] != f:
+            raise ValueError(f"{name} of one turn must be (batch, {f}, dim), got shape {np.shape(x)}")
+    check_streams(config, {"user_speech": us, "user_motion": um, "agent_speech": as_})
+    s = state.tokens.shape[0]
+    b = s // 2 if guidance else s
+    if np.shape(us)[0] != b or (guidance and s % 2):
+        raise ValueError(
+            f"turn batch {np.shape(us)[0]} does not match the stream state (batch {b}, guidance={guidance}); "
+            "create the state with stream_init(config, batch, context, guidance=...)"
+        )
+
+
+def stream_condition(
+    config: TimarConfig,
+    params: dict[str, Any],
+    state: StreamState,
+    user_speech: Float[Array, "batch frames speech_dim"],
+    user_motion: Float[Array, "batch frames param_dim"],
+    agent_speech: Float[Array, "batch frames speech_dim"],
+    *,
+    guidance: bool = True,
+) -> tuple[StreamState, Float[Array, "streams frames width"]]:
+    """Push one turn into the stream and return its head conditions (no sampling).
+
+    Args:
+        config: model config.
+        params: model parameters.
+        state: current :class:`StreamState`.
+        user_speech, agent_speech: ``(B, F, speech_dim)`` this turn's speech features.
+        user_motion: ``(B, F, 56)`` this turn's user motion.
+        guidance: must match the state (``stream_init(..., guidance=)``).
+
+    Returns:
+        ``(new_state, z)`` with ``z: (S, F, width)``: conditional rows first, then (with
+        guidance) the unconditional rows.
+
+    Raises:
+        ValueError: a turn of the wrong length, mismatched streams, NaN, or a batch that does not
+            match the state.
+    """
+    _check_turn(config, state, user_speech, user_motion, agent_speech, guidance)
+    return _condition_jit(
+        config, params, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
+        jnp.asarray(agent_speech, jnp.float32), bool(guidance),
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance"), donate_argnums=(2,))
+def _step(config, params, state, us, um, as_, key, cfg_scale, eta, num_steps, sampler, guidance):
+    state, z = _condition(config, params, state, us, um, as_, guidance)
+    b = us.shape[0]
+    z_c, z_u = (z[:b], z[b:]) if guidance else (z, None)
+    x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta)
+    return state, x
+
+
+def stream_step(
+    config: TimarConfig,
+    params: dict[str, Any],
+    state: StreamState,
+    user_speech: Float[Array, "batch frames speech_dim"],
+    user_motion: Float[Array, "batch frames param_dim"],
+    agent_speech: Float[Array, "batch frames speech_dim"],
+    key: PRNGKeyArray,
+    *,
+    cfg_scale: Float[Array, ""] | float | None = None,
+    num_steps: int | None = None,
+    sampler: str = "ddim",
+    eta: Float[Array, ""] | float = 0.0,
+    guidance: bool = True,
+) -> tuple[StreamState, Float[Array, "batch frames param_dim"]]:
+    """One streaming turn: encode it against the window, sample the agent's motion for it.
+
+    The state is donated (its buffers are reused): do not use ``state`` after the call.
+
+    Args:
+        config: model config.
+        params: model parameters.
+        state: current :class:`StreamState`.
+        user_speech, agent_speech: ``(B, F, speech_dim)`` this turn's speech features.
+        user_motion: ``(B, F, 56)`` this turn's user motion.
+        key: PRNG key of this turn.
+        cfg_scale: ``()`` omega (traced; default ``config.cfg_scale``).
+        num_steps: respaced diffusion steps (static; default ``config.sample_steps``).
+        sampler: ``"ddim"`` or ``"ddpm"``.
+        eta: DDIM stochasticity (traced).
+        guidance: must match the state.
+
+    Returns:
+        ``(new_state, motion)`` with ``motion: (B, F, 56)``.
+
+    Raises:
+        ValueError: as :func:`stream_condition`, plus an unknown sampler or bad step count.
+    """
+    _check_turn(config, state, user_speech, user_motion, agent_speech, guidance)
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; expected one of {SAMPLERS}")
+    num_steps = config.sample_steps if num_steps is None else num_steps
+    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= config.num_timesteps:
+        raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
+    cfg = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, jnp.float32)
+    return _step(
+        config, params, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
+        jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32), num_steps, sampler,
+        bool(guidance),
+    )
+
+
+def stream_conversation(
+    config: TimarConfig,
+    params: dict[str, Any],
+    user_speech: Float[Array, "batch frames speech_dim"] | Float[np.ndarray, "batch frames speech_dim"],
+    user_motion: Float[Array, "batch frames param_dim"] | Float[np.ndarray, "batch frames param_dim"],
+    agent_speech: Float[Array, "batch frames speech_dim"] | Float[np.ndarray, "batch frames speech_dim"],
+    key: PRNGKeyArray,
+    *,
+    context: int,
+    cfg_scale: Float[Array, ""] | float | None = None,
+    num_steps: int | None = None,
+    sampler: str = "ddim",
+    guidance: bool = True,
+) -> Float[Array, "batch frames param_dim"]:
+    """Stream whole conversations turn by turn (any number of turns; the window slides).
+
+    Turn ``i`` uses key ``jax.random.fold_in(key, i)``. This is the host driver of
+    :func:`stream_step` (one dispatch per turn, as a live stream would be).
+
+    Args:
+        config: model config.
+        params: model parameters.
+        user_speech, agent_speech: ``(B, N F, speech_dim)``.
+        user_motion: ``(B, N F, 56)``.
+        key: PRNG key.
+        context: n previous turns in the window.
+        cfg_scale, num_steps, sampler, guidance: see :func:`stream_step`.
+
+    Returns:
+        ``(B, N F, 56)`` agent motion.
+
+    Raises:
+        ValueError: bad streams or context.
+    """
+    turns = check_streams(config, {"user_speech": user_speech, "user_motion": user_motion, "agent_speech": agent_speech})
+    f = config.frames_per_turn
+    state = stream_init(config, int(np.shape(user_speech)[0]), context, guidance=guidance)
+    out = []
+    for i in range(turns):  # host loop: one turn arrives at a time in a stream
+        sl = slice(i * f, (i + 1) * f)
+        state, x = stream_step(
+            config, params, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl],
+            jax.random.fold_in(key, i), cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler,
+            guidance=guidance,
+        )
+        out.append(x)
+    return jnp.concatenate(out, axis=1)

@@ -1,0 +1,52 @@
+"""TokTalk: chunk-wise conditional flow matching from audio-LLM token embeddings to FLAME parameters.
+
+* :class:`TokTalkConfig` (``paper``, ``small``, ``tiny`` presets) and :func:`init_params`.
+* Model pieces: :class:`Decoder` (1-D U-Net transformer), :class:`StyleEncoder`, :class:`Adapter`.
+* Losses: :func:`cfm_loss` (stage 1) and :func:`adapter_loss` (stage 2).
+* Inference: :func:`sample` (offline), :func:`init_stream` / :func:`stream_step` / :func:`stream`
+  (streaming engine with an explicit carried state), :func:`encode_style`, :func:`adapt_tokens`.
+* Training: :mod:`jaxtalk.models.toktalk.train` (two stages with the shared loop).
+"""
+
+from jaxtalk.models.toktalk.adapter import Adapter
+from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.models.toktalk.decoder import Decoder, attention_bias
+from jaxtalk.models.toktalk.loss import adapter_loss, cfm_loss, flow_matching_terms, random_known_mask
+from jaxtalk.models.toktalk.model import (
+    Condition,
+    adapt_tokens,
+    encode_style,
+    init_adapter,
+    init_params,
+    interpolate_tokens,
+    velocity,
+)
+from jaxtalk.models.toktalk.sample import sample
+from jaxtalk.models.toktalk.stream import StreamState, init_stream, stream, stream_step, tokens_per_chunk
+from jaxtalk.models.toktalk.style import StyleEncoder, kl_divergence
+
+__all__ = [
+    "TokTalkConfig",
+    "Decoder",
+    "StyleEncoder",
+    "Adapter",
+    "Condition",
+    "attention_bias",
+    "init_params",
+    "init_adapter",
+    "velocity",
+    "interpolate_tokens",
+    "encode_style",
+    "adapt_tokens",
+    "kl_divergence",
+    "flow_matching_terms",
+    "random_known_mask",
+    "cfm_loss",
+    "adapter_loss",
+    "sample",
+    "StreamState",
+    "init_stream",
+    "stream_step",
+    "stream",
+    "tokens_per_chunk",
+]

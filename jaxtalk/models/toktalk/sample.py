@@ -1,0 +1,231 @@
+"""Offline sampling: the whole sequence at once with the Euler flow sampler, CFG and the cosine grid.
+
+One jitted program per (config, shapes, number of steps); the guidance weight, the time grid values,
+the style vector and the token embeddings are traced, so sweeping them never recompiles. The sampler
+is a ``lax.scan`` over the grid and is differentiable end to end (w.r.t. style vector and tokens).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.models.toktalk.model import (
+    Condition,
+    check_finite,
+    check_style_clip,
+    check_tokens,
+    interpolate_tokens,
+    sampler_model,
+    style_distribution,
+)
+from jaxtalk.samplers import cosine_grid, sample_euler
+from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
+
+__all__ = ["sample", "resolve_style", "default_grid"]
+
+PyTree = Any
+
+
+def default_grid(config: TokTalkConfig, num_steps: int | None = None) -> np.ndarray:
+    """The cosine time grid ``t_k = 1 - cos(k / N * pi / 2)`` with ``N = num_steps or config.num_steps``."""
+    return cosine_grid(config.num_steps if num_steps is None else num_steps)
+
+
+def resolve_style(params: PyTree, config: TokTalkConfig, style: Any, batch: int) -> Array:
+    """A ``(B, style_dim)`` style vector from a vector or a ``(B, S, param_dim)`` reference clip.
+
+    Args:
+        params: model parameters (the style encoder is used for clips).
+        config: model settings.
+        style: ``(B, style_dim)`` vector, ``(style_dim,)`` vector for every example, or a clip.
+        batch: the batch size B.
+
+    Returns:
+        ``(B, style_dim)``.
+
+    Raises:
+        ValueError: a shape that is neither, a batch mismatch, a too-short clip, NaN/inf.
+    """
+    shape = tuple(np.shape(style))
+    if len(shape) == 3:
+        check_style_clip(style, config)
+        vec = style_distribution(params, config, jnp.asarray(style))[0]
+    elif len(shape) in (1, 2) and shape[-1] == config.style_dim:
+        check_finite("style vector", style)
+        vec = jnp.asarray(style)
+        if vec.ndim == 1:
+            vec = jnp.broadcast_to(vec[None], (batch, config.style_dim))
+    else:
+        raise ValueError(
+            f"style must be a (batch, {config.style_dim}) vector or a (batch, frames, {config.param_dim}) "
+            f"reference clip, got shape {shape}"
+        )
+    if vec.shape[0] != batch:
+        raise ValueError(f"style has batch {vec.shape[0]} but tokens have batch {batch}")
+    return vec
+
+
+def sample(
+    params: PyTree,
+    config: TokTalkConfig,
+    tokens: Float[Array, "batch tokens width"] | Float[np.ndarray, "batch tokens width"],
+    style: Any,
+    key: PRNGKeyArray | None = None,
+    *,
+    num_frames: int | None = None,
+    num_steps: int | None = None,
+    ts: Any = None,
+    cfg_scale: Float[Array, ""] | float | None = None,
+    known: Any = None,
+    known_mask: Any = None,
+    mask: Any = None,
+    chunked: bool | Bool[Array, ""] = False,
+    noise: Any = None,
+    remat: bool = False,
+) -> Float[Array, "batch frames param"]:
+    """Generates motion for whole token sequences (offline, one Euler/CFG pass over all frames).
+
+    Args:
+        params: model parameters.
+        config: model settings.
+        tokens: ``(B, Tt, token_dim)`` base-space token embeddings at ``config.token_rate``.
+        style: ``(B, style_dim)`` style vector(s) or a ``(B, S, param_dim)`` reference clip.
+        key: PRNG key for the starting noise (required unless ``noise`` is given).
+        num_frames: expected number of frames (checked against the token count and rate).
+        num_steps: Euler steps (default ``config.num_steps``; static).
+        ts: explicit ``(N + 1,)`` time grid (traced values); default: the cosine grid.
+        cfg_scale: guidance weight w (traced; default ``config.cfg_scale``).
+        known: ``(B, T, param_dim)`` frames to inpaint, with ``known_mask`` ``(B, T)`` bool.
+        known_mask: see ``known``.
+        mask: ``(B, T)`` True on real frames (None: all real).
+        chunked: use the block-causal chunk attention (as in streaming) instead of full attention.
+        noise: ``(B, T, param_dim)`` explicit starting noise (else drawn from ``key``).
+        remat: checkpoint each Euler step (memory O(1) in N when differentiating).
+
+    Returns:
+        ``(B, T, param_dim)`` motion; padded frames are zero.
+
+    Raises:
+        ValueError: tokens of the wrong width or rate, NaN/inf, bad style, bad known/mask shapes,
+            neither ``key`` nor ``noise``.
+    """
+    batch = int(np.shape(tokens)[0]) if np.ndim(tokens) == 3 else 0
+    frames = check_tokens(tokens, width=config.token_dim, rate=config.token_rate, fps=config.fps,
+                          num_frames=num_frames)
+    style_vec = resolve_style(params, config, style, batch)
+    motion_shape = (batch, frames, config.param_dim)
+    if ts is None:
+        ts = default_grid(config, num_steps)
+    ts = jnp.asarray(ts)
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(f"ts must be a 1-D time grid with at least 2 entries, got shape {ts.shape}")
+    if noise is None:
+        if key is None:
+            raise ValueError("sample needs a PRNG key (or explicit noise)")
+        noise = jax.random.normal(key, motion_shape, dtype=jnp.result_type(float))
+    elif tuple(np.shape(noise)) != motion_shape:
+        raise ValueError(f"noise must have shape {motion_shape}, got {tuple(np.shape(noise))}")
+    check_finite("noise", noise)
+    mask_arr = jnp.ones(motion_shape[:2], bool) if mask is None else jnp.asarray(mask)
+    if mask_arr.shape != motion_shape[:2] or mask_arr.dtype != bool:
+        raise ValueError(f"mask must be bool of shape {motion_shape[:2]}, got {mask_arr.dtype} {mask_arr.shape}")
+    if (known is None) != (known_mask is None):
+        raise ValueError("known and known_mask must be given together")
+    if known is not None:
+        if tuple(np.shape(known)) != motion_shape:
+            raise ValueError(f"known must have shape {motion_shape}, got {tuple(np.shape(known))}")
+        km = jnp.asarray(known_mask)
+        if km.shape != motion_shape[:2] or km.dtype != bool:
+            raise ValueError(f"known_mask must be bool of shape {motion_shape[:2]}, got {km.dtype} {km.shape}")
+        check_finite("known", known)
+        known, known_mask = jnp.asarray(known), km
+    w = config.cfg_scale if cfg_scale is None else cfg_scale
+    return _sample(
+        params,
+        jnp.asarray(tokens),
+        style_vec,
+        jnp.asarray(noise),
+        ts,
+        jnp.asarray(w, jnp.asarray(noise).dtype),
+        known,
+        known_mask,
+        mask_arr,
+        jnp.asarray(chunked, bool),
+        config,
+        bool(remat),
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("config", "remat"))
+def _sample(params, tokens, style_vec, noise, ts, cfg_scale, known, known_mask, mask, chunked, config, remat):
+    return generate_frames(
+        params, config, tokens, style_vec, noise, ts, cfg_scale,
+        known=known, known_mask=known_mask, mask=mask, chunked=chunked, remat=remat,
+    )
+
+
+def generate_frames(
+    params: PyTree,
+    config: TokTalkConfig,
+    tokens: Float[Array, "batch tokens width"],
+    style_vec: Float[Array, "batch style"],
+    noise: Float[Array, "batch frames param"],
+    ts: Float[Array, " grid"],
+    cfg_scale: Float[Array, ""],
+    *,
+    known: Float[Array, "batch frames param"] | None = None,
+    known_mask: Bool[Array, "batch frames"] | None = None,
+    mask: Bool[Array, "batch frames"] | None = None,
+    chunked: Bool[Array, ""] | None = None,
+    remat: bool = False,
+) -> Float[Array, "batch frames param"]:
+    """The traced core of :func:`sample` and of the streaming engine (no validation).
+
+    Args:
+        params, config: the model.
+        tokens: ``(B, Tt, token_dim)`` at the base rate; interpolated to ``T = noise.shape[1]`` frames.
+        style_vec: ``(B, style_dim)``.
+        noise: ``(B, T, param_dim)`` starting noise.
+        ts: ``(N + 1,)`` time grid.
+        cfg_scale: ``()`` guidance weight.
+        known, known_mask: optional inpainting values ``(B, T, D)`` and mask ``(B, T)``.
+        mask: ``(B, T)`` real frames (None: all).
+        chunked: ``()`` chunk attention flag (None: full attention).
+        remat: checkpoint each Euler step.
+
+    Returns:
+        ``(B, T, param_dim)``, zero on padded frames.
+    """
+    b, t, d = noise.shape
+    frames_tokens = interpolate_tokens(tokens, config.token_rate, config.fps, t)
+    mask = jnp.ones((b, t), bool) if mask is None else mask
+    chunked = jnp.zeros((), bool) if chunked is None else chunked
+    has_known = known is not None
+    cond = Condition(
+        tokens=frames_tokens,
+        style=style_vec,
+        known=known if has_known else jnp.zeros_like(noise),
+        known_mask=(known_mask & mask) if has_known else jnp.zeros((b, t), bool),
+        keep=jnp.ones((b,), noise.dtype),
+        mask=mask,
+        chunked=jnp.broadcast_to(chunked, (b,)),
+    )
+    x = sample_euler(
+        sampler_model(config, params),
+        noise,
+        cond,
+        ts,
+        uncond=cond.unconditional(),
+        cfg_scale=cfg_scale,
+        known=known if has_known else None,
+        known_mask=cond.known_mask[..., None] if has_known else None,
+        sigma_min=config.sigma_min,
+        remat=remat,
+    )
+    return x * mask[..., None].astype(x.dtype)

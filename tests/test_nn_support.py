@@ -1,0 +1,41 @@
+"""Helpers shared by the ``test_nn_*`` files (this module holds no tests).
+
+The layer tests run many tiny programs, where XLA compile time dominates; two things keep them fast:
+
+* ``fast_xla``: most XLA optimisations off for one test (conftest's ``fast_compile`` does the same
+  but reads the flag through ``jax.config.jax_disable_most_optimizations``, an attribute jax 0.10
+  no longer has).
+* ``random_params``: parameters drawn in NumPy for the shapes that ``module.init`` would create,
+  found by ``jax.eval_shape`` (tracing only). Compiling the initialisers (truncated normals) costs
+  more than the rest of a test; tests that check initial values use ``init`` itself.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+
+@pytest.fixture
+def fast_xla():
+    """Disable most XLA optimisations for one test."""
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", previous)
+
+
+def random_params(module: Any, *args: Any, seed: int = 0, scale: float = 0.3, **kwargs: Any) -> Any:
+    """Variables shaped like ``module.init(key, *args, **kwargs)``, entries ``scale * N(0, 1)``."""
+    shapes = jax.eval_shape(functools.partial(module.init, **kwargs), jax.random.key(0), *args)
+    rng = np.random.default_rng(seed)
+    return jax.tree_util.tree_map(
+        lambda s: jnp.asarray(scale * rng.standard_normal(s.shape), s.dtype), shapes
+    )
