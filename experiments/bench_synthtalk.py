@@ -6,7 +6,7 @@ already compiled) and landmarks (compiled). Target: < 1 CPU second per minute.
 Calibration: per-dimension expression std, jaw-opening range, neck std and expression velocity std
 of the tiny corpus beside the two real DualTalk demo tracks (``shared/data/dualtalk_demo``).
 
-Run: ``python experiments/bench_synthtalk.py [--out results/bench_synthtalk.json]``.
+Run: ``python experiments/bench_synthtalk.py [--out experiments/results/bench_synthtalk.json]``.
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def calibration() -> list[dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="results/bench_synthtalk.json")
+    parser.add_argument("--out", default="experiments/results/bench_synthtalk.json")
     args = parser.parse_args()
     speed_rows = speed()
     print_table(speed_rows, "SynthTalk: seconds to generate one minute of corpus")
