@@ -179,3 +179,18 @@ def test_shape_errors_are_clear(mesh_ops, key):  # errors are raised at trace ti
         dn.stack_operators([ops, ops.truncated(8)])
     with pytest.raises(ValueError, match="width must be >= 1"):
         dn.DiffusionNetConfig(width=0)
+
+
+def test_gradient_features_ignore_tangent_frame_rotation():
+    rng = np.random.default_rng(9)
+    gx, gy = (jnp.asarray(rng.standard_normal((50, 6)), jnp.float32) for _ in range(2))
+    theta = jnp.asarray(rng.uniform(0, 2 * np.pi, (50, 1)), jnp.float32)  # one angle per vertex
+    layer = dn.SpatialGradientFeatures(6)
+    variables = jax.jit(layer.init)(jax.random.key(2), gx, gy)
+    apply = jax.jit(layer.apply)
+    rx = jnp.cos(theta) * gx - jnp.sin(theta) * gy
+    ry = jnp.sin(theta) * gx + jnp.cos(theta) * gy
+    base = apply(variables, gx, gy)
+    np.testing.assert_allclose(apply(variables, rx, ry), base, atol=1e-5)
+    # Not trivially constant: a non-rotation (swapping X and Y, a reflection) changes the output.
+    assert float(jnp.abs(apply(variables, gy, gx) - base).max()) > 1e-2

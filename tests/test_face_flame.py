@@ -168,6 +168,10 @@ def test_errors(flame_file, tmp_path):
     garbage.write_bytes(b"not a pickle at all")
     with pytest.raises(ValueError, match="not a readable pickle"):
         load_flame(garbage)
+    hostile = tmp_path / "hostile.pkl"
+    hostile.write_bytes(pickle.dumps({"v_template": np.zeros(3), "evil": print}))
+    with pytest.raises(ValueError, match="refusing to load builtins.print"):
+        load_flame(hostile)
     with pytest.raises(ValueError, match="shape_params must be <= 300"):
         load_flame(path, shape_params=np.zeros(301))
     with pytest.raises(ValueError, match="68 faces"):

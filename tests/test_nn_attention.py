@@ -244,21 +244,22 @@ def test_stacked_blocks_decode_chunk_by_chunk_like_the_full_pass(key):
     length, chunk = 9, 3
     x = jax.random.normal(key, (2, length, 8))
     memory = jax.random.normal(jax.random.fold_in(key, 1), (2, 4, 8))
-    blocks = [DecoderBlock(num_heads=2, head_dim=4, qkv_bias=False) for _ in range(2)]
-    params = [random_params(b, x, memory, seed=i) for i, b in enumerate(blocks)]
+    block = DecoderBlock(num_heads=2, head_dim=4, qkv_bias=False)
+    params = [random_params(block, x, memory, seed=i) for i in range(2)]  # two layers
     bias = bias_from_mask(_block_causal(length, chunk))
+    apply = jax.jit(block.apply, static_argnames="return_kv")
 
     full = x
-    for b, p in zip(blocks, params):
-        full = b.apply(p, full, memory, self_bias=bias)
+    for p in params:
+        full = apply(p, full, memory, self_bias=bias)
 
     caches = [None, None]
     outputs = []
     for start in range(0, length, chunk):
         stop = start + chunk
         h = x[:, start:stop]
-        for i, (b, p) in enumerate(zip(blocks, params)):
-            h, caches[i] = b.apply(
+        for i, p in enumerate(params):
+            h, caches[i] = apply(
                 p, h, memory, self_bias=bias[start:stop, :stop], kv_cache=caches[i], return_kv=True
             )
         outputs.append(h)

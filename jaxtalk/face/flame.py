@@ -69,6 +69,12 @@ class _ChumpyStandIn:
         raise ValueError(f"cannot extract an array from a pickled chumpy object with state {type(state).__name__}")
 
 
+# Modules a model pickle may reference. Anything else is refused: unpickling can call any importable
+# callable, and a model file is data.
+_ALLOWED_MODULES = ("numpy", "scipy.sparse", "copyreg", "builtins", "_codecs", "collections")
+_ALLOWED_BUILTINS = {"object", "set", "frozenset", "dict", "list", "tuple", "slice", "bytearray", "complex"}
+
+
 class _NoChumpyUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str) -> Any:
         if module == "chumpy" or module.startswith("chumpy."):
@@ -78,6 +84,10 @@ class _NoChumpyUnpickler(pickle.Unpickler):
             return getattr(scipy.sparse, name)
         if module.startswith("numpy.core"):
             module = "numpy._core" + module[len("numpy.core") :]
+        module = {"__builtin__": "builtins", "copy_reg": "copyreg"}.get(module, module)  # Python 2 names
+        allowed = any(module == m or module.startswith(m + ".") for m in _ALLOWED_MODULES)
+        if not allowed or (module == "builtins" and name not in _ALLOWED_BUILTINS):
+            raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a model file")
         return super().find_class(module, name)
 
 

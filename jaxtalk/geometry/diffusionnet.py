@@ -290,8 +290,9 @@ class LearnedTimeDiffusion(nn.Module):
 class SpatialGradientFeatures(nn.Module):
     """``tanh(Re(conj(g) * (A g)))`` per channel, with g = gradX x + i gradY x and A complex-linear.
 
-    A is two real matrices (real and imaginary parts) without bias, so features are invariant to the
-    choice of tangent frame rotation only through what A learns, as in the reference.
+    A is two real matrices (real and imaginary parts) without bias. Because A is complex-linear,
+    rotating a vertex's tangent frame (g -> e^{i theta} g) leaves ``conj(g) * (A g)`` unchanged, so
+    the features do not depend on the arbitrary choice of tangent frames.
     """
 
     channels: int

@@ -90,7 +90,8 @@ class TopologyVariant:
             # One sparse (V', V) product over all frames and coordinates at once.
             x = base_vertex_seq
             flat = np.moveaxis(x, -2, 0).reshape(x.shape[-2], -1)
-            out = (self._interpolation_matrix(x.shape[-2]) @ flat).astype(x.dtype, copy=False)
+            matrix = self._interpolation_matrix(x.shape[-2]).astype(np.result_type(x.dtype, np.float32))
+            out = (matrix @ flat).astype(x.dtype, copy=False)
             return np.moveaxis(out.reshape(len(corners), *x.shape[:-2], 3), 0, -2)
         x = jnp.asarray(base_vertex_seq)
         bary = jnp.asarray(self.barycentric, x.dtype)

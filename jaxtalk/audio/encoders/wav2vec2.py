@@ -113,6 +113,12 @@ def lengths_to_mask(lengths: Int[Array, " batch"], size: int) -> Bool[Array, "ba
     return jnp.arange(size)[None, :] < lengths[:, None]
 
 
+def _channels(vector, dtype=None):
+    """A per-channel vector shaped (1, 1, channels) for explicit broadcasting over (batch, time)."""
+    vector = vector.reshape(1, 1, -1)
+    return vector if dtype is None else vector.astype(dtype)
+
+
 def _layer_norm(eps: float, name: str) -> nn.LayerNorm:
     # Two-pass variance (use_fast_variance=False) as torch does: the unnormalised conv features of
     # base models are large, and E[x^2] - E[x]^2 would lose float32 digits there.
@@ -146,7 +152,7 @@ class Conv1d(nn.Module):
             feature_group_count=self.groups,
         )
         if self.use_bias:
-            y = y + self.param("bias", nn.initializers.zeros, (self.features,)).astype(x.dtype)
+            y = y + _channels(self.param("bias", nn.initializers.zeros, (self.features,)), x.dtype)
         return y
 
 
@@ -184,7 +190,7 @@ class WeightNormConv1d(nn.Module):
             dimension_numbers=("NWC", "WIO", "NWC"),
             feature_group_count=self.groups,
         )
-        return y + self.param("bias", nn.initializers.zeros, (self.features,)).astype(x.dtype)
+        return y + _channels(self.param("bias", nn.initializers.zeros, (self.features,)), x.dtype)
 
 
 class ChannelGroupNorm(nn.Module):
@@ -205,7 +211,7 @@ class ChannelGroupNorm(nn.Module):
             count = jnp.maximum(jnp.sum(weight, axis=1, keepdims=True), 1.0)
             mean = jnp.sum(x * weight, axis=1, keepdims=True) / count
             var = jnp.sum(jnp.square(x - mean) * weight, axis=1, keepdims=True) / count
-        return (x - mean) * jax.lax.rsqrt(var + _TORCH_NORM_EPS) * scale + bias
+        return (x - mean) * jax.lax.rsqrt(var + _TORCH_NORM_EPS) * _channels(scale) + _channels(bias)
 
 
 class FeatureExtractor(nn.Module):
@@ -313,10 +319,10 @@ class _FrozenBatchNorm(nn.Module):
     @nn.compact
     def __call__(self, x):
         c = x.shape[-1]
-        mean = jax.lax.stop_gradient(self.param("mean", nn.initializers.zeros, (c,)))
-        var = jax.lax.stop_gradient(self.param("var", nn.initializers.ones, (c,)))
-        scale = self.param("scale", nn.initializers.ones, (c,))
-        bias = self.param("bias", nn.initializers.zeros, (c,))
+        mean = _channels(jax.lax.stop_gradient(self.param("mean", nn.initializers.zeros, (c,))))
+        var = _channels(jax.lax.stop_gradient(self.param("var", nn.initializers.ones, (c,))))
+        scale = _channels(self.param("scale", nn.initializers.ones, (c,)))
+        bias = _channels(self.param("bias", nn.initializers.zeros, (c,)))
         return (x - mean) * jax.lax.rsqrt(var + _TORCH_NORM_EPS) * scale + bias
 
 

@@ -155,6 +155,12 @@ def init_params(
     Returns:
         ``{"decoder": ..., "style": ...}`` plus ``"adapter"`` when requested.
     """
+    # One jitted program: op-by-op initialisation dispatches (and compiles) every primitive.
+    return _init_params(key, config, adapter_src_dim)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "adapter_src_dim"))
+def _init_params(key: PRNGKeyArray, config: TokTalkConfig, adapter_src_dim: int | None) -> dict[str, PyTree]:
     k_dec, k_sty, k_ad = jax.random.split(key, 3)
     b, t = 1, 2 * config.chunk_frames
     z = jnp.zeros((b, t, config.param_dim))
@@ -174,13 +180,18 @@ def init_params(
         ],
     }
     if adapter_src_dim is not None:
-        params["adapter"] = init_adapter(config, k_ad, adapter_src_dim)
+        params["adapter"] = _init_adapter(k_ad, config, adapter_src_dim)
     return params
 
 
 def init_adapter(config: TokTalkConfig, key: PRNGKeyArray, src_dim: int) -> PyTree:
     """Fresh adapter parameters for a source token space of width ``src_dim``."""
-    return Adapter(config).init(key, jnp.zeros((1, 8, int(src_dim))))["params"]
+    return _init_adapter(key, config, int(src_dim))
+
+
+@functools.partial(jax.jit, static_argnames=("config", "src_dim"))
+def _init_adapter(key: PRNGKeyArray, config: TokTalkConfig, src_dim: int) -> PyTree:
+    return Adapter(config).init(key, jnp.zeros((1, 8, src_dim)))["params"]
 
 
 def velocity(

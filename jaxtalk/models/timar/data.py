@@ -1,0 +1,225 @@
+"""SynthTalk conversations as TIMAR inputs: per-turn speech features, roles, windows, normalisation.
+
+Speech features follow the paper's per-chunk tokenisation (Sec. 3.1: "each chunk is encoded
+independently ... so that no future information is exposed"): the audio of every 1-s turn is turned
+into an 80-band log-mel spectrogram on its own (``jaxtalk.audio.log_mel``, 100 frames/s) and
+interpolated to the turn's 25 motion frames (``jaxtalk.audio.resample_features``). Each conversation
+gives two examples: speaker A as the agent with B as the user, and the reverse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.audio import log_mel, resample_features
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM, Float
+
+__all__ = [
+    "SPEECH_DIM",
+    "Conversation",
+    "Normalizer",
+    "turn_speech_features",
+    "conversations",
+    "fit_normalizer",
+    "windows",
+]
+
+SPEECH_DIM = 80
+_MEL_RATE = 100
+
+
+@functools.partial(jax.jit, static_argnames=("frames_per_turn", "samples_per_turn"))
+def _features(chunks: jax.Array, frames_per_turn: int, samples_per_turn: int) -> jax.Array:
+    mel = log_mel(chunks, AUDIO_SAMPLE_RATE, n_mels=SPEECH_DIM)  # (turns, mel_frames, 80)
+    fps = frames_per_turn * AUDIO_SAMPLE_RATE / samples_per_turn
+    return jax.vmap(lambda m: resample_features(m, _MEL_RATE, fps, num_frames=frames_per_turn))(mel)
+
+
+def turn_speech_features(
+    audio: Float[np.ndarray, " samples"], num_turns: int, *, frames_per_turn: int = MOTION_FPS
+) -> Float[np.ndarray, "frames 80"]:
+    """Per-turn log-mel features at the motion rate, each turn computed from its own audio only.
+
+    Args:
+        audio: 16 kHz mono audio with at least ``num_turns`` seconds.
+        num_turns: whole turns to featurise.
+        frames_per_turn: motion frames per 1-s turn (25).
+
+    Returns:
+        ``(num_turns * frames_per_turn, 80)`` float32.
+
+    Raises:
+        ValueError: audio too short, not 1-D, NaN, or ``num_turns < 1``.
+    """
+    audio = np.asarray(audio, np.float32)
+    if audio.ndim != 1:
+        raise ValueError(f"audio must be 1-D (samples,), got shape {audio.shape}")
+    if num_turns < 1:
+        raise ValueError(f"num_turns must be >= 1, got {num_turns}")
+    spt = AUDIO_SAMPLE_RATE * frames_per_turn // MOTION_FPS
+    if audio.shape[0] < num_turns * spt:
+        raise ValueError(f"audio has {audio.shape[0]} samples, fewer than {num_turns} turns x {spt}")
+    if not np.all(np.isfinite(audio)):
+        raise ValueError("audio contains NaN or inf")
+    chunks = audio[: num_turns * spt].reshape(num_turns, spt)
+    feats = _features(jnp.asarray(chunks), frames_per_turn, spt)
+    return np.asarray(feats, np.float32).reshape(num_turns * frames_per_turn, SPEECH_DIM)
+
+
+@dataclasses.dataclass(frozen=True)
+class Conversation:
+    """One conversation side: the agent is the speaker whose motion is predicted.
+
+    Attributes:
+        agent_speech, user_speech: ``(T, 80)`` per-turn log-mel features.
+        agent_motion, user_motion: ``(T, 56)`` head motion (raw, not normalised).
+        agent_oracle: ``(T, 56)`` the generator's deterministic part of the agent's motion.
+        agent_clip, user_clip: SynthTalk clip indices.
+    """
+
+    agent_speech: np.ndarray
+    agent_motion: np.ndarray
+    user_speech: np.ndarray
+    user_motion: np.ndarray
+    agent_oracle: np.ndarray
+    agent_clip: int
+    user_clip: int
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.agent_motion.shape[0])
+
+
+def conversations(corpus: Any, split: str, *, frames_per_turn: int = MOTION_FPS) -> list[Conversation]:
+    """Both role assignments of every conversation of a SynthTalk split, cut to whole turns.
+
+    Args:
+        corpus: a :class:`jaxtalk.data.synthtalk.SynthTalkCorpus`.
+        split: ``"train"``, ``"val"``, ``"test"`` or ``"ood"``.
+        frames_per_turn: frames per turn.
+
+    Returns:
+        ``2 x`` (number of conversations) :class:`Conversation` s.
+
+    Raises:
+        ValueError: unknown split or a split without conversations.
+    """
+    pairs = corpus.conversations(split)
+    if not pairs:
+        raise ValueError(f"split {split!r} has no conversations")
+    out = []
+    for a, b in pairs:
+        turns = min(corpus.clips[a].num_frames, corpus.clips[b].num_frames) // frames_per_turn
+        t = turns * frames_per_turn
+        speech = {c: turn_speech_features(corpus.audio(c), turns, frames_per_turn=frames_per_turn) for c in (a, b)}
+        for agent, user in ((a, b), (b, a)):
+            out.append(Conversation(
+                agent_speech=speech[agent], agent_motion=np.asarray(corpus.motion(agent)[:t], np.float32),
+                user_speech=speech[user], user_motion=np.asarray(corpus.motion(user)[:t], np.float32),
+                agent_oracle=np.asarray(corpus.oracle(agent)[:t], np.float32), agent_clip=a if agent == a else b,
+                user_clip=user,
+            ))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalizer:
+    """Per-channel standardisation of speech features and head motion (fit on training data).
+
+    Attributes:
+        speech_mean, speech_std: ``(80,)``.
+        motion_mean, motion_std: ``(56,)``.
+    """
+
+    speech_mean: np.ndarray
+    speech_std: np.ndarray
+    motion_mean: np.ndarray
+    motion_std: np.ndarray
+
+    def speech(self, x: Float[np.ndarray, "*frames dim"]) -> np.ndarray:
+        return ((np.asarray(x) - self.speech_mean) / self.speech_std).astype(np.float32)
+
+    def motion(self, x: Float[np.ndarray, "*frames 56"]) -> np.ndarray:
+        return ((np.asarray(x) - self.motion_mean) / self.motion_std).astype(np.float32)
+
+    def unmotion(self, x: Any) -> np.ndarray:
+        """Normalised motion back to raw head parameters."""
+        return (np.asarray(x) * self.motion_std + self.motion_mean).astype(np.float32)
+
+    def to_dict(self) -> dict[str, list[float]]:
+        return {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Sequence[float]]) -> Normalizer:
+        return cls(**{k: np.asarray(v, np.float32) for k, v in d.items()})
+
+
+def fit_normalizer(convs: Sequence[Conversation], *, min_std: float = 1e-3) -> Normalizer:
+    """Fit means and standard deviations on training conversations (both roles pooled).
+
+    Args:
+        convs: training conversations.
+        min_std: floor on every std (constant channels).
+
+    Returns:
+        :class:`Normalizer`.
+
+    Raises:
+        ValueError: no conversations.
+    """
+    if not convs:
+        raise ValueError("fit_normalizer needs at least one conversation")
+    speech = np.concatenate([c.agent_speech for c in convs])
+    motion = np.concatenate([c.agent_motion for c in convs])
+    return Normalizer(
+        speech.mean(0).astype(np.float32), np.maximum(speech.std(0), min_std).astype(np.float32),
+        motion.mean(0).astype(np.float32), np.maximum(motion.std(0), min_std).astype(np.float32),
+    )
+
+
+def windows(
+    convs: Sequence[Conversation],
+    normalizer: Normalizer,
+    *,
+    num_turns: int,
+    stride_turns: int = 1,
+    frames_per_turn: int = MOTION_FPS,
+) -> dict[str, np.ndarray]:
+    """Cut conversations into normalised windows of ``num_turns`` whole turns (training examples).
+
+    Args:
+        convs: conversations.
+        normalizer: the training normalisation.
+        num_turns: turns per window (<= the model's ``max_turns``).
+        stride_turns: hop between window starts, in turns.
+        frames_per_turn: frames per turn.
+
+    Returns:
+        ``user_speech``/``agent_speech`` ``(W, num_turns F, 80)`` and ``user_motion``/``agent_motion``
+        ``(W, num_turns F, 56)`` float32.
+
+    Raises:
+        ValueError: no conversation is long enough, or bad sizes.
+    """
+    if num_turns < 1 or stride_turns < 1:
+        raise ValueError(f"num_turns and stride_turns must be >= 1, got {num_turns}, {stride_turns}")
+    length = num_turns * frames_per_turn
+    out: dict[str, list[np.ndarray]] = {k: [] for k in ("user_speech", "user_motion", "agent_speech", "agent_motion")}
+    for c in convs:
+        for start in range(0, c.num_frames - length + 1, stride_turns * frames_per_turn):
+            sl = slice(start, start + length)
+            out["user_speech"].append(normalizer.speech(c.user_speech[sl]))
+            out["agent_speech"].append(normalizer.speech(c.agent_speech[sl]))
+            out["user_motion"].append(normalizer.motion(c.user_motion[sl]))
+            out["agent_motion"].append(normalizer.motion(c.agent_motion[sl]))
+    if not out["agent_motion"]:
+        raise ValueError(f"no conversation has {num_turns} whole turns ({length} frames)")
+    assert PARAM_DIM == out["agent_motion"][0].shape[-1]
+    return {k: np.stack(v) for k, v in out.items()}

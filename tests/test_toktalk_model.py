@@ -1,0 +1,179 @@
+"""TokTalk model pieces: config checks, attention bias, decoder structure (block causality, padding
+invariance, condition dropout), style encoder, adapter, token interpolation, bad-input errors."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.models import toktalk as tt
+from jaxtalk.models.toktalk.model import check_tokens
+
+CFG = tt.TokTalkConfig.tiny()
+CAUSAL = tt.TokTalkConfig.tiny(causal=True)
+B, T = 2, 16
+
+
+@pytest.fixture(scope="module")
+def params():
+    return tt.init_params(CFG, jax.random.key(0), adapter_src_dim=48)
+
+
+def _cond(rng, t=T, chunked=False, keep=1.0, mask=None):
+    return tt.Condition(
+        tokens=jnp.asarray(rng.normal(size=(B, t, CFG.token_dim)), jnp.float32),
+        style=jnp.asarray(rng.normal(size=(B, CFG.style_dim)), jnp.float32),
+        known=jnp.asarray(rng.normal(size=(B, t, CFG.param_dim)), jnp.float32),
+        known_mask=jnp.asarray(np.arange(t)[None, :] < 3).repeat(B, 0),
+        keep=jnp.full((B,), keep, jnp.float32),
+        mask=jnp.ones((B, t), bool) if mask is None else mask,
+        chunked=jnp.full((B,), chunked),
+    )
+
+
+_decoder_apply = jax.jit(lambda cfg, p, x, t, c: tt.Decoder(cfg).apply({"params": p}, x, t, *c), static_argnums=0)
+
+
+# ------------------------------------------------------------------------------------- config
+def test_presets_and_config_errors():
+    paper, small = tt.TokTalkConfig.paper(), tt.TokTalkConfig.small()
+    assert (paper.channels, paper.num_mid_blocks, paper.transformer_blocks, paper.num_heads, paper.head_dim) == (
+        256, 12, 4, 8, 64)
+    assert (paper.chunk_frames, paper.overlap_frames, paper.num_steps, paper.cfg_scale) == (10, 5, 10, 0.7)
+    assert small.channels < paper.channels and small.window_frames == 30
+    with pytest.raises(ValueError, match="chunk_frames=7 must be even"):
+        tt.TokTalkConfig.small(chunk_frames=7)
+    with pytest.raises(ValueError, match="context_frames=15"):
+        tt.TokTalkConfig.small(context_frames=15)
+    with pytest.raises(ValueError, match="cond_dropout"):
+        tt.TokTalkConfig.small(cond_dropout=1.5)
+
+
+def test_paper_decoder_has_about_82m_parameters():
+    # eval_shape: counts parameters without allocating or compiling anything.
+    shapes = jax.eval_shape(lambda k: tt.init_params(tt.TokTalkConfig.paper(), k), jax.random.key(0))
+    n = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(shapes["decoder"]))
+    assert 80e6 < n < 84e6
+
+
+# ---------------------------------------------------------------------------------- attention
+def test_attention_bias_matches_hand_built_masks():
+    valid = jnp.asarray([[True] * 6, [True] * 4 + [False] * 2])
+    bias = np.asarray(tt.attention_bias(valid, jnp.asarray([True, False]), 2))
+    allowed = bias == 0
+    # Example 0, chunk mask with chunks {0,1},{2,3},{4,5}: query i sees keys j < (i//2+1)*2.
+    expect0 = np.array([[j < (i // 2 + 1) * 2 for j in range(6)] for i in range(6)])
+    np.testing.assert_array_equal(allowed[0, 0], expect0)
+    # Example 1, full mask with 2 padded frames: real queries see the 4 real keys; padded see themselves.
+    expect1 = np.zeros((6, 6), bool)
+    expect1[:4, :4] = True
+    expect1[4, 4] = expect1[5, 5] = True
+    np.testing.assert_array_equal(allowed[0 + 1, 0], expect1)
+    assert bias.min() < -1e30
+
+
+# ------------------------------------------------------------------------------------ decoder
+def test_decoder_block_causal_under_chunk_mask_only():
+    p = tt.init_params(CAUSAL, jax.random.key(1))["decoder"]
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.normal(size=(B, T, 56)), jnp.float32)
+    t = jnp.asarray([0.3, 0.8], jnp.float32)
+    c_chunk, c_full = _cond(rng, chunked=True), None
+    c_full = c_chunk._replace(chunked=jnp.zeros((B,), bool))
+    # Perturb everything from frame 8 on (chunks of 4: chunks 2 and 3).
+    later = (jnp.arange(T) >= 8)[None, :, None]
+    x2 = jnp.where(later, x + 1.0, x)
+    c2 = c_chunk._replace(tokens=jnp.where(later, c_chunk.tokens * -2.0, c_chunk.tokens))
+    y1 = _decoder_apply(CAUSAL, p, x, t, c_chunk)
+    y2 = _decoder_apply(CAUSAL, p, x2, t, c2)
+    np.testing.assert_allclose(y1[:, :8], y2[:, :8], atol=1e-5)
+    assert float(jnp.max(jnp.abs(y1[:, 8:] - y2[:, 8:]))) > 1e-3
+    # With full attention the future leaks into the past.
+    f1 = _decoder_apply(CAUSAL, p, x, t, c_full)
+    f2 = _decoder_apply(CAUSAL, p, x2, t, c2._replace(chunked=c_full.chunked))
+    assert float(jnp.max(jnp.abs(f1[:, :8] - f2[:, :8]))) > 1e-4
+
+
+def test_decoder_padding_invariance_and_masked_output(params):
+    rng = np.random.default_rng(1)
+    x = jnp.asarray(rng.normal(size=(B, T, 56)), jnp.float32)
+    t = jnp.asarray([0.1, 0.6], jnp.float32)
+    cond = _cond(rng)
+    y = _decoder_apply(CFG, params["decoder"], x, t, cond)
+    # The same sequences padded to 24 frames with garbage after frame 16.
+    pad = 8
+    garbage = lambda a: jnp.concatenate([a, 100.0 * jnp.ones(a.shape[:1] + (pad,) + a.shape[2:], a.dtype)], 1)  # noqa: E731
+    mask = jnp.concatenate([jnp.ones((B, T), bool), jnp.zeros((B, pad), bool)], 1)
+    cond_p = cond._replace(tokens=garbage(cond.tokens), known=garbage(cond.known),
+                           known_mask=jnp.concatenate([cond.known_mask, jnp.ones((B, pad), bool)], 1), mask=mask)
+    yp = _decoder_apply(CFG, params["decoder"], garbage(x), t, cond_p)
+    np.testing.assert_allclose(yp[:, :T], y, atol=2e-4, rtol=1e-4)
+    np.testing.assert_array_equal(np.asarray(yp[:, T:]), 0.0)
+
+
+def test_condition_dropout_removes_tokens_style_and_known(params):
+    rng = np.random.default_rng(2)
+    x = jnp.asarray(rng.normal(size=(B, T, 56)), jnp.float32)
+    t = jnp.asarray([0.4, 0.4], jnp.float32)
+    c1, c2 = _cond(rng, keep=0.0), _cond(rng, keep=0.0)
+    y1 = _decoder_apply(CFG, params["decoder"], x, t, c1)
+    y2 = _decoder_apply(CFG, params["decoder"], x, t, c2._replace(known_mask=c1.known_mask))
+    np.testing.assert_allclose(y1, y2, atol=1e-6)
+    y3 = _decoder_apply(CFG, params["decoder"], x, t, c1._replace(keep=jnp.ones((B,))))
+    assert float(jnp.max(jnp.abs(y3 - y1))) > 1e-3
+
+
+# ------------------------------------------------------------------------------- style/adapter
+def test_style_encoder_ignores_padding_and_uses_frame_positions(params):
+    rng = np.random.default_rng(3)
+    clip = jnp.asarray(rng.normal(size=(B, 20, 56)), jnp.float32)
+    v = tt.encode_style(params, CFG, clip)
+    assert v.shape == (B, CFG.style_dim)
+    padded = jnp.concatenate([clip, 50.0 * jnp.ones((B, 6, 56))], 1)
+    mask = jnp.asarray(np.arange(26)[None, :] < 20).repeat(B, 0)
+    np.testing.assert_allclose(tt.encode_style(params, CFG, padded, mask), v, atol=1e-4)
+    # A real per-frame positional encoding: reversing time changes the style of a clip whose
+    # frames are all equal except for their position (convs alone would see a constant signal).
+    const = jnp.ones((1, 20, 56))
+    assert float(jnp.std(tt.encode_style(params, CFG, const))) > 0
+
+
+def test_adapter_maps_rate_and_width(params):
+    rng = np.random.default_rng(4)
+    src = jnp.asarray(rng.normal(size=(B, 16, 48)), jnp.float32)  # 25 Hz -> 8 tokens at 12.5 Hz
+    out = tt.adapt_tokens(params, CFG, src, 25.0)
+    assert out.shape == (B, 8, CFG.token_dim)
+    with pytest.raises(ValueError, match="width 40, expected 48"):
+        tt.adapt_tokens(params, CFG, src[..., :40], 25.0)
+    with pytest.raises(ValueError, match="no 'adapter'"):
+        tt.adapt_tokens({k: params[k] for k in ("decoder", "style")}, CFG, src, 25.0)
+
+
+def test_interpolate_tokens_matches_numpy_reference():
+    rng = np.random.default_rng(5)
+    tok = rng.normal(size=(2, 5, 3)).astype(np.float32)
+    out = np.asarray(tt.interpolate_tokens(jnp.asarray(tok), 12.5, 25, 10))
+    for j in range(10):
+        p = j / 2
+        lo, hi = int(np.floor(p)), min(int(np.floor(p)) + 1, 4)
+        w = 0.0 if lo >= 4 else p - lo
+        np.testing.assert_allclose(out[:, j], (1 - w) * tok[:, lo] + w * tok[:, hi], atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------- errors
+def test_bad_tokens_and_style_raise_clear_errors(params):
+    good = np.zeros((1, 8, 64), np.float32)
+    assert check_tokens(good, width=64, rate=12.5, fps=25) == 16
+    with pytest.raises(ValueError, match="width 48, expected 64"):
+        check_tokens(np.zeros((1, 8, 48)), width=64, rate=12.5, fps=25)
+    with pytest.raises(ValueError, match="NaN"):
+        check_tokens(np.full((1, 8, 64), np.nan), width=64, rate=12.5, fps=25)
+    with pytest.raises(ValueError, match="token rate wrong"):
+        # 16 tokens offered for 16 frames: a 25 Hz stream given to a 12.5 Hz model.
+        check_tokens(np.zeros((1, 16, 64)), width=64, rate=12.5, fps=25, num_frames=16)
+    with pytest.raises(ValueError, match="shorter than the minimum"):
+        tt.encode_style(params, CFG, np.zeros((1, CFG.style_min_frames - 1, 56), np.float32))
+    with pytest.raises(ValueError, match=r"shape \(batch, frames, 56\)"):
+        tt.encode_style(params, CFG, np.zeros((1, 20, 50), np.float32))
