@@ -9,6 +9,8 @@ float32).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -64,6 +66,11 @@ def _hf_hidden(model, audio: np.ndarray, attention_mask: np.ndarray | None = Non
     return [h.numpy() for h in out.hidden_states], out.last_hidden_state.numpy()
 
 
+def _jit_apply(config: EncoderConfig, **kwargs):
+    # Eager Flax dispatches (and compiles) op by op: one jitted program per config is much cheaper.
+    return jax.jit(functools.partial(Wav2Vec2Model(config).apply, **kwargs))
+
+
 def _audio(rows: int, samples: int, seed: int = 0) -> np.ndarray:
     return (0.3 * np.random.default_rng(seed).standard_normal((rows, samples))).astype(np.float32)
 
@@ -99,7 +106,7 @@ def test_every_hidden_state_matches_transformers(name, tmp_path):
     assert ckpt.config == config
     audio = _audio(2, 3210)
     hidden, last = _hf_hidden(hf, audio)
-    out = Wav2Vec2Model(ckpt.config).apply({"params": ckpt.params}, jnp.asarray(audio))
+    out = _jit_apply(ckpt.config)({"params": ckpt.params}, jnp.asarray(audio))
     assert out.hidden_states.shape[0] == len(hidden) == config.num_hidden_layers + 1
     for k, theirs in enumerate(hidden):
         _assert_close(out.hidden_states[k], theirs, f"{name} hidden_states[{k}]")
@@ -118,8 +125,8 @@ def test_padded_batch_with_attention_mask_matches_transformers(name, tmp_path):
     audio[1, lengths[1] :] = 0.0
     mask = np.arange(4000)[None, :] < lengths[:, None]
     hidden, last = _hf_hidden(hf, audio, mask.astype(np.int64))
-    out = Wav2Vec2Model(config).apply(
-        {"params": ckpt.params}, jnp.asarray(audio), jnp.asarray(mask), mask_group_norm=False
+    out = _jit_apply(config, mask_group_norm=False)(
+        {"params": ckpt.params}, jnp.asarray(audio), jnp.asarray(mask)
     )
     for row, length in enumerate(lengths):
         frames = config.num_frames(int(length))
@@ -141,7 +148,7 @@ def test_task_checkpoint_with_prefix_and_head_loads(model_type, tmp_path):
     audio = _audio(1, 2500, seed=2)
     base = getattr(hf, model_type)
     hidden, _ = _hf_hidden(base, audio)
-    out = Wav2Vec2Model(config).apply({"params": ckpt.params}, jnp.asarray(audio))
+    out = _jit_apply(config)({"params": ckpt.params}, jnp.asarray(audio))
     _assert_close(out.hidden_states[-1], hidden[-1], "ForCTC encoder output")
 
 
@@ -194,9 +201,8 @@ def test_interpolated_variant_matches_faceformer_reference(name, tmp_path):
         projected = hf.feature_projection(conv.transpose(1, 2))
         projected = projected[0] if isinstance(projected, tuple) else projected
         reference = hf.encoder(projected).last_hidden_state.numpy()
-    ours, mask = encoder_features(
-        ckpt.params, jnp.asarray(audio), config=config, interpolate_frames=motion_frames
-    )
+    run = functools.partial(encoder_features, config=config, interpolate_frames=motion_frames)
+    ours, mask = jax.jit(run)(ckpt.params, jnp.asarray(audio))
     assert bool(np.all(np.asarray(mask)))
     _assert_close(ours, reference, f"{name} interpolated")
 
@@ -221,7 +227,7 @@ def test_base_size_hubert_matches_transformers_on_every_layer(tmp_path):
     encoder = SpeechEncoder.from_pretrained(tmp_path, normalize=False)
     audio = _audio(1, 16_000, seed=9)  # 1 s
     hidden, last = _hf_hidden(hf, audio)
-    out = jax.jit(Wav2Vec2Model(config).apply)({"params": encoder.params}, jnp.asarray(audio))
+    out = _jit_apply(config)({"params": encoder.params}, jnp.asarray(audio))
     assert len(hidden) == 13
     for k, theirs in enumerate(hidden):
         _assert_close(out.hidden_states[k], theirs, f"base hidden_states[{k}]")

@@ -10,7 +10,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_nn_support import fast_xla, random_params  # noqa: F401
 from scipy.special import erf
 
 from jaxtalk.nn import (
@@ -22,6 +21,7 @@ from jaxtalk.nn import (
     dot_product_attention,
 )
 
+from test_nn_support import fast_xla, random_params  # noqa: F401
 
 pytestmark = pytest.mark.usefixtures("fast_xla")
 
@@ -116,7 +116,8 @@ def test_module_matches_reference_built_from_its_parameters(key):
     proj = lambda q: np.einsum("btf,fhd->bthd", x, q["kernel"]) + q["bias"]  # noqa: E731
     heads = _reference_attention(proj(p["query"]), proj(p["key"]), proj(p["value"]), bias)
     expected = np.einsum("bthd,hdf->btf", heads, p["out"]["kernel"]) + p["out"]["bias"]
-    np.testing.assert_allclose(mha.apply({"params": params}, x, bias=bias), expected, atol=1e-5)
+    # A static NumPy bias is accepted as well as a JAX one.
+    np.testing.assert_allclose(mha.apply({"params": params}, x, bias=np.asarray(bias)), expected, atol=1e-5)
 
 
 def test_chunked_decoding_with_kv_cache_equals_full_pass(key):

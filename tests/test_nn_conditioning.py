@@ -8,7 +8,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_nn_support import fast_xla, random_params  # noqa: F401
 
 from jaxtalk.nn import (
     MLP,
@@ -19,6 +18,7 @@ from jaxtalk.nn import (
     sinusoidal_embedding,
 )
 
+from test_nn_support import fast_xla, random_params  # noqa: F401
 
 pytestmark = pytest.mark.usefixtures("fast_xla")
 

@@ -6,9 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_nn_support import fast_xla, random_params  # noqa: F401
 
 from jaxtalk.nn import GraphConv, normalized_adjacency
+
+from test_nn_support import fast_xla, random_params  # noqa: F401
+
 pytestmark = pytest.mark.usefixtures("fast_xla")
 
 S6 = 1 / np.sqrt(6)

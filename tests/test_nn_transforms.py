@@ -6,7 +6,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_nn_support import fast_xla, random_params  # noqa: F401
 
 from jaxtalk.nn import (
     AdaLNResBlock,
@@ -18,6 +17,8 @@ from jaxtalk.nn import (
     bias_from_mask,
     normalized_adjacency,
 )
+
+from test_nn_support import fast_xla, random_params  # noqa: F401
 
 pytestmark = pytest.mark.usefixtures("fast_xla")
 

@@ -14,6 +14,7 @@ from jaxtalk.models.toktalk.model import check_tokens
 CFG = tt.TokTalkConfig.tiny()
 CAUSAL = tt.TokTalkConfig.tiny(causal=True)
 B, T = 2, 16
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,7 @@ from __future__ import annotations
 from jaxtalk.nn.adaln import AdaLNFinalLayer, AdaLNResBlock, modulate
 from jaxtalk.nn.attention import (
     BLOCKED,
+    Bias,
     MultiHeadAttention,
     bias_from_mask,
     dot_product_attention,
@@ -40,6 +41,7 @@ from jaxtalk.nn.transformer import DecoderBlock, FeedForward, TransformerBlock
 
 __all__ = [
     "BLOCKED",
+    "Bias",
     "bias_from_mask",
     "dot_product_attention",
     "MultiHeadAttention",

@@ -26,6 +26,7 @@ from jaxtalk.types import Array, Float, PRNGKeyArray, Shaped
 
 __all__ = [
     "BLOCKED",
+    "Bias",
     "bias_from_mask",
     "dot_product_attention",
     "MultiHeadAttention",
@@ -38,6 +39,8 @@ BLOCKED = -1e9
 
 Dtype = Any
 Initializer = Any
+# Biases are often static NumPy constants built from masks; both kinds are accepted.
+Bias = Float[Array, "..."] | Float[np.ndarray, "..."]
 
 
 def bias_from_mask(
@@ -63,7 +66,7 @@ def bias_from_mask(
     return jnp.where(jnp.asarray(mask), jnp.float32(0.0), jnp.float32(blocked))
 
 
-def _expand_bias(bias: Array, target: tuple[int, ...]) -> Array:
+def _expand_bias(bias: Array | np.ndarray, target: tuple[int, ...]) -> Array | np.ndarray:
     """Prepends unit axes so ``bias`` has the logits' rank (rank promotion is an error here)."""
     if bias.ndim > len(target):
         raise ValueError(
@@ -87,7 +90,7 @@ def dot_product_attention(
     query: Float[Array, "*batch q_len heads head_dim"],
     key: Float[Array, "*batch k_len heads head_dim"],
     value: Float[Array, "*batch k_len heads v_dim"],
-    bias: Float[Array, "*bias_dims"] | None = None,
+    bias: Bias | None = None,
     *,
     dropout_rate: float = 0.0,
     dropout_rng: PRNGKeyArray | None = None,
@@ -249,7 +252,7 @@ class MultiHeadAttention(nn.Module):
         keys: Float[Array, "*batch k_len heads head_dim"],
         values: Float[Array, "*batch k_len heads head_dim"],
         *,
-        bias: Float[Array, "*bias_dims"] | None = None,
+        bias: Bias | None = None,
         deterministic: bool = True,
     ) -> Float[Array, "*batch q_len out_features"]:
         """Attends from ``inputs_q`` to already projected keys/values (see :meth:`project_kv`).
@@ -291,7 +294,7 @@ class MultiHeadAttention(nn.Module):
         inputs_q: Float[Array, "*batch q_len features"],
         inputs_kv: Float[Array, "*batch kv_len kv_features"] | None = None,
         *,
-        bias: Float[Array, "*bias_dims"] | None = None,
+        bias: Bias | None = None,
         kv_cache: tuple[
             Float[Array, "*batch cache_len heads head_dim"],
             Float[Array, "*batch cache_len heads head_dim"],

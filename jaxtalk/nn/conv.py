@@ -23,6 +23,7 @@ from typing import Any, Literal
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxtalk.types import Array, Float, Shaped
 
@@ -40,10 +41,11 @@ __all__ = [
 
 Dtype = Any
 Initializer = Any
-Mask = Shaped[Array, "*batch time"]
+# Padding masks may come straight from the NumPy data pipeline.
+Mask = Shaped[Array, "*batch time"] | Shaped[np.ndarray, "*batch time"]
 
 
-def _frame_weights(mask: Array | None, x: Array) -> Array | None:
+def _frame_weights(mask: Array | np.ndarray | None, x: Array) -> Array | None:
     """``(*batch, time, 1)`` 0/1 weights in ``x``'s dtype, checked against ``x``'s leading axes."""
     if mask is None:
         return None
@@ -51,10 +53,10 @@ def _frame_weights(mask: Array | None, x: Array) -> Array | None:
         raise ValueError(
             f"mask shape {mask.shape} does not match the input's (*batch, time) = {x.shape[:-1]}"
         )
-    return mask.astype(x.dtype)[..., None]
+    return jnp.asarray(mask).astype(x.dtype)[..., None]
 
 
-def _apply_mask(x: Array, mask: Array | None) -> Array:
+def _apply_mask(x: Array, mask: Array | np.ndarray | None) -> Array:
     weights = _frame_weights(mask, x)
     return x if weights is None else x * weights
 
@@ -115,7 +117,7 @@ def downsample_mask(mask: Mask) -> Shaped[Array, "*batch down_time"]:
     Returns:
         ``(*batch, ceil(time / 2))``.
     """
-    return mask[..., ::2]
+    return jnp.asarray(mask)[..., ::2]
 
 
 def upsample_mask(mask: Mask) -> Shaped[Array, "*batch up_time"]:
@@ -156,7 +158,9 @@ class Conv1d(nn.Module):
     kernel_init: Initializer = nn.initializers.lecun_normal()
 
     @nn.compact
-    def __call__(self, x: Float[Array, "*batch time channels"]) -> Float[Array, "*batch out_time {self.features}"]:
+    def __call__(
+        self, x: Float[Array, "*batch time channels"]
+    ) -> Float[Array, "*batch out_time {self.features}"]:
         """Convolves ``x``.
 
         Args:

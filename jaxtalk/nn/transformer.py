@@ -14,7 +14,7 @@ from typing import Any
 import flax.linen as nn
 import jax.numpy as jnp
 
-from jaxtalk.nn.attention import MultiHeadAttention
+from jaxtalk.nn.attention import Bias, MultiHeadAttention
 from jaxtalk.nn.mlp import MLP, gelu_exact
 from jaxtalk.types import Array, Float
 
@@ -221,7 +221,7 @@ class TransformerBlock(nn.Module):
         self,
         x: Float[Array, "*batch time features"],
         *,
-        bias: Float[Array, "*bias_dims"] | None = None,
+        bias: Bias | None = None,
         kv_cache: KVCache | None = None,
         return_kv: bool = False,
         deterministic: bool = True,
@@ -264,8 +264,8 @@ class DecoderBlock(TransformerBlock):
         x: Float[Array, "*batch time features"],
         memory: Float[Array, "*batch mem_len mem_features"],
         *,
-        self_bias: Float[Array, "*self_bias_dims"] | None = None,
-        cross_bias: Float[Array, "*cross_bias_dims"] | None = None,
+        self_bias: Bias | None = None,
+        cross_bias: Bias | None = None,
         kv_cache: KVCache | None = None,
         return_kv: bool = False,
         deterministic: bool = True,

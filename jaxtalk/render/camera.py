@@ -18,6 +18,9 @@ import numpy as np
 
 from jaxtalk.types import Array, Float
 
+# Python scalars: beartype (under pytest) does not promote int to float.
+Real = int | float
+
 __all__ = ["Camera", "fit_camera"]
 
 ArrayLike = Array | np.ndarray
@@ -41,9 +44,9 @@ class Camera:
 
     rotation: np.ndarray
     target: np.ndarray
-    distance: float
-    focal: float
-    principal: tuple[float, float]
+    distance: Real
+    focal: Real
+    principal: tuple[Real, Real]
     width: int
     height: int
     orthographic: bool = False
@@ -110,7 +113,7 @@ class Camera:
         return self.project_camera(self.to_camera(points))
 
 
-def _look_rotation(yaw_deg: float, pitch_deg: float) -> np.ndarray:
+def _look_rotation(yaw_deg: Real, pitch_deg: Real) -> np.ndarray:
     """World-to-camera rotation of a camera orbiting the target by yaw (about y) and pitch (about x)."""
     yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
     back = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), math.cos(yaw) * math.cos(pitch)])
@@ -125,11 +128,11 @@ def fit_camera(
     *,
     width: int = 256,
     height: int = 256,
-    margin: float = 0.08,
-    fov_deg: float = 15.0,
+    margin: Real = 0.08,
+    fov_deg: Real = 15.0,
     orthographic: bool = False,
-    yaw_deg: float = 0.0,
-    pitch_deg: float = 0.0,
+    yaw_deg: Real = 0.0,
+    pitch_deg: Real = 0.0,
 ) -> Camera:
     """A camera in front of the points (light from the front, face towards +z) that frames all of them.
 

@@ -15,6 +15,9 @@ from jaxtalk.render.shading import RenderStyle
 from jaxtalk.render.video import write_gif, write_mp4
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array, Float, Int
 
+# Python scalars: beartype (under pytest) does not promote int to float.
+Real = int | float
+
 __all__ = ["render_clip"]
 
 ArrayLike = Array | np.ndarray
@@ -27,7 +30,7 @@ def render_clip(
     *,
     audio: Float[ArrayLike, "..."] | None = None,
     sample_rate: int = AUDIO_SAMPLE_RATE,
-    fps: float = MOTION_FPS,
+    fps: Real = MOTION_FPS,
     captions: Sequence[str] | None = None,
     camera: Camera | None = None,
     size: int | tuple[int, int] = 256,

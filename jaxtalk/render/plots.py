@@ -114,8 +114,8 @@ def plot_sweep(
         col: swept key on the horizontal axis (e.g. ``"sampler_steps"``).
         metrics: keys to plot (e.g. ``("lve", "latency_ms")``).
         title: figure title.
-        lower_is_better: per metric (or one for all): the best cell is outlined, and the colour map
-            runs from good (light) to bad (dark).
+        lower_is_better: per metric (or one for all): the best cell is outlined in red, and the
+            colour map runs from good (bright) to bad (dark).
         dpi: resolution.
 
     Returns:
@@ -137,15 +137,15 @@ def plot_sweep(
     fig, axes = _figure(len(metrics), (0.9 * len(cols) + 2.2, 0.6 * len(rows) + 1.6))
     for ax, metric, (_, _, grid), low in zip(axes, metrics, grids, lower):
         finite = grid[np.isfinite(grid)]
-        image = ax.imshow(np.ma.masked_invalid(grid), cmap="viridis" if low else "viridis_r", aspect="auto")
+        # Reversed map for lower-is-better, so the best cells are always the bright ones.
+        image = ax.imshow(np.ma.masked_invalid(grid), cmap="viridis_r" if low else "viridis", aspect="auto")
         fig.colorbar(image, ax=ax, shrink=0.85)
-        mid = 0.5 * (finite.min() + finite.max()) if finite.size else 0.0
         for i in range(len(rows)):
             for j in range(len(cols)):
                 if np.isfinite(grid[i, j]):
-                    dark = (grid[i, j] < mid) == low
-                    ax.text(j, i, f"{grid[i, j]:.3g}", ha="center", va="center", fontsize=8,
-                            color="black" if dark else "white")  # fmt: skip
+                    r, g, b, _ = image.cmap(image.norm(grid[i, j]))
+                    text_color = "black" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "white"
+                    ax.text(j, i, f"{grid[i, j]:.3g}", ha="center", va="center", fontsize=8, color=text_color)
         if finite.size:
             best = np.unravel_index(np.nanargmin(grid) if low else np.nanargmax(grid), grid.shape)
             from matplotlib.patches import Rectangle

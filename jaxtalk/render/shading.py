@@ -16,6 +16,9 @@ import numpy as np
 from jaxtalk.render.rasterize import Fragments
 from jaxtalk.types import Float, Int
 
+# Python scalars: beartype (under pytest) does not promote int to float.
+Real = int | float
+
 __all__ = ["RenderStyle", "vertex_normals", "shade"]
 
 
@@ -39,17 +42,17 @@ class RenderStyle:
             (anti-aliasing; cost grows with its square).
     """
 
-    base_color: tuple[float, float, float] = (0.80, 0.62, 0.52)
-    background: tuple[float, float, float] = (0.16, 0.17, 0.20)
-    key_light: tuple[float, float, float] = (-0.45, 0.55, 1.0)
-    key_intensity: float = 0.85
-    fill_light: tuple[float, float, float] = (0.7, -0.1, 0.6)
-    fill_intensity: float = 0.25
-    ambient: float = 0.12
-    specular: float = 0.12
-    shininess: float = 24.0
-    backface_dim: float = 0.35
-    gamma: float = 2.2
+    base_color: tuple[Real, Real, Real] = (0.80, 0.62, 0.52)
+    background: tuple[Real, Real, Real] = (0.16, 0.17, 0.20)
+    key_light: tuple[Real, Real, Real] = (-0.45, 0.55, 1.0)
+    key_intensity: Real = 0.85
+    fill_light: tuple[Real, Real, Real] = (0.7, -0.1, 0.6)
+    fill_intensity: Real = 0.25
+    ambient: Real = 0.12
+    specular: Real = 0.12
+    shininess: Real = 24.0
+    backface_dim: Real = 0.35
+    gamma: Real = 2.2
     supersample: int = 1
 
     def __post_init__(self) -> None:

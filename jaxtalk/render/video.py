@@ -23,18 +23,20 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import UInt8
-
 from jaxtalk.render._atomic import atomic_output, check_output_path
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array, Float, Shaped
+
+# Python scalars: beartype (under pytest) does not promote int to float.
+Real = int | float
 
 __all__ = ["write_mp4", "write_gif", "save_png", "fit_audio", "probe_media", "MediaInfo"]
 
 ArrayLike = Array | np.ndarray
-Frames = UInt8[np.ndarray, "frames height width 3"] | Iterable[UInt8[np.ndarray, "height width 3"]]
+# Loose on dtype so that non-uint8 input reaches the explicit ValueError (uint8 RGB is required).
+Frames = Shaped[np.ndarray, "frames height width channels"] | Iterable[np.ndarray]
 
 
-def _positive_number(name: str, value: float) -> float:
+def _positive_number(name: str, value: Real) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not value > 0:
         raise ValueError(f"{name} must be a positive number, got {value!r}")
     return float(value)
@@ -60,9 +62,9 @@ def fit_audio(
     audio: Float[ArrayLike, "..."],
     num_frames: int,
     *,
-    fps: float = MOTION_FPS,
+    fps: Real = MOTION_FPS,
     sample_rate: int = AUDIO_SAMPLE_RATE,
-    tolerance_s: float = 0.5,
+    tolerance_s: Real = 0.5,
 ) -> Float[np.ndarray, "..."]:
     """Trim or zero-pad an audio track to the duration of ``num_frames`` video frames (module rule).
 
@@ -131,7 +133,7 @@ def _ffmpeg() -> str:
     return imageio_ffmpeg.get_ffmpeg_exe()
 
 
-def _encode_video(path: Path, frames: Frames, fps: float, crf: int) -> int:
+def _encode_video(path: Path, frames: Frames, fps: Real, crf: int) -> int:
     """Encode frames to a video-only mp4 at ``path``; returns the number of frames."""
     import imageio_ffmpeg
 
@@ -169,10 +171,10 @@ def write_mp4(
     path: str | os.PathLike,
     frames: Frames,
     *,
-    fps: float = MOTION_FPS,
+    fps: Real = MOTION_FPS,
     audio: Float[ArrayLike, "..."] | None = None,
     sample_rate: int = AUDIO_SAMPLE_RATE,
-    audio_tolerance_s: float = 0.5,
+    audio_tolerance_s: Real = 0.5,
     crf: int = 18,
 ) -> Path:
     """Encode RGB frames as an H.264 mp4, with an optional AAC audio track, atomically.
@@ -229,7 +231,7 @@ def write_mp4(
     return out
 
 
-def write_gif(path: str | os.PathLike, frames: Frames, *, fps: float = MOTION_FPS, loop: int = 0) -> Path:
+def write_gif(path: str | os.PathLike, frames: Frames, *, fps: Real = MOTION_FPS, loop: int = 0) -> Path:
     """Write RGB frames as an animated GIF (Pillow via imageio), atomically.
 
     GIF frame delays are whole hundredths of a second, so 25 fps (4/100 s) is exact and other rates
@@ -262,7 +264,7 @@ def write_gif(path: str | os.PathLike, frames: Frames, *, fps: float = MOTION_FP
     return out
 
 
-def save_png(path: str | os.PathLike, image: UInt8[np.ndarray, "height width 3"]) -> Path:
+def save_png(path: str | os.PathLike, image: Shaped[np.ndarray, "..."]) -> Path:
     """Write one RGB frame as a PNG, atomically.
 
     Args:

@@ -17,6 +17,7 @@ encoder under ``wav2vec2.`` / ``hubert.``; their head tensors (``lm_head``, ``qu
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import re
@@ -85,8 +86,12 @@ class Checkpoint:
     path: Path
 
 
+@functools.lru_cache(maxsize=16)
 def expected_param_shapes(config: EncoderConfig) -> dict[str, Any]:
-    """The Flax params pytree of ``config`` as ``jax.ShapeDtypeStruct`` leaves (no allocation)."""
+    """The Flax params pytree of ``config`` as ``jax.ShapeDtypeStruct`` leaves (no allocation).
+
+    Cached per config (tracing the model costs a second or two); treat the result as read-only.
+    """
     model = Wav2Vec2Model(config)
     dummy = jnp.zeros((1, config.receptive_field), jnp.float32)
     variables = jax.eval_shape(lambda: model.init(jax.random.key(0), dummy))

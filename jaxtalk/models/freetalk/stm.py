@@ -142,7 +142,7 @@ def stack_meshes(meshes: list[STMMesh]) -> STMMesh:
     """
     if not meshes:
         raise ValueError("stack_meshes needs at least one mesh")
-    shapes = {tuple(jax.tree.map(lambda a: a.shape, m)) for m in meshes}
+    shapes = {tuple(a.shape for a in jax.tree.leaves(m)) for m in meshes}
     if len(shapes) != 1:
         raise ValueError(
             "meshes must share padded shapes (prepare them with the same num_vertices and degree); "

@@ -57,7 +57,7 @@ def flow_matching_terms(
 
 
 def random_known_mask(
-    key: PRNGKeyArray, valid: Bool[Array, "batch frames"], probability: float, max_fraction: float
+    key: PRNGKeyArray, valid: Bool[Array, "batch frames"], probability: float | int, max_fraction: float | int
 ) -> Bool[Array, "batch frames"]:
     """Per example, with ``probability``, a random contiguous known segment inside the real frames.
 
@@ -168,7 +168,7 @@ def adapter_loss(
     key: PRNGKeyArray,
     *,
     config: TokTalkConfig,
-    src_rate: float,
+    src_rate: float | int,
     flow_weight: float = 1.0,
 ) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """Stage-2 loss: ``||A(e_src) - e_base||^2 + flow_weight * L_CFM(frozen base on A(e_src))``.

@@ -80,13 +80,13 @@ def check_finite(name: str, x: Any) -> None:
         raise ValueError(f"{name} contains NaN or inf values")
 
 
-def frames_for_tokens(num_tokens: int, token_rate: float, fps: int) -> int:
+def frames_for_tokens(num_tokens: int, token_rate: float | int, fps: int) -> int:
     """Motion frames covered by ``num_tokens`` tokens at ``token_rate`` (``round(n * fps / rate)``)."""
     return default_num_frames(int(num_tokens), token_rate, fps)
 
 
 def check_tokens(
-    tokens: Any, *, width: int, rate: float, fps: int, num_frames: int | None = None, name: str = "tokens"
+    tokens: Any, *, width: int, rate: float | int, fps: int, num_frames: int | None = None, name: str = "tokens"
 ) -> int:
     """Validates a ``(B, Tt, width)`` token batch and returns the number of motion frames it covers.
 
@@ -124,7 +124,7 @@ def check_tokens(
 
 
 def interpolate_tokens(
-    tokens: Float[Array, "batch tokens width"], src_rate: float, dst_rate: float, num_frames: int
+    tokens: Float[Array, "batch tokens width"], src_rate: float | int, dst_rate: float | int, num_frames: int
 ) -> Float[Array, "batch frames width"]:
     """Linear time interpolation of a batched stream to another rate (exact rational positions).
 
@@ -296,7 +296,7 @@ def adapter_forward(
     params: dict[str, PyTree],
     config: TokTalkConfig,
     src: Float[Array, "batch src_tokens src"],
-    src_rate: float,
+    src_rate: float | int,
     *,
     dropout_key: PRNGKeyArray | None = None,
 ) -> Float[Array, "batch tokens token"]:
@@ -313,7 +313,7 @@ def adapt_tokens(
     params: dict[str, PyTree],
     config: TokTalkConfig,
     src: Float[Array, "batch src_tokens src"],
-    src_rate: float,
+    src_rate: float | int,
 ) -> Float[Array, "batch tokens token"]:
     """Maps another token space onto the base one (time-interpolated to the base rate first).
 

@@ -173,7 +173,7 @@ def train_adapter(
     optim: OptimConfig,
     *,
     key: PRNGKeyArray,
-    src_rate: float,
+    src_rate: float | int,
     flow_weight: float = 1.0,
     batch_size: int = 16,
     seed: int = 0,

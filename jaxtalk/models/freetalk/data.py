@@ -1,0 +1,194 @@
+"""FreeTalk training data from SynthTalk: audio features, landmark and vertex displacement windows.
+
+* :func:`audio_features`: jaxtalk's stand-in for resampled HuBERT features: the 100 Hz log-mel
+  spectrogram with each motion frame's four mel frames stacked (80 x 4 = 320 per frame at 25 fps),
+  so the features are already on the motion timeline as the paper's resampled HuBERT track is.
+* :func:`ats_windows`: fixed-length windows of (audio features, landmark displacements relative to
+  the identity's neutral landmarks, emotion id, intensity) for ATS.
+* :func:`mesh_motion`: for a face identity and a (re)meshed topology, the landmark displacements and
+  the dense vertex displacements of a motion track (the STM supervision).
+* :func:`stm_windows`: fixed-length windows of those over several meshes, vertex axes padded to a
+  common size, for :func:`jaxtalk.models.freetalk.stm.stm_loss`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.audio import log_mel
+from jaxtalk.models.freetalk.emotions import emotion_ids
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM, Float
+
+__all__ = [
+    "MEL_FRAMES_PER_FRAME",
+    "AUDIO_FEATURE_DIM",
+    "audio_features",
+    "neutral_landmarks",
+    "ats_windows",
+    "mesh_motion",
+    "stm_windows",
+    "window_starts",
+]
+
+_HOP = 160  # 10 ms at 16 kHz
+MEL_FRAMES_PER_FRAME = AUDIO_SAMPLE_RATE // _HOP // MOTION_FPS  # 4
+AUDIO_FEATURE_DIM = 80 * MEL_FRAMES_PER_FRAME  # 320
+
+
+def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Float[np.ndarray, "frames 320"]:
+    """Per-motion-frame audio features: four 10 ms log-mel frames stacked per 40 ms motion frame.
+
+    Mel frame ``f`` is centred on sample ``160 f``, so motion frame ``t`` (samples ``[640 t,
+    640 (t + 1))``) gets mel frames ``4t .. 4t + 3``; missing frames at the end repeat the last one.
+
+    Args:
+        audio: ``(samples,)`` mono 16 kHz signal.
+        num_frames: T motion frames wanted.
+
+    Returns:
+        ``(T, 320)`` float32.
+
+    Raises:
+        ValueError: empty or non-finite audio, or ``num_frames < 1``.
+    """
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    mel = np.asarray(log_mel(np.asarray(audio, np.float32)))
+    need = num_frames * MEL_FRAMES_PER_FRAME
+    if mel.shape[0] < need:
+        mel = np.concatenate([mel, np.repeat(mel[-1:], need - mel.shape[0], axis=0)])
+    return mel[:need].reshape(num_frames, AUDIO_FEATURE_DIM).astype(np.float32)
+
+
+def neutral_landmarks(face: Any) -> Float[np.ndarray, "68 3"]:
+    """``L_tpl``: the landmarks of a face model at the zero parameter vector (its neutral template)."""
+    return np.asarray(face.landmarks(jnp.zeros(PARAM_DIM, jnp.float32)))
+
+
+def window_starts(num_frames: int, window: int, hop: int) -> list[int]:
+    """Start frames of length-``window`` windows every ``hop`` frames (the last one flush with the end).
+
+    Raises:
+        ValueError: non-positive sizes.
+    """
+    if window < 1 or hop < 1:
+        raise ValueError(f"window and hop must be >= 1, got {window}, {hop}")
+    if num_frames < window:
+        return []
+    starts = list(range(0, num_frames - window + 1, hop))
+    if starts[-1] != num_frames - window:
+        starts.append(num_frames - window)
+    return starts
+
+
+def ats_windows(
+    corpus: Any, clips: Sequence[int], *, identity: int = 0, window: int = 50, hop: int = 25
+) -> dict[str, np.ndarray]:
+    """ATS training windows from SynthTalk clips.
+
+    Args:
+        corpus: a :class:`jaxtalk.data.synthtalk.SynthTalkCorpus`.
+        clips: clip indices (e.g. ``corpus.split("train")``).
+        identity: face identity whose landmarks are used.
+        window: frames per window.
+        hop: frames between window starts.
+
+    Returns:
+        ``{"displacements": (N, W, 68, 3), "audio": (N, W, 320), "emotion": (N,) int32,
+        "intensity": (N,) float32, "clip": (N,) int32, "start": (N,) int32}``.
+
+    Raises:
+        ValueError: no clip is at least ``window`` frames long.
+    """
+    neutral = neutral_landmarks(corpus.face(identity))
+    out: dict[str, list] = {k: [] for k in ("displacements", "audio", "emotion", "intensity", "clip", "start")}
+    for c in clips:
+        info = corpus.clips[c]
+        disp = corpus.landmarks(c, identity) - neutral[None]
+        feats = audio_features(corpus.audio(c), disp.shape[0])
+        emo = int(emotion_ids(info.emotion)[0])
+        for s in window_starts(disp.shape[0], window, hop):
+            out["displacements"].append(disp[s:s + window])
+            out["audio"].append(feats[s:s + window])
+            out["emotion"].append(emo)
+            out["intensity"].append(float(info.intensity))
+            out["clip"].append(c)
+            out["start"].append(s)
+    if not out["clip"]:
+        raise ValueError(f"no clip among {len(clips)} is at least window={window} frames long")
+    return {
+        "displacements": np.stack(out["displacements"]).astype(np.float32),
+        "audio": np.stack(out["audio"]),
+        "emotion": np.asarray(out["emotion"], np.int32),
+        "intensity": np.asarray(out["intensity"], np.float32),
+        "clip": np.asarray(out["clip"], np.int32),
+        "start": np.asarray(out["start"], np.int32),
+    }
+
+
+def mesh_motion(
+    face: Any, motion: Float[np.ndarray, "frames 56"], variant: Any = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Landmark and vertex displacements of a motion track on a face, optionally remeshed.
+
+    Args:
+        face: a :class:`jaxtalk.face.LinearFaceModel`.
+        motion: ``(T, 56)`` head parameters.
+        variant: a :class:`jaxtalk.geometry.topology.TopologyVariant` of ``face``'s template, or None
+            for the face's own mesh.
+
+    Returns:
+        ``(landmark_disp (T, 68, 3), vertex_disp (T, V', 3), rest_vertices (V', 3))`` float32, metres.
+    """
+    m = jnp.asarray(motion, jnp.float32)
+    zero = jnp.zeros((1, PARAM_DIM), jnp.float32)
+    lms = np.asarray(face.landmarks_seq(m)) - neutral_landmarks(face)[None]
+    verts = np.asarray(face.vertices_seq(m))
+    rest = np.asarray(face.vertices_seq(zero))
+    if variant is not None:
+        verts = np.asarray(variant.transfer(verts))
+        rest = np.asarray(variant.transfer(rest))
+    return lms.astype(np.float32), (verts - rest).astype(np.float32), rest[0].astype(np.float32)
+
+
+def stm_windows(
+    tracks: Sequence[tuple[int, np.ndarray, np.ndarray]],
+    num_vertices: int,
+    *,
+    window: int = 16,
+    hop: int = 16,
+) -> dict[str, np.ndarray]:
+    """STM training windows over several meshes, vertex axes zero-padded to ``num_vertices``.
+
+    Args:
+        tracks: ``(mesh index, landmark_disp (T, 68, 3), vertex_disp (T, V_m, 3))`` per track.
+        num_vertices: common padded vertex count (>= every V_m).
+        window: frames per window.
+        hop: frames between window starts.
+
+    Returns:
+        ``{"mesh": (N,) int32, "landmarks": (N, W, 68, 3), "vertices": (N, W, num_vertices, 3)}``.
+
+    Raises:
+        ValueError: a track with more vertices than ``num_vertices`` or no window at all.
+    """
+    mesh, lms, verts = [], [], []
+    for idx, lm, vd in tracks:
+        if vd.shape[1] > num_vertices:
+            raise ValueError(f"track of mesh {idx} has {vd.shape[1]} vertices > num_vertices={num_vertices}")
+        padded = np.pad(vd, ((0, 0), (0, num_vertices - vd.shape[1]), (0, 0)))
+        for s in window_starts(lm.shape[0], window, hop):
+            mesh.append(idx)
+            lms.append(lm[s:s + window])
+            verts.append(padded[s:s + window])
+    if not mesh:
+        raise ValueError(f"no track is at least window={window} frames long")
+    return {
+        "mesh": np.asarray(mesh, np.int32),
+        "landmarks": np.stack(lms).astype(np.float32),
+        "vertices": np.stack(verts).astype(np.float32),
+    }

@@ -1,0 +1,172 @@
+"""FreeTalk STM: vertex-permutation equivariance, any topology, per-frame decoding, padding, errors."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.face import builtin_face
+from jaxtalk.geometry.topology import make_variant
+from jaxtalk.models.freetalk import stm
+from jaxtalk.models.freetalk.config import FUSIONS, STMConfig
+
+K = 12
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compile():
+    # Compile time dominates these tiny models on a shared CPU; XLA optimisations do not pay off.
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)
+    yield
+    jax.config.update("jax_disable_most_optimizations", previous)
+
+
+def _config(**kw) -> STMConfig:
+    base = dict(mesh_feature_dim=16, encoder_width=16, encoder_blocks=1, decoder_width=16, decoder_blocks=1,
+                gcn_hidden=16, index_encoding_dim=8, attention_dim=16, attention_heads=4, num_eigenpairs=K)
+    return STMConfig(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def face():
+    f = builtin_face(0, resolution="low")
+    return np.asarray(f.template, np.float64), np.asarray(f.faces)
+
+
+@pytest.fixture(scope="module")
+def model(face, _fast_compile):
+    cfg = _config()
+    mesh = stm.prepare_mesh(*face, cfg)
+    return cfg, mesh, stm.init_stm(cfg, jax.random.key(0), mesh)
+
+
+def _motion(frames=3, seed=0):
+    return (0.004 * np.random.default_rng(seed).normal(size=(frames, 68, 3))).astype(np.float32)
+
+
+def test_presets_and_fused_width():
+    paper = STMConfig.paper()
+    assert (paper.mesh_feature_dim, paper.gcn_layers, paper.gcn_hidden) == (128, 3, 128)
+    assert (paper.attention_heads, paper.attention_dim) == (4, 128)
+    assert (paper.velocity_weight, paper.acceleration_weight) == (0.5, 0.2)
+    assert paper.fused_dim == 128 + 204 + 128  # [f_i | g_t | c_t,i]
+    assert STMConfig(fusion="concat").fused_dim == 128 + 204
+    assert STMConfig(fusion="ca").fused_dim == 128 + 128
+    with pytest.raises(ValueError, match="fusion"):
+        STMConfig(fusion="sum")
+    with pytest.raises(ValueError, match="divisible"):
+        STMConfig(attention_dim=30, attention_heads=4)
+
+
+def test_outputs_permute_with_the_mesh_vertices(model, face):
+    cfg, mesh, params = model
+    vertices, faces = face
+    perm = np.random.default_rng(1).permutation(len(vertices))
+    inverse = np.argsort(perm)
+    permuted = stm.prepare_mesh(vertices[perm], inverse[faces], cfg)  # vertex i of the new mesh = perm[i]
+    motion = _motion()
+    out = stm.stm_apply(params, cfg, mesh, motion)
+    out_p = stm.stm_apply(params, cfg, permuted, motion)
+    # Operators are recomputed on the permuted mesh (its own eigensolve), so equality is up to the
+    # solver's tolerance; the outputs are displacements of a few millimetres.
+    scale = float(jnp.abs(out).max())
+    assert scale > 1e-5
+    np.testing.assert_allclose(out_p, out[:, perm], atol=2e-3 * scale)
+
+
+def test_runs_on_topologies_it_was_not_initialised_on(model, face):
+    cfg, mesh, params = model
+    motion = _motion(2)
+    for kind in ("subdivided", "decimated"):
+        variant = make_variant(*face, kind, seed=0)
+        other = stm.prepare_mesh(variant.vertices, variant.faces, cfg)
+        assert other.num_vertices != mesh.num_vertices
+        out = stm.stm_apply(params, cfg, other, motion)
+        assert out.shape == (2, other.num_vertices, 3) and bool(jnp.all(jnp.isfinite(out)))
+
+
+def test_frames_are_decoded_independently_from_shared_features(model):
+    cfg, mesh, params = model
+    motion = _motion(3, seed=2)
+    features = stm.stm_mesh_features(params, cfg, mesh)
+    assert features.shape == (mesh.num_vertices, cfg.mesh_feature_dim)
+    together = stm.stm_decode(params, cfg, features, motion, mesh)
+    np.testing.assert_allclose(together, stm.stm_apply(params, cfg, mesh, motion), rtol=1e-5, atol=1e-8)
+    # Frame 1 alone (as a 1-frame sequence padded with itself) gives the same field.
+    alone = stm.stm_decode(params, cfg, features, np.repeat(motion[1:2], 3, axis=0), mesh)
+    np.testing.assert_allclose(alone[0], together[1], rtol=1e-4, atol=1e-7)
+    # Landmark motion drives the output: different displacements, different fields.
+    assert float(jnp.abs(together[0] - together[1]).max()) > 1e-5
+    # The flat ATS layout (T, 204) is accepted.
+    flat = stm.stm_decode(params, cfg, features, motion.reshape(3, -1), mesh)
+    np.testing.assert_allclose(flat, together, rtol=1e-6, atol=1e-9)
+
+
+def test_padding_vertices_do_not_change_real_vertices(model, face):
+    cfg, mesh, params = model
+    padded = stm.prepare_mesh(*face, cfg, num_vertices=mesh.num_vertices + 37)
+    assert not bool(padded.valid[-1]) and bool(padded.valid[mesh.num_vertices - 1])
+    motion = _motion(2, seed=3)
+    out = stm.stm_apply(params, cfg, mesh, motion)
+    out_pad = stm.stm_apply(params, cfg, padded, motion)
+    np.testing.assert_allclose(out_pad[:, : mesh.num_vertices], out, rtol=1e-4, atol=1e-7)
+
+
+def test_loss_ignores_padding_rows_and_trains_all_parts(model, face):
+    cfg, mesh, params = model
+    n = mesh.num_vertices
+    variant = make_variant(*face, "decimated", seed=0)
+    total = n + 5
+    meshes = stm.stack_meshes([
+        stm.prepare_mesh(*face, cfg, num_vertices=total, degree=12),
+        stm.prepare_mesh(variant.vertices, variant.faces, cfg, num_vertices=total, degree=12),
+    ])
+    rng = np.random.default_rng(4)
+    batch = {
+        "mesh": np.array([0, 1]),
+        "landmarks": np.stack([_motion(4, 5), _motion(4, 6)]),
+        "vertices": (0.003 * rng.normal(size=(2, 4, total, 3))).astype(np.float32),
+    }
+    value_and_grad = jax.jit(jax.value_and_grad(stm.make_stm_loss(cfg, meshes), has_aux=True))
+    (loss, parts), grads = value_and_grad(params, batch, jax.random.key(0))
+    assert np.isfinite(float(loss))
+    for name in ("encoder", "decoder", "landmarks", "cross_attention"):
+        assert max(float(jnp.abs(g).max()) for g in jax.tree.leaves(grads["params"][name])) > 0, name
+    junk = dict(batch, vertices=batch["vertices"].copy())
+    junk["vertices"][0, :, n:] = 7.0  # padding rows of the base mesh
+    junk["vertices"][1, :, len(variant.vertices):] = -7.0
+    np.testing.assert_allclose(value_and_grad(params, junk, jax.random.key(0))[0][0], loss, rtol=1e-5)
+
+
+@pytest.mark.parametrize("fusion", FUSIONS[:-1])
+def test_ablation_fusions_run(face, fusion):
+    cfg = _config(fusion=fusion, num_eigenpairs=8)
+    mesh = stm.prepare_mesh(*face, cfg)
+    params = stm.init_stm(cfg, jax.random.key(1), mesh)
+    assert ("cross_attention" in params["params"]) == (fusion != "concat")
+    assert ("gcn_0" in params["params"].get("landmarks", {})) is False
+    out = stm.stm_apply(params, cfg, mesh, _motion(1))
+    assert out.shape == (1, mesh.num_vertices, 3)
+
+
+def test_bad_inputs_raise_clear_errors(model, face):
+    cfg, mesh, params = model
+    with pytest.raises(ValueError, match=r"shape \(frames, 68, 3\)"):
+        stm.stm_apply(params, cfg, mesh, np.zeros((3, 67, 3), np.float32))
+    with pytest.raises(ValueError, match=r"shape \(frames, 68, 3\)"):
+        stm.stm_apply(params, cfg, mesh, np.zeros((3, 68), np.float32))
+    bad = _motion(2)
+    bad[1, 4, 0] = np.inf
+    with pytest.raises(ValueError, match="NaN/inf"):
+        stm.stm_apply(params, cfg, mesh, bad)
+    with pytest.raises(ValueError, match="no frames"):
+        stm.stm_apply(params, cfg, mesh, np.zeros((0, 68, 3), np.float32))
+    with pytest.raises(ValueError, match="features must have shape"):
+        stm.stm_decode(params, cfg, jnp.zeros((10, cfg.mesh_feature_dim)), _motion(1), mesh)
+    with pytest.raises(ValueError, match="num_eigenpairs"):
+        stm.prepare_mesh(face[0][:10], face[1][:2], cfg)
+    with pytest.raises(ValueError, match="single mesh"):
+        stm.stm_mesh_features(params, cfg, stm.stack_meshes([mesh, mesh]))

@@ -1,0 +1,121 @@
+"""TokTalk losses: the CFM path and target (analytic), the random known segment, padding masking,
+the loss normalisation (analytic value for a zero-velocity model), the adapter loss, bad batches."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.models import toktalk as tt
+
+CFG = tt.TokTalkConfig.tiny()
+B, T = 64, 16
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
+
+@pytest.fixture(scope="module")
+def params():
+    return tt.init_params(CFG, jax.random.key(0), adapter_src_dim=48)
+
+
+def _zero_output(params):
+    """The same model with a zero output projection: it predicts v = 0 everywhere."""
+    dec = dict(params["decoder"])
+    dec["final_proj"] = jax.tree.map(jnp.zeros_like, dec["final_proj"])
+    return {**params, "decoder": dec}
+
+
+def _batch(seed=0, motion_scale=0.0):
+    rng = np.random.default_rng(seed)
+    mask = np.ones((B, T), bool)
+    mask[B // 2 :, 10:] = False
+    return {
+        "motion": (motion_scale * rng.normal(size=(B, T, 56))).astype(np.float32),
+        "tokens": rng.normal(size=(B, T // 2, 64)).astype(np.float32),
+        "style": rng.normal(size=(B, CFG.style_frames, 56)).astype(np.float32),
+        "mask": mask,
+        "src_tokens": rng.normal(size=(B, T, 48)).astype(np.float32),
+    }
+
+
+_cfm = jax.jit(functools.partial(tt.cfm_loss, config=CFG))
+
+
+def test_flow_matching_path_and_target_are_analytic(float64):
+    rng = np.random.default_rng(0)
+    x1, z = (jnp.asarray(rng.normal(size=(3, 5, 4))) for _ in range(2))
+    t = jnp.asarray([0.0, 0.4, 1.0])
+    x_t, u = tt.flow_matching_terms(x1, z, t, 1e-6)
+    np.testing.assert_allclose(x_t[0], z[0], atol=1e-15)
+    np.testing.assert_allclose(x_t[2], x1[2] + 1e-6 * z[2], atol=1e-15)
+    # u is the time derivative of the (linear) path.
+    dx = jax.jacfwd(lambda s: tt.flow_matching_terms(x1, z, s, 1e-6)[0])(t)
+    np.testing.assert_allclose(np.stack([dx[i, ..., i] for i in range(3)]), u, atol=1e-12)
+
+
+def test_random_known_mask_is_one_contiguous_segment_inside_real_frames():
+    valid = jnp.asarray(np.arange(20)[None, :] < np.array([20, 12, 5, 1])[:, None])
+    valid = jnp.tile(valid, (50, 1))
+    m = np.asarray(tt.random_known_mask(jax.random.key(1), valid, 1.0, 0.3))
+    lengths = np.asarray(valid).sum(1)
+    for row, n in zip(m, lengths):
+        idx = np.nonzero(row)[0]
+        assert idx.size >= 1 and idx.max() < n
+        assert idx.size == idx.max() - idx.min() + 1  # contiguous
+        assert idx.size <= max(1, int(0.3 * n))
+    assert not np.asarray(tt.random_known_mask(jax.random.key(1), valid, 0.0, 0.3)).any()
+    starts = [np.nonzero(r)[0].min() for r, n in zip(m, lengths) if n == 20]
+    assert len(set(starts)) > 3  # not always a prefix
+
+
+def test_cfm_loss_of_zero_velocity_model_is_noise_energy(params):
+    # x1 = 0 and v = 0: the loss is mean((1 - sigma_min)^2 z^2) over real frames = 1 up to sampling.
+    loss, metrics = _cfm(_zero_output(params), _batch(0), jax.random.key(3))
+    n = (_batch(0)["mask"].sum()) * 56
+    assert abs(float(metrics["flow"]) - 1.0) < 4 * np.sqrt(2.0 / n)
+    assert float(metrics["kl"]) >= 0.0
+    np.testing.assert_allclose(float(loss), float(metrics["flow"]) + CFG.kl_weight * float(metrics["kl"]),
+                               rtol=1e-6)
+
+
+def test_cfm_loss_ignores_padded_frames_and_has_gradients(params):
+    batch = _batch(1, motion_scale=1.0)
+    loss_a, _ = _cfm(params, batch, jax.random.key(4))
+    altered = dict(batch)
+    motion = batch["motion"].copy()
+    motion[~batch["mask"]] = 1e3
+    altered["motion"] = motion
+    loss_b, _ = _cfm(params, altered, jax.random.key(4))
+    np.testing.assert_allclose(float(loss_a), float(loss_b), rtol=1e-5)
+    grads = jax.grad(lambda p: _cfm(p, batch, jax.random.key(4))[0])(params)
+    assert float(jnp.abs(grads["style"]["conv_out"]["conv"]["kernel"]).sum()) > 0
+    assert float(jnp.abs(grads["decoder"]["token_proj"]["kernel"]).sum()) > 0
+
+
+def test_adapter_loss_alignment_term_is_analytic(params):
+    zero_adapter = {**params, "adapter": dict(params["adapter"])}
+    zero_adapter["adapter"]["out"] = jax.tree.map(jnp.zeros_like, params["adapter"]["out"])
+    batch = _batch(2)
+    loss_fn = jax.jit(functools.partial(tt.adapter_loss, config=CFG, src_rate=25.0, flow_weight=0.5))
+    loss, metrics = loss_fn(zero_adapter, batch, jax.random.key(5))
+    # A zero adapter output: the alignment term is the mean square of the base tokens over real tokens
+    # (a token is real when its first frame is: frames 0, 2, .., 8 for the padded half).
+    tok_valid = batch["mask"][:, ::2]
+    expect = np.sum(np.square(batch["tokens"]) * tok_valid[..., None]) / (tok_valid.sum() * 64)
+    np.testing.assert_allclose(float(metrics["align"]), expect, rtol=1e-5)
+    np.testing.assert_allclose(float(loss), float(metrics["align"]) + 0.5 * (
+        float(metrics["flow"]) + CFG.kl_weight * float(metrics["kl"])), rtol=1e-5)
+
+
+def test_bad_batches_raise(params):
+    batch = _batch(0)
+    with pytest.raises(ValueError, match="tokens for 16 frames"):
+        tt.cfm_loss(params, {**batch, "tokens": batch["tokens"][:, :5]}, jax.random.key(0), config=CFG)
+    with pytest.raises(ValueError, match=r"batch\['tokens'\] must be"):
+        tt.cfm_loss(params, {**batch, "tokens": batch["tokens"][..., :10]}, jax.random.key(0), config=CFG)
+    with pytest.raises(ValueError, match=r"batch\['mask'\]"):
+        tt.cfm_loss(params, {**batch, "mask": batch["mask"][:, :4]}, jax.random.key(0), config=CFG)

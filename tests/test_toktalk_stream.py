@@ -1,0 +1,96 @@
+"""TokTalk streaming engine: one compiled program after the first chunk, fixed-size state, exact
+window bookkeeping (equals the offline core on a hand-built window), overlap frames kept, errors."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.models import toktalk as tt
+from jaxtalk.models.toktalk import stream as stream_mod
+from jaxtalk.models.toktalk.sample import default_grid, generate_frames
+
+CFG = tt.TokTalkConfig.tiny()  # chunk 4 frames (2 tokens), context 8, overlap 2
+B = 2
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
+
+@pytest.fixture(scope="module")
+def params():
+    return tt.init_params(CFG, jax.random.key(0), adapter_src_dim=48)
+
+
+def test_stream_compiles_once_and_keeps_fixed_state(params):
+    rng = np.random.default_rng(0)
+    style = rng.normal(size=(B, CFG.style_dim)).astype(np.float32)
+    state = tt.init_stream(CFG, jax.random.key(1), batch=B, buffer_frames=64)
+    shapes = jax.tree.map(jnp.shape, state)
+    ct = tt.tokens_per_chunk(CFG)
+    assert ct == 2
+    outs = []
+    for i in range(6):
+        chunk = rng.normal(size=(B, ct, CFG.token_dim)).astype(np.float32)
+        state, out = tt.stream_step(params, CFG, state, chunk, style, cfg_scale=0.5 + 0.1 * i)
+        outs.append(np.asarray(out))
+        if i == 0:
+            compiled = stream_mod._stream_step._cache_size()
+        assert jax.tree.map(jnp.shape, state) == shapes
+    assert stream_mod._stream_step._cache_size() == compiled
+    assert int(state.position) == 6 * CFG.chunk_frames and int(state.step) == 6
+    # The window's last context frames hold the emitted output (the next chunk's known overlap).
+    emitted = np.concatenate(outs, axis=1)
+    np.testing.assert_array_equal(np.asarray(state.motion)[:, -CFG.chunk_frames:], outs[-1])
+    np.testing.assert_array_equal(
+        np.asarray(state.motion)[:, : CFG.context_frames], emitted[:, -CFG.window_frames : -CFG.chunk_frames]
+    )
+    assert np.asarray(state.valid).all()
+
+
+def test_stream_step_equals_offline_core_on_the_same_window(params):
+    rng = np.random.default_rng(1)
+    style = jnp.asarray(rng.normal(size=(B, CFG.style_dim)), jnp.float32)
+    ct, c, ctx = tt.tokens_per_chunk(CFG), CFG.chunk_frames, CFG.context_frames
+    n_chunks = 2
+    tokens = rng.normal(size=(B, n_chunks * ct, CFG.token_dim)).astype(np.float32)
+    state = tt.init_stream(CFG, jax.random.key(2), batch=B, buffer_frames=40)
+    outs = []
+    for i in range(n_chunks):
+        state, out = tt.stream_step(params, CFG, state, tokens[:, i * ct : (i + 1) * ct], style)
+        outs.append(np.asarray(out))
+    emitted = np.concatenate(outs, axis=1)
+    # Rebuild the last chunk's window by hand: 3 chunks of context (first one padding) + the chunk.
+    w = CFG.window_frames
+    start = (n_chunks - 1) * c - ctx  # absolute frame of the window's first row (negative = padding)
+    frames = start + np.arange(w)
+    valid = frames >= 0
+    win_tokens = np.zeros((B, w // 2, CFG.token_dim), np.float32)
+    tok_idx = frames[::2] // 2
+    win_tokens[:, valid[::2]] = tokens[:, tok_idx[valid[::2]]]
+    known = np.zeros((B, w, 56), np.float32)
+    known[:, valid & (frames < (n_chunks - 1) * c)] = emitted[:, frames[valid & (frames < (n_chunks - 1) * c)]]
+    known_mask = valid & (np.arange(w) >= ctx - CFG.overlap_frames) & (np.arange(w) < ctx)
+    noise = np.asarray(state.noise)[:, np.mod(frames, 40)]
+    expect = generate_frames(
+        params, CFG, jnp.asarray(win_tokens), style, jnp.asarray(noise), jnp.asarray(default_grid(CFG)),
+        jnp.asarray(CFG.cfg_scale), known=jnp.asarray(known),
+        known_mask=jnp.asarray(np.broadcast_to(known_mask, (B, w))),
+        mask=jnp.asarray(np.broadcast_to(valid, (B, w))), chunked=jnp.ones((), bool),
+    )
+    np.testing.assert_allclose(outs[-1], np.asarray(expect)[:, ctx:], atol=1e-5)
+
+
+def test_stream_whole_sequence_and_errors(params):
+    rng = np.random.default_rng(2)
+    tokens = rng.normal(size=(1, 7, CFG.token_dim)).astype(np.float32)  # 3.5 chunks
+    out = tt.stream(params, CFG, tokens, np.zeros((1, CFG.style_dim), np.float32), jax.random.key(0),
+                    buffer_frames=32)
+    assert out.shape == (1, 14, 56) and bool(jnp.all(jnp.isfinite(out)))
+    state = tt.init_stream(CFG, jax.random.key(0), batch=1, buffer_frames=32)
+    with pytest.raises(ValueError, match="one chunk of 4 frames"):
+        tt.stream_step(params, CFG, state, tokens[:, :3], np.zeros((1, CFG.style_dim), np.float32))
+    with pytest.raises(ValueError, match="buffer_frames=4"):
+        tt.init_stream(CFG, jax.random.key(0), buffer_frames=4)
+    with pytest.raises(ValueError, match="not a whole number of tokens"):
+        tt.init_stream(tt.TokTalkConfig.tiny(token_rate=10.0), jax.random.key(0))
