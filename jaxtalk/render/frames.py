@@ -86,14 +86,20 @@ def check_faces(faces: Shaped[ArrayLike, "..."], num_vertices: int, *, name: str
     return f.astype(np.int32, copy=False)
 
 
-def _to_uint8(linear: np.ndarray, style: RenderStyle) -> np.ndarray:
+def _compose(pixel: np.ndarray, colors: np.ndarray, height: int, width: int, style: RenderStyle) -> np.ndarray:
+    """Paint fragment colours (display, 0-255) over the background; box-filter a supersampled image."""
+    background = np.float32(255.0) * np.asarray(style.background, np.float32)
     s = style.supersample
-    if s > 1:
-        h, w = linear.shape[0] // s, linear.shape[1] // s
-        # Box filter in linear light (averaging after gamma would darken edges).
-        linear = linear.reshape(h, s, w, s, 3).mean(axis=(1, 3))
-    out = np.clip(linear, 0.0, 1.0) ** np.float32(1.0 / style.gamma)
-    return (out * np.float32(255.0) + np.float32(0.5)).astype(np.uint8)
+    if s == 1:
+        image = np.empty((height * width, 3), np.uint8)
+        image[:] = (background + np.float32(0.5)).astype(np.uint8)
+        image[pixel] = (colors + np.float32(0.5)).astype(np.uint8)
+        return image.reshape(height, width, 3)
+    image = np.empty((height * width, 3), np.float32)
+    image[:] = background
+    image[pixel] = colors
+    image = image.reshape(height // s, s, width // s, s, 3).mean(axis=(1, 3))
+    return (image + np.float32(0.5)).astype(np.uint8)
 
 
 def _scaled(camera: Camera, factor: int) -> Camera:
@@ -120,8 +126,8 @@ def _render_checked(
     verts_cam = cam.to_camera(vertices)
     xy, depth = cam.project_camera(verts_cam)
     frags = rasterize(xy, depth, faces, cam.height, cam.width, perspective=not cam.orthographic)
-    linear = shade(frags, verts_cam, faces, style, vertex_colors=colors, orthographic=cam.orthographic)
-    return _to_uint8(linear, style)
+    colors = shade(frags, verts_cam, faces, style, vertex_colors=colors, orthographic=cam.orthographic)
+    return _compose(frags.pixel, colors, cam.height, cam.width, style)
 
 
 def _check_colors(colors: Shaped[ArrayLike, "..."] | None, num_vertices: int) -> np.ndarray | None:

@@ -1,5 +1,8 @@
 """Shading of rasterised fragments: smooth vertex normals, Lambert + Blinn-Phong (Gouraud), gamma.
 
+Colours in ``RenderStyle`` and ``vertex_colors`` are display (gamma-encoded) colours; lighting is
+computed in linear light and encoded again with ``gamma``.
+
 Lights are fixed in the CAMERA frame (a key light from the front, above and to the viewer's left, a
 weaker fill from the other side, and ambient), so a face is lit from the front whatever the camera's
 orbit. Lighting uses area-weighted vertex normals and is interpolated over triangles; the
@@ -104,41 +107,39 @@ def shade(
     *,
     vertex_colors: Float[np.ndarray, "verts 3"] | None = None,
     orthographic: bool = False,
-) -> Float[np.ndarray, "height width 3"]:
-    """Shade the visible fragments of a mesh given in camera coordinates.
+) -> Float[np.ndarray, "n 3"]:
+    """Colours of the visible fragments of a mesh given in camera coordinates.
 
-    Lighting is evaluated at the vertices and interpolated over the triangles (Gouraud): at the
-    2-8 pixel triangles of a face mesh this looks like per-pixel shading and costs O(V), not
-    O(pixels). Each vertex gets a front-side and a back-side colour; a fragment takes the side its
-    triangle shows to the camera.
+    Lighting is evaluated in linear light at the vertices, gamma-encoded there, and the display
+    colours are interpolated over the triangles (Gouraud, as fixed-function OpenGL does): at the
+    2-8 pixel triangles of a face mesh this looks like per-pixel shading and costs O(V) lighting
+    plus one interpolation per pixel. Each vertex gets a front-side and a back-side colour; a
+    fragment takes the side its triangle shows to the camera.
 
     Args:
         fragments: the rasterised visible surface.
         vertices_cam: the mesh's vertices in camera coordinates, ``(V, 3)``.
         faces: its triangles, ``(F, 3)``.
         style: colours and lights.
-        vertex_colors: optional per-vertex albedo in ``[0, 1]``, ``(V, 3)``.
+        vertex_colors: optional per-vertex albedo in ``[0, 1]`` (display colours), ``(V, 3)``.
         orthographic: the view direction is +z everywhere (else it points to the camera at 0).
 
     Returns:
-        Linear-light RGB image (before gamma), ``(height, width, 3)`` float32.
+        Display colours in ``[0, 255]`` of ``fragments.pixel``, ``(N, 3)`` float32.
     """
-    h, w = fragments.height, fragments.width
-    image = np.empty((h * w, 3), np.float32)
-    image[:] = np.asarray(style.background, np.float32) ** np.float32(style.gamma)
-    if fragments.pixel.size == 0:
-        return image.reshape(h, w, 3)
     verts = np.asarray(vertices_cam, np.float32)
     fn = face_normals(verts, faces)
     normal = _vertex_normals_from(fn, faces, verts.shape[0])
     view = np.broadcast_to(np.float32([0, 0, 1]), verts.shape) if orthographic else _unit(-verts)
+    gamma = np.float32(style.gamma)
     if vertex_colors is None:
-        albedo = np.broadcast_to(np.asarray(style.base_color, np.float32) ** np.float32(style.gamma), verts.shape)
+        albedo = np.broadcast_to(np.asarray(style.base_color, np.float32) ** gamma, verts.shape)
     else:
-        albedo = np.asarray(vertex_colors, np.float32) ** np.float32(style.gamma)
+        albedo = np.asarray(vertex_colors, np.float32) ** gamma
     front = _lit(normal, view, albedo, style)
     back = _lit(-normal, view, albedo * np.float32(style.backface_dim), style)
-    table = np.concatenate([front, back])  # (2V, 3): row V + i is vertex i seen from behind
+    # (2V, 3) display colours; row V + i is vertex i seen from behind.
+    table = np.float32(255.0) * np.clip(np.concatenate([front, back]), 0.0, 1.0) ** (np.float32(1.0) / gamma)
 
     tri = faces[fragments.face]  # (N, 3)
     # Two-sided: a triangle whose geometric normal points away from the viewer is seen from behind.
@@ -146,10 +147,7 @@ def shade(
     seen_from_back = ((fn * centroid_view).sum(1) < 0)[fragments.face]
     tri = tri + np.int32(verts.shape[0]) * seen_from_back[:, None].astype(np.int32)
     b = fragments.bary
-    image[fragments.pixel] = (
-        b[:, 0:1] * table[tri[:, 0]] + b[:, 1:2] * table[tri[:, 1]] + b[:, 2:3] * table[tri[:, 2]]
-    )
-    return image.reshape(h, w, 3)
+    return b[:, 0:1] * table[tri[:, 0]] + b[:, 1:2] * table[tri[:, 1]] + b[:, 2:3] * table[tri[:, 2]]
 
 
 def _lit(normal: np.ndarray, view: np.ndarray, albedo: np.ndarray, style: RenderStyle) -> np.ndarray:

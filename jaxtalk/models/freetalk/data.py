@@ -35,6 +35,7 @@ __all__ = [
 ]
 
 _HOP = 160  # 10 ms at 16 kHz
+_BUCKET_SAMPLES = 5 * AUDIO_SAMPLE_RATE
 MEL_FRAMES_PER_FRAME = AUDIO_SAMPLE_RATE // _HOP // MOTION_FPS  # 4
 AUDIO_FEATURE_DIM = 80 * MEL_FRAMES_PER_FRAME  # 320
 
@@ -57,7 +58,13 @@ def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Flo
     """
     if num_frames < 1:
         raise ValueError(f"num_frames must be >= 1, got {num_frames}")
-    mel = np.asarray(log_mel(np.asarray(audio, np.float32)))
+    x = np.asarray(audio, np.float32)
+    if x.ndim != 1 or x.size == 0:
+        raise ValueError(f"audio must be a non-empty 1-D signal, got shape {x.shape}")
+    # Zero-pad to a whole bucket so clips of many lengths share one compiled log-mel program. The
+    # STFT pads with zeros anyway (pad_mode "constant"), so frames of the real signal are unchanged.
+    total = -(-x.size // _BUCKET_SAMPLES) * _BUCKET_SAMPLES
+    mel = np.asarray(log_mel(np.pad(x, (0, total - x.size))))[: 1 + x.size // _HOP]
     need = num_frames * MEL_FRAMES_PER_FRAME
     if mel.shape[0] < need:
         mel = np.concatenate([mel, np.repeat(mel[-1:], need - mel.shape[0], axis=0)])

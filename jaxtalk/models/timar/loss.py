@@ -40,6 +40,7 @@ __all__ = [
     "grouped_mse",
     "diffusion_tables",
     "timar_loss",
+    "masked_loss",
     "make_loss_fn",
 ]
 
@@ -170,10 +171,42 @@ def timar_loss(
     f = config.frames_per_turn
     us, um, as_, am = (to_turns(jnp.asarray(batch[k], jnp.float32), f) for k in STREAMS)
     b, n = am.shape[:2]
-    k_ratio, k_mask, k_drop, k_t, k_noise, k_dropout = jax.random.split(key, 6)
+    k_ratio, k_mask, k_drop, k_rest = jax.random.split(key, 4)
     ratio = sample_mask_ratio(config, k_ratio)
     mask = random_agent_mask(k_mask, ratio, b, n * f).reshape(b, n, f)
     user_drop = jax.random.bernoulli(k_drop, config.cfg_prob, (b,))
+    loss, metrics = masked_loss(config, params, (us, um, as_, am), am, mask, user_drop, k_rest)
+    metrics["mask_ratio"] = ratio
+    return loss, metrics
+
+
+def masked_loss(
+    config: TimarConfig,
+    params: dict[str, Any],
+    turns: tuple[Float[Array, "batch turns frames speech_dim"], Float[Array, "batch turns frames param_dim"],
+                 Float[Array, "batch turns frames speech_dim"], Float[Array, "batch turns frames param_dim"]],
+    targets: Float[Array, "batch turns frames param_dim"],
+    mask: Bool[Array, "batch turns frames"],
+    user_drop: Bool[Array, " batch"],
+    key: PRNGKeyArray,
+) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
+    """The loss for a given agent mask and CFG dropout (the deterministic core of :func:`timar_loss`).
+
+    Args:
+        config: model config.
+        params: model parameters.
+        turns: ``(user_speech, user_motion, agent_speech, agent_motion)`` split into turns; the
+            agent motion is the INPUT (visible where ``mask`` is False).
+        targets: ``(B, N, F, 56)`` the clean frames to reconstruct (the agent motion in training).
+        mask: ``(B, N, F)`` True where the agent frame is masked (and only there is a loss).
+        user_drop: ``(B,)`` True where the example's user tokens become the fake token.
+        key: PRNG key for timesteps, noise and dropout.
+
+    Returns:
+        ``(loss, metrics)`` as :func:`timar_loss` (without ``mask_ratio``).
+    """
+    us, um, as_, am = turns
+    k_t, k_noise, k_dropout = jax.random.split(key, 3)
     z = encode_window(
         config, params, us, um, as_, am, mask, user_drop,
         dropout_key=k_dropout if config.dropout_rate > 0 else None,
@@ -181,25 +214,24 @@ def timar_loss(
     metrics: dict[str, Array] = {}
     if config.head == "diffusion":
         tables = diffusion_tables(config)
-        t = jax.random.randint(k_t, (b, n, f), 0, config.num_timesteps)
+        t = jax.random.randint(k_t, mask.shape, 0, config.num_timesteps)
         abar = tables["alpha_bar"][t][..., None]
-        eps = jax.random.normal(k_noise, am.shape, am.dtype)
-        xt = jnp.sqrt(abar) * am + jnp.sqrt(1.0 - abar) * eps
+        eps = jax.random.normal(k_noise, targets.shape, targets.dtype)
+        xt = jnp.sqrt(abar) * targets + jnp.sqrt(1.0 - abar) * eps
         out = apply_head(config, params["head"], z, xt, t.astype(jnp.float32))
         x0_hat = out[..., : config.param_dim]
-        per_frame, groups = grouped_mse(x0_hat, am)
+        per_frame, groups = grouped_mse(x0_hat, targets)
         if config.learn_sigma:
-            vlb = _vlb_bits(tables, t, am, xt, x0_hat, out[..., config.param_dim :])
+            vlb = _vlb_bits(tables, t, targets, xt, x0_hat, out[..., config.param_dim :])
             groups["vlb"] = vlb
             per_frame = per_frame + config.vlb_weight * vlb
     else:
-        per_frame, groups = grouped_mse(apply_head(config, params["head"], z), am)
+        per_frame, groups = grouped_mse(apply_head(config, params["head"], z), targets)
     weight = mask.astype(jnp.float32)
     denom = jnp.maximum(jnp.sum(weight), 1.0)
     loss = jnp.sum(per_frame * weight) / denom
     for name, value in groups.items():
         metrics[f"loss_{name}"] = jnp.sum(value * weight) / denom
-    metrics["mask_ratio"] = ratio
     metrics["masked_frames"] = jnp.sum(weight)
     return loss, metrics
 

@@ -1,0 +1,100 @@
+"""Benchmark FreeTalk: STM frames per second on a ~5k-vertex face and ATS DDIM time for a 4-s clip.
+
+STM: the built-in face at "high" resolution (~5.9k vertices; FLAME has 5,023), ``small`` and
+``paper`` configurations, 25 landmark frames decoded per call with the mesh features precomputed.
+The per-mesh precompute (operators: Laplacian, eigenbasis, gradients; then the DiffusionNet encoder
+features) is timed separately. Target (issue 5): STM ``small`` at least 25 frames/s on this CPU.
+
+ATS: a 4-s clip (100 frames at 25 fps), DDIM with 100 and 10 steps, ``small`` and ``paper``
+configurations (random weights: speed does not depend on them).
+
+Compile and run times are reported separately (median of repeats, ``block_until_ready``). The CPU
+is shared with other jobs, so absolute numbers are inflated: compare rows of one run.
+
+Usage: python experiments/bench_freetalk.py [--out PATH] [--repeats N] [--skip-paper]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxtalk import benchmarking as bm
+from jaxtalk.face import builtin_face
+from jaxtalk.models.freetalk import ats, stm
+from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
+
+FRAMES = 25
+CLIP_FRAMES = 100
+
+
+def bench_stm(name: str, cfg: STMConfig, repeats: int) -> dict:
+    face = builtin_face(0, resolution="high")
+    vertices, faces = np.asarray(face.template, np.float64), np.asarray(face.faces)
+    t0 = time.perf_counter()
+    mesh = stm.prepare_mesh(vertices, faces, cfg)
+    precompute_ops = time.perf_counter() - t0
+    params = stm.init_stm(cfg, jax.random.key(0), mesh)
+    feat_fn = functools.partial(stm._mesh_features, config=cfg)
+    feat_timing = bm.time_jitted(lambda p, m: feat_fn(p, mesh=m), params, mesh, repeats=max(3, repeats // 2))
+    features = stm.stm_mesh_features(params, cfg, mesh)
+    motion = (0.004 * np.random.default_rng(0).normal(size=(FRAMES, 68, 3))).astype(np.float32)
+    decode = functools.partial(stm._decode, config=cfg)
+    timing = bm.time_jitted(lambda p, f, d, o: decode(p, features=f, disp=d, ops=o), params, features,
+                            jax.numpy.asarray(motion), mesh.ops, repeats=repeats)
+    per_frame = timing.run_median_s / FRAMES
+    return {
+        "model": f"STM {name}",
+        "vertices": mesh.num_vertices,
+        "k": cfg.num_eigenpairs,
+        "operators_s": precompute_ops,
+        "mesh_features_s": feat_timing.run_median_s,
+        "compile_s": timing.compile_s,
+        "s_per_frame": per_frame,
+        "frames_per_s": 1.0 / per_frame,
+        "real_time_25fps": 1.0 / per_frame >= 25.0,
+    }
+
+
+def bench_ats(name: str, cfg: ATSConfig, steps: int, repeats: int) -> dict:
+    params = ats.init_ats(cfg, jax.random.key(0))
+    audio = np.random.default_rng(0).normal(size=(1, CLIP_FRAMES, cfg.audio_dim)).astype(np.float32)
+    cond = ats.make_condition(cfg, audio, "happy", 2.0)
+    fn = functools.partial(ats._sample, config=cfg, num_steps=steps)
+    timing = bm.time_jitted(lambda p, c, k, e: fn(p, cond=c, key=k, eta=e), params, cond, jax.random.key(1),
+                            jax.numpy.float32(0.0), repeats=repeats, warmup=1)
+    return {
+        "model": f"ATS {name}",
+        "clip_s": CLIP_FRAMES / 25,
+        "ddim_steps": steps,
+        "compile_s": timing.compile_s,
+        "run_s": timing.run_median_s,
+        "real_time_factor": timing.run_median_s / (CLIP_FRAMES / 25),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("experiments/results/bench_freetalk.json"))
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--skip-paper", action="store_true", help="only the small configurations")
+    args = parser.parse_args()
+
+    configs = [("small", STMConfig.small())] + ([] if args.skip_paper else [("paper", STMConfig.paper())])
+    stm_rows = [bench_stm(n, c, args.repeats) for n, c in configs]
+    bm.print_table(stm_rows, f"STM: {FRAMES} frames per call, mesh features precomputed")
+
+    ats_configs = [("small", ATSConfig.small())] + ([] if args.skip_paper else [("paper", ATSConfig.paper())])
+    ats_rows = [bench_ats(n, c, s, max(1, args.repeats // 2)) for n, c in ats_configs for s in (100, 10)]
+    bm.print_table(ats_rows, f"ATS DDIM on a {CLIP_FRAMES / 25:.0f}-s clip")
+    path = bm.write_json(args.out, {"stm": stm_rows, "ats": ats_rows})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,39 @@
+"""The command line: help texts, one-line errors for user mistakes, the data command end to end."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from jaxtalk.cli import app
+
+runner = CliRunner()
+
+
+def test_help_lists_commands():
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0
+    assert "data" in result.output
+
+
+def test_user_error_is_one_line_without_traceback():
+    result = runner.invoke(app, ["data", "--size", "huge"])
+    assert result.exit_code == 2
+    assert "unknown SynthTalk size 'huge'" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_data_command_generates_and_writes_metadata(tmp_path):
+    meta = tmp_path / "meta.json"
+    result = runner.invoke(
+        app, ["data", "--size", "tiny", "--no-tokens", "--cache-dir", str(tmp_path / "c"), "--metadata", str(meta)]
+    )
+    assert result.exit_code == 0, result.output
+    for split in ("train", "val", "test", "ood"):
+        assert split in result.output
+    payload = json.loads(meta.read_text())
+    assert payload["fps"] == 25 and payload["sample_rate"] == 16000
+    # Cached: a second run loads the same corpus from disk.
+    again = runner.invoke(app, ["data", "--size", "tiny", "--no-tokens", "--cache-dir", str(tmp_path / "c")])
+    assert again.exit_code == 0, again.output

@@ -1,0 +1,71 @@
+"""FreeTalk data helpers: audio feature alignment, windows, mesh motion on remeshed faces."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.audio import log_mel
+from jaxtalk.face import builtin_face
+from jaxtalk.geometry.topology import make_variant
+from jaxtalk.models.freetalk import data
+
+
+def test_audio_features_stack_four_mel_frames_per_motion_frame():
+    rng = np.random.default_rng(0)
+    audio = rng.normal(size=16000 + 333).astype(np.float32) * 0.1
+    feats = data.audio_features(audio, 25)
+    assert feats.shape == (25, data.AUDIO_FEATURE_DIM) == (25, 320)
+    mel = np.asarray(log_mel(audio))  # unpadded reference, 100 frames/s
+    # Motion frame t holds mel frames 4t..4t+3; bucket padding must not change them.
+    np.testing.assert_allclose(feats[7].reshape(4, 80), mel[28:32], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(feats[24].reshape(4, 80), mel[96:100], rtol=1e-5, atol=1e-5)
+    # Asking for more frames than the audio covers repeats the last mel frame.
+    longer = data.audio_features(audio, 27)
+    np.testing.assert_allclose(longer[26].reshape(4, 80), np.repeat(mel[-1:], 4, 0), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="num_frames"):
+        data.audio_features(audio, 0)
+    with pytest.raises(ValueError, match="non-empty"):
+        data.audio_features(np.zeros((0,), np.float32), 3)
+
+
+def test_window_starts_cover_the_sequence():
+    assert data.window_starts(10, 4, 3) == [0, 3, 6]
+    assert data.window_starts(11, 4, 3) == [0, 3, 6, 7]
+    assert data.window_starts(3, 4, 1) == []
+    with pytest.raises(ValueError):
+        data.window_starts(10, 0, 1)
+
+
+def test_mesh_motion_on_base_and_remeshed_faces():
+    face = builtin_face(1, resolution="low")
+    rng = np.random.default_rng(1)
+    motion = np.zeros((3, 56), np.float32)
+    motion[1, :50] = rng.normal(size=50)
+    motion[2, 50] = 0.2  # open the jaw
+    lms, verts, rest = data.mesh_motion(face, motion)
+    np.testing.assert_allclose(rest, np.asarray(face.template), atol=1e-6)
+    np.testing.assert_allclose(lms[0], 0.0, atol=1e-7)  # frame 0 is the neutral face
+    np.testing.assert_allclose(verts[0], 0.0, atol=1e-7)
+    assert np.abs(lms[2]).max() > 1e-3 and np.abs(verts[2]).max() > 1e-3
+    np.testing.assert_allclose(lms + data.neutral_landmarks(face), np.asarray(face.landmarks_seq(jnp.asarray(motion))),
+                               atol=1e-6)
+    variant = make_variant(np.asarray(face.template), np.asarray(face.faces), "shuffled", seed=0)
+    lms_s, verts_s, rest_s = data.mesh_motion(face, motion, variant)
+    np.testing.assert_allclose(lms_s, lms)  # landmarks do not depend on the mesh
+    np.testing.assert_allclose(rest_s, variant.vertices, atol=1e-6)
+    np.testing.assert_allclose(variant.transfer(verts + rest[None]) - rest_s[None], verts_s, atol=1e-6)
+
+
+def test_stm_windows_pad_vertices():
+    lm = np.ones((10, 68, 3), np.float32)
+    tracks = [(0, lm, np.ones((10, 5, 3), np.float32)), (1, 2 * lm, np.ones((10, 7, 3), np.float32))]
+    ds = data.stm_windows(tracks, 8, window=4, hop=4)
+    assert ds["vertices"].shape == (6, 4, 8, 3) and ds["landmarks"].shape == (6, 4, 68, 3)
+    np.testing.assert_array_equal(ds["mesh"], [0, 0, 0, 1, 1, 1])
+    assert np.all(ds["vertices"][0, :, 5:] == 0) and np.all(ds["vertices"][3, :, :7] == 1)
+    with pytest.raises(ValueError, match="num_vertices"):
+        data.stm_windows(tracks, 6)
+    with pytest.raises(ValueError, match="window"):
+        data.stm_windows(tracks, 8, window=11)
