@@ -2,13 +2,15 @@
 
 All triangles are rasterised at once, with no Python loop over triangles or pixels:
 
-1. each triangle's pixel bounding box is expanded into candidate pixels (a ragged ``np.repeat``);
-2. barycentric coordinates of each candidate come from the triangle's affine edge functions
-   (precomputed per triangle in float64 relative to its box corner, so float32 suffices per pixel);
-3. candidates outside the triangle are dropped; the rest compete in a z-buffer resolved with
-   ``np.maximum.at`` on a screen-linear depth key (``1/depth`` for perspective, ``-depth`` for
-   orthographic);
-4. the winners' barycentrics are made perspective-correct (weights ``lambda_k / depth_k``).
+1. each triangle's bounding box is expanded into pixel rows (a ragged ``np.repeat``), and each
+   row's exact span of covered pixel centres is solved from the triangle's affine edge functions
+   (float64, one entry per row);
+2. the spans are expanded into covered pixels (a second ragged ``np.repeat``); no pixel outside a
+   triangle is ever visited, so per-pixel work is a few float32 multiply-adds;
+3. the pixels compete in a z-buffer resolved with ``np.maximum.at`` on a screen-linear depth key
+   (``1/depth`` for perspective, ``-depth`` for orthographic);
+4. the winners' barycentrics are computed and made perspective-correct (weights
+   ``lambda_k / depth_k``).
 
 Sampling is at pixel centres; a pixel whose centre lies on an edge shared by two triangles may be
 claimed by either (the nearer wins; exact ties go to the later triangle), so there are no cracks.
@@ -112,54 +114,56 @@ def rasterize(
     tri = np.flatnonzero(keep)
     if tri.size == 0:
         return empty
-    col0, row0 = col0[tri].astype(np.int64), row0[tri].astype(np.int64)
-    ncols = col1[tri].astype(np.int64) - col0 + 1
-    counts = ncols * (row1[tri].astype(np.int64) - row0 + 1)
+    col0, row0 = col0[tri], row0[tri]
+    nrows = (row1[tri] - row0 + 1).astype(np.int64)
 
     # Barycentrics (l1, l2) are affine in the pixel centre: l = base + a * dcol + b * drow, with the
-    # base taken at the box's first pixel centre so the per-pixel float32 terms stay small.
+    # base at the box's first pixel centre (col0 + 0.5, row0 + 0.5).
     inv_a = 1.0 / area2[tri]
     px, py = col0 + 0.5 - x0[tri], row0 + 0.5 - y0[tri]
     e1x, e1y, e2x, e2y = ex1[tri], ey1[tri], ex2[tri], ey2[tri]
-    table = np.stack(
-        [
-            (px * e2y - py * e2x) * inv_a,  # l1 at the box origin
-            e2y * inv_a,  # d l1 / d col
-            -e2x * inv_a,  # d l1 / d row
-            (e1x * py - e1y * px) * inv_a,  # l2 at the box origin
-            -e1y * inv_a,  # d l2 / d col
-            e1x * inv_a,  # d l2 / d row
-        ],
-        axis=1,
-    ).astype(np.float32)
-
-    # Ragged expansion of the boxes into candidate pixels (int32 unless the image is huge).
-    total = int(counts.sum())
-    itype = np.int32 if total < 2**31 and height * width < 2**31 else np.int64
-    owner = np.repeat(np.arange(tri.size, dtype=itype), counts)
-    starts = (np.cumsum(counts) - counts).astype(itype)
-    local = np.arange(total, dtype=itype) - starts[owner]
-    nc = ncols.astype(itype)[owner]
-    drow = local // nc
-    dcol = local - drow * nc
-    coef = table[owner]
-    dcol_f, drow_f = dcol.astype(np.float32), drow.astype(np.float32)
-    l1 = coef[:, 0] + coef[:, 1] * dcol_f + coef[:, 2] * drow_f
-    l2 = coef[:, 3] + coef[:, 4] * dcol_f + coef[:, 5] * drow_f
-    l0 = np.float32(1.0) - l1 - l2
-    inside = np.flatnonzero((l0 >= -_EDGE_EPS) & (l1 >= -_EDGE_EPS) & (l2 >= -_EDGE_EPS))
-    if inside.size == 0:
-        return empty
-    owner, l0, l1, l2 = owner[inside], l0[inside], l1[inside], l2[inside]
-    pixel = (row0.astype(itype)[owner] + drow[inside]) * itype(width) + col0.astype(itype)[owner] + dcol[inside]
-
+    base1, a1, b1 = (px * e2y - py * e2x) * inv_a, e2y * inv_a, -e2x * inv_a
+    base2, a2, b2 = (e1x * py - e1y * px) * inv_a, -e1y * inv_a, e1x * inv_a
     if perspective:
-        # 1/depth is affine in screen space; a larger key is nearer.
-        corner_key = (1.0 / dz[tri]).astype(np.float32)[owner]  # (N, 3)
-        key = l0 * corner_key[:, 0] + l1 * corner_key[:, 1] + l2 * corner_key[:, 2]
+        zkey = 1.0 / dz[tri]  # 1/depth is affine in screen space; a larger key is nearer
     else:
-        corner_key = dz[tri].astype(np.float32)[owner]
-        key = -(l0 * corner_key[:, 0] + l1 * corner_key[:, 1] + l2 * corner_key[:, 2])
+        zkey = -dz[tri]
+
+    # Level 1: one entry per (triangle, pixel row) of its box; each row's exact covered column span.
+    row_tri = np.repeat(np.arange(tri.size), nrows)
+    drow = np.arange(row_tri.size) - np.repeat(np.cumsum(nrows) - nrows, nrows)
+    c1 = base1[row_tri] + b1[row_tri] * drow  # l1 at the row's first box column
+    c2 = base2[row_tri] + b2[row_tri] * drow
+    s1, s2 = a1[row_tri], a2[row_tri]
+    # l_k(dcol) = c_k + s_k * dcol >= -eps for k = 0, 1, 2 bounds dcol from below (s > 0) or above.
+    lo = np.zeros(row_tri.size)
+    hi = (col1[tri] - col0)[row_tri]
+    for c, slope in ((c1, s1), (c2, s2), (1.0 - c1 - c2, -s1 - s2)):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = (-_EDGE_EPS - c) / slope
+        lo = np.where(slope > 0, np.maximum(lo, bound), lo)
+        hi = np.where(slope < 0, np.minimum(hi, bound), hi)
+        hi = np.where((slope == 0) & (c < -_EDGE_EPS), -1.0, hi)
+    lo, hi = np.ceil(lo), np.floor(hi)
+    counts = np.maximum(hi - lo + 1, 0).astype(np.int64)
+    total = int(counts.sum())
+    if total == 0:
+        return empty
+
+    # Level 2: one entry per covered pixel (int32 unless the image is huge).
+    itype = np.int32 if total < 2**31 and height * width < 2**31 else np.int64
+    row_of = np.repeat(np.arange(row_tri.size, dtype=itype), counts)
+    dcol = np.arange(total, dtype=itype) - np.repeat((np.cumsum(counts) - counts).astype(itype), counts)
+    # Per-row affine coefficients in float32, taken at the span's first pixel (small offsets).
+    zk = zkey[row_tri]
+    first1, first2 = c1 + s1 * lo, c2 + s2 * lo
+    kslope = s1 * (zk[:, 1] - zk[:, 0]) + s2 * (zk[:, 2] - zk[:, 0])
+    kfirst = zk[:, 0] + first1 * (zk[:, 1] - zk[:, 0]) + first2 * (zk[:, 2] - zk[:, 0])
+    table = np.stack([first1, s1, first2, s2, kfirst, kslope], axis=1).astype(np.float32)[row_of]
+    dcol_f = dcol.astype(np.float32)
+    key = table[:, 4] + table[:, 5] * dcol_f
+    start = ((row0[row_tri] + drow) * width + col0[row_tri] + lo).astype(itype)
+    pixel = start[row_of] + dcol
 
     zbuf = np.full(height * width, -np.inf, np.float32)
     np.maximum.at(zbuf, pixel, key)
@@ -169,14 +173,19 @@ def rasterize(
     slot[pixel[win]] = win.astype(itype)
     covered = np.flatnonzero(slot >= 0)
     chosen = slot[covered]
-    bary = np.stack([l0[chosen], l1[chosen], l2[chosen]], axis=1)
+    t = table[chosen]
+    dc = dcol_f[chosen]
+    l1 = t[:, 0] + t[:, 1] * dc
+    l2 = t[:, 2] + t[:, 3] * dc
+    bary = np.stack([np.float32(1.0) - l1 - l2, l1, l2], axis=1)
+    tri_of = row_tri[row_of[chosen]]
     if perspective:
         # Perspective-correct weights: screen barycentrics divided by depth, renormalised.
-        bary = bary * corner_key[chosen]
+        bary *= zkey.astype(np.float32)[tri_of]
         bary /= key[chosen][:, None]
     return Fragments(
         pixel=covered,
-        face=tri[owner[chosen]].astype(np.int32),
+        face=tri[tri_of].astype(np.int32),
         bary=np.ascontiguousarray(bary, np.float32),
         height=height,
         width=width,

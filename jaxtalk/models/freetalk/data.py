@@ -36,6 +36,7 @@ __all__ = [
 
 _HOP = 160  # 10 ms at 16 kHz
 _BUCKET_SAMPLES = 5 * AUDIO_SAMPLE_RATE
+_BUCKET_FRAMES = 10 * MOTION_FPS
 MEL_FRAMES_PER_FRAME = AUDIO_SAMPLE_RATE // _HOP // MOTION_FPS  # 4
 AUDIO_FEATURE_DIM = 80 * MEL_FRAMES_PER_FRAME  # 320
 
@@ -150,15 +151,25 @@ def mesh_motion(
 
     Returns:
         ``(landmark_disp (T, 68, 3), vertex_disp (T, V', 3), rest_vertices (V', 3))`` float32, metres.
+
+    Raises:
+        ValueError: motion not of shape ``(T > 0, 56)``.
     """
-    m = jnp.asarray(motion, jnp.float32)
-    zero = jnp.zeros((1, PARAM_DIM), jnp.float32)
-    lms = np.asarray(face.landmarks_seq(m)) - neutral_landmarks(face)[None]
-    verts = np.asarray(face.vertices_seq(m))
-    rest = np.asarray(face.vertices_seq(zero))
+    m = np.asarray(motion, np.float32)
+    if m.ndim != 2 or m.shape[1] != PARAM_DIM or m.shape[0] == 0:
+        raise ValueError(f"motion must have shape (frames > 0, {PARAM_DIM}), got {m.shape}")
+    # Row 0 is the neutral face (zero parameters); pad to a whole bucket (repeating the last frame)
+    # so tracks of many lengths share one compiled face program.
+    n = m.shape[0]
+    total = -(-(n + 1) // _BUCKET_FRAMES) * _BUCKET_FRAMES
+    rows = np.concatenate([np.zeros((1, PARAM_DIM), np.float32), m, np.repeat(m[-1:], total - n - 1, axis=0)])
+    rows = jnp.asarray(rows)
+    lms_all = np.asarray(face.landmarks_seq(rows))
+    verts_all = np.asarray(face.vertices_seq(rows))
     if variant is not None:
-        verts = np.asarray(variant.transfer(verts))
-        rest = np.asarray(variant.transfer(rest))
+        verts_all = np.asarray(variant.transfer(verts_all))
+    lms = lms_all[1 : n + 1] - lms_all[:1]
+    verts, rest = verts_all[1 : n + 1], verts_all[:1]
     return lms.astype(np.float32), (verts - rest).astype(np.float32), rest[0].astype(np.float32)
 
 

@@ -1,0 +1,102 @@
+"""Shared pieces of the TokTalk experiments: corpus, trained ``small`` model (cached), evaluation.
+
+The trained parameters are cached as ``.npz`` under ``experiments/results/toktalk_cache/`` keyed by
+the corpus size, seed and number of steps, so the sweep and the quality table reuse one training run.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.data import synthtalk
+from jaxtalk.metrics import jitter, lve
+from jaxtalk.models import toktalk as tt
+from jaxtalk.models.toktalk.train import make_windows, train_adapter, train_base
+from jaxtalk.train import OptimConfig
+
+RESULTS = Path(__file__).resolve().parent / "results"
+CACHE = RESULTS / "toktalk_cache"
+WINDOW = 50
+
+
+def load_corpus(size: str, seed: int = 0):
+    return synthtalk.generate(size, seed, cache_dir=os.environ.get("JAXTALK_CACHE", CACHE / "corpus"))
+
+
+def _save(path: Path, params) -> None:
+    flat = {jax.tree_util.keystr(k): np.asarray(v) for k, v in jax.tree_util.tree_flatten_with_path(params)[0]}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **flat)
+
+
+def _load(path: Path, like):
+    with np.load(path) as z:
+        leaves = [jnp.asarray(z[jax.tree_util.keystr(k)]) for k, _ in jax.tree_util.tree_flatten_with_path(like)[0]]
+    return jax.tree.unflatten(jax.tree.structure(like), leaves)
+
+
+def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0):
+    """Stage 1 then stage 2 on the corpus's train split (cached on disk). Returns (config, params, info)."""
+    cfg = tt.TokTalkConfig.small()
+    tag = f"{corpus.key}-small-s{steps}-a{adapter_steps}-seed{seed}"
+    path = CACHE / f"{tag}.npz"
+    like = jax.eval_shape(lambda k: tt.init_params(cfg, k, adapter_src_dim=48), jax.random.key(0))
+    if path.is_file():
+        return cfg, _load(path, like), {"cached": str(path)}
+    t0 = time.perf_counter()
+    windows = make_windows(corpus, corpus.split("train"), cfg, window_frames=WINDOW, hop_frames=10,
+                           src_stream="B", seed=seed)
+    base = train_base(cfg, windows, OptimConfig(lr=2e-3, warmup_steps=50, total_steps=steps, weight_decay=0.0),
+                      key=jax.random.key(seed), batch_size=16, progress=True, log_every=50)
+    t1 = time.perf_counter()
+    adapted = train_adapter(cfg, base.state.params, windows,
+                            OptimConfig(lr=2e-3, warmup_steps=20, total_steps=adapter_steps, weight_decay=0.0),
+                            key=jax.random.key(seed + 1), src_rate=25.0, batch_size=16, progress=True,
+                            log_every=50)
+    params = adapted.state.params
+    _save(path, params)
+    info = {"stage1_s": t1 - t0, "stage2_s": time.perf_counter() - t1,
+            "stage1_final_loss": base.history[-1]["loss"], "stage2_final_loss": adapted.history[-1]["loss"]}
+    return cfg, params, info
+
+
+def style_clip_for(corpus, clip: int, frames: int, rng: np.random.Generator) -> np.ndarray:
+    """A crop of another clip of the same speaker (the clip itself when the speaker has no other)."""
+    sp = corpus.clips[clip].speaker
+    others = [c.index for c in corpus.clips if c.speaker == sp and c.index != clip] or [clip]
+    ref = np.asarray(corpus.motion(others[int(rng.integers(len(others)))]), np.float32)
+    r0 = int(rng.integers(max(ref.shape[0] - frames, 0) + 1))
+    ref = ref[r0 : r0 + frames]
+    if ref.shape[0] < frames:
+        ref = np.concatenate([ref, np.repeat(ref[-1:], frames - ref.shape[0], 0)])
+    return ref[None]
+
+
+def evaluate(corpus, pred: np.ndarray, clip: int, chunk: int | None = None) -> dict:
+    """MSE (params), LVE (lip vertices, mm^2) and jitter (all frames / near chunk boundaries)."""
+    gt = np.asarray(corpus.motion(clip))
+    n = min(len(gt), len(pred))
+    gt, pred = gt[:n], pred[:n]
+    face = corpus.face(0)
+    lips = np.asarray(face.regions["lips"])
+    v_gt, v_pred = np.asarray(face.vertices_seq(gt)), np.asarray(face.vertices_seq(pred))
+    out = {
+        "frames": n,
+        "mse": float(np.mean(np.square(pred - gt))),
+        "lve_mm2": float(lve(v_pred, v_gt, lips)) * 1e6,
+        "jitter": float(jitter(pred)),
+    }
+    if chunk is not None and n > chunk + 1:
+        out["jitter_boundary"] = float(jitter(pred, list(range(chunk, n - 1, chunk))))
+    return out
+
+
+def weighted_mean(rows: list[dict], key: str) -> float:
+    w = np.array([r["frames"] for r in rows], float)
+    return float(np.sum(w * np.array([r[key] for r in rows])) / w.sum())

@@ -1,0 +1,92 @@
+"""TokTalk Table 5 on SynthTalk test: chunk {0.4, 0.8, 1.2} s x Euler steps {1, 5, 10, 20}.
+
+Streaming engine with the trained ``small`` model (the same weights for every cell: chunk size and step
+count are inference settings). Per cell: parameter MSE, LVE (mm^2, built-in face), jitter near chunk
+boundaries (mean |second difference| within 2 frames of a boundary) and over all frames, median
+per-chunk latency (compile excluded) and the compile time of the cell's program.
+
+The paper's claim to check: quality and smoothness improve with more steps and larger chunks.
+
+Usage: ``python experiments/toktalk_sweep.py [--size tiny] [--steps 1500] [--clips 4]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.benchmarking import machine_info, print_table, write_json
+from jaxtalk.models import toktalk as tt
+from jaxtalk.models.toktalk import stream as stream_mod
+from jaxtalk.models.toktalk.sample import default_grid
+from toktalk_common import RESULTS, evaluate, load_corpus, style_clip_for, trained_small, weighted_mean
+
+CHUNKS = (10, 20, 30)
+STEPS = (1, 5, 10, 20)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="tiny")
+    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--adapter-steps", type=int, default=400)
+    parser.add_argument("--clips", type=int, default=4)
+    parser.add_argument("--out", default=str(RESULTS / "toktalk_sweep.json"))
+    args = parser.parse_args()
+    corpus = load_corpus(args.size)
+    base_cfg, params, _ = trained_small(corpus, args.steps, args.adapter_steps)
+    clips = corpus.split("test")[: args.clips]
+    rng = np.random.default_rng(0)
+    styles = {c: tt.encode_style(params, base_cfg, style_clip_for(corpus, c, base_cfg.style_frames, rng)) for c in clips}
+    table = []
+    for chunk in CHUNKS:
+        cfg = dataclasses.replace(base_cfg, chunk_frames=chunk, context_frames=max(20, chunk))
+        for n in STEPS:
+            ts = default_grid(cfg, n)
+            # Compile time of this cell's program (fresh shapes: the grid length is static).
+            state = tt.init_stream(cfg, jax.random.key(0))
+            ct = tt.tokens_per_chunk(cfg)
+            probe = jnp.zeros((1, ct, cfg.token_dim))
+            t0 = time.perf_counter()
+            jax.block_until_ready(tt.stream_step(params, cfg, state, probe, styles[clips[0]], ts=ts)[1])
+            compile_s = time.perf_counter() - t0
+            step = functools.partial(stream_mod._stream_step, config=cfg)
+            lat = []
+            for _ in range(5):
+                t1 = time.perf_counter()
+                jax.block_until_ready(step(params, state, probe, styles[clips[0]], jnp.float32(cfg.cfg_scale),
+                                           jnp.asarray(ts, jnp.float32))[1])
+                lat.append(time.perf_counter() - t1)
+            rows = []
+            for i, c in enumerate(clips):
+                tok = np.asarray(corpus.tokens(c, "A").embeddings)[None]
+                pred = np.asarray(tt.stream(params, cfg, tok, styles[c], jax.random.key(7 + i), ts=ts))[0]
+                rows.append(evaluate(corpus, pred, c, chunk))
+            table.append({
+                "chunk_s": chunk / cfg.fps, "steps": n, "mse": weighted_mean(rows, "mse"),
+                "lve_mm2": weighted_mean(rows, "lve_mm2"), "jitter_boundary": weighted_mean(rows, "jitter_boundary"),
+                "jitter_all": weighted_mean(rows, "jitter"), "latency_ms": 1e3 * float(np.median(lat)),
+                "compile_s": compile_s,
+            })
+            print(table[-1], flush=True)
+    print_table(table, f"TokTalk Table 5 on SynthTalk {args.size} test ({len(clips)} clips, streaming)")
+    grid = {(r["chunk_s"], r["steps"]): r for r in table}
+    more_steps = all(grid[(c / 25, 20)]["jitter_boundary"] < grid[(c / 25, 1)]["jitter_boundary"] for c in CHUNKS)
+    bigger_chunk = all(grid[(CHUNKS[-1] / 25, n)]["jitter_boundary"] < grid[(CHUNKS[0] / 25, n)]["jitter_boundary"]
+                       for n in STEPS)
+    mse_steps = all(grid[(c / 25, 20)]["mse"] <= grid[(c / 25, 1)]["mse"] for c in CHUNKS)
+    mse_chunk = all(grid[(CHUNKS[-1] / 25, n)]["mse"] <= grid[(CHUNKS[0] / 25, n)]["mse"] for n in STEPS)
+    claims = {"jitter_improves_with_steps": more_steps, "jitter_improves_with_chunk": bigger_chunk,
+              "mse_improves_with_steps": mse_steps, "mse_improves_with_chunk": mse_chunk}
+    print_table([{k: str(v) for k, v in claims.items()}], "Paper claims (20 vs 1 steps; 1.2 s vs 0.4 s chunks)")
+    write_json(args.out, {"machine": machine_info(), "args": vars(args), "table": table, "claims": claims})
+
+
+if __name__ == "__main__":
+    main()
