@@ -28,7 +28,9 @@ import numpy as np
 
 from jaxtalk.benchmarking import machine_info, measure_matmul_peak, print_table, write_json, xla_flops
 from jaxtalk.models import toktalk as tt
-from jaxtalk.models.toktalk import stream as stream_mod
+import importlib
+
+stream_mod = importlib.import_module("jaxtalk.models.toktalk.stream")  # the package re-exports stream()
 from jaxtalk.models.toktalk.model import Condition, velocity
 from jaxtalk.models.toktalk.sample import default_grid
 

@@ -69,3 +69,19 @@ def test_stm_windows_pad_vertices():
         data.stm_windows(tracks, 6)
     with pytest.raises(ValueError, match="window"):
         data.stm_windows(tracks, 8, window=11)
+
+
+def test_landmark_motion_and_head_pose_removal():
+    face = builtin_face(2, resolution="low")
+    motion = np.zeros((4, 56), np.float32)
+    motion[:, 53] = 0.1  # neck pitch only: a rigid head rotation
+    motion[2, 50] = 0.15
+    stripped = data.without_head_pose(motion)
+    assert np.all(stripped[:, 53:] == 0) and stripped[2, 50] == np.float32(0.15) and motion[0, 53] != 0
+    lms = data.landmark_motion(face, motion)
+    assert np.abs(lms[0]).max() > 1e-3  # the rotation moves the landmarks
+    lms_face = data.landmark_motion(face, stripped)
+    np.testing.assert_allclose(lms_face[0], 0.0, atol=1e-7)  # no deformation without head pose
+    np.testing.assert_allclose(lms_face, data.mesh_motion(face, stripped)[0], atol=1e-7)
+    with pytest.raises(ValueError, match="motion must have shape"):
+        data.landmark_motion(face, np.zeros((3, 55), np.float32))

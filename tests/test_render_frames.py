@@ -9,7 +9,7 @@ import pytest
 from jaxtalk.face import builtin_face
 from jaxtalk.geometry.topology import make_variant
 from jaxtalk.layout import JAW_OPEN_INDEX
-from jaxtalk.render import RenderStyle, fit_camera, iter_frames, render_frame, render_frames
+from jaxtalk.render import RenderStyle, cavity_weights, fit_camera, iter_frames, render_frame, render_frames
 
 SIZE = 128
 
@@ -123,6 +123,35 @@ def test_style_options(face, clip, camera):
     tinted = render_frame(clip[0], faces, camera, vertex_colors=red).astype(int)
     centre = tinted[SIZE // 2 - 5 : SIZE // 2 + 5, SIZE // 2 - 5 : SIZE // 2 + 5]
     assert np.all(centre[..., 0] > centre[..., 1] + 40)
+
+
+def test_cavity_weights_by_hand():
+    rest = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    posed = rest.copy()
+    posed[3] = [2.0, 2.0, 0.0]  # second triangle: area 0.5 -> 1.5 (ratio 3); first unchanged
+    w = cavity_weights(posed, rest, faces, 2.5)
+    np.testing.assert_allclose(w, [0.0, (3.0 - 2.5) / 2.5], rtol=1e-6)
+    posed[3] = [4.0, 4.0, 0.0]  # ratio 7 >= 2 * 2.5: fully cavity
+    np.testing.assert_allclose(cavity_weights(posed, rest, faces, 2.5), [0.0, 1.0])
+
+
+def test_rest_pose_draws_the_open_mouth_dark(face, clip, camera):
+    faces, rest = np.asarray(face.faces), np.asarray(face.template)
+    # At rest nothing is stretched: the image is unchanged.
+    np.testing.assert_array_equal(
+        render_frame(clip[0], faces, camera, rest_vertices=rest), render_frame(clip[0], faces, camera)
+    )
+    plain = render_frame(clip[1], faces, camera).astype(float)
+    dark = render_frame(clip[1], faces, camera, rest_vertices=rest).astype(float)
+    changed = np.abs(dark - plain).max(-1) > 0
+    lips = face.regions["lips"]
+    mouth = _window(camera, np.concatenate([clip[0][lips], clip[1][lips]]))
+    assert changed[mouth].sum() > 30 and changed.sum() == changed[mouth].sum()  # only in the mouth
+    assert dark[changed].mean() < plain[changed].mean() - 15  # darker there,
+    assert (dark[mouth].mean(-1) < 80).sum() > 20  # with a core of cavity colour
+    with pytest.raises(ValueError, match="rest_vertices"):
+        render_frame(clip[1], faces, camera, rest_vertices=rest[:-1])
 
 
 def test_bad_inputs_raise_clear_errors(face, clip, camera):

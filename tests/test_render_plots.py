@@ -28,7 +28,7 @@ def _history(num: int = 60):
     return hist
 
 
-def _check_png(path, min_size=(200, 200)):
+def _check_png(path, min_size=(120, 120)):
     image = iio.imread(path)
     assert image.ndim == 3 and image.shape[0] >= min_size[1] and image.shape[1] >= min_size[0]
     # Not blank: many distinct colours (axes, text, data).
@@ -55,11 +55,11 @@ def test_pivot_sweep_errors():
 
 
 def test_sweep_plots_write_pngs(tmp_path):
-    out = plot_sweep(tmp_path / "sweep.png", RECORDS, row="chunk", col="steps", metrics=["lve", "latency_ms"], title="t")
+    out = plot_sweep(tmp_path / "sweep.png", RECORDS, row="chunk", col="steps", metrics=["lve", "latency_ms"], title="t", dpi=60)
     wide = _check_png(out)
-    single = _check_png(plot_sweep(tmp_path / "one.png", RECORDS, row="chunk", col="steps", metrics=["lve"]))
+    single = _check_png(plot_sweep(tmp_path / "one.png", RECORDS, row="chunk", col="steps", metrics=["lve"], dpi=60))
     assert wide.shape[1] > 1.6 * single.shape[1]  # one panel per metric
-    _check_png(plot_sweep_lines(tmp_path / "lines.png", RECORDS, x="steps", metrics=["lve"], group="chunk", log_x=True))
+    _check_png(plot_sweep_lines(tmp_path / "lines.png", RECORDS, x="steps", metrics=["lve"], group="chunk", log_x=True, dpi=60))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["lines.png", "one.png", "sweep.png"]
 
 
@@ -71,6 +71,8 @@ def test_training_series_reads_the_loop_history():
     np.testing.assert_allclose(gn, 1.0 / steps)
     esteps, evals = training_series(hist, "loss", source="eval")
     assert esteps.tolist() == [20.0, 60.0] and evals.tolist() == [0.5, 0.2]
+    with pytest.raises(ValueError, match="source"):
+        training_series(hist, "loss", source="test")
 
 
 def test_moving_average_by_hand():
@@ -79,7 +81,7 @@ def test_moving_average_by_hand():
 
 
 def test_training_curves_png_and_errors(tmp_path):
-    _check_png(plot_training_curves(tmp_path / "curves.png", _history(), metrics=["loss", "grad_norm", "lr"]))
+    _check_png(plot_training_curves(tmp_path / "curves.png", _history(), metrics=["loss", "grad_norm", "lr"], dpi=60))
     with pytest.raises(ValueError, match="'nope' is not in the history; it has .*grad_norm"):
         plot_training_curves(tmp_path / "x.png", _history(), metrics=["nope"])
     with pytest.raises(ValueError, match="history is empty"):

@@ -13,6 +13,8 @@ import pytest
 from jaxtalk.render import fit_audio, probe_media, render_clip, save_png, write_gif, write_mp4
 
 SR = 16_000
+# imageio's ffmpeg reader (used here to read files back) forks+execs ffmpeg; JAX warns on any fork.
+pytestmark = pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")
 
 
 def _frames(num: int = 12, height: int = 48, width: int = 64) -> np.ndarray:
@@ -92,6 +94,14 @@ def test_fit_audio_rule():
         assert fit_audio(np.zeros((4000, 2), np.float32), 10).shape == (6400, 2)
     with pytest.raises(ValueError, match="wrong sample_rate"):
         fit_audio(np.zeros(48_000, np.float32), 10)
+
+
+def test_mp4_audio_off_by_some_frames_warns_once_and_is_trimmed(tmp_path):
+    with pytest.warns(UserWarning) as record:
+        out = write_mp4(tmp_path / "long.mp4", _frames(10), audio=_tone(0.7))  # video: 0.4 s
+    assert len([w for w in record if "trimmed" in str(w.message)]) == 1
+    info = probe_media(out)
+    assert info.has_audio and abs(info.duration_s - 0.4) < 0.06  # not the 0.7 s of the input audio
 
 
 def test_errors(tmp_path):

@@ -130,7 +130,19 @@ class FrameBandedSolver(lx.AbstractLinearSolver):
     Use as the ``linear_solver`` of ``optimistix.LevenbergMarquardt`` or ``optimistix.GaussNewton``
     when the residual function follows the contract in this module's docstring. ``O(T n^3)`` per
     solve instead of dense QR's ``O(rows (T n)^2)``.
+
+    Attributes:
+        ridge: added to the unit diagonal of the Jacobi-scaled normal matrix. ``None``: ``10 n``
+            machine epsilons of the dtype (~7e-5 in float32 at n = 56, ~1e-13 in float64), enough
+            to keep Cholesky positive definite when the Jacobian is rank deficient (a face model
+            whose components the data cannot tell apart) or the damping is below rounding. It
+            changes the step, never the fixed point: a Gauss-Newton or Levenberg-Marquardt
+            iteration stops where ``A^T b = 0`` whatever the step's conditioning, so the fit is
+            unaffected, and along exact null directions the step stays zero (minimum norm). ``0``
+            reports a singular system as ``RESULTS.singular``.
     """
+
+    ridge: float | None = None
 
     def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
         del options
@@ -139,6 +151,8 @@ class FrameBandedSolver(lx.AbstractLinearSolver):
         d = jnp.diagonal(diag, axis1=-2, axis2=-1)
         scale = jnp.where(d > 0, jax.lax.rsqrt(jnp.where(d > 0, d, 1.0)), 1.0)
         diag = diag * scale[:, :, None] * scale[:, None, :]
+        ridge = 10 * diag.shape[-1] * float(jnp.finfo(diag.dtype).eps) if self.ridge is None else self.ridge
+        diag = diag + ridge * jnp.eye(diag.shape[-1], dtype=diag.dtype)
         lower = lower * scale[1:, :, None] * scale[:-1, None, :]
         return operator, diag, lower, scale
 

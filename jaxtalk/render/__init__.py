@@ -16,7 +16,7 @@ from jaxtalk.render.clip import render_clip
 from jaxtalk.render.frames import caption_strip, iter_frames, render_frame, render_frames
 from jaxtalk.render.plots import pivot_sweep, plot_sweep, plot_sweep_lines, plot_training_curves, training_series
 from jaxtalk.render.rasterize import Fragments, rasterize
-from jaxtalk.render.shading import RenderStyle, vertex_normals
+from jaxtalk.render.shading import RenderStyle, cavity_weights, vertex_normals
 from jaxtalk.render.video import MediaInfo, fit_audio, probe_media, save_png, write_gif, write_mp4
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "rasterize",
     "RenderStyle",
     "vertex_normals",
+    "cavity_weights",
     "render_frame",
     "iter_frames",
     "render_frames",

@@ -147,9 +147,10 @@ def fit_camera(
         width: image width in pixels.
         height: image height in pixels.
         margin: fraction of the image left empty around the points, in ``[0, 1)``.
-        fov_deg: vertical-ish field of view of the perspective camera in degrees, in ``(0, 120)``;
-            small values approach an orthographic look (portrait lens: 10-20 degrees).
-        orthographic: parallel projection (``fov_deg`` then only sets the depth offset).
+        fov_deg: apex angle in degrees, in ``(0, 120)``, of the viewing cone that the points'
+            bounding sphere fills: it sets the camera distance and so the strength of perspective
+            (small values approach an orthographic look; 10-20 degrees is a portrait lens).
+        orthographic: parallel projection (``fov_deg`` then only sets the camera distance).
         yaw_deg: orbit about the vertical axis in degrees.
         pitch_deg: orbit about the horizontal axis in degrees, in ``(-90, 90)``.
 

@@ -12,7 +12,7 @@ from jaxtalk.render._atomic import check_output_path
 from jaxtalk.render.camera import Camera
 from jaxtalk.render.frames import iter_frames
 from jaxtalk.render.shading import RenderStyle
-from jaxtalk.render.video import write_gif, write_mp4
+from jaxtalk.render.video import check_audio_duration, write_gif, write_mp4
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array, Float, Int
 
 # Python scalars: beartype (under pytest) does not promote int to float.
@@ -36,6 +36,7 @@ def render_clip(
     size: int | tuple[int, int] = 256,
     style: RenderStyle = RenderStyle(),
     vertex_colors: Float[ArrayLike, "..."] | Sequence[Float[ArrayLike, "..."] | None] | None = None,
+    rest_vertices: Float[ArrayLike, "..."] | Sequence[Float[ArrayLike, "..."] | None] | None = None,
 ) -> Path:
     """Render vertex sequences (one clip, or several side by side) to an mp4 or a GIF.
 
@@ -53,6 +54,7 @@ def render_clip(
         size: panel size when the camera is fitted, ``side`` or ``(width, height)``.
         style: colours, lights and anti-aliasing.
         vertex_colors: optional per-vertex albedo (see ``iter_frames``).
+        rest_vertices: optional rest pose(s) to draw the open mouth as a cavity (see ``iter_frames``).
 
     Returns:
         The written path.
@@ -66,14 +68,13 @@ def render_clip(
     if out.suffix.lower() == ".gif" and audio is not None:
         raise ValueError(f"a GIF cannot carry audio; write an .mp4 instead of {str(out)!r}")
     frames = iter_frames(
-        vertices, faces, camera=camera, size=size, captions=captions, style=style, vertex_colors=vertex_colors
+        vertices, faces, camera=camera, size=size, captions=captions, style=style, vertex_colors=vertex_colors,
+        rest_vertices=rest_vertices,
     )
     if out.suffix.lower() == ".gif":
         return write_gif(out, frames, fps=fps)
     if audio is not None:
         # Check the duration rule before spending time on rendering.
-        from jaxtalk.render.video import fit_audio
-
         num_frames = np.shape(vertices[0] if isinstance(vertices, (list, tuple)) else vertices)[0]
-        fit_audio(audio, num_frames, fps=fps, sample_rate=sample_rate)
+        check_audio_duration(audio, num_frames, fps=fps, sample_rate=sample_rate)
     return write_mp4(out, frames, fps=fps, audio=audio, sample_rate=sample_rate)

@@ -15,7 +15,7 @@ import numpy as np
 
 from jaxtalk.render.camera import Camera, fit_camera
 from jaxtalk.render.rasterize import rasterize
-from jaxtalk.render.shading import RenderStyle, shade
+from jaxtalk.render.shading import RenderStyle, cavity_weights, shade
 from jaxtyping import UInt8
 
 from jaxtalk.types import Array, Float, Int, Shaped
@@ -120,13 +120,21 @@ def _scaled(camera: Camera, factor: int) -> Camera:
 
 
 def _render_checked(
-    vertices: np.ndarray, faces: np.ndarray, camera: Camera, style: RenderStyle, colors: np.ndarray | None
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    camera: Camera,
+    style: RenderStyle,
+    colors: np.ndarray | None,
+    rest: np.ndarray | None,
 ) -> np.ndarray:
     cam = _scaled(camera, style.supersample)
     verts_cam = cam.to_camera(vertices)
     xy, depth = cam.project_camera(verts_cam)
     frags = rasterize(xy, depth, faces, cam.height, cam.width, perspective=not cam.orthographic)
-    colors = shade(frags, verts_cam, faces, style, vertex_colors=colors, orthographic=cam.orthographic)
+    cavity = None if rest is None else cavity_weights(vertices, rest, faces, style.cavity_stretch)
+    colors = shade(
+        frags, verts_cam, faces, style, vertex_colors=colors, cavity=cavity, orthographic=cam.orthographic
+    )
     return _compose(frags.pixel, colors, cam.height, cam.width, style)
 
 
@@ -141,6 +149,15 @@ def _check_colors(colors: Shaped[ArrayLike, "..."] | None, num_vertices: int) ->
     return c
 
 
+def _check_rest(rest: Shaped[ArrayLike, "..."] | None, num_vertices: int, name: str = "rest_vertices") -> np.ndarray | None:
+    if rest is None:
+        return None
+    r = check_vertices(rest, name=name, batched=False)
+    if r.shape[0] != num_vertices:
+        raise ValueError(f"{name} has {r.shape[0]} vertices but the mesh has {num_vertices}")
+    return r
+
+
 def render_frame(
     vertices: Float[ArrayLike, "..."],
     faces: Int[ArrayLike, "..."],
@@ -148,6 +165,7 @@ def render_frame(
     *,
     style: RenderStyle = RenderStyle(),
     vertex_colors: Float[ArrayLike, "..."] | None = None,
+    rest_vertices: Float[ArrayLike, "..."] | None = None,
 ) -> UInt8[np.ndarray, "height width 3"]:
     """Render one shaded frame of a triangle mesh.
 
@@ -157,17 +175,21 @@ def render_frame(
         camera: the view (its ``width``/``height`` set the image size).
         style: colours, lights and anti-aliasing.
         vertex_colors: optional per-vertex albedo in ``[0, 1]``, ``(V, 3)``.
+        rest_vertices: optional rest pose of the mesh (e.g. the model's template), ``(V, 3)``: then
+            triangles stretched far beyond their rest area (the skin spanning an open mouth) are
+            drawn as mouth cavity (``shading.cavity_weights``).
 
     Returns:
         RGB image, ``(camera.height, camera.width, 3)`` uint8.
 
     Raises:
         ValueError: for malformed or non-finite vertices, faces that index missing vertices, or
-            vertex colours of the wrong shape/range.
+            vertex colours / rest vertices of the wrong shape.
     """
     v = check_vertices(vertices, batched=False)
     f = check_faces(faces, v.shape[0])
-    return _render_checked(v, f, camera, style, _check_colors(vertex_colors, v.shape[0]))
+    rest = _check_rest(rest_vertices, v.shape[0])
+    return _render_checked(v, f, camera, style, _check_colors(vertex_colors, v.shape[0]), rest)
 
 
 @functools.lru_cache(maxsize=8)
@@ -211,6 +233,14 @@ def _as_list(x, name: str) -> list:
     return [x]
 
 
+def _per_clip(value, n: int, name: str) -> list:
+    """One entry per clip from None, a single array (shared), or a list with one entry per clip."""
+    values = list(value) if isinstance(value, (list, tuple)) else [value] * n
+    if len(values) != n:
+        raise ValueError(f"got {len(values)} {name} for {n} clips")
+    return values
+
+
 def iter_frames(
     vertices: Float[ArrayLike, "..."] | Sequence[Float[ArrayLike, "..."]],
     faces: Int[ArrayLike, "..."] | Sequence[Int[ArrayLike, "..."]],
@@ -220,7 +250,8 @@ def iter_frames(
     captions: Sequence[str] | None = None,
     style: RenderStyle = RenderStyle(),
     vertex_colors: Float[ArrayLike, "..."] | Sequence[Float[ArrayLike, "..."] | None] | None = None,
-    margin: float = 0.08,
+    rest_vertices: Float[ArrayLike, "..."] | Sequence[Float[ArrayLike, "..."] | None] | None = None,
+    margin: int | float = 0.08,
 ) -> Iterator[UInt8[np.ndarray, "height total_width 3"]]:
     """Render a clip frame by frame (a generator, so long clips never sit in memory at once).
 
@@ -229,13 +260,15 @@ def iter_frames(
 
     Args:
         vertices: one clip ``(T, V, 3)`` or a list of clips ``(T, V_i, 3)`` with the same ``T``.
-        faces: the triangles ``(F, 3)``: one array for every clip, or one per clip.
+        faces: the triangles ``(F, 3)``: one array for every clip, or a list with one per clip.
         camera: the view of every panel; default: ``fit_camera`` on all frames of all clips (so the
             whole motion stays inside the image) with ``size`` and ``margin``.
         size: panel size in pixels, ``side`` or ``(width, height)``, when ``camera`` is None.
         captions: one caption per clip, drawn in a strip above each panel (None: no strip).
         style: colours, lights and anti-aliasing.
         vertex_colors: per-vertex albedo ``(V_i, 3)``: None, one array for every clip, or one per clip.
+        rest_vertices: rest pose ``(V_i, 3)`` (None, one for every clip, or one per clip) to draw the
+            open mouth as a cavity (see ``render_frame``).
         margin: framing margin when the camera is fitted.
 
     Yields:
@@ -248,20 +281,15 @@ def iter_frames(
     """
     clips = [check_vertices(v, name=f"vertices[{i}]") for i, v in enumerate(_as_list(vertices, "vertices"))]
     n = len(clips)
-    lengths = {c.shape[0] for c in clips}
-    if len(lengths) != 1:
+    num_frames = clips[0].shape[0]
+    if any(c.shape[0] != num_frames for c in clips):
         raise ValueError(f"clips must have the same number of frames, got {[c.shape[0] for c in clips]}")
-    face_list = _as_list(faces, "faces") if isinstance(faces, (list, tuple)) else [faces] * n
-    if len(face_list) != n:
-        raise ValueError(f"got {len(face_list)} face arrays for {n} clips")
+    face_list = _per_clip(faces, n, "face arrays")
     face_list = [check_faces(f, c.shape[1], name=f"faces[{i}]") for i, (f, c) in enumerate(zip(face_list, clips))]
-    if vertex_colors is None or not isinstance(vertex_colors, (list, tuple)):
-        color_list = [vertex_colors] * n
-    else:
-        color_list = list(vertex_colors)
-    if len(color_list) != n:
-        raise ValueError(f"got {len(color_list)} vertex_colors for {n} clips")
+    color_list = _per_clip(vertex_colors, n, "vertex_colors")
     color_list = [_check_colors(c, clip.shape[1]) for c, clip in zip(color_list, clips)]
+    rest_list = _per_clip(rest_vertices, n, "rest_vertices")
+    rest_list = [_check_rest(r, clip.shape[1], f"rest_vertices[{i}]") for i, (r, clip) in enumerate(zip(rest_list, clips))]
     if captions is not None and len(captions) != n:
         raise ValueError(f"got {len(captions)} captions for {n} clips")
     if camera is None:
@@ -272,8 +300,11 @@ def iter_frames(
     strips = None if captions is None else [caption_strip(t, camera.width, style) for t in captions]
 
     def generate() -> Iterator[np.ndarray]:
-        for t in range(lengths.pop()):
-            panels = [_render_checked(c[t], f, camera, style, col) for c, f, col in zip(clips, face_list, color_list)]
+        for t in range(num_frames):
+            panels = [
+                _render_checked(c[t], f, camera, style, col, rest)
+                for c, f, col, rest in zip(clips, face_list, color_list, rest_list)
+            ]
             if strips is not None:
                 panels = [np.concatenate([s, p], axis=0) for s, p in zip(strips, panels)]
             yield panels[0] if n == 1 else np.concatenate(panels, axis=1)

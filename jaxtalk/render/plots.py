@@ -228,7 +228,12 @@ def training_series(history: Sequence[Mapping[str, Any]], metric: str, *, source
 
     Returns:
         ``(steps, values)`` as float arrays in history order (entries without the metric skipped).
+
+    Raises:
+        ValueError: for a ``source`` other than "train" or "eval".
     """
+    if source not in ("train", "eval"):
+        raise ValueError(f"source must be 'train' or 'eval', got {source!r}")
     steps, values = [], []
     for entry in history:
         if source == "eval":

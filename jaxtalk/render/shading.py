@@ -22,7 +22,7 @@ from jaxtalk.types import Float, Int
 # Python scalars: beartype (under pytest) does not promote int to float.
 Real = int | float
 
-__all__ = ["RenderStyle", "vertex_normals", "shade"]
+__all__ = ["RenderStyle", "vertex_normals", "cavity_weights", "shade"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,6 +40,10 @@ class RenderStyle:
         specular: Blinn-Phong specular strength of the key light.
         shininess: Blinn-Phong exponent.
         backface_dim: albedo factor for triangles seen from behind (the inside of the mask).
+        cavity_color: colour of the mouth cavity drawn over strongly stretched triangles (see
+            ``cavity_weights``; only when a rest mesh is given to the frame renderer).
+        cavity_stretch: area ratio (posed / rest) at which a triangle starts turning into cavity;
+            it is fully cavity at twice this ratio.
         gamma: display gamma applied to the linear result.
         supersample: render at this many times the resolution per axis and average down
             (anti-aliasing; cost grows with its square).
@@ -55,15 +59,19 @@ class RenderStyle:
     specular: Real = 0.12
     shininess: Real = 24.0
     backface_dim: Real = 0.35
+    cavity_color: tuple[Real, Real, Real] = (0.22, 0.06, 0.07)
+    cavity_stretch: Real = 2.5
     gamma: Real = 2.2
     supersample: int = 1
 
     def __post_init__(self) -> None:
         if isinstance(self.supersample, bool) or not isinstance(self.supersample, int) or self.supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {self.supersample!r}")
+        if self.cavity_stretch <= 1:
+            raise ValueError(f"cavity_stretch must be > 1 (an area ratio), got {self.cavity_stretch}")
         if self.gamma <= 0:
             raise ValueError(f"gamma must be positive, got {self.gamma}")
-        for name in ("base_color", "background"):
+        for name in ("base_color", "background", "cavity_color"):
             color = getattr(self, name)
             if len(color) != 3 or not all(0.0 <= c <= 1.0 for c in color):
                 raise ValueError(f"{name} must be 3 values in [0, 1], got {color}")
@@ -99,6 +107,34 @@ def _vertex_normals_from(fn: np.ndarray, faces: np.ndarray, num: int) -> np.ndar
     return _unit(acc).astype(np.float32)
 
 
+def cavity_weights(
+    vertices: Float[np.ndarray, "verts 3"],
+    rest_vertices: Float[np.ndarray, "verts 3"],
+    faces: Int[np.ndarray, "tris 3"],
+    stretch: Real,
+) -> Float[np.ndarray, "tris"]:
+    """How much each triangle shows the mouth cavity, from its stretch against a rest mesh.
+
+    A face mesh has no mouth interior: an open mouth is the skin between the lips stretched many
+    times its rest area (the built-in face's lip-seam triangles grow 10-30x at 0.35 rad of jaw).
+    Those triangles are drawn as cavity, blending in from ``stretch`` to ``2 * stretch`` times the
+    rest area, so the open mouth reads as dark and a closed one is unchanged.
+
+    Args:
+        vertices: posed vertices, ``(V, 3)``.
+        rest_vertices: the same mesh at rest (e.g. the template), ``(V, 3)``.
+        faces: triangles, ``(F, 3)``.
+        stretch: area ratio where the blend starts (> 1).
+
+    Returns:
+        Blend weights in ``[0, 1]``, ``(F,)`` float32.
+    """
+    posed = np.linalg.norm(face_normals(np.asarray(vertices, np.float32), faces), axis=1)
+    rest = np.linalg.norm(face_normals(np.asarray(rest_vertices, np.float32), faces), axis=1)
+    ratio = posed / np.maximum(rest, np.float32(1e-30))
+    return np.clip((ratio - stretch) / stretch, 0.0, 1.0).astype(np.float32)
+
+
 def shade(
     fragments: Fragments,
     vertices_cam: Float[np.ndarray, "verts 3"],
@@ -106,6 +142,7 @@ def shade(
     style: RenderStyle,
     *,
     vertex_colors: Float[np.ndarray, "verts 3"] | None = None,
+    cavity: Float[np.ndarray, "tris"] | None = None,
     orthographic: bool = False,
 ) -> Float[np.ndarray, "n 3"]:
     """Colours of the visible fragments of a mesh given in camera coordinates.
@@ -122,6 +159,7 @@ def shade(
         faces: its triangles, ``(F, 3)``.
         style: colours and lights.
         vertex_colors: optional per-vertex albedo in ``[0, 1]`` (display colours), ``(V, 3)``.
+        cavity: optional per-triangle blend towards ``style.cavity_color`` (``cavity_weights``), ``(F,)``.
         orthographic: the view direction is +z everywhere (else it points to the camera at 0).
 
     Returns:
@@ -147,7 +185,14 @@ def shade(
     seen_from_back = ((fn * centroid_view).sum(1) < 0)[fragments.face]
     tri = tri + np.int32(verts.shape[0]) * seen_from_back[:, None].astype(np.int32)
     b = fragments.bary
-    return b[:, 0:1] * table[tri[:, 0]] + b[:, 1:2] * table[tri[:, 1]] + b[:, 2:3] * table[tri[:, 2]]
+    colors = b[:, 0:1] * table[tri[:, 0]] + b[:, 1:2] * table[tri[:, 1]] + b[:, 2:3] * table[tri[:, 2]]
+    if cavity is not None:
+        blend = np.asarray(cavity, np.float32)[fragments.face]
+        hit = np.flatnonzero(blend > 0)
+        if hit.size:
+            dark = np.float32(255.0) * np.asarray(style.cavity_color, np.float32)
+            colors[hit] += blend[hit, None] * (dark - colors[hit])
+    return colors
 
 
 def _lit(normal: np.ndarray, view: np.ndarray, albedo: np.ndarray, style: RenderStyle) -> np.ndarray:

@@ -13,6 +13,7 @@ sample rate or the wrong clip).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import re
@@ -108,6 +109,24 @@ def fit_audio(
     return np.concatenate([a, np.zeros((-diff, *a.shape[1:]), np.float32)])
 
 
+def check_audio_duration(
+    audio: Float[ArrayLike, "..."],
+    num_frames: int,
+    *,
+    fps: Real = MOTION_FPS,
+    sample_rate: int = AUDIO_SAMPLE_RATE,
+    tolerance_s: Real = 0.5,
+) -> None:
+    """Raise now what ``fit_audio`` would raise later (used before spending time on rendering).
+
+    Raises:
+        ValueError: as ``fit_audio``; its warning is left for the real call.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        fit_audio(audio, num_frames, fps=fps, sample_rate=sample_rate, tolerance_s=tolerance_s)
+
+
 def _check_frame(frame: np.ndarray, index: int, shape: tuple[int, ...] | None) -> np.ndarray:
     f = np.asarray(frame)
     if f.dtype != np.uint8 or f.ndim != 3 or f.shape[2] != 3:
@@ -125,6 +144,19 @@ def _even(frame: np.ndarray) -> np.ndarray:
     if h % 2 == 0 and w % 2 == 0:
         return frame
     return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+
+
+@contextlib.contextmanager
+def _quiet_fork_warning():
+    """Silence JAX's os.fork() warning around launching ffmpeg.
+
+    JAX warns on any fork in a process where it runs threads, because a forked child that keeps
+    running Python can deadlock. Launching ffmpeg forks and immediately execs a new program, which
+    is safe, so the warning is noise here (and only here).
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        yield
 
 
 def _ffmpeg() -> str:
@@ -157,7 +189,8 @@ def _encode_video(path: Path, frames: Frames, fps: Real, crf: int) -> int:
                     ffmpeg_log_level="error",
                     output_params=["-crf", str(crf), "-movflags", "+faststart"],
                 )
-                writer.send(None)  # start the generator (launches ffmpeg)
+                with _quiet_fork_warning():
+                    writer.send(None)  # start the generator (launches ffmpeg)
             writer.send(np.ascontiguousarray(_even(f)))
         if writer is None:
             raise ValueError("no frames to write")
@@ -206,8 +239,8 @@ def write_mp4(
         raise ValueError(f"crf must be an integer in [0, 51], got {crf!r}")
     if audio is not None:
         audio = _check_audio(audio, sample_rate)  # fail before encoding anything
-        if isinstance(frames, np.ndarray) and frames.ndim == 4:
-            fit_audio(audio, frames.shape[0], fps=fps, sample_rate=sample_rate, tolerance_s=audio_tolerance_s)
+        if isinstance(frames, np.ndarray) and frames.ndim == 4 and frames.shape[0] > 0:
+            check_audio_duration(audio, frames.shape[0], fps=fps, sample_rate=sample_rate, tolerance_s=audio_tolerance_s)
     with atomic_output(out) as tmp:
         if audio is None:
             _encode_video(tmp, frames, fps, crf)
@@ -225,7 +258,8 @@ def write_mp4(
                 "-map", "0:v:0", "-map", "1:a:0", "-c:v", "copy", "-c:a", "aac", "-b:a", "128k",
                 "-movflags", "+faststart", str(tmp),
             ]  # fmt: skip
-            result = subprocess.run(cmd, capture_output=True, text=True)
+            with _quiet_fork_warning():
+                result = subprocess.run(cmd, capture_output=True, text=True)
             if result.returncode != 0:
                 raise RuntimeError(f"ffmpeg failed to mux the audio into {out}: {result.stderr.strip()}")
     return out
@@ -235,7 +269,8 @@ def write_gif(path: str | os.PathLike, frames: Frames, *, fps: Real = MOTION_FPS
     """Write RGB frames as an animated GIF (Pillow via imageio), atomically.
 
     GIF frame delays are whole hundredths of a second, so 25 fps (4/100 s) is exact and other rates
-    are rounded.
+    are rounded. Pillow merges identical consecutive frames into one with the summed delay, so a
+    clip with still frames reads back with fewer frames but the same timing.
 
     Args:
         path: output file, ending in ``.gif``.
@@ -326,7 +361,8 @@ def probe_media(path: str | os.PathLike) -> MediaInfo:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"no such media file: {str(p)!r}")
-    text = subprocess.run([_ffmpeg(), "-hide_banner", "-i", str(p)], capture_output=True, text=True).stderr
+    with _quiet_fork_warning():
+        text = subprocess.run([_ffmpeg(), "-hide_banner", "-i", str(p)], capture_output=True, text=True).stderr
     duration = re.search(r"Duration: (\d+):(\d+):(\d+(?:\.\d+)?)", text)
     if duration is None:
         raise ValueError(f"ffmpeg cannot read {str(p)!r}: {text.strip()[-300:]}")

@@ -387,7 +387,7 @@ class SpeechEncoder:
     def features_at(
         self,
         audio: Any,
-        fps: float = MOTION_FPS,
+        fps: float | int = MOTION_FPS,
         *,
         layer: int | None = None,
         num_frames: int | None = None,
@@ -415,7 +415,7 @@ class SpeechEncoder:
     def interpolated_features(
         self,
         audio: Any,
-        fps: float = MOTION_FPS,
+        fps: float | int = MOTION_FPS,
         *,
         layer: int | None = None,
         num_frames: int | None = None,
@@ -462,7 +462,7 @@ class SpeechEncoder:
         features = self.features(audio, layer, sample_rate=sample_rate)
         return TokenStream(ids=None, embeddings=np.asarray(features, np.float32), rate=self.rate)
 
-    def _motion_frames(self, samples: int, fps: float) -> int:
+    def _motion_frames(self, samples: int, fps: float | int) -> int:
         from jaxtalk.audio import default_num_frames
 
         return default_num_frames(samples, self.sample_rate, fps)

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -21,17 +22,20 @@ import numpy as np
 
 from jaxtalk.audio import log_mel
 from jaxtalk.models.freetalk.emotions import emotion_ids
-from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM, Float
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, NECK_SLICE, PARAM_DIM, Float
 
 __all__ = [
+    "DisplacementStats",
     "MEL_FRAMES_PER_FRAME",
     "AUDIO_FEATURE_DIM",
     "audio_features",
     "neutral_landmarks",
     "ats_windows",
+    "landmark_motion",
     "mesh_motion",
     "stm_windows",
     "window_starts",
+    "without_head_pose",
 ]
 
 _HOP = 160  # 10 ms at 16 kHz
@@ -39,6 +43,45 @@ _BUCKET_SAMPLES = 5 * AUDIO_SAMPLE_RATE
 _BUCKET_FRAMES = 10 * MOTION_FPS
 MEL_FRAMES_PER_FRAME = AUDIO_SAMPLE_RATE // _HOP // MOTION_FPS  # 4
 AUDIO_FEATURE_DIM = 80 * MEL_FRAMES_PER_FRAME  # 320
+
+
+@dataclasses.dataclass(frozen=True)
+class DisplacementStats:
+    """Per-coordinate mean and spread of landmark displacements, to train ATS on standardised data.
+
+    The diffusion noise is unit-variance per coordinate, so ATS learns best on data with zero mean
+    and unit spread; the mean is also the mean-pose baseline. Use with ``displacement_scale = 1``.
+
+    Attributes:
+        mean: ``(N, 3)`` mean displacement (metres).
+        std: ``(N, 3)`` standard deviation, floored at ``floor`` x its average so that nearly
+            static landmarks are not blown up into noise.
+    """
+
+    mean: np.ndarray
+    std: np.ndarray
+
+    @classmethod
+    def fit(cls, displacements: Float[np.ndarray, "*batch 68 3"], floor: float = 0.2) -> DisplacementStats:
+        """Statistics over every leading axis of ``displacements`` (e.g. windows and frames).
+
+        Raises:
+            ValueError: fewer than 2 frames or NaN/inf values.
+        """
+        d = np.asarray(displacements, np.float64).reshape(-1, *np.shape(displacements)[-2:])
+        if d.shape[0] < 2 or not np.all(np.isfinite(d)):
+            raise ValueError(f"need at least 2 finite frames of displacements, got shape {np.shape(displacements)}")
+        std = d.std(axis=0)
+        std = np.maximum(std, floor * std.mean())
+        return cls(mean=d.mean(axis=0).astype(np.float32), std=std.astype(np.float32))
+
+    def normalize(self, displacements: Any) -> Any:
+        """``(d - mean) / std`` (NumPy or JAX, any leading axes)."""
+        return (displacements - self.mean) / self.std
+
+    def denormalize(self, standardized: Any) -> Any:
+        """Inverse of :meth:`normalize`."""
+        return standardized * self.std + self.mean
 
 
 def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Float[np.ndarray, "frames 320"]:
@@ -72,6 +115,17 @@ def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Flo
     return mel[:need].reshape(num_frames, AUDIO_FEATURE_DIM).astype(np.float32)
 
 
+def without_head_pose(motion: Float[np.ndarray, "frames 56"]) -> Float[np.ndarray, "frames 56"]:
+    """The motion with the neck rotation zeroed: the face's own deformation only.
+
+    FreeTalk animates a face mesh from speech (EmoVOCA and VOCASET carry no head pose); SynthTalk's
+    head sway is partly random and would otherwise dominate the landmark displacements.
+    """
+    m = np.array(motion, np.float32, copy=True)
+    m[..., NECK_SLICE] = 0.0
+    return m
+
+
 def neutral_landmarks(face: Any) -> Float[np.ndarray, "68 3"]:
     """``L_tpl``: the landmarks of a face model at the zero parameter vector (its neutral template)."""
     return np.asarray(face.landmarks(jnp.zeros(PARAM_DIM, jnp.float32)))
@@ -94,7 +148,13 @@ def window_starts(num_frames: int, window: int, hop: int) -> list[int]:
 
 
 def ats_windows(
-    corpus: Any, clips: Sequence[int], *, identity: int = 0, window: int = 50, hop: int = 25
+    corpus: Any,
+    clips: Sequence[int],
+    *,
+    identity: int = 0,
+    window: int = 50,
+    hop: int = 25,
+    head_pose: bool = False,
 ) -> dict[str, np.ndarray]:
     """ATS training windows from SynthTalk clips.
 
@@ -104,6 +164,8 @@ def ats_windows(
         identity: face identity whose landmarks are used.
         window: frames per window.
         hop: frames between window starts.
+        head_pose: keep the neck rotation in the landmark motion (default: face deformation only,
+            see :func:`without_head_pose`).
 
     Returns:
         ``{"displacements": (N, W, 68, 3), "audio": (N, W, 320), "emotion": (N,) int32,
@@ -112,11 +174,12 @@ def ats_windows(
     Raises:
         ValueError: no clip is at least ``window`` frames long.
     """
-    neutral = neutral_landmarks(corpus.face(identity))
+    face = corpus.face(identity)
     out: dict[str, list] = {k: [] for k in ("displacements", "audio", "emotion", "intensity", "clip", "start")}
     for c in clips:
         info = corpus.clips[c]
-        disp = corpus.landmarks(c, identity) - neutral[None]
+        motion = corpus.motion(c) if head_pose else without_head_pose(corpus.motion(c))
+        disp = landmark_motion(face, motion)
         feats = audio_features(corpus.audio(c), disp.shape[0])
         emo = int(emotion_ids(info.emotion)[0])
         for s in window_starts(disp.shape[0], window, hop):
@@ -138,6 +201,29 @@ def ats_windows(
     }
 
 
+def _bucketed(motion: np.ndarray) -> tuple[Any, int]:
+    # Row 0 is the neutral face (zero parameters); pad to a whole bucket (repeating the last frame)
+    # so tracks of many lengths share one compiled face program.
+    m = np.asarray(motion, np.float32)
+    if m.ndim != 2 or m.shape[1] != PARAM_DIM or m.shape[0] == 0:
+        raise ValueError(f"motion must have shape (frames > 0, {PARAM_DIM}), got {m.shape}")
+    n = m.shape[0]
+    total = -(-(n + 1) // _BUCKET_FRAMES) * _BUCKET_FRAMES
+    rows = np.concatenate([np.zeros((1, PARAM_DIM), np.float32), m, np.repeat(m[-1:], total - n - 1, axis=0)])
+    return jnp.asarray(rows), n
+
+
+def landmark_motion(face: Any, motion: Float[np.ndarray, "frames 56"]) -> Float[np.ndarray, "frames 68 3"]:
+    """Landmark displacements ``L_t - L_tpl`` of a motion track on a face (metres, float32).
+
+    Raises:
+        ValueError: motion not of shape ``(T > 0, 56)``.
+    """
+    rows, n = _bucketed(motion)
+    lms = np.asarray(face.landmarks_seq(rows))
+    return (lms[1 : n + 1] - lms[:1]).astype(np.float32)
+
+
 def mesh_motion(
     face: Any, motion: Float[np.ndarray, "frames 56"], variant: Any = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -155,15 +241,7 @@ def mesh_motion(
     Raises:
         ValueError: motion not of shape ``(T > 0, 56)``.
     """
-    m = np.asarray(motion, np.float32)
-    if m.ndim != 2 or m.shape[1] != PARAM_DIM or m.shape[0] == 0:
-        raise ValueError(f"motion must have shape (frames > 0, {PARAM_DIM}), got {m.shape}")
-    # Row 0 is the neutral face (zero parameters); pad to a whole bucket (repeating the last frame)
-    # so tracks of many lengths share one compiled face program.
-    n = m.shape[0]
-    total = -(-(n + 1) // _BUCKET_FRAMES) * _BUCKET_FRAMES
-    rows = np.concatenate([np.zeros((1, PARAM_DIM), np.float32), m, np.repeat(m[-1:], total - n - 1, axis=0)])
-    rows = jnp.asarray(rows)
+    rows, n = _bucketed(motion)
     lms_all = np.asarray(face.landmarks_seq(rows))
     verts_all = np.asarray(face.vertices_seq(rows))
     if variant is not None:

@@ -122,10 +122,11 @@ def turn_layout(frames: int) -> TurnLayout:
 
 def interleave(
     user_speech: Float[Array, "*batch turns frames width"],
-    user_motion: Float[Array, "*batch turns frames width"],
-    agent_speech: Float[Array, "*batch turns frames width"],
-    agent_motion: Float[Array, "*batch turns frames width"],
-    separators: Float[Array, "10 width"],
+    # Loose annotations: the shape checks below raise a ValueError that names the problem.
+    user_motion: Float[Array, "*dims"],
+    agent_speech: Float[Array, "*dims"],
+    agent_motion: Float[Array, "*dims"],
+    separators: Float[Array, "*sep_dims"],
 ) -> Float[Array, "*batch turns tokens width"]:
     """Interleave four per-turn token spans with the ten separator embeddings.
 

@@ -266,8 +266,8 @@ def check_style_clip(clip: Any, config: TokTalkConfig) -> None:
 def encode_style(
     params: dict[str, PyTree],
     config: TokTalkConfig,
-    clip: Float[Array, "batch frames param"],
-    mask: Bool[Array, "batch frames"] | None = None,
+    clip: Float[Array, "batch frames param"] | Float[np.ndarray, "batch frames param"],
+    mask: Bool[Array, "batch frames"] | Bool[np.ndarray, "batch frames"] | None = None,
 ) -> Float[Array, "batch style"]:
     """The style vector (the encoder's mean) of reference motion clips.
 
@@ -312,7 +312,7 @@ def adapter_forward(
 def adapt_tokens(
     params: dict[str, PyTree],
     config: TokTalkConfig,
-    src: Float[Array, "batch src_tokens src"],
+    src: Float[Array, "batch src_tokens src"] | Float[np.ndarray, "batch src_tokens src"],
     src_rate: float | int,
 ) -> Float[Array, "batch tokens token"]:
     """Maps another token space onto the base one (time-interpolated to the base rate first).

@@ -1,0 +1,153 @@
+"""Training FreeTalk's two modules with the shared loop (:func:`jaxtalk.train.train`).
+
+ATS and STM are trained independently (section 3.3): ATS on landmark-displacement windows
+standardised with :class:`~jaxtalk.models.freetalk.data.DisplacementStats`, STM on landmark and
+dense vertex displacement windows over several meshes (identities and topologies).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxtalk.data.batching import BatchIterator
+from jaxtalk.models.freetalk import ats, stm
+from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
+from jaxtalk.models.freetalk.data import DisplacementStats
+from jaxtalk.train import OptimConfig, train
+from jaxtalk.types import PRNGKeyArray
+
+__all__ = ["FittedATS", "fit_ats", "fit_stm", "sample_displacements"]
+
+PyTree = Any
+
+
+@dataclasses.dataclass(frozen=True)
+class FittedATS:
+    """A trained ATS: its configuration, parameters and the data standardisation it was trained on."""
+
+    config: ATSConfig
+    params: PyTree
+    stats: DisplacementStats
+    history: list[dict[str, Any]]
+
+
+def fit_ats(
+    config: ATSConfig,
+    windows: dict[str, np.ndarray],
+    optim: OptimConfig,
+    key: PRNGKeyArray,
+    *,
+    batch_size: int = 16,
+    progress: bool = False,
+) -> FittedATS:
+    """Train ATS on windows from :func:`~jaxtalk.models.freetalk.data.ats_windows`.
+
+    Displacements are standardised per coordinate (fitted on ``windows``), so ``config`` should use
+    ``displacement_scale = 1``.
+
+    Args:
+        config: ATS configuration (``max_frames`` >= the window length).
+        windows: ``displacements``, ``audio``, ``emotion``, ``intensity`` arrays.
+        optim: optimiser settings (``total_steps`` = training length).
+        key: PRNG key (initialisation and training).
+        batch_size: windows per step.
+        progress: show the loop's progress bar.
+
+    Returns:
+        :class:`FittedATS`.
+
+    Raises:
+        ValueError: windows longer than ``config.max_frames`` or malformed arrays.
+    """
+    disp = np.asarray(windows["displacements"], np.float32)
+    if disp.ndim != 4 or disp.shape[-2:] != (config.num_landmarks, 3):
+        raise ValueError(f"displacements must have shape (N, T, {config.num_landmarks}, 3), got {disp.shape}")
+    if disp.shape[1] > config.max_frames:
+        raise ValueError(f"windows of {disp.shape[1]} frames exceed config.max_frames={config.max_frames}")
+    stats = DisplacementStats.fit(disp)
+    data = {
+        "displacements": stats.normalize(disp).astype(np.float32),
+        "audio": np.asarray(windows["audio"], np.float32),
+        "emotion": np.asarray(windows["emotion"], np.int32),
+        "intensity": np.asarray(windows["intensity"], np.float32),
+    }
+    k_init, k_train = jax.random.split(key)
+    params = ats.init_ats(config, k_init)
+    it = BatchIterator(data, batch_size, seed=int(jax.random.randint(k_init, (), 0, 2**30)))
+    result = train(ats.make_ats_loss(config), params, it, optim, key=k_train, progress=progress,
+                   log_every=max(1, optim.total_steps // 20))
+    return FittedATS(config, result.state.eval_params, stats, result.history)
+
+
+def sample_displacements(
+    fitted: FittedATS,
+    audio: np.ndarray,
+    emotion: Any,
+    intensity: Any,
+    key: PRNGKeyArray,
+    *,
+    num_steps: int | None = None,
+    eta: float = 0.0,
+) -> np.ndarray:
+    """Sample landmark displacements (metres) from a fitted ATS.
+
+    Args:
+        fitted: from :func:`fit_ats`.
+        audio: ``(B, T, audio_dim)`` features.
+        emotion: names or ids (one per example, or one for all).
+        intensity: scalar or ``(B,)``.
+        key: PRNG key.
+        num_steps: DDIM steps (default the config's).
+        eta: DDIM eta.
+
+    Returns:
+        ``(B, T, N, 3)`` displacements in metres.
+    """
+    cond = ats.make_condition(fitted.config, audio, emotion, intensity)
+    out = ats.sample_ats(fitted.params, fitted.config, cond, key, num_steps=num_steps, eta=eta)
+    return np.asarray(fitted.stats.denormalize(np.asarray(out)))
+
+
+def fit_stm(
+    config: STMConfig,
+    meshes: Sequence[stm.STMMesh],
+    windows: dict[str, np.ndarray],
+    optim: OptimConfig,
+    key: PRNGKeyArray,
+    *,
+    batch_size: int = 4,
+    progress: bool = False,
+) -> tuple[PyTree, list[dict[str, Any]]]:
+    """Train STM on windows from :func:`~jaxtalk.models.freetalk.data.stm_windows`.
+
+    Args:
+        config: STM configuration.
+        meshes: the training meshes, prepared with a common ``num_vertices`` and ``degree`` (the
+            windows' ``"mesh"`` entries index this list).
+        windows: ``mesh``, ``landmarks``, ``vertices`` arrays.
+        optim: optimiser settings.
+        key: PRNG key.
+        batch_size: windows per step.
+        progress: show the loop's progress bar.
+
+    Returns:
+        ``(params, history)``.
+
+    Raises:
+        ValueError: a window that names a mesh outside ``meshes``.
+    """
+    idx = np.asarray(windows["mesh"])
+    if idx.min() < 0 or idx.max() >= len(meshes):
+        raise ValueError(f"windows name meshes {sorted(set(idx.tolist()))} but {len(meshes)} meshes were given")
+    stacked = stm.stack_meshes(list(meshes))
+    k_init, k_train = jax.random.split(key)
+    params = stm.init_stm(config, k_init, meshes[0])
+    it = BatchIterator(dict(windows), batch_size, seed=int(jax.random.randint(k_init, (), 0, 2**30)))
+    result = train(stm.make_stm_loss(config, stacked), params, it, optim, key=k_train, progress=progress,
+                   log_every=max(1, optim.total_steps // 20))
+    return result.state.eval_params, result.history

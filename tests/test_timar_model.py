@@ -1,0 +1,139 @@
+"""TIMAR encoder + head: causality across turns, CFG fake token, per-frame head vmapped == loop."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.models.timar import TimarConfig, encode_window, init_params, sample
+from jaxtalk.models.timar.head import apply_head, init_head
+from jaxtalk.models.timar.inputs import to_turns
+
+CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4)
+B, N, F = 2, 3, 25
+
+
+def _perturbed(params, scale=0.05, seed=3):
+    # Zero-initialised adaLN layers make a fresh head output exactly 0; perturb so tests see signal.
+    leaves, tree = jax.tree.flatten(params)
+    keys = jax.random.split(jax.random.key(seed), len(leaves))
+    return jax.tree.unflatten(tree, [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
+
+
+@pytest.fixture(scope="module")
+def params():
+    return _perturbed(init_params(CFG, jax.random.key(0)))
+
+
+def _streams(seed=0, n=N):
+    rng = np.random.default_rng(seed)
+    t = n * F
+    return {
+        "user_speech": rng.normal(size=(B, t, 8)).astype(np.float32),
+        "user_motion": rng.normal(size=(B, t, 56)).astype(np.float32),
+        "agent_speech": rng.normal(size=(B, t, 8)).astype(np.float32),
+        "agent_motion": rng.normal(size=(B, t, 56)).astype(np.float32),
+    }
+
+
+def _z(config, params, s, **kw):
+    turns = {k: to_turns(jnp.asarray(v), F) for k, v in s.items()}
+    return np.asarray(encode_window(config, params, turns["user_speech"], turns["user_motion"],
+                                    turns["agent_speech"], **kw))
+
+
+@pytest.mark.parametrize("stream", ["user_speech", "user_motion", "agent_speech"])
+def test_changing_turn_t_plus_1_leaves_turns_up_to_t_exactly_unchanged(params, stream):
+    s = _streams()
+    z0 = _z(CFG, params, s)
+    x0 = np.asarray(sample(CFG, params, s["user_speech"], s["user_motion"], s["agent_speech"], jax.random.key(1)))
+    s2 = {k: v.copy() for k, v in s.items()}
+    s2[stream][:, 2 * F:] += 5.0  # change only turn 2 (0-based)
+    z1 = _z(CFG, params, s2)
+    x1 = np.asarray(sample(CFG, params, s2["user_speech"], s2["user_motion"], s2["agent_speech"], jax.random.key(1)))
+    np.testing.assert_array_equal(z0[:, :2], z1[:, :2])
+    np.testing.assert_array_equal(x0[:, : 2 * F], x1[:, : 2 * F])
+    assert np.abs(z0[:, 2] - z1[:, 2]).max() > 1e-3  # the changed turn itself does see it
+    # The same change leaks into earlier turns under bidirectional attention (the Table 2 ablation).
+    bi = TimarConfig.small(**{**CFG.__dict__, "attention": "bidirectional"})
+    assert np.abs(_z(bi, params, s)[:, 0] - _z(bi, params, s2)[:, 0]).max() > 1e-4
+
+
+def test_agent_motion_only_enters_where_unmasked(params):
+    s = _streams()
+    turns = {k: to_turns(jnp.asarray(v), F) for k, v in s.items()}
+    mask = np.ones((B, N, F), bool)
+    mask[:, 1, 5] = False  # one visible agent frame
+    args = (turns["user_speech"], turns["user_motion"], turns["agent_speech"])
+    z0 = np.asarray(encode_window(CFG, params, *args, turns["agent_motion"], jnp.asarray(mask)))
+    am = np.asarray(turns["agent_motion"]).copy()
+    am[:, 1, 6] += 3.0  # a masked frame: invisible
+    z1 = np.asarray(encode_window(CFG, params, *args, jnp.asarray(am), jnp.asarray(mask)))
+    np.testing.assert_array_equal(z0, z1)
+    am[:, 1, 5] += 3.0  # the visible frame: seen by its turn and later ones, not earlier ones
+    z2 = np.asarray(encode_window(CFG, params, *args, jnp.asarray(am), jnp.asarray(mask)))
+    np.testing.assert_array_equal(z0[:, 0], z2[:, 0])
+    assert np.abs(z0[:, 1:] - z2[:, 1:]).max() > 1e-3
+    # All-masked input equals passing no agent motion at all (what the samplers do).
+    z_none = np.asarray(encode_window(CFG, params, *args, None, None))
+    z_all = np.asarray(encode_window(CFG, params, *args, turns["agent_motion"], jnp.ones((B, N, F), bool)))
+    np.testing.assert_allclose(z_none, z_all, atol=1e-6)
+
+
+def test_fake_token_removes_every_user_input(params):
+    s = _streams()
+    s2 = {k: v.copy() for k, v in s.items()}
+    s2["user_speech"] += 2.0
+    s2["user_motion"] -= 1.0
+    drop = jnp.asarray([True, False])
+    z0, z1 = _z(CFG, params, s, user_drop=drop), _z(CFG, params, s2, user_drop=drop)
+    np.testing.assert_array_equal(z0[0], z1[0])  # dropped example: user inputs invisible
+    assert np.abs(z0[1] - z1[1]).max() > 1e-3  # kept example: they matter
+
+
+def test_head_vmapped_over_frames_equals_python_loop(params):
+    rng = np.random.default_rng(1)
+    z = jnp.asarray(rng.normal(size=(2, 5, CFG.width)), jnp.float32)
+    x = jnp.asarray(rng.normal(size=(2, 5, 56)), jnp.float32)
+    t = jnp.asarray(rng.integers(0, 1000, size=(2, 5)), jnp.float32)
+    out = np.asarray(jax.jit(lambda p, z, x, t: apply_head(CFG, p, z, x, t))(params["head"], z, x, t))
+    loop = np.stack([
+        np.stack([np.asarray(apply_head(CFG, params["head"], z[i, j], x[i, j], t[i, j])) for j in range(5)])
+        for i in range(2)
+    ])
+    np.testing.assert_allclose(out, loop, rtol=1e-5, atol=1e-6)
+    assert out.shape == (2, 5, 56) and np.abs(out).max() > 0
+
+
+def test_fresh_diffusion_head_predicts_zero_and_has_a_gradient():
+    head = init_head(CFG, jax.random.key(0))
+    z, x = jnp.ones((4, CFG.width)), jnp.ones((4, 56))
+    t = jnp.full((4,), 10.0)
+    np.testing.assert_array_equal(np.asarray(apply_head(CFG, head, z, x, t)), 0.0)
+    g = jax.grad(lambda p: jnp.sum(apply_head(CFG, p, z, x, t) * jnp.arange(56.0)))(head)
+    assert float(jnp.abs(g["final"]["out"]["kernel"]).sum()) > 0
+    with pytest.raises(ValueError, match="noisy frames"):
+        apply_head(CFG, head, z)
+
+
+def test_learned_sigma_head_doubles_output_and_mlp_head_works():
+    cfg = TimarConfig.small(**{**CFG.__dict__, "learn_sigma": True})
+    p = _perturbed(init_params(cfg, jax.random.key(0)))
+    out = apply_head(cfg, p["head"], jnp.ones((3, cfg.width)), jnp.ones((3, 56)), jnp.zeros((3,)))
+    assert out.shape == (3, 112)
+    mlp = TimarConfig.small(**{**CFG.__dict__, "head": "mlp"})
+    pm = init_params(mlp, jax.random.key(0))
+    assert apply_head(mlp, pm["head"], jnp.ones((3, mlp.width))).shape == (3, 56)
+
+
+def test_config_presets_and_errors():
+    paper = TimarConfig.paper()
+    assert (paper.width, paper.num_layers, paper.num_heads, paper.head_width, paper.head_blocks) == (1024, 16, 16, 1024, 3)
+    assert paper.tokens_per_turn == 110 and paper.num_timesteps == 1000 and paper.sample_steps == 5
+    assert TimarConfig.small().width < paper.width
+    for bad in ({"width": 30, "num_heads": 4}, {"head": "x"}, {"attention": "causal"}, {"mask_ratio_min": 1.5},
+                {"cfg_prob": 1.0}, {"num_layers": 0}, {"sample_steps": 2000}, {"param_dim": 50}):
+        with pytest.raises(ValueError):
+            TimarConfig.small(**bad)
