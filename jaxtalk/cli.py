@@ -96,6 +96,35 @@ def data(
         typer.echo(f"metadata written to {metadata}")
 
 
+@app.command()
+@_user_errors
+def demo(
+    out: Annotated[Path, typer.Option(help="Output folder (checkpoint, video, plots, report).")] = Path("jaxtalk-demo"),
+    audio: Annotated[
+        Path | None, typer.Option(help="Also animate your own speech file (WAV/FLAC, any rate, mono or stereo).")
+    ] = None,
+    size: Annotated[str, typer.Option(help="SynthTalk size: tiny (quick look) or small.")] = "small",
+    steps: Annotated[int, typer.Option(help="Training steps of the small TokTalk model.")] = 1500,
+    seed: Annotated[int, typer.Option(help="Corpus and training seed.")] = 0,
+    retrain: Annotated[bool, typer.Option(help="Ignore an existing checkpoint and retrain.")] = False,
+    sweep: Annotated[bool, typer.Option(help="Run the chunk size x Euler steps sweep.")] = True,
+    render: Annotated[bool, typer.Option(help="Write the mp4 and GIF.")] = True,
+    progress: Annotated[bool, typer.Option(help="Show the training progress bar.")] = True,
+) -> None:
+    """Train TokTalk on SynthTalk, stream a held-out clip, and write video, plots and a report."""
+    from jaxtalk.demo import DemoOptions, run_demo
+
+    options = DemoOptions(out_dir=out, size=size, seed=seed, train_steps=steps, retrain=retrain,
+                          audio=audio, sweep=sweep, render=render, progress=progress)
+    result = run_demo(options, echo=typer.echo)
+    from jaxtalk.benchmarking import format_table
+
+    typer.echo(format_table(result.quality, title="quality on the held-out clip"))
+    typer.echo(f"done in {result.wall_s:.1f} s; outputs in {result.out_dir.resolve()}")
+    for name, path in result.files.items():
+        typer.echo(f"  {name:15s} {path}")
+
+
 def main() -> None:
     """Console-script entry point."""
     app()
