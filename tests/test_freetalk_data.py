@@ -85,3 +85,14 @@ def test_landmark_motion_and_head_pose_removal():
     np.testing.assert_allclose(lms_face, data.mesh_motion(face, stripped)[0], atol=1e-7)
     with pytest.raises(ValueError, match="motion must have shape"):
         data.landmark_motion(face, np.zeros((3, 55), np.float32))
+
+
+def test_face_mesh_regions():
+    base = data.face_mesh(0, "base")
+    np.testing.assert_array_equal(base.region("lips"), np.asarray(base.face.regions["lips"]))
+    shuffled = data.face_mesh(0, "shuffled")
+    # A shuffled mesh is the same surface: its lip region is the base lip region, relabelled.
+    lips_pos = {tuple(np.round(p, 6)) for p in base.vertices[base.region("lips")]}
+    assert {tuple(np.round(p, 6)) for p in shuffled.vertices[shuffled.region("lips")]} == lips_pos
+    with pytest.raises(ValueError, match="unknown region"):
+        base.region("tail")

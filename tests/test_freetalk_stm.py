@@ -170,3 +170,19 @@ def test_bad_inputs_raise_clear_errors(model, face):
         stm.prepare_mesh(face[0][:10], face[1][:2], cfg)
     with pytest.raises(ValueError, match="single mesh"):
         stm.stm_mesh_features(params, cfg, stm.stack_meshes([mesh, mesh]))
+
+
+def test_prepare_meshes_pads_to_common_shapes(face):
+    cfg = _config(num_eigenpairs=8)
+    variant = make_variant(*face, "subdivided", seed=0)
+    meshes = stm.prepare_meshes([face, (variant.vertices, variant.faces)], cfg)
+    shapes = [tuple(a.shape for a in jax.tree.leaves(m)) for m in meshes]
+    assert shapes[0] == shapes[1] and meshes[0].num_vertices == len(variant.vertices)
+    assert [int(m.valid.sum()) for m in meshes] == [len(face[0]), len(variant.vertices)]
+    single = stm.prepare_mesh(*face, cfg)
+    # Same operators on the real vertices (eigenvectors up to sign), zeros on the padding.
+    np.testing.assert_allclose(np.abs(meshes[0].ops.evecs[: len(face[0])]), np.abs(single.ops.evecs), atol=1e-4)
+    assert float(jnp.abs(meshes[0].ops.evecs[len(face[0]):]).max()) == 0.0
+    assert stm.stack_meshes(meshes).vertices.shape == (2, len(variant.vertices), 3)
+    with pytest.raises(ValueError, match="at least one"):
+        stm.prepare_meshes([], cfg)

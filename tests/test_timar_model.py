@@ -11,15 +11,23 @@ from jaxtalk.models.timar import TimarConfig, encode_window, init_params, sample
 from jaxtalk.models.timar.head import apply_head, init_head
 from jaxtalk.models.timar.inputs import to_turns
 
-CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4)
-B, N, F = 2, 3, 25
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
+CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)
+B, N, F = 2, 3, 5
 
 
-def _perturbed(params, scale=0.05, seed=3):
+def _perturbed(params, seed=3):
+    return _perturb(params, jax.random.key(seed))
+
+
+
+@jax.jit
+def _perturb(p, key):
     # Zero-initialised adaLN layers make a fresh head output exactly 0; perturb so tests see signal.
-    leaves, tree = jax.tree.flatten(params)
-    keys = jax.random.split(jax.random.key(seed), len(leaves))
-    return jax.tree.unflatten(tree, [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
+    leaves, tree = jax.tree.flatten(p)
+    keys = jax.random.split(key, len(leaves))
+    return jax.tree.unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +58,7 @@ def test_changing_turn_t_plus_1_leaves_turns_up_to_t_exactly_unchanged(params, s
     z0 = _z(CFG, params, s)
     x0 = np.asarray(sample(CFG, params, s["user_speech"], s["user_motion"], s["agent_speech"], jax.random.key(1)))
     s2 = {k: v.copy() for k, v in s.items()}
-    s2[stream][:, 2 * F:] += 5.0  # change only turn 2 (0-based)
+    s2[stream][:, 2 * F :] += 5.0  # change only turn 2 (0-based)
     z1 = _z(CFG, params, s2)
     x1 = np.asarray(sample(CFG, params, s2["user_speech"], s2["user_motion"], s2["agent_speech"], jax.random.key(1)))
     np.testing.assert_array_equal(z0[:, :2], z1[:, :2])
@@ -65,14 +73,14 @@ def test_agent_motion_only_enters_where_unmasked(params):
     s = _streams()
     turns = {k: to_turns(jnp.asarray(v), F) for k, v in s.items()}
     mask = np.ones((B, N, F), bool)
-    mask[:, 1, 5] = False  # one visible agent frame
+    mask[:, 1, 2] = False  # one visible agent frame
     args = (turns["user_speech"], turns["user_motion"], turns["agent_speech"])
     z0 = np.asarray(encode_window(CFG, params, *args, turns["agent_motion"], jnp.asarray(mask)))
     am = np.asarray(turns["agent_motion"]).copy()
-    am[:, 1, 6] += 3.0  # a masked frame: invisible
+    am[:, 1, 3] += 3.0  # a masked frame: invisible
     z1 = np.asarray(encode_window(CFG, params, *args, jnp.asarray(am), jnp.asarray(mask)))
     np.testing.assert_array_equal(z0, z1)
-    am[:, 1, 5] += 3.0  # the visible frame: seen by its turn and later ones, not earlier ones
+    am[:, 1, 2] += 3.0  # the visible frame: seen by its turn and later ones, not earlier ones
     z2 = np.asarray(encode_window(CFG, params, *args, jnp.asarray(am), jnp.asarray(mask)))
     np.testing.assert_array_equal(z0[:, 0], z2[:, 0])
     assert np.abs(z0[:, 1:] - z2[:, 1:]).max() > 1e-3
@@ -99,8 +107,9 @@ def test_head_vmapped_over_frames_equals_python_loop(params):
     x = jnp.asarray(rng.normal(size=(2, 5, 56)), jnp.float32)
     t = jnp.asarray(rng.integers(0, 1000, size=(2, 5)), jnp.float32)
     out = np.asarray(jax.jit(lambda p, z, x, t: apply_head(CFG, p, z, x, t))(params["head"], z, x, t))
+    one_frame = jax.jit(lambda p, z, x, t: apply_head(CFG, p, z, x, t))  # no leading axes: one frame
     loop = np.stack([
-        np.stack([np.asarray(apply_head(CFG, params["head"], z[i, j], x[i, j], t[i, j])) for j in range(5)])
+        np.stack([np.asarray(one_frame(params["head"], z[i, j], x[i, j], t[i, j])) for j in range(5)])
         for i in range(2)
     ])
     np.testing.assert_allclose(out, loop, rtol=1e-5, atol=1e-6)
@@ -112,7 +121,7 @@ def test_fresh_diffusion_head_predicts_zero_and_has_a_gradient():
     z, x = jnp.ones((4, CFG.width)), jnp.ones((4, 56))
     t = jnp.full((4,), 10.0)
     np.testing.assert_array_equal(np.asarray(apply_head(CFG, head, z, x, t)), 0.0)
-    g = jax.grad(lambda p: jnp.sum(apply_head(CFG, p, z, x, t) * jnp.arange(56.0)))(head)
+    g = jax.jit(jax.grad(lambda p: jnp.sum(apply_head(CFG, p, z, x, t) * jnp.arange(56.0)[None])))(head)
     assert float(jnp.abs(g["final"]["out"]["kernel"]).sum()) > 0
     with pytest.raises(ValueError, match="noisy frames"):
         apply_head(CFG, head, z)

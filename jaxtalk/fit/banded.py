@@ -10,7 +10,7 @@ at ``T = 50``. The structure allows much better:
    parameter (``e_k`` in every even frame, ``e_k`` in every odd frame) give every Jacobian entry:
    ``2 n`` operator products instead of ``T n``.
 2. **Normal equations.** ``H = A^T A`` is block tridiagonal with ``n x n`` blocks; ``A^T b`` comes
-   from the transposed operator.
+   from the same Jacobian blocks (no transposed copy of the residual function to compile).
 3. **Block Cholesky** (block Thomas algorithm) in two ``lax.scan`` passes: ``O(T n^3)``.
 
 The normal equations square the condition number, so they are solved after Jacobi scaling
@@ -84,8 +84,13 @@ def block_tridiagonal_solve(
     return xs
 
 
-def _banded_normal_equations(operator: lx.AbstractLinearOperator) -> tuple[Array, Array]:
-    """Blocks of ``A^T A`` (diagonal ``(T, n, n)``, sub-diagonal ``(T-1, n, n)``) by 2-colour probing."""
+def _frame_jacobian_blocks(operator: lx.AbstractLinearOperator) -> list[tuple[str, Array, Array | None]]:
+    """Every Jacobian entry of a frame-banded operator from ``2 n`` probes, per output leaf.
+
+    Returns one entry per output leaf, in ``tree_leaves`` order: ``("frame", J, None)`` with
+    ``J[t] = d rows_t / d frame t`` of shape ``(T, n, m)``, or ``("pair", J0, J1)`` with
+    ``J0[t] = d rows_t / d frame t`` and ``J1[t] = d rows_t / d frame t+1``, each ``(T-1, n, m)``.
+    """
     struct = operator.in_structure()
     if not isinstance(struct, jax.ShapeDtypeStruct) or len(struct.shape) != 2:
         raise ValueError(f"FrameBandedSolver needs a single (T, n) array as input, got {struct}")
@@ -97,31 +102,53 @@ def _banded_normal_equations(operator: lx.AbstractLinearOperator) -> tuple[Array
     probes = jnp.asarray(probes.reshape(colours * n, num_frames, n), struct.dtype)
     outputs = jax.vmap(operator.mv)(probes)
 
-    diag = jnp.zeros((num_frames, n, n), struct.dtype)
-    lower = jnp.zeros((max(num_frames - 1, 0), n, n), struct.dtype)
     frames = np.arange(num_frames)
+    blocks: list[tuple[str, Array, Array | None]] = []
     for leaf in jax.tree_util.tree_leaves(outputs):
         rows = leaf.shape[1] if leaf.ndim > 1 else None
-        blocks = leaf.reshape(colours, n, rows, -1) if rows is not None else None
+        width = int(np.prod(leaf.shape[2:]))  # explicit: a (T-1 = 0)-row leaf cannot infer it
         if rows == num_frames:
             # Row block t of this leaf sees frame t only, which lives in the probe of its parity.
-            jac = blocks[parity, :, frames, :]  # (T, n, m)
-            diag = diag + jnp.einsum("tim,tjm->tij", jac, jac)
+            per_probe = leaf.reshape(colours, n, rows, width)
+            blocks.append(("frame", per_probe[parity, :, frames, :], None))  # (T, n, m)
         elif rows == num_frames - 1:
-            if rows == 0:
-                continue
+            per_probe = leaf.reshape(colours, n, rows, width)
             pairs = frames[:-1]
-            first = blocks[parity[:-1], :, pairs, :]  # d rows_t / d frame t, (T-1, n, m)
-            second = blocks[1 - parity[:-1], :, pairs, :]  # d rows_t / d frame t+1
-            diag = diag.at[:-1].add(jnp.einsum("tim,tjm->tij", first, first))
-            diag = diag.at[1:].add(jnp.einsum("tim,tjm->tij", second, second))
-            lower = lower + jnp.einsum("tim,tjm->tij", second, first)
+            # Frames t and t+1 have different parities, so each probe holds exactly one of them.
+            blocks.append(("pair", per_probe[parity[:-1], :, pairs, :], per_probe[1 - parity[:-1], :, pairs, :]))
         else:
             raise ValueError(
                 f"FrameBandedSolver: every output leaf must have leading axis T={num_frames} or "
                 f"T-1={num_frames - 1}, got a leaf of shape {leaf.shape[1:]}"
             )
+    return blocks
+
+
+def _normal_blocks(blocks, num_frames: int, n: int, dtype) -> tuple[Array, Array]:
+    """Blocks of ``A^T A``: diagonal ``(T, n, n)`` and sub-diagonal ``H[t+1, t]``, ``(T-1, n, n)``."""
+    diag = jnp.zeros((num_frames, n, n), dtype)
+    lower = jnp.zeros((max(num_frames - 1, 0), n, n), dtype)
+    for kind, first, second in blocks:
+        if kind == "frame":
+            diag = diag + jnp.einsum("tim,tjm->tij", first, first)
+        elif first.shape[0] > 0:
+            diag = diag.at[:-1].add(jnp.einsum("tim,tjm->tij", first, first))
+            diag = diag.at[1:].add(jnp.einsum("tim,tjm->tij", second, second))
+            lower = lower + jnp.einsum("tim,tjm->tij", second, first)
     return diag, lower
+
+
+def _transpose_apply(blocks, vector, num_frames: int, n: int, dtype) -> Array:
+    """``A^T b`` from the stored blocks (no transposed copy of the residual function)."""
+    out = jnp.zeros((num_frames, n), dtype)
+    for (kind, first, second), leaf in zip(blocks, jax.tree_util.tree_leaves(vector)):
+        b = leaf.reshape(leaf.shape[0], int(np.prod(leaf.shape[1:])))
+        if kind == "frame":
+            out = out + jnp.einsum("tim,tm->ti", first, b)
+        elif first.shape[0] > 0:
+            out = out.at[:-1].add(jnp.einsum("tim,tm->ti", first, b))
+            out = out.at[1:].add(jnp.einsum("tim,tm->ti", second, b))
+    return out
 
 
 class FrameBandedSolver(lx.AbstractLinearSolver):
@@ -146,20 +173,23 @@ class FrameBandedSolver(lx.AbstractLinearSolver):
 
     def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]):
         del options
-        diag, lower = _banded_normal_equations(operator)
+        blocks = _frame_jacobian_blocks(operator)  # checks the (T, n) input structure
+        (num_frames, n), dtype = operator.in_structure().shape, operator.in_structure().dtype
+        diag, lower = _normal_blocks(blocks, num_frames, n, dtype)
         # Jacobi scaling to unit diagonal; an all-zero column keeps scale 1 and stays singular.
         d = jnp.diagonal(diag, axis1=-2, axis2=-1)
         scale = jnp.where(d > 0, jax.lax.rsqrt(jnp.where(d > 0, d, 1.0)), 1.0)
         diag = diag * scale[:, :, None] * scale[:, None, :]
         ridge = 10 * diag.shape[-1] * float(jnp.finfo(diag.dtype).eps) if self.ridge is None else self.ridge
-        diag = diag + ridge * jnp.eye(diag.shape[-1], dtype=diag.dtype)
+        diag = diag + ridge * jnp.eye(diag.shape[-1], dtype=diag.dtype)[None]
         lower = lower * scale[1:, :, None] * scale[:-1, None, :]
-        return operator, diag, lower, scale
+        return blocks, diag, lower, scale
 
     def compute(self, state, vector, options: dict[str, Any]):
         del options
-        operator, diag, lower, scale = state
-        gradient = operator.transpose().mv(vector)
+        blocks, diag, lower, scale = state
+        num_frames, n = scale.shape
+        gradient = _transpose_apply(blocks, vector, num_frames, n, scale.dtype)
         z = block_tridiagonal_solve(diag, lower, scale * gradient)
         solution = scale * z
         ok = jnp.all(jnp.isfinite(solution))

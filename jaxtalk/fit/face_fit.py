@@ -44,7 +44,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any, Literal
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +54,7 @@ import optimistix as optx
 from jaxtalk.face.model import LinearFaceModel
 from jaxtalk.fit.banded import FrameBandedSolver
 from jaxtalk.geometry.topology import TopologyVariant
-from jaxtalk.types import NUM_LANDMARKS, PARAM_DIM, Array, Bool, Float, Int
+from jaxtalk.types import NUM_LANDMARKS, PARAM_DIM, Array, Bool, Float, Int, Shaped
 
 __all__ = [
     "FitConfig",
@@ -91,12 +91,13 @@ class FitConfig:
             held at their initial values. ``None``: all 56.
     """
 
-    mode: Literal["independent", "sequential", "joint"] = "independent"
-    solver: Literal["levenberg_marquardt", "gauss_newton"] = "levenberg_marquardt"
+    # Plain str (not Literal) so a wrong value reaches the ValueError below that lists the options.
+    mode: str = "independent"
+    solver: str = "levenberg_marquardt"
     rtol: float | None = None
     atol: float | None = None
     max_steps: int = 100
-    active: tuple[int, ...] | None = None
+    active: tuple[int | np.integer, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -247,7 +248,7 @@ def _fit_core(model, surface, target, weights, init, prior, smoothness, *, confi
             base, tgt, w = args
             return {
                 "data": data_residual(y, base, tgt, w),
-                "prior": prior_scale * y,
+                "prior": prior_scale[None] * y,
                 "smooth": smooth_scale * (y[1:] - y[:-1]),
             }
 
@@ -257,7 +258,7 @@ def _fit_core(model, surface, target, weights, init, prior, smoothness, *, confi
 
         def residuals(y, args):
             base, tgt, w = args
-            return {"data": data_residual(y, base, tgt, w), "prior": prior_scale * y}
+            return {"data": data_residual(y, base, tgt, w), "prior": prior_scale[None] * y}
 
         def one(y0, base, tgt, w):
             y, code, steps = _least_squares(residuals, y0[None], (base[None], tgt[None], w[None]), config)
@@ -270,7 +271,7 @@ def _fit_core(model, surface, target, weights, init, prior, smoothness, *, confi
             base, tgt, w, previous, pull = args
             return {
                 "data": data_residual(y, base, tgt, w),
-                "prior": prior_scale * y,
+                "prior": prior_scale[None] * y,
                 "smooth": pull * (y - previous),
             }
 
@@ -409,13 +410,13 @@ def fit_landmarks(
     model: LinearFaceModel,
     landmarks: Float[ArrayLike, "..."],
     *,
-    mask: Bool[ArrayLike, "..."] | None = None,
+    mask: Shaped[ArrayLike, "..."] | None = None,
     config: FitConfig = FitConfig(),
     smoothness: float | Float[ArrayLike, ""] = 0.0,
     prior: float | Float[ArrayLike, "..."] = 0.0,
     init: Float[ArrayLike, "..."] | None = None,
     max_rms: float | None = None,
-    on_failure: Literal["raise", "return"] = "raise",
+    on_failure: str = "raise",
 ) -> FitResult:
     """Fit head vectors to 68 landmarks per frame (e.g. FreeTalk ATS output).
 
@@ -495,7 +496,7 @@ def fit_vertices(
     prior: float | Float[ArrayLike, "..."] = 0.0,
     init: Float[ArrayLike, "..."] | None = None,
     max_rms: float | None = None,
-    on_failure: Literal["raise", "return"] = "raise",
+    on_failure: str = "raise",
 ) -> FitResult:
     """Fit head vectors to a vertex sequence of the model's mesh or of a topology variant of it.
 
@@ -550,7 +551,7 @@ def fit_vertices(
 def identifiable_params(
     model: LinearFaceModel,
     *,
-    target: Literal["landmarks", "vertices"] = "landmarks",
+    target: str = "landmarks",
     params: Float[ArrayLike, "..."] | None = None,
     rtol: float = 1e-3,
 ) -> np.ndarray:

@@ -216,10 +216,9 @@ class STMConfig:
                                   mlp_hidden=(w, w))
 
     def decoder_config(self) -> DiffusionNetConfig:
-        """DiffusionNet decoder: fused features -> per-vertex displacement (3)."""
+        """DiffusionNet decoder: the linearly fused ``[f_i | g_t | c_t,i]`` (decoder_width) -> 3."""
         w = self.decoder_width
-        return DiffusionNetConfig(self.fused_dim, 3, width=w, num_blocks=self.decoder_blocks,
-                                  mlp_hidden=(w, w))
+        return DiffusionNetConfig(w, 3, width=w, num_blocks=self.decoder_blocks, mlp_hidden=(w, w))
 
     @classmethod
     def paper(cls, **overrides) -> STMConfig:

@@ -25,6 +25,8 @@ from jaxtalk.models.freetalk.emotions import emotion_ids
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, NECK_SLICE, PARAM_DIM, Float
 
 __all__ = [
+    "FaceMesh",
+    "face_mesh",
     "DisplacementStats",
     "MEL_FRAMES_PER_FRAME",
     "AUDIO_FEATURE_DIM",
@@ -84,6 +86,74 @@ class DisplacementStats:
         return standardized * self.std + self.mean
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class FaceMesh:
+    """A face identity on one mesh topology: the face model, the remeshing (None for the base mesh),
+    and the neutral mesh.
+
+    Attributes:
+        face: the :class:`jaxtalk.face.LinearFaceModel`.
+        variant: a :class:`jaxtalk.geometry.topology.TopologyVariant`, or None.
+        vertices: ``(V, 3)`` neutral vertices (metres); faces: ``(F, 3)`` triangles.
+        name: e.g. ``"id3/retriangulated"``.
+    """
+
+    face: Any
+    variant: Any
+    vertices: np.ndarray
+    faces: np.ndarray
+    name: str
+
+    def region(self, name: str) -> np.ndarray:
+        """Vertex indices of a named face region on this mesh.
+
+        A remeshed vertex belongs to the region when its nearest base corner does (the corner of the
+        base triangle it lies in with the largest barycentric coordinate).
+
+        Raises:
+            ValueError: unknown region name.
+        """
+        if name not in self.face.regions:
+            raise ValueError(f"unknown region {name!r}; known: {sorted(self.face.regions)}")
+        base = np.asarray(self.face.regions[name])
+        if self.variant is None:
+            return base
+        corners = self.variant.base_faces[self.variant.face_index]  # (V', 3)
+        nearest = corners[np.arange(len(corners)), np.argmax(self.variant.barycentric, axis=1)]
+        return np.flatnonzero(np.isin(nearest, base))
+
+    def motion(self, motion: Float[np.ndarray, "frames params"]) -> tuple[np.ndarray, np.ndarray]:
+        """``(landmark_disp (T, 68, 3), vertex_disp (T, V, 3))`` of a motion track on this mesh."""
+        lms, verts, _ = mesh_motion(self.face, motion, self.variant)
+        return lms, verts
+
+
+def face_mesh(identity: int, kind: str = "base", *, resolution: str = "low", seed: int | None = None) -> FaceMesh:
+    """The built-in face of an identity on a topology ("base" or a :mod:`jaxtalk.geometry.topology` kind).
+
+    Args:
+        identity: built-in face identity (0 = mean face).
+        kind: "base", "subdivided", "decimated", "retriangulated" or "shuffled".
+        resolution: built-in face resolution ("low", "default", "high").
+        seed: remeshing seed (default: the identity).
+
+    Returns:
+        A :class:`FaceMesh`.
+
+    Raises:
+        ValueError: unknown kind or resolution.
+    """
+    from jaxtalk.face import builtin_face
+    from jaxtalk.geometry.topology import make_variant
+
+    face = builtin_face(identity, resolution=resolution)
+    template, tris = np.asarray(face.template, np.float64), np.asarray(face.faces)
+    if kind == "base":
+        return FaceMesh(face, None, template, tris, f"id{identity}/base")
+    variant = make_variant(template, tris, kind, seed=identity if seed is None else seed)
+    return FaceMesh(face, variant, np.asarray(variant.vertices), np.asarray(variant.faces), f"id{identity}/{kind}")
+
+
 def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Float[np.ndarray, "frames 320"]:
     """Per-motion-frame audio features: four 10 ms log-mel frames stacked per 40 ms motion frame.
 
@@ -115,7 +185,7 @@ def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Flo
     return mel[:need].reshape(num_frames, AUDIO_FEATURE_DIM).astype(np.float32)
 
 
-def without_head_pose(motion: Float[np.ndarray, "frames 56"]) -> Float[np.ndarray, "frames 56"]:
+def without_head_pose(motion: Float[np.ndarray, "frames params"]) -> Float[np.ndarray, "frames params"]:
     """The motion with the neck rotation zeroed: the face's own deformation only.
 
     FreeTalk animates a face mesh from speech (EmoVOCA and VOCASET carry no head pose); SynthTalk's
@@ -213,7 +283,7 @@ def _bucketed(motion: np.ndarray) -> tuple[Any, int]:
     return jnp.asarray(rows), n
 
 
-def landmark_motion(face: Any, motion: Float[np.ndarray, "frames 56"]) -> Float[np.ndarray, "frames 68 3"]:
+def landmark_motion(face: Any, motion: Float[np.ndarray, "frames params"]) -> Float[np.ndarray, "frames 68 3"]:
     """Landmark displacements ``L_t - L_tpl`` of a motion track on a face (metres, float32).
 
     Raises:
@@ -225,7 +295,7 @@ def landmark_motion(face: Any, motion: Float[np.ndarray, "frames 56"]) -> Float[
 
 
 def mesh_motion(
-    face: Any, motion: Float[np.ndarray, "frames 56"], variant: Any = None
+    face: Any, motion: Float[np.ndarray, "frames params"], variant: Any = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Landmark and vertex displacements of a motion track on a face, optionally remeshed.
 

@@ -62,8 +62,14 @@ def fit_ats(
         :class:`FittedATS`.
 
     Raises:
-        ValueError: windows longer than ``config.max_frames`` or malformed arrays.
+        ValueError: ``displacement_scale != 1``, windows longer than ``config.max_frames`` or
+            malformed arrays.
     """
+    if config.displacement_scale != 1.0:
+        raise ValueError(
+            "fit_ats standardises the displacements itself; use a config with displacement_scale=1.0, "
+            f"got {config.displacement_scale}"
+        )
     disp = np.asarray(windows["displacements"], np.float32)
     if disp.ndim != 4 or disp.shape[-2:] != (config.num_landmarks, 3):
         raise ValueError(f"displacements must have shape (N, T, {config.num_landmarks}, 3), got {disp.shape}")

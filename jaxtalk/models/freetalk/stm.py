@@ -9,7 +9,9 @@ Four stages (FreeTalk section 3.2):
    (equation 12); and the global displacement vector ``g_t`` (the 3N displacements, stacked).
 3. Cross-attention vertex -> landmarks (queries from ``f_i``, keys/values from the landmark
    features, equations 13-14) gives ``c_{t,i}``.
-4. A DiffusionNet decoder maps ``[f_i | g_t | c_{t,i}]`` to the displacement of vertex i.
+4. A DiffusionNet decoder maps ``[f_i | g_t | c_{t,i}]`` to the displacement of vertex i. Its first
+   linear map is applied block by block (``fuse_*``), which is the same function as one linear map
+   of the concatenation but computes the global block once per frame rather than per vertex.
 
 Everything but the mesh encoder is written for one frame and ``vmap``-ped over frames with the mesh's
 operators shared. The model is intrinsic except for its xyz/normal input, and it never assumes a
@@ -43,6 +45,7 @@ __all__ = [
     "STMMesh",
     "SparseToMesh",
     "prepare_mesh",
+    "prepare_meshes",
     "stack_meshes",
     "check_landmark_motion",
     "init_stm",
@@ -105,6 +108,11 @@ def prepare_mesh(
         ValueError: malformed or defective mesh, or fewer vertices than ``num_eigenpairs + 1``.
         EigenDecompositionError: the eigensolve failed.
     """
+    ops, normals, n = _operators(vertices, faces, config, cache_dir)
+    return _assemble(vertices, ops, normals, n, num_vertices, degree)
+
+
+def _operators(vertices, faces, config: STMConfig, cache_dir):
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3:
@@ -115,17 +123,44 @@ def prepare_mesh(
         )
     scaled = v * config.position_scale
     ops = compute_operators(scaled, f, config.num_eigenpairs, cache_dir=cache_dir)
-    normals = vertex_normals(scaled, f)
-    n = v.shape[0]
+    return ops, vertex_normals(scaled, f), v.shape[0]
+
+
+def _assemble(vertices, ops, normals, n: int, num_vertices: int | None, degree: int | None) -> STMMesh:
     total = n if num_vertices is None else int(num_vertices)
     dops = to_diffusion_operators(ops, num_vertices=total, degree=degree)
     pad = ((0, total - n), (0, 0))
     return STMMesh(
-        vertices=jnp.asarray(np.pad(v, pad), jnp.float32),
+        vertices=jnp.asarray(np.pad(np.asarray(vertices, np.float64), pad), jnp.float32),
         normals=jnp.asarray(np.pad(normals, pad), jnp.float32),
         ops=dops,
         valid=jnp.asarray(np.arange(total) < n),
     )
+
+
+def prepare_meshes(
+    meshes: list[tuple[Any, Any]], config: STMConfig, *, cache_dir: str | os.PathLike[str] | None = None
+) -> list[STMMesh]:
+    """Prepare several meshes padded to a common vertex count and one-ring width (for training).
+
+    Args:
+        meshes: ``(vertices (V_m, 3), faces (F_m, 3))`` pairs.
+        config: STM configuration.
+        cache_dir: disk cache for the operators.
+
+    Returns:
+        One :class:`STMMesh` per input, all with the same padded shapes (ready for
+        :func:`stack_meshes`).
+
+    Raises:
+        ValueError: as :func:`prepare_mesh`, or an empty list.
+    """
+    if not meshes:
+        raise ValueError("prepare_meshes needs at least one mesh")
+    parts = [_operators(v, f, config, cache_dir) for v, f in meshes]
+    total = max(n for _, _, n in parts)
+    degree = max(int(np.diff(ops.grad_x.indptr).max(initial=1)) for ops, _, _ in parts)
+    return [_assemble(v, ops, normals, n, total, degree) for (v, _), (ops, normals, n) in zip(meshes, parts)]
 
 
 def stack_meshes(meshes: list[STMMesh]) -> STMMesh:
@@ -216,6 +251,12 @@ class SparseToMesh(nn.Module):
     def setup(self) -> None:
         cfg = self.config
         self.encoder = DiffusionNet(cfg.encoder_config(), name="encoder")
+        # The decoder's first linear map over [f_i | g_t | c_t,i], applied block by block: the block
+        # of the global vector g_t is the same for every vertex, so it is computed once per frame
+        # instead of once per vertex (at 5k vertices that is most of a naive decoder's FLOPs).
+        self.fuse_features = nn.Dense(cfg.decoder_width, name="fuse_features")
+        if cfg.uses_global:
+            self.fuse_global = nn.Dense(cfg.decoder_width, use_bias=False, name="fuse_global")
         if cfg.uses_attention:
             self.landmarks = _LandmarkEncoder(cfg, name="landmarks")
             self.cross_attention = MultiHeadAttention(
@@ -224,6 +265,7 @@ class SparseToMesh(nn.Module):
                 out_features=cfg.attention_dim,
                 name="cross_attention",
             )
+            self.fuse_attention = nn.Dense(cfg.decoder_width, use_bias=False, name="fuse_attention")
         self.decoder = DiffusionNet(cfg.decoder_config(), name="decoder")
 
     def mesh_features(self, vertices: Array, normals: Array, ops: DiffusionOperators) -> Array:
@@ -234,13 +276,12 @@ class SparseToMesh(nn.Module):
     def decode_frame(self, features: Array, disp: Array, ops: DiffusionOperators) -> Array:
         """Vertex displacements (model units) of one frame from landmark displacements (model units)."""
         cfg = self.config
-        v = features.shape[0]
-        parts = [features]
+        h = self.fuse_features(features)
         if cfg.uses_global:
-            parts.append(jnp.broadcast_to(disp.reshape(1, -1), (v, cfg.motion_dim)))
+            h = h + self.fuse_global(disp.reshape(1, -1))
         if cfg.uses_attention:
-            parts.append(self.cross_attention(features, self.landmarks(disp)))
-        return self.decoder(jnp.concatenate(parts, axis=-1), ops)
+            h = h + self.fuse_attention(self.cross_attention(features, self.landmarks(disp)))
+        return self.decoder(h, ops)
 
     def __call__(self, vertices: Array, normals: Array, ops: DiffusionOperators, disp: Array) -> Array:
         return self.decode_frame(self.mesh_features(vertices, normals, ops), disp, ops)

@@ -159,7 +159,9 @@ class TimarEncoder(nn.Module):
         """
         b, nq, _, w = features.shape
         f = self.config.frames_per_turn
-        z = features[:, :, turn_layout(f).agent_motion]
+        am = turn_layout(f).agent_motion
+        # The agent-motion span is contiguous: a static slice (its gradient is a pad, not a scatter).
+        z = features[:, :, int(am[0]) : int(am[0]) + f]
         start = jnp.asarray(first_turn, jnp.int32) * f
         pos = jax.lax.dynamic_slice_in_dim(self.head_pos_embed, start, nq * f, axis=0)
         return z + pos.reshape(1, nq, f, w).astype(z.dtype)

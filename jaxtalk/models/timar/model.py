@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -14,6 +15,7 @@ from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 __all__ = ["init_params", "encode_window"]
 
 
+@functools.partial(jax.jit, static_argnums=0)
 def init_params(config: TimarConfig, key: PRNGKeyArray) -> dict[str, Any]:
     """Initial parameters ``{"encoder": ..., "head": ...}``.
 

@@ -24,7 +24,10 @@ from jaxtalk.models.timar.inputs import check_streams, from_turns, to_turns
 from jaxtalk.models.timar.model import encode_window
 from jaxtalk.samplers import make_schedule, respace, sample_ddim, sample_ddpm
 from jaxtalk.samplers.schedules import RespacedSchedule
-from jaxtalk.types import Array, Float, PRNGKeyArray
+from jaxtalk.types import Array, Float, Shaped, PRNGKeyArray
+
+# Public entry points validate shapes themselves (naming the stream), so the annotation is loose.
+StreamLike = Shaped[Array, "..."] | Shaped[np.ndarray, "..."]
 
 __all__ = ["SAMPLERS", "respaced_schedule", "conditions", "sample_frames", "sample"]
 
@@ -146,9 +149,9 @@ def _sample(config, params, us, um, as_, key, cfg_scale, eta, num_steps, sampler
 def sample(
     config: TimarConfig,
     params: dict[str, Any],
-    user_speech: Float[Array, "batch frames speech_dim"] | Float[np.ndarray, "batch frames speech_dim"],
-    user_motion: Float[Array, "batch frames param_dim"] | Float[np.ndarray, "batch frames param_dim"],
-    agent_speech: Float[Array, "batch frames speech_dim"] | Float[np.ndarray, "batch frames speech_dim"],
+    user_speech: StreamLike,
+    user_motion: StreamLike,
+    agent_speech: StreamLike,
     key: PRNGKeyArray,
     *,
     cfg_scale: Float[Array, ""] | float | None = None,

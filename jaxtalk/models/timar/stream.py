@@ -29,7 +29,10 @@ from jaxtalk.models.timar.inputs import check_streams
 from jaxtalk.models.timar.sample import SAMPLERS, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.nn import bias_from_mask
-from jaxtalk.types import Array, Float, Int, PRNGKeyArray
+from jaxtalk.types import Array, Float, Shaped, Int, PRNGKeyArray
+
+# Public entry points validate shapes themselves (naming the stream), so the annotation is loose.
+StreamLike = Shaped[Array, "..."] | Shaped[np.ndarray, "..."]
 
 __all__ = ["StreamState", "stream_init", "stream_condition", "stream_step", "stream_conversation"]
 
@@ -177,9 +180,9 @@ def stream_condition(
     config: TimarConfig,
     params: dict[str, Any],
     state: StreamState,
-    user_speech: Float[Array, "batch frames speech_dim"],
-    user_motion: Float[Array, "batch frames param_dim"],
-    agent_speech: Float[Array, "batch frames speech_dim"],
+    user_speech: StreamLike,
+    user_motion: StreamLike,
+    agent_speech: StreamLike,
     *,
     guidance: bool = True,
 ) -> tuple[StreamState, Float[Array, "streams frames width"]]:
@@ -221,9 +224,9 @@ def stream_step(
     config: TimarConfig,
     params: dict[str, Any],
     state: StreamState,
-    user_speech: Float[Array, "batch frames speech_dim"],
-    user_motion: Float[Array, "batch frames param_dim"],
-    agent_speech: Float[Array, "batch frames speech_dim"],
+    user_speech: StreamLike,
+    user_motion: StreamLike,
+    agent_speech: StreamLike,
     key: PRNGKeyArray,
     *,
     cfg_scale: Float[Array, ""] | float | None = None,
@@ -272,9 +275,9 @@ def stream_step(
 def stream_conversation(
     config: TimarConfig,
     params: dict[str, Any],
-    user_speech: Float[Array, "batch frames speech_dim"] | Float[np.ndarray, "batch frames speech_dim"],
-    user_motion: Float[Array, "batch frames param_dim"] | Float[np.ndarray, "batch frames param_dim"],
-    agent_speech: Float[Array, "batch frames speech_dim"] | Float[np.ndarray, "batch frames speech_dim"],
+    user_speech: StreamLike,
+    user_motion: StreamLike,
+    agent_speech: StreamLike,
     key: PRNGKeyArray,
     *,
     context: int,

@@ -123,9 +123,9 @@ def turn_layout(frames: int) -> TurnLayout:
 def interleave(
     user_speech: Float[Array, "*batch turns frames width"],
     # Loose annotations: the shape checks below raise a ValueError that names the problem.
-    user_motion: Float[Array, "*dims"],
-    agent_speech: Float[Array, "*dims"],
-    agent_motion: Float[Array, "*dims"],
+    user_motion: Float[Array, "*um_dims"],
+    agent_speech: Float[Array, "*as_dims"],
+    agent_motion: Float[Array, "*am_dims"],
     separators: Float[Array, "*sep_dims"],
 ) -> Float[Array, "*batch turns tokens width"]:
     """Interleave four per-turn token spans with the ten separator embeddings.

@@ -98,8 +98,9 @@ def make_windows(
             stream = corpus.tokens(i, src_stream)
             src, src_per_frame = np.asarray(stream.embeddings, np.float32), stream.rate / config.fps
         n = motion.shape[0]
-        last = max(n - window_frames, 0)
-        last = int(np.floor(last / per_token) * per_token)
+        # The last window ends at the clip's end; rounding its start UP to a token boundary may leave
+        # one padded frame instead of dropping the clip's last frame.
+        last = int(np.ceil(max(n - window_frames, 0) / per_token) * per_token)
         starts = sorted(set(range(0, last + 1, hop)) | {last})
         others = [j for j in by_speaker[corpus.clips[i].speaker] if j != i] or [i]
         for st in starts:

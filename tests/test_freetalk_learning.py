@@ -1,0 +1,79 @@
+"""FreeTalk learns on SynthTalk: ATS beats the mean pose on held-out clips, STM transfers landmark
+motion to a mesh topology and identity it never saw. Small models, short training (slow tests)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.face import builtin_face
+from jaxtalk.geometry.topology import make_variant
+from jaxtalk.models.freetalk import ats, data, stm
+from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
+from jaxtalk.models.freetalk.fit import fit_ats, fit_stm, sample_displacements
+from jaxtalk.train import OptimConfig
+
+LIPS = np.r_[48:68]
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory):
+    from jaxtalk.data import synthtalk
+
+    return synthtalk.generate("tiny", seed=0, cache_dir=tmp_path_factory.mktemp("synthtalk"))
+
+
+@pytest.mark.slow
+def test_ats_beats_the_mean_pose_on_held_out_clips(corpus):
+    window = 16
+    train_w = data.ats_windows(corpus, corpus.split("train"), window=window, hop=4)
+    test_w = data.ats_windows(corpus, corpus.split("val") + corpus.split("test"), window=window, hop=window)
+    cfg = ATSConfig.small(width=64, num_layers=2, num_heads=4, ff_dim=128, max_frames=window,
+                          displacement_scale=1.0)
+    optim = OptimConfig(lr=2e-3, warmup_steps=20, total_steps=150)
+    fitted = fit_ats(cfg, train_w, optim, jax.random.key(0))
+    gt = test_w["displacements"]
+
+    def lip_error(pred):
+        return float(np.linalg.norm(pred[:, :, LIPS] - gt[:, :, LIPS], axis=-1).mean())
+
+    baseline = lip_error(np.broadcast_to(fitted.stats.mean, gt.shape))
+    sampled = sample_displacements(fitted, test_w["audio"], test_w["emotion"], test_w["intensity"],
+                                   jax.random.key(1), num_steps=10)
+    # The denoiser's estimate from pure noise at the last training step is its posterior mean
+    # E[x0 | audio, emotion, intensity]; it must use the audio to beat the unconditional mean.
+    cond = ats.make_condition(cfg, test_w["audio"], test_w["emotion"], test_w["intensity"])
+    noise = jax.random.normal(jax.random.key(2), gt.shape[:2] + (cfg.motion_dim,))
+    t_last = jnp.full((gt.shape[0],), cfg.num_timesteps - 1.0)
+    posterior_mean = fitted.stats.denormalize(
+        np.asarray(ats.ats_denoise(fitted.params, cfg, noise, t_last, cond)).reshape(gt.shape))
+    assert lip_error(posterior_mean) < 0.9 * baseline, (lip_error(posterior_mean), baseline)
+    assert lip_error(sampled) < baseline, (lip_error(sampled), baseline)
+
+
+@pytest.mark.slow
+def test_stm_transfers_motion_to_an_unseen_topology_and_identity(corpus):
+    cfg = STMConfig.small(num_eigenpairs=24)
+    base = builtin_face(0, resolution="low")
+    template, faces = np.asarray(base.template, np.float64), np.asarray(base.faces)
+    train_mesh = stm.prepare_mesh(template, faces, cfg)
+    clips = corpus.split("train")[:8]
+    tracks = [(0, *data.mesh_motion(base, data.without_head_pose(corpus.motion(c)))[:2]) for c in clips]
+    windows = data.stm_windows(tracks, train_mesh.num_vertices, window=4, hop=4)
+    optim = OptimConfig(lr=3e-3, warmup_steps=10, total_steps=120)
+    params, history = fit_stm(cfg, [train_mesh], windows, optim, jax.random.key(0), batch_size=4)
+    assert history[-1]["loss"] < history[0]["loss"]
+
+    other = builtin_face(2, resolution="low")
+    variant = make_variant(np.asarray(other.template, np.float64), np.asarray(other.faces), "decimated", seed=2)
+    mesh = stm.prepare_mesh(variant.vertices, variant.faces, cfg)
+    assert mesh.num_vertices != train_mesh.num_vertices
+    clip = corpus.split("test")[0]
+    lms, gt, _ = data.mesh_motion(other, data.without_head_pose(corpus.motion(clip)), variant)
+    pred = np.asarray(stm.stm_apply(params, cfg, mesh, lms))
+    err = np.linalg.norm(pred - gt, axis=-1).mean()
+    still = np.linalg.norm(gt, axis=-1).mean()  # the neutral mesh (zero displacement)
+    # Measured here: about 0.65 of the neutral-mesh error after 120 steps on ONE training mesh.
+    assert err < 0.75 * still, (err, still)

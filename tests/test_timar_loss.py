@@ -1,0 +1,129 @@
+"""TIMAR loss: mask-ratio distribution, exact mask counts, loss only at masked frames, grouped MSE."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from jaxtalk.models.timar import TimarConfig, init_params, timar_loss
+from jaxtalk.models.timar.inputs import to_turns
+from jaxtalk.models.timar.loss import grouped_mse, masked_loss, random_agent_mask, sample_mask_ratio
+
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
+CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)
+B, N, F = 2, 2, 5
+
+
+def _batch(seed=0, n=N):
+    rng = np.random.default_rng(seed)
+    t = n * F
+    return {
+        "user_speech": rng.normal(size=(B, t, 8)).astype(np.float32),
+        "user_motion": rng.normal(size=(B, t, 56)).astype(np.float32),
+        "agent_speech": rng.normal(size=(B, t, 8)).astype(np.float32),
+        "agent_motion": rng.normal(size=(B, t, 56)).astype(np.float32),
+    }
+
+
+
+@jax.jit
+def _perturb(p, key):
+    # Zero-initialised adaLN layers make a fresh head output exactly 0; perturb so tests see signal.
+    leaves, tree = jax.tree.flatten(p)
+    keys = jax.random.split(key, len(leaves))
+    return jax.tree.unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
+
+
+@pytest.fixture(scope="module")
+def params():
+    p = init_params(CFG, jax.random.key(0))
+    return _perturb(p, jax.random.key(9))
+
+
+def test_mask_ratio_follows_the_truncated_normal_on_0p7_1():
+    keys = jax.random.split(jax.random.key(0), 4000)
+    r = np.asarray(jax.vmap(lambda k: sample_mask_ratio(CFG, k))(keys))
+    assert r.min() >= 0.7 and r.max() <= 1.0
+    ref = stats.truncnorm((0.7 - 1.0) / 0.25, 0.0, loc=1.0, scale=0.25)
+    assert abs(r.mean() - ref.mean()) < 4 * ref.std() / np.sqrt(len(r))
+    assert stats.kstest(r, ref.cdf).pvalue > 1e-3
+
+
+def test_random_agent_mask_masks_exactly_ceil_ratio_per_example_and_uniformly():
+    m = np.asarray(random_agent_mask(jax.random.key(1), 0.7, 4, 200))
+    assert m.sum(axis=1).tolist() == [140] * 4
+    m = np.asarray(random_agent_mask(jax.random.key(2), jnp.float32(0.71), 3, 50))
+    assert m.sum(axis=1).tolist() == [36] * 3  # ceil(35.5)
+    assert np.asarray(random_agent_mask(jax.random.key(3), 1.0, 2, 25)).all()
+    # Every position is masked about equally often.
+    many = np.asarray(jax.vmap(lambda k: random_agent_mask(k, 0.5, 1, 10)[0])(jax.random.split(jax.random.key(4), 2000)))
+    assert np.allclose(many.mean(0), 0.5, atol=0.06)
+
+
+def test_grouped_mse_weights_each_group_equally():
+    target = jnp.zeros((56,))
+    pred = jnp.zeros((56,)).at[0].set(1.0).at[50].set(1.0).at[55].set(2.0)
+    total, groups = grouped_mse(pred, target)
+    np.testing.assert_allclose(float(groups["exp"]), 1 / 50)
+    np.testing.assert_allclose(float(groups["jaw"]), 1 / 3)
+    np.testing.assert_allclose(float(groups["neck"]), 4 / 3)
+    np.testing.assert_allclose(float(total), 1 / 50 + 1 / 3 + 4 / 3, rtol=1e-6)
+
+
+def test_loss_only_counts_masked_frames(params):
+    b = _batch()
+    turns = tuple(to_turns(jnp.asarray(b[k]), F) for k in ("user_speech", "user_motion", "agent_speech", "agent_motion"))
+    mask = np.zeros((B, N, F), bool)
+    mask[0, 0, :3] = True
+    mask[1, 1, 1:4] = True
+    mask = jnp.asarray(mask)
+    drop = jnp.zeros((B,), bool)
+    key = jax.random.key(5)
+    fn = jax.jit(lambda tg: masked_loss(CFG, params, turns, tg, mask, drop, key))
+    target = turns[3]
+    base, metrics = fn(target)
+    assert float(metrics["masked_frames"]) == 3 + 3
+    # Changing the TARGET of an unmasked frame leaves the loss bit-identical...
+    changed = target.at[0, 1, 4].add(10.0).at[1, 0, 0].add(-3.0)
+    assert float(fn(changed)[0]) == float(base)
+    # ...and of a masked frame changes it.
+    assert abs(float(fn(target.at[1, 1, 2].add(1.0))[0]) - float(base)) > 1e-4
+    # The gradient w.r.t. the targets vanishes exactly on unmasked frames.
+    g = np.asarray(jax.grad(lambda tg: fn(tg)[0])(target))
+    assert np.all(g[~np.asarray(mask)] == 0) and np.abs(g[np.asarray(mask)]).sum() > 0
+
+
+def test_timar_loss_is_finite_differentiable_and_reports_groups(params):
+    loss, m = jax.jit(lambda p, b, k: timar_loss(p, b, k, config=CFG))(params, _batch(), jax.random.key(0))
+    assert np.isfinite(float(loss))
+    np.testing.assert_allclose(float(loss), float(m["loss_exp"] + m["loss_jaw"] + m["loss_neck"]), rtol=1e-5)
+    assert 0.7 <= float(m["mask_ratio"]) <= 1.0
+    assert float(m["masked_frames"]) == B * np.ceil(np.round(float(m["mask_ratio"]) * N * F, 4))
+    g = jax.jit(jax.grad(lambda p, b: timar_loss(p, b, jax.random.key(0), config=CFG)[0]))(params, _batch())
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(g))
+    sig = TimarConfig.small(**{**CFG.__dict__, "learn_sigma": True})
+    ps = init_params(sig, jax.random.key(1))
+    loss_s, ms = jax.jit(lambda p, b: timar_loss(p, b, jax.random.key(0), config=sig))(ps, _batch())
+    assert np.isfinite(float(loss_s)) and float(ms["loss_vlb"]) > 0
+
+
+def test_loss_rejects_bad_batches(params):
+    b = _batch()
+    with pytest.raises(ValueError, match="missing"):
+        timar_loss(params, {k: v for k, v in b.items() if k != "user_motion"}, jax.random.key(0), config=CFG)
+    bad = dict(b, agent_motion=b["agent_motion"][:, :-1])
+    with pytest.raises(ValueError, match="aligned"):
+        timar_loss(params, bad, jax.random.key(0), config=CFG)
+    short = {k: v[:, :-3] for k, v in b.items()}
+    with pytest.raises(ValueError, match="multiple of frames_per_turn"):
+        timar_loss(params, short, jax.random.key(0), config=CFG)
+    nan = dict(b, user_speech=np.where(np.arange(8) == 3, np.nan, b["user_speech"]).astype(np.float32))
+    with pytest.raises(ValueError, match="NaN"):
+        timar_loss(params, nan, jax.random.key(0), config=CFG)
+    long = _batch(n=5)
+    with pytest.raises(ValueError, match="max_turns"):
+        timar_loss(params, long, jax.random.key(0), config=CFG)

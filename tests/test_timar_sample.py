@@ -1,0 +1,123 @@
+"""TIMAR sampling: CFG algebra, scale sweep by vmap without recompiling, samplers, bad input."""
+
+from __future__ import annotations
+
+import importlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtalk.models.timar import TimarConfig, init_params, sample
+from jaxtalk.models.timar.inputs import to_turns
+from jaxtalk.models.timar.sample import conditions, sample_frames
+
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
+# The package re-exports the function ``sample``; the module is needed for its jit cache.
+sample_mod = importlib.import_module("jaxtalk.models.timar.sample")
+
+CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)
+B, N, F = 2, 2, 5
+
+
+
+@jax.jit
+def _perturb(p, key):
+    # Zero-initialised adaLN layers make a fresh head output exactly 0; perturb so tests see signal.
+    leaves, tree = jax.tree.flatten(p)
+    keys = jax.random.split(key, len(leaves))
+    return jax.tree.unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
+
+
+@pytest.fixture(scope="module")
+def params():
+    p = init_params(CFG, jax.random.key(0))
+    return _perturb(p, jax.random.key(7))
+
+
+def _streams(seed=0, n=N):
+    rng = np.random.default_rng(seed)
+    t = n * F
+    return (rng.normal(size=(B, t, 8)).astype(np.float32), rng.normal(size=(B, t, 56)).astype(np.float32),
+            rng.normal(size=(B, t, 8)).astype(np.float32))
+
+
+def test_guidance_scale_one_is_conditional_and_zero_is_unconditional(params):
+    us, um, as_ = _streams()
+    key = jax.random.key(3)
+    cond_only = np.asarray(sample(CFG, params, us, um, as_, key, guidance=False))
+    np.testing.assert_allclose(np.asarray(sample(CFG, params, us, um, as_, key, cfg_scale=1.0)), cond_only, atol=1e-5)
+    # omega = 0: the sample ignores the user entirely.
+    us2, um2 = us + 1.0, um * 2.0
+    u0 = np.asarray(sample(CFG, params, us, um, as_, key, cfg_scale=0.0))
+    u1 = np.asarray(sample(CFG, params, us2, um2, as_, key, cfg_scale=0.0))
+    np.testing.assert_allclose(u0, u1, atol=1e-5)
+    assert np.abs(np.asarray(sample(CFG, params, us2, um2, as_, key, cfg_scale=1.0)) - cond_only).max() > 1e-3
+
+
+def test_cfg_sweep_is_a_vmap_and_never_recompiles(params):
+    us, um, as_ = _streams()
+    key = jax.random.key(4)
+    scales = jnp.asarray([0.0, 1.0, 2.5])
+    sweep = jax.vmap(lambda s: sample(CFG, params, us, um, as_, key, cfg_scale=s))(scales)
+    assert sweep.shape == (3, B, N * F, 56)
+    for i, s in enumerate([0.0, 1.0, 2.5]):
+        np.testing.assert_allclose(np.asarray(sweep[i]), np.asarray(sample(CFG, params, us, um, as_, key, cfg_scale=s)),
+                                   atol=2e-5)
+    before = sample_mod._sample._cache_size()
+    for s in (0.3, 1.7, 4.0):
+        sample(CFG, params, us, um, as_, key, cfg_scale=s, eta=s / 10)
+    assert sample_mod._sample._cache_size() == before
+
+
+def test_guided_sample_equals_eq9_applied_to_head_outputs_with_one_step(params):
+    # With one respaced step (t = 0: x0 estimate returned directly) the sample is exactly
+    # out_u + omega (out_c - out_u) of the x0 predictions at the initial noise.
+    us, um, as_ = _streams()
+    key = jax.random.key(5)
+    omega = 1.7
+    got = np.asarray(sample(CFG, params, us, um, as_, key, cfg_scale=omega, num_steps=1))
+    zc, zu = conditions(CFG, params, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    k_noise, _ = jax.random.split(key)
+    noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
+    from jaxtalk.models.timar.head import apply_head
+
+    t = jnp.zeros(zc.shape[:-1])
+    oc, ou = apply_head(CFG, params["head"], zc, noise, t), apply_head(CFG, params["head"], zu, noise, t)
+    np.testing.assert_allclose(got, np.asarray(ou + omega * (oc - ou)).reshape(B, N * F, 56), atol=1e-5)
+
+
+def test_ddpm_and_step_counts_and_mlp_head(params):
+    us, um, as_ = _streams()
+    x = sample(CFG, params, us, um, as_, jax.random.key(1), sampler="ddpm", num_steps=3)
+    assert x.shape == (B, N * F, 56) and np.all(np.isfinite(np.asarray(x)))
+    mlp = TimarConfig.small(**{**CFG.__dict__, "head": "mlp"})
+    pm = init_params(mlp, jax.random.key(0))
+    y = sample(mlp, pm, us, um, as_, jax.random.key(1), cfg_scale=1.0)
+    zc, _ = conditions(mlp, pm, *(to_turns(jnp.asarray(a), F) for a in (us, um, as_)), guidance=False)
+    ref = sample_frames(mlp, pm, zc, None, jax.random.key(0), cfg_scale=1.0, num_steps=1)
+    np.testing.assert_allclose(np.asarray(y), np.asarray(ref).reshape(B, N * F, 56), atol=1e-5)
+
+
+def test_sample_rejects_bad_input(params):
+    us, um, as_ = _streams()
+    key = jax.random.key(0)
+    with pytest.raises(ValueError, match="multiple of frames_per_turn"):
+        sample(CFG, params, us[:, :7], um[:, :7], as_[:, :7], key)
+    with pytest.raises(ValueError, match="aligned"):
+        sample(CFG, params, us, um[:, :5], as_, key)
+    with pytest.raises(ValueError, match="NaN"):
+        sample(CFG, params, us, np.full_like(um, np.nan), as_, key)
+    with pytest.raises(ValueError, match="channels"):
+        sample(CFG, params, us[..., :5], um, as_, key)
+    long = _streams(n=5)
+    with pytest.raises(ValueError, match="max_turns"):
+        sample(CFG, params, *long, key)
+    with pytest.raises(ValueError, match="sampler"):
+        sample(CFG, params, us, um, as_, key, sampler="euler")
+    with pytest.raises(ValueError, match="num_steps"):
+        sample(CFG, params, us, um, as_, key, num_steps=0)
+    with pytest.raises(ValueError, match="scalar"):
+        sample(CFG, params, us, um, as_, key, cfg_scale=jnp.ones(2))
