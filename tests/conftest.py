@@ -45,3 +45,11 @@ def fast_compile():
 @pytest.fixture
 def key():
     return jax.random.key(0)
+
+
+@pytest.fixture(scope="session")
+def synthtalk_tiny(tmp_path_factory):
+    """The tiny SynthTalk corpus (seed 0), generated once per test session into a shared cache."""
+    from jaxtalk.data import synthtalk
+
+    return synthtalk.generate("tiny", seed=0, cache_dir=tmp_path_factory.mktemp("synthtalk_tiny"))

@@ -24,16 +24,14 @@ def test_user_error_is_one_line_without_traceback():
     assert "Traceback" not in result.output
 
 
-def test_data_command_generates_and_writes_metadata(tmp_path):
+def test_data_command_loads_the_cache_and_writes_metadata(tmp_path, synthtalk_tiny):
+    # The session fixture already rendered the tiny corpus into its cache: the command must load it.
+    cache = str(synthtalk_tiny._cache_dir)
     meta = tmp_path / "meta.json"
-    result = runner.invoke(
-        app, ["data", "--size", "tiny", "--no-tokens", "--cache-dir", str(tmp_path / "c"), "--metadata", str(meta)]
-    )
+    result = runner.invoke(app, ["data", "--size", "tiny", "--no-tokens", "--cache-dir", cache, "--metadata", str(meta)])
     assert result.exit_code == 0, result.output
     for split in ("train", "val", "test", "ood"):
         assert split in result.output
     payload = json.loads(meta.read_text())
     assert payload["fps"] == 25 and payload["sample_rate"] == 16000
-    # Cached: a second run loads the same corpus from disk.
-    again = runner.invoke(app, ["data", "--size", "tiny", "--no-tokens", "--cache-dir", str(tmp_path / "c")])
-    assert again.exit_code == 0, again.output
+    assert len(payload["clips"]) == len(synthtalk_tiny.clips)

@@ -11,7 +11,11 @@ import pytest
 
 from jaxtalk.models.timar import TimarConfig, init_params, sample
 from jaxtalk.models.timar.inputs import to_turns
-from jaxtalk.models.timar.sample import conditions, sample_frames
+from jaxtalk.models.timar.sample import conditions as _conditions_eager
+from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
+
+conditions = jax.jit(_conditions_eager, static_argnums=0, static_argnames="guidance")
+sample_frames = jax.jit(_sample_frames_eager, static_argnums=0, static_argnames=("num_steps", "sampler"))
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
