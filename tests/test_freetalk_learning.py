@@ -19,10 +19,9 @@ LIPS = np.r_[48:68]
 
 
 @pytest.fixture(scope="module")
-def corpus(tmp_path_factory):
-    from jaxtalk.data import synthtalk
-
-    return synthtalk.generate("tiny", seed=0, cache_dir=tmp_path_factory.mktemp("synthtalk"))
+def corpus(synthtalk_tiny):
+    # The session-wide tiny corpus (tests/conftest.py): generated once for every test that needs it.
+    return synthtalk_tiny
 
 
 @pytest.mark.slow

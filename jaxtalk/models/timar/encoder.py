@@ -29,8 +29,9 @@ from jaxtalk.types import Array, Bool, Float, Int
 
 __all__ = ["TimarEncoder", "KVCache", "init_encoder"]
 
-# Per encoder layer: (keys, values), each (batch, length, heads, head_dim).
-KVCache = tuple[tuple[Float[Array, "batch length heads head_dim"], Float[Array, "batch length heads head_dim"]], ...]
+# Per encoder layer: (keys, values), each (batch, length, heads, head_dim); the length differs between
+# the cache passed in and the one returned, hence the loose annotation.
+KVCache = tuple[tuple[Float[Array, "..."], Float[Array, "..."]], ...]
 
 
 class TimarEncoder(nn.Module):

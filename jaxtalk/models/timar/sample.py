@@ -154,7 +154,7 @@ def sample(
     agent_speech: StreamLike,
     key: PRNGKeyArray,
     *,
-    cfg_scale: Float[Array, ""] | float | None = None,
+    cfg_scale: Shaped[Array, "..."] | float | None = None,
     num_steps: int | None = None,
     sampler: str = "ddim",
     eta: Float[Array, ""] | float = 0.0,

@@ -229,7 +229,7 @@ def stream_step(
     agent_speech: StreamLike,
     key: PRNGKeyArray,
     *,
-    cfg_scale: Float[Array, ""] | float | None = None,
+    cfg_scale: Shaped[Array, "..."] | float | None = None,
     num_steps: int | None = None,
     sampler: str = "ddim",
     eta: Float[Array, ""] | float = 0.0,
@@ -265,6 +265,8 @@ def stream_step(
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= config.num_timesteps:
         raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
     cfg = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, jnp.float32)
+    if cfg.ndim:
+        raise ValueError(f"cfg_scale must be a scalar, got shape {cfg.shape}")
     return _step(
         config, params, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32), num_steps, sampler,
@@ -281,7 +283,7 @@ def stream_conversation(
     key: PRNGKeyArray,
     *,
     context: int,
-    cfg_scale: Float[Array, ""] | float | None = None,
+    cfg_scale: Shaped[Array, "..."] | float | None = None,
     num_steps: int | None = None,
     sampler: str = "ddim",
     guidance: bool = True,
