@@ -52,11 +52,11 @@ def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0):
     t0 = time.perf_counter()
     windows = make_windows(corpus, corpus.split("train"), cfg, window_frames=WINDOW, hop_frames=10,
                            src_stream="B", seed=seed)
-    base = train_base(cfg, windows, OptimConfig(lr=2e-3, warmup_steps=50, total_steps=steps, weight_decay=0.0),
+    base = train_base(cfg, windows, OptimConfig(lr=5e-4, warmup_steps=50, total_steps=steps, weight_decay=0.0),
                       key=jax.random.key(seed), batch_size=16, progress=True, log_every=50)
     t1 = time.perf_counter()
     adapted = train_adapter(cfg, base.state.params, windows,
-                            OptimConfig(lr=2e-3, warmup_steps=20, total_steps=adapter_steps, weight_decay=0.0),
+                            OptimConfig(lr=5e-4, warmup_steps=20, total_steps=adapter_steps, weight_decay=0.0),
                             key=jax.random.key(seed + 1), src_rate=25.0, batch_size=16, progress=True,
                             log_every=50)
     params = adapted.state.params

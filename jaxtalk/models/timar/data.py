@@ -123,7 +123,7 @@ def conversations(corpus: Any, split: str, *, frames_per_turn: int = MOTION_FPS)
             out.append(Conversation(
                 agent_speech=speech[agent], agent_motion=np.asarray(corpus.motion(agent)[:t], np.float32),
                 user_speech=speech[user], user_motion=np.asarray(corpus.motion(user)[:t], np.float32),
-                agent_oracle=np.asarray(corpus.oracle(agent)[:t], np.float32), agent_clip=a if agent == a else b,
+                agent_oracle=np.asarray(corpus.oracle(agent)[:t], np.float32), agent_clip=agent,
                 user_clip=user,
             ))
     return out
