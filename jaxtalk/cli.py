@@ -12,7 +12,8 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any, Callable
+from collections.abc import Callable
+from typing import Annotated, Any
 
 import typer
 
