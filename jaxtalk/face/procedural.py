@@ -265,14 +265,22 @@ def _expression_fields(u: np.ndarray, v: np.ndarray, seam_width: float) -> dict[
     upper_lip = mouth_u * np.exp(-(((v - V_MOUTH - 0.05) / 0.08) ** 2)) * upper_half
     lower_lip = mouth_u * np.exp(-(((v - V_MOUTH + 0.06) / 0.08) ** 2)) * lower_half
 
+    # Each lip component gets its own spatial profile (not only its own mix of shared fields), so
+    # the named components stay linearly independent and every one of them is identifiable from
+    # the vertices: a narrow centre (pucker), a thin band at the lip line (parting), a tall band
+    # (funnel flares the lips vertically), the lip level only (spread pulls the corners sideways).
+    centre = np.exp(-((u / (0.6 * MOUTH_HW)) ** 2)) * lips
+    line = mouth_u * np.exp(-(((v - V_MOUTH) / 0.05) ** 2))
+    tall = mouth_u * np.exp(-(((v - V_MOUTH) / 0.16) ** 2))
+    level = mouth_u_wide * np.exp(-(((v - V_MOUTH) / 0.07) ** 2))
     f: dict[str, tuple] = {
         "lip_close": (zero, -0.012 * seam * lips_m, -0.001 * lips_m),
-        "lip_round": (-0.08 * u * mouth_u_wide * lips, -0.004 * seam * lips_m, 0.0025 * lips_m),
-        "lip_spread": (0.08 * u * mouth_u_wide * lips, zero, -0.001 * lips_m),
-        "lip_funnel": (-0.04 * u * mouth_u_wide * lips, 0.006 * seam * lips_m, 0.0025 * lips_m),
+        "lip_round": (-0.08 * u * mouth_u_wide * lips, -0.004 * seam * centre, 0.003 * centre),
+        "lip_spread": (0.08 * u * level, 0.002 * (cl + cr), -0.001 * level),
+        "lip_funnel": (-0.04 * u * mouth_u_wide * tall, 0.006 * seam * tall, 0.0025 * tall),
         "upper_lip_raise": (zero, 0.02 * upper_lip, 0.0005 * upper_lip),
         "lower_lip_depress": (zero, -0.02 * lower_lip, 0.0005 * lower_lip),
-        "lip_part": (zero, 0.01 * seam * lips_m, zero),
+        "lip_part": (zero, 0.01 * seam * line, zero),
         "lip_tuck": (zero, 0.008 * lower_lip, -0.003 * lower_lip),
         "lip_tight": (
             -0.02 * u * lips_m,

@@ -26,10 +26,9 @@ Gauss-Newton) in one of three modes:
   block-tridiagonal linear solver (:class:`jaxtalk.fit.banded.FrameBandedSolver`) so its cost grows
   linearly with the number of frames.
 
-What the data determine: on the built-in face the expression basis itself has rank 48, not 50
-(``lip_close``, ``lip_round``, ``lip_spread``, ``lip_funnel`` and ``lip_part`` span a 3-d space of
-vertex fields), and the 68 landmarks see fewer components still (no cheek puffs, nose wrinkles, most
-residual modes). Starting from zero, Levenberg-Marquardt only ever steps in the row space of the
+What the data determine: the built-in face's 50 expression components are linearly independent on
+the vertices, but 68 landmarks see some of them only weakly (cheek puffs, nose wrinkles, residual
+modes move few landmark triangles), and a user's own model may be rank-deficient. Starting from zero, Levenberg-Marquardt only ever steps in the row space of the
 Jacobian, so the fit is the minimum-norm solution along the invisible directions; to recover
 *parameters* exactly, fit an identifiable subset (``FitConfig.active``, see
 :func:`identifiable_params`) or add a prior. Gauss-Newton has no damping: on a rank-deficient problem
