@@ -21,9 +21,9 @@ from jaxtalk.nn import (
     dot_product_attention,
 )
 
-from test_nn_support import fast_xla, random_params  # noqa: F401
+from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_xla")
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _reference_attention(q, k, v, bias):

@@ -18,9 +18,9 @@ from jaxtalk.nn import (
     sinusoidal_embedding,
 )
 
-from test_nn_support import fast_xla, random_params  # noqa: F401
+from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_xla")
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 # dim 4, max_period 1e4, freq_shift 0: frequencies [1, 1e4^(-1/2) = 0.01].

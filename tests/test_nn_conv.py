@@ -19,9 +19,9 @@ from jaxtalk.nn import (
     upsample_mask,
 )
 
-from test_nn_support import fast_xla, random_params  # noqa: F401
+from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_xla")
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _np(tree):

@@ -9,9 +9,9 @@ import pytest
 
 from jaxtalk.nn import GraphConv, normalized_adjacency
 
-from test_nn_support import fast_xla, random_params  # noqa: F401
+from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_xla")
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 S6 = 1 / np.sqrt(6)
 # Path 0 - 1 - 2 with self-loops: degrees (2, 3, 2), entry (i, j) = 1 / sqrt(d_i d_j).

@@ -1,10 +1,8 @@
 """Helpers shared by the ``test_nn_*`` files (this module holds no tests).
 
 The layer tests run many tiny programs, where XLA compile time dominates; two things keep them fast:
+conftest's ``fast_compile`` fixture (most XLA optimisations off, applied module-wide), and
 
-* ``fast_xla``: most XLA optimisations off for one test (conftest's ``fast_compile`` does the same
-  but reads the flag through ``jax.config.jax_disable_most_optimizations``, an attribute jax 0.10
-  no longer has).
 * ``random_params``: parameters drawn in NumPy for the shapes that ``module.init`` would create,
   found by ``jax.eval_shape`` (tracing only). Compiling the initialisers (truncated normals) costs
   more than the rest of a test; tests that check initial values use ``init`` itself.
@@ -18,18 +16,6 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
-
-
-@pytest.fixture
-def fast_xla():
-    """Disable most XLA optimisations for one test."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    try:
-        yield
-    finally:
-        jax.config.update("jax_disable_most_optimizations", previous)
 
 
 def random_params(module: Any, *args: Any, seed: int = 0, scale: float = 0.3, **kwargs: Any) -> Any:

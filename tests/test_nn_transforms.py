@@ -18,9 +18,9 @@ from jaxtalk.nn import (
     normalized_adjacency,
 )
 
-from test_nn_support import fast_xla, random_params  # noqa: F401
+from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_xla")
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 T, C = 6, 16
 MASK = jnp.arange(T)[None, :] < jnp.array([[T], [4]])
