@@ -8,8 +8,10 @@ Part 1, precompute (k = 128) on wavy height-field sheets of ~6.7k, ~25.6k and ~1
   * gradients: vectorised closed-form 2x2 normal equations against the reference-style Python loop
     over vertices (the loop only up to ``--loop-max-vertices``),
   * total of our ``compute_operators``.
-Part 2, DiffusionNet width 128, 4 blocks, xyz in, 3 out, on the ~6.7k mesh with 25 frames vmapped:
-compile time and median run time (seconds per frame).
+Part 2, DiffusionNet width 128, 4 blocks, xyz in, 3 out, on the ~6.7k mesh with 25 frames through
+``apply_frames``: compile time, median run time (seconds per frame), XLA's FLOP count and the
+machine's measured float32 matmul rate, whose ratio is the floor on seconds per frame (the network
+is matmul-bound: ~8.8 GFLOP per frame at this size, see ``jaxtalk.geometry.diffusionnet``).
 
 Reference timings on this machine (from the issue): precompute 0.96 / 5.2 / 23.5 s (eigsh 0.35 /
 3.0 / 14.7 s, gradient loop 0.55 / 2.1 / 8.3 s); PyTorch DiffusionNet 0.127 s per frame. The CPU
@@ -130,8 +132,8 @@ def bench_diffusionnet(n: int, repeats: int) -> dict:
     # Per-frame inputs: the mesh deformed differently in each frame.
     xs = x[None] + 0.01 * jax.random.normal(jax.random.key(1), (FRAMES, *x.shape))
 
-    def run(p, frames_x, o):
-        return jax.vmap(lambda xt: dn.DiffusionNet(cfg).apply(p, xt, o))(frames_x)
+    def run(p, frames_x, o):  # the public entry point: frames folded next to the channels
+        return dn.apply_frames(cfg, p, frames_x, o)
 
     t = bm.time_jitted(run, params, xs, ops, repeats=repeats, warmup=1)
     flops = bm.xla_flops(run, params, xs, ops)
@@ -148,6 +150,7 @@ def bench_diffusionnet(n: int, repeats: int) -> dict:
         "gflop_per_frame": None if flops is None else flops / FRAMES / 1e9,
         "achieved_gflops": None if flops is None else flops / t.run_median_s / 1e9,
         "matmul_peak_gflops": peak / 1e9,
+        "floor_s_per_frame_at_peak": None if flops is None else flops / FRAMES / peak,
         "ref_pytorch_s_per_frame": 0.127,
     }
 
@@ -164,7 +167,7 @@ def main() -> None:
     info = bm.machine_info()
     print(f"machine: {info['cpu_model']}, {info['cpu_cores']} cores, load {info['load_avg_1m']}", flush=True)
     net = bench_diffusionnet(args.sizes[0], args.repeats)
-    bm.print_table([net], "DiffusionNet forward, 25 frames vmapped")
+    bm.print_table([net], "DiffusionNet forward, 25 frames (apply_frames)")
     pre = [] if args.skip_precompute else bench_precompute(args.sizes, args.repeats, args.loop_max_vertices)
     if pre:
         bm.print_table(pre, f"precompute summary, k={K}")

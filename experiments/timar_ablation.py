@@ -12,15 +12,14 @@ Usage: ``python experiments/timar_ablation.py [--size small] [--steps 2000] [--o
 from __future__ import annotations
 
 import argparse
-
+import dataclasses
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
 from jaxtalk.data.synthtalk import generate
-from jaxtalk.models.timar import TimarConfig
-from jaxtalk.models.timar.data import conversations, fit_normalizer, windows
+from jaxtalk.models.timar.data import conversations
 from jaxtalk.models.timar.train import train_timar
 
-from timar_context import KEYS, metrics, predict  # noqa: E402  (sibling script)
+from timar_context import KEYS, add_model_args, metrics, predict, training_setup  # noqa: E402  (sibling script)
 
 
 def main() -> None:
@@ -32,22 +31,23 @@ def main() -> None:
     ap.add_argument("--context", type=int, default=7)
     ap.add_argument("--scales", default="0,0.5,1,1.5,2,3")
     ap.add_argument("--out", default="experiments/results/timar_ablation.json")
+    add_model_args(ap)
     args = ap.parse_args()
 
     corpus = generate(args.size, 0)
-    train_convs, test_convs = conversations(corpus, "train"), conversations(corpus, "test")
-    norm = fit_normalizer(train_convs)
-    data = windows(train_convs, norm, num_turns=8, stride_turns=1)
+    test_convs = conversations(corpus, "test")
+    config, norm, data = training_setup(args, corpus)
     variants = {
-        "diffusion head + TLCA (default)": TimarConfig.small(max_turns=8),
-        "MLP head": TimarConfig.small(max_turns=8, head="mlp"),
-        "bidirectional attention": TimarConfig.small(max_turns=8, attention="bidirectional"),
+        "diffusion head + TLCA (default)": config,
+        "MLP head": dataclasses.replace(config, head="mlp"),
+        "bidirectional attention": dataclasses.replace(config, attention="bidirectional"),
+        "paper mask ratio (r ~ TN[0.7, 1])": dataclasses.replace(config, mask_ratio_min=0.7),
     }
     rows, record, trained = [], {}, {}
     for name, cfg in variants.items():
         res = train_timar(cfg, data, steps=args.steps, batch_size=args.batch, lr=args.lr, progress=True)
         trained[name] = (cfg, res.state.eval_params)
-        m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=1.5), test_convs)
+        m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=1.5), test_convs, corpus)
         record[name] = m
         rows.append({"variant": name, **{k: m.get(k) for k in KEYS}})
     print_table(rows, f"TIMAR ablations on SynthTalk-{args.size} test (n={args.context}, published scaling)")
@@ -55,9 +55,9 @@ def main() -> None:
     cfg, params = trained["diffusion head + TLCA (default)"]
     sweep = []
     for w in (float(v) for v in args.scales.split(",")):
-        m = metrics(predict(cfg, params, norm, test_convs, context=args.context, cfg_scale=w), test_convs)
+        m = metrics(predict(cfg, params, norm, test_convs, context=args.context, cfg_scale=w), test_convs, corpus)
         sweep.append({"omega": w, "FD_exp": m["FD_exp"], "P-FD_exp": m["P-FD_exp"], "FD_jaw": m["FD_jaw"],
-                      "P-FD_jaw": m["P-FD_jaw"], "MSE_exp": m["MSE_exp"]})
+                      "P-FD_jaw": m["P-FD_jaw"], "MSE_exp": m["MSE_exp"], "MSE_mouth_spk": m["MSE_mouth_spk"]})
     print_table(sweep, "CFG scale sweep (paper's omega: 0 = unconditional, 1 = conditional)")
     best = min(sweep, key=lambda r: r["FD_exp"])
     print(f"best omega by FD_exp: {best['omega']} (paper: guidance above 1 improves FD and P-FD)")

@@ -17,6 +17,8 @@ from typing import Annotated, Any
 
 import typer
 
+from jaxtalk.demo import DemoOptions
+
 app = typer.Typer(
     name="jaxtalk",
     help="Speech-driven 3D face animation in JAX (TokTalk, FreeTalk, TIMAR).",
@@ -105,7 +107,7 @@ def demo(
         Path | None, typer.Option(help="Also animate your own speech file (WAV/FLAC, any rate, mono or stereo).")
     ] = None,
     size: Annotated[str, typer.Option(help="SynthTalk size: tiny (quick look) or small.")] = "small",
-    steps: Annotated[int, typer.Option(help="Training steps of the small TokTalk model.")] = 1500,
+    steps: Annotated[int, typer.Option(help="Training steps of the small TokTalk model.")] = DemoOptions.train_steps,
     seed: Annotated[int, typer.Option(help="Corpus and training seed.")] = 0,
     retrain: Annotated[bool, typer.Option(help="Ignore an existing checkpoint and retrain.")] = False,
     sweep: Annotated[bool, typer.Option(help="Run the chunk size x Euler steps sweep.")] = True,
@@ -124,6 +126,156 @@ def demo(
     typer.echo(f"done in {result.wall_s:.1f} s; outputs in {result.out_dir.resolve()}")
     for name, path in result.files.items():
         typer.echo(f"  {name:15s} {path}")
+
+
+_MODEL_HELP = "Model: toktalk, ats (FreeTalk landmarks), stm (FreeTalk sparse-to-mesh) or timar."
+
+
+def _echo_table(rows: list[dict[str, Any]], title: str) -> None:
+    from jaxtalk.benchmarking import format_table
+
+    typer.echo(format_table(rows, title=title))
+
+
+@app.command()
+@_user_errors
+def train(
+    model: Annotated[str, typer.Argument(help=_MODEL_HELP)],
+    out: Annotated[Path | None, typer.Option(help="Run folder (run.json + checkpoint/); default runs/MODEL.")] = None,
+    preset: Annotated[
+        str | None, typer.Option(help="Config preset: small, paper (tiny for toktalk). Default small, or the run's own.")
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="Override a config field, KEY=VALUE (repeatable), e.g. --set num_steps=5."),
+    ] = None,
+    steps: Annotated[int, typer.Option(help="Train until this many optimiser steps in total.")] = 1000,
+    size: Annotated[str, typer.Option(help="SynthTalk size: tiny, small or full.")] = "tiny",
+    seed: Annotated[int, typer.Option(help="Corpus, initialisation and data-order seed.")] = 0,
+    cache_dir: Annotated[Path, typer.Option(help="SynthTalk cache.")] = Path(".cache/synthtalk"),
+    batch_size: Annotated[int, typer.Option(help="Examples per step.")] = 16,
+    lr: Annotated[float, typer.Option(help="Peak learning rate (AdamW, warm-up + cosine).")] = 1e-3,
+    resume: Annotated[bool, typer.Option(help="Continue the run in --out if there is one.")] = True,
+    progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
+    data_parallel: Annotated[
+        bool, typer.Option(help="Shard each batch over all local devices (jax.sharding); batch must divide.")
+    ] = False,
+) -> None:
+    """Train a model on SynthTalk with checkpoints; run again with more --steps to continue exactly."""
+    from jaxtalk.commands.training import TrainOptions, train_run
+
+    opts = TrainOptions(model=model, out_dir=out or Path("runs") / model, preset=preset, overrides=tuple(set_ or ()),
+                        steps=steps, size=size, seed=seed, cache_dir=cache_dir, batch_size=batch_size, lr=lr,
+                        resume=resume, progress=progress, data_parallel=data_parallel)
+    summary = train_run(opts, echo=typer.echo)
+    loss = "-" if summary.final_loss is None else f"{summary.final_loss:.4f}"
+    typer.echo(f"{model}: step {summary.start_step} -> {summary.step} on {summary.examples} examples, "
+               f"final loss {loss}, {summary.wall_s:.1f} s; run in {summary.run_dir}")
+
+
+def _sample_options(run: Path, input_: Path, out: Path | None, style: Path | None, partner: Path | None,
+                    cfg_scale: float | None, steps: int | None, seed: int) -> Any:
+    from jaxtalk.commands.inference import SampleOptions
+
+    return SampleOptions(run_dir=run, input=input_, out=out, style=style, partner=partner, cfg_scale=cfg_scale,
+                         num_steps=steps, seed=seed)
+
+
+_RUN = Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk or timar).")]
+_INPUT = Annotated[Path, typer.Argument(help="Speech: WAV/FLAC (any rate, mono or stereo), or a .npy of token "
+                                              "embeddings (tokens, width) for TokTalk.")]
+_OUT = Annotated[Path | None, typer.Option(help="Output .npz (default: INPUT_params.npz beside the input).")]
+_STYLE = Annotated[Path | None, typer.Option(help="TokTalk: reference motion .npz for the speaking style.")]
+_PARTNER = Annotated[Path | None, typer.Option(help="TIMAR: the partner's audio (default: silence).")]
+_CFG = Annotated[float | None, typer.Option(help="Guidance scale (default: the model's).")]
+_STEPS = Annotated[int | None, typer.Option(help="Sampler steps (default: the model's).")]
+_SEED = Annotated[int, typer.Option(help="Noise seed.")]
+
+
+@app.command()
+@_user_errors
+def sample(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
+           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0) -> None:
+    """Animate a speech file with a trained model; writes head parameters (.npz, 25 fps)."""
+    from jaxtalk.commands.inference import sample_run
+
+    result = sample_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed))
+    typer.echo(f"{result.params.shape[0]} frames ({result.params.shape[0] / 25:.1f} s) written to {result.path}")
+
+
+@app.command()
+@_user_errors
+def stream(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
+           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0) -> None:
+    """Animate a speech file chunk by chunk as a live stream would, printing each chunk's latency."""
+    from jaxtalk.commands.inference import stream_run
+
+    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed), echo=typer.echo)
+    typer.echo(f"{result.params.shape[0]} frames written to {result.path}")
+
+
+@app.command(name="eval")
+@_user_errors
+def eval_(
+    run: _RUN,
+    split: Annotated[str, typer.Option(help="SynthTalk split: train, val, test or ood.")] = "test",
+    max_clips: Annotated[int, typer.Option(help="At most this many clips / conversation sides.")] = 8,
+    seed: _SEED = 0,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the rows as JSON here.")] = None,
+) -> None:
+    """Quality table (MSE, LVE, MVE, jitter) of a trained run on a SynthTalk split, with baselines."""
+    from jaxtalk.commands.evaluation import EvalOptions, evaluate_run
+
+    rows = evaluate_run(EvalOptions(run_dir=run, split=split, max_clips=max_clips, seed=seed), echo=typer.echo)
+    _echo_table(rows, f"{run} on SynthTalk {split}")
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(rows, indent=1))
+
+
+@app.command()
+@_user_errors
+def bench(
+    models: Annotated[
+        list[str] | None, typer.Option("--model", help="toktalk, timar or freetalk (repeatable; default all).")
+    ] = None,
+    paper: Annotated[bool, typer.Option(help="Also the paper-size presets (minutes of compilation).")] = False,
+    repeats: Annotated[int, typer.Option(help="Timed runs per case (median).")] = 5,
+    out: Annotated[Path, typer.Option(help="JSON with every row and the machine.")] = Path(
+        "experiments/results/bench_all.json"),
+) -> None:
+    """Speed tables of all three models in one run, with the matmul peak and the achieved fraction."""
+    from jaxtalk.bench import BENCH_MODELS, run_benchmarks
+    from jaxtalk.benchmarking import machine_info, write_json
+
+    peak, tables = run_benchmarks(tuple(models or BENCH_MODELS), paper=paper, repeats=repeats, echo=typer.echo)
+    info = machine_info()
+    typer.echo(f"machine: {info['cpu_model']} ({info['cpu_cores']} cores, {info['backend']}), "
+               f"load {info['load_avg_1m']}; float32 matmul peak {peak:.1f} GFLOP/s")
+    for table in tables:
+        _echo_table(table.rows, table.title)
+    write_json(out, {"matmul_peak_gflop_s": peak, "tables": [{"title": t.title, "rows": t.rows} for t in tables]})
+    typer.echo(f"written to {out}")
+
+
+@app.command()
+@_user_errors
+def render(
+    input_: Annotated[Path, typer.Argument(help="Head parameters .npz (params or params56) or vertices .npy.")],
+    out: Annotated[Path, typer.Option(help="Output .mp4 (with audio) or .gif.")] = Path("render.mp4"),
+    audio: Annotated[Path | None, typer.Option(help="Audio track (default: the audio stored in the .npz).")] = None,
+    compare: Annotated[Path | None, typer.Option(help="A second file drawn beside the first.")] = None,
+    faces: Annotated[Path | None, typer.Option(help="Triangles .npy for vertices of another mesh.")] = None,
+    flame: Annotated[Path | None, typer.Option(help="FLAME 2020 model file to pose parameters on.")] = None,
+    size: Annotated[int, typer.Option(help="Panel size in pixels.")] = 256,
+    captions: Annotated[bool, typer.Option(help="Caption each panel with its file name.")] = True,
+) -> None:
+    """Render parameters or vertices to an mp4 (with audio) or GIF, optionally side by side."""
+    from jaxtalk.commands.rendering import RenderOptions, render_file
+
+    path = render_file(RenderOptions(input=input_, out=out, audio=audio, compare=compare, faces=faces, flame=flame,
+                                     size=size, captions=captions))
+    typer.echo(f"written {path}")
 
 
 def main() -> None:

@@ -52,7 +52,7 @@ class DemoOptions:
     out_dir: Path = Path("jaxtalk-demo")
     size: str = "small"
     seed: int = 0
-    train_steps: int = 1500
+    train_steps: int = 1200
     batch_size: int = 16
     window_frames: int = 100
     learning_rate: float = 2e-3
@@ -137,7 +137,7 @@ def _train_or_load(corpus: Any, options: DemoOptions, echo: Callable[[str], None
     windows = make_windows(corpus, corpus.split("train"), config, window_frames=options.window_frames,
                            hop_frames=options.window_frames // 4, seed=options.seed)
     optim = OptimConfig(lr=options.learning_rate, weight_decay=1e-2, warmup_steps=min(100, options.train_steps // 10),
-                        total_steps=options.train_steps, clip_norm=1.0, ema_decay=0.999)
+                        total_steps=options.train_steps, clip_norm=1.0, ema_decay=0.99)
     result = train_base(
         config, windows, optim, key=jax.random.key(options.seed), batch_size=options.batch_size,
         seed=options.seed, ckpt_dir=ckpt, save_every=max(options.train_steps // 5, 1),

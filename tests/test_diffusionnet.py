@@ -88,11 +88,31 @@ def test_gradient_layout_matches_sparse_matvec(mesh_ops):
     np.testing.assert_allclose(gx[:n], ops.grad_x @ x[:n], rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(gy[:n], ops.grad_y @ x[:n], rtol=1e-5, atol=1e-5)
     np.testing.assert_array_equal(gx[n:], 0.0)
-    # The network's path: gradients of diffused features through the precomputed G @ Phi.
-    coefs = jnp.asarray(np.random.default_rng(8).standard_normal((ops.k, 3)), jnp.float32)
-    x_diff = d.evecs @ coefs
-    np.testing.assert_allclose(d.grad_evecs_x @ coefs, dn.apply_gradient(d.grad_x, d.grad_index, x_diff), atol=1e-4)
-    np.testing.assert_allclose(d.grad_evecs_y @ coefs, dn.apply_gradient(d.grad_y, d.grad_index, x_diff), atol=1e-4)
+    # Frames between vertices and channels (the network's layout): each frame's gradient alone.
+    frames = np.random.default_rng(8).standard_normal((ops.num_vertices + 5, 4, 3)).astype(np.float32)
+    g_frames = dn.apply_gradient(d.grad_x, d.grad_index, jnp.asarray(frames))
+    for t in range(4):
+        np.testing.assert_allclose(g_frames[:n, t], ops.grad_x @ frames[:n, t], rtol=1e-5, atol=1e-5)
+
+
+def test_max_degree_is_widest_one_ring(mesh_ops):
+    _, f, ops = mesh_ops
+    # Icosphere: valence 5 or 6, and each gradient row also stores its diagonal entry.
+    valence = np.bincount(np.unique(np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0).ravel())
+    assert dn.max_degree(ops) == valence.max() + 1 == 7
+    assert dn.to_diffusion_operators(ops).grad_index.shape == (ops.num_vertices, 7)
+    with pytest.raises(ValueError, match="degree=6 is smaller than the mesh's one-ring width 7"):
+        dn.to_diffusion_operators(ops, degree=6)
+
+
+def test_spectral_diffusion_of_stacked_frames_matches_each_frame(mesh_ops):
+    _, _, ops = mesh_ops
+    d = dn.to_diffusion_operators(ops)
+    x = jnp.asarray(np.random.default_rng(10).standard_normal((ops.num_vertices, 3, 2)), jnp.float32)
+    time = jnp.array([0.02, 0.5])
+    out = dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, time)
+    for t in range(3):
+        np.testing.assert_allclose(out[:, t], dn.spectral_diffusion(x[:, t], d.mass, d.evals, d.evecs, time), atol=1e-5)
 
 
 def test_outputs_permute_with_vertices(mesh_ops, params):
@@ -194,3 +214,8 @@ def test_gradient_features_ignore_tangent_frame_rotation():
     np.testing.assert_allclose(apply(variables, rx, ry), base, atol=1e-5)
     # Not trivially constant: a non-rotation (swapping X and Y, a reflection) changes the output.
     assert float(jnp.abs(apply(variables, gy, gx) - base).max()) > 1e-2
+    # The three-matmul complex product equals the textbook four-matmul one.
+    a_re = variables["params"]["A_re"]["kernel"]
+    a_im = variables["params"]["A_im"]["kernel"]
+    b_re, b_im = gx @ a_re - gy @ a_im, gy @ a_re + gx @ a_im
+    np.testing.assert_allclose(base, jnp.tanh(gx * b_re + gy * b_im), atol=1e-5)

@@ -98,6 +98,11 @@ def test_frames_are_decoded_independently_from_shared_features(model):
     # Frame 1 alone (as a 1-frame sequence padded with itself) gives the same field.
     alone = stm.stm_decode(params, cfg, features, np.repeat(motion[1:2], 3, axis=0), mesh)
     np.testing.assert_allclose(alone[0], together[1], rtol=1e-4, atol=1e-7)
+    # The decoder's stacked-frames layout (V, T, C) equals the one-frame (V, C) module path.
+    decode_one = jax.jit(lambda p, f, d, o: stm.SparseToMesh(cfg).apply(
+        p, f, d * cfg.displacement_scale, o, method=stm.SparseToMesh.decode_frame))
+    single = decode_one(params, features, motion[1], mesh.ops)
+    np.testing.assert_allclose(single / cfg.displacement_scale, together[1], rtol=1e-4, atol=1e-7)
     # Landmark motion drives the output: different displacements, different fields.
     assert float(jnp.abs(together[0] - together[1]).max()) > 1e-5
     # The flat ATS layout (T, 204) is accepted.

@@ -45,12 +45,21 @@ def params():
 
 
 def test_mask_ratio_follows_the_truncated_normal_on_0p7_1():
+    paper = TimarConfig.small(**{**CFG.__dict__, "mask_ratio_min": 0.7})  # the paper's / public code's draw
     keys = jax.random.split(jax.random.key(0), 4000)
-    r = np.asarray(jax.vmap(lambda k: sample_mask_ratio(CFG, k))(keys))
+    r = np.asarray(jax.vmap(lambda k: sample_mask_ratio(paper, k))(keys))
     assert r.min() >= 0.7 and r.max() <= 1.0
     ref = stats.truncnorm((0.7 - 1.0) / 0.25, 0.0, loc=1.0, scale=0.25)
     assert abs(r.mean() - ref.mean()) < 4 * ref.std() / np.sqrt(len(r))
     assert stats.kstest(r, ref.cdf).pvalue > 1e-3
+
+
+def test_small_preset_masks_every_agent_frame_as_at_inference():
+    assert CFG.mask_ratio_min == 1.0 and TimarConfig.paper().mask_ratio_min == 0.7
+    keys = jax.random.split(jax.random.key(0), 16)
+    r = np.asarray(jax.vmap(lambda k: sample_mask_ratio(CFG, k))(keys))
+    np.testing.assert_array_equal(r, 1.0)
+    assert bool(np.asarray(random_agent_mask(jax.random.key(3), float(r[0]), 2, 50)).all())
 
 
 def test_random_agent_mask_masks_exactly_ceil_ratio_per_example_and_uniformly():

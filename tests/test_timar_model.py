@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jaxtalk.models.timar import TimarConfig, encode_window, init_params, sample
-from jaxtalk.models.timar.head import apply_head, init_head
+from jaxtalk.models.timar.head import apply_head, apply_head_hoisted, head_condition, init_head
 from jaxtalk.models.timar.inputs import to_turns
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
@@ -119,6 +119,19 @@ def test_head_vmapped_over_frames_equals_python_loop(params):
     assert out.shape == (2, 5, 56) and np.abs(out).max() > 0
 
 
+def test_hoisted_head_equals_the_per_frame_head(params):
+    # The sampler's path (Dense(z) once, one timestep embedding per row) == the training path.
+    rng = np.random.default_rng(2)
+    z = jnp.asarray(rng.normal(size=(3, 2, 5, CFG.width)), jnp.float32)
+    x = jnp.asarray(rng.normal(size=(3, 2, 5, 56)), jnp.float32)
+    t = jnp.asarray([0.0, 417.0, 999.0])
+    plain = jax.jit(lambda p: apply_head(CFG, p, z, x, jnp.broadcast_to(t[:, None, None], (3, 2, 5))))
+    hoisted = jax.jit(lambda p: apply_head_hoisted(CFG, p, head_condition(CFG, p, z), x, t))
+    ref, got = np.asarray(plain(params["head"])), np.asarray(hoisted(params["head"]))
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
+    assert np.abs(ref[0] - ref[1]).max() > 1e-3  # the timestep matters
+
+
 def test_fresh_diffusion_head_predicts_zero_and_has_a_gradient():
     head = init_head(CFG, jax.random.key(0))
     z, x = jnp.ones((4, CFG.width)), jnp.ones((4, 56))
@@ -138,6 +151,25 @@ def test_learned_sigma_head_doubles_output_and_mlp_head_works():
     mlp = TimarConfig.small(**{**CFG.__dict__, "head": "mlp"})
     pm = init_params(mlp, jax.random.key(0))
     assert apply_head(mlp, pm["head"], jnp.ones((3, mlp.width))).shape == (3, 56)
+
+
+def test_positional_table_starts_frame_aligned_across_spans():
+    from jaxtalk.models.timar.encoder import aligned_position_init
+    from jaxtalk.models.timar.tokens import turn_layout
+
+    cfg = TimarConfig.small(width=16, max_turns=2, frames_per_turn=3)
+    table = np.asarray(aligned_position_init(cfg)(None, (2 * cfg.tokens_per_turn, 16)))
+    lay = turn_layout(3)
+    frame_part = table[:, :12]  # the last quarter codes the turn slot
+    for j in range(3):
+        rows = frame_part[np.flatnonzero(lay.frame == j)]  # frame j in the four spans of turn 0
+        np.testing.assert_array_equal(rows, np.broadcast_to(rows[0], rows.shape))
+    # Different frames and separators have different codes; the two turns share frame codes but
+    # differ in the turn channels.
+    codes = {tuple(np.round(r, 6)) for r in frame_part[: cfg.tokens_per_turn]}
+    assert len(codes) == 3 + 10
+    np.testing.assert_array_equal(frame_part[: cfg.tokens_per_turn], frame_part[cfg.tokens_per_turn :])
+    assert np.abs(table[0, 12:] - table[cfg.tokens_per_turn, 12:]).max() > 0.1
 
 
 def test_config_presets_and_errors():

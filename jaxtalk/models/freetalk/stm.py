@@ -13,9 +13,12 @@ Four stages (FreeTalk section 3.2):
    linear map is applied block by block (``fuse_*``), which is the same function as one linear map
    of the concatenation but computes the global block once per frame rather than per vertex.
 
-Everything but the mesh encoder is written for one frame and ``vmap``-ped over frames with the mesh's
-operators shared. The model is intrinsic except for its xyz/normal input, and it never assumes a
-vertex count or order: the same parameters run on any mesh (a different V compiles a new program).
+The fusion (GCN, global vector, cross-attention) is written for one frame and ``vmap``-ped over
+frames; the decoder then runs ONCE on all frames, laid out ``(V, T, C)`` so that its operator
+products are single ``(V, k) x (k, T C)`` matmuls and row gathers (see
+:mod:`jaxtalk.geometry.diffusionnet`), with the mesh's operators shared. The model is intrinsic
+except for its xyz/normal input, and it never assumes a vertex count or order: the same parameters
+run on any mesh (a different V compiles a new program).
 
 Units: public functions take vertices and displacements in metres; inside, positions are multiplied
 by ``config.position_scale`` and displacements by ``config.displacement_scale``. The mesh operators
@@ -34,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.face import LANDMARK_EDGES
-from jaxtalk.geometry.diffusionnet import DiffusionNet, DiffusionOperators, to_diffusion_operators
+from jaxtalk.geometry.diffusionnet import DiffusionNet, DiffusionOperators, max_degree, to_diffusion_operators
 from jaxtalk.geometry.operators import compute_operators, vertex_normals
 from jaxtalk.models.freetalk.config import STMConfig
 from jaxtalk.models.freetalk.loss import motion_loss
@@ -159,7 +162,7 @@ def prepare_meshes(
         raise ValueError("prepare_meshes needs at least one mesh")
     parts = [_operators(v, f, config, cache_dir) for v, f in meshes]
     total = max(n for _, _, n in parts)
-    degree = max(int(np.diff(ops.grad_x.indptr).max(initial=1)) for ops, _, _ in parts)
+    degree = max(max_degree(ops) for ops, _, _ in parts)
     return [_assemble(v, ops, normals, n, total, degree) for (v, _), (ops, normals, n) in zip(meshes, parts)]
 
 
@@ -240,7 +243,8 @@ class _LandmarkEncoder(nn.Module):
 
 
 class SparseToMesh(nn.Module):
-    """The STM network. ``mesh_features`` runs once per mesh; ``decode_frame`` once per frame.
+    """The STM network. ``mesh_features`` runs once per mesh, ``fuse_frame`` once per frame, and
+    ``decode_fused`` once on all frames stacked ``(V, T, width)`` (``decode_frame``: one frame end to end).
 
     Attributes:
         config: static :class:`STMConfig`.
@@ -273,15 +277,23 @@ class SparseToMesh(nn.Module):
         x = jnp.concatenate([vertices * self.config.position_scale, normals], axis=-1)
         return self.encoder(x, ops)
 
-    def decode_frame(self, features: Array, disp: Array, ops: DiffusionOperators) -> Array:
-        """Vertex displacements (model units) of one frame from landmark displacements (model units)."""
+    def fuse_frame(self, features: Array, disp: Array) -> Array:
+        """The decoder's input ``W [f_i | g_t | c_t,i]`` (V, decoder_width) of one frame (model units)."""
         cfg = self.config
         h = self.fuse_features(features)
         if cfg.uses_global:
             h = h + self.fuse_global(disp.reshape(1, -1))
         if cfg.uses_attention:
             h = h + self.fuse_attention(self.cross_attention(features, self.landmarks(disp)))
-        return self.decoder(h, ops)
+        return h
+
+    def decode_fused(self, fused: Array, ops: DiffusionOperators) -> Array:
+        """The DiffusionNet decoder on fused inputs ``(V, [*frames,] width)`` -> displacements."""
+        return self.decoder(fused, ops)
+
+    def decode_frame(self, features: Array, disp: Array, ops: DiffusionOperators) -> Array:
+        """Vertex displacements (model units) of one frame from landmark displacements (model units)."""
+        return self.decode_fused(self.fuse_frame(features, disp), ops)
 
     def __call__(self, vertices: Array, normals: Array, ops: DiffusionOperators, disp: Array) -> Array:
         return self.decode_frame(self.mesh_features(vertices, normals, ops), disp, ops)
@@ -335,14 +347,13 @@ def stm_mesh_features(params: PyTree, config: STMConfig, mesh: STMMesh) -> Float
 
 
 def _decode(params, config: STMConfig, features, disp, ops):
-    # disp (T, N, 3) metres -> (T, V, 3) metres; frames vmapped with features and operators shared.
+    # disp (T, N, 3) metres -> (T, V, 3) metres; features and operators shared by all frames.
     model = SparseToMesh(config)
     scaled = disp * config.displacement_scale
-
-    def frame(d):
-        return model.apply(params, features, d, ops, method=SparseToMesh.decode_frame)
-
-    return jax.vmap(frame)(scaled) / config.displacement_scale
+    fused = jax.vmap(lambda d: model.apply(params, features, d, method=SparseToMesh.fuse_frame))(scaled)
+    # (T, V, W) -> (V, T, W): the decoder's operator products then cover all frames at once.
+    out = model.apply(params, jnp.moveaxis(fused, 0, 1), ops, method=SparseToMesh.decode_fused)
+    return jnp.moveaxis(out, 1, 0) / config.displacement_scale
 
 
 _decode_jit = jax.jit(_decode, static_argnames="config")

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.audio import log_mel, resample_features
-from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM, Float
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM, Float, Shaped
 
 __all__ = [
     "SPEECH_DIM",
@@ -27,6 +27,7 @@ __all__ = [
     "Normalizer",
     "turn_speech_features",
     "conversations",
+    "monologues",
     "fit_normalizer",
     "windows",
 ]
@@ -43,7 +44,8 @@ def _features(chunks: jax.Array, frames_per_turn: int, samples_per_turn: int) ->
 
 
 def turn_speech_features(
-    audio: Float[np.ndarray, " samples"], num_turns: int, *, frames_per_turn: int = MOTION_FPS
+    # Loose annotation: the checks below raise a ValueError naming the problem (e.g. 2-D audio).
+    audio: Shaped[np.ndarray, "..."], num_turns: int, *, frames_per_turn: int = MOTION_FPS
 ) -> Float[np.ndarray, "frames 80"]:
     """Per-turn log-mel features at the motion rate, each turn computed from its own audio only.
 
@@ -126,6 +128,48 @@ def conversations(corpus: Any, split: str, *, frames_per_turn: int = MOTION_FPS)
                 agent_oracle=np.asarray(corpus.oracle(agent)[:t], np.float32), agent_clip=agent,
                 user_clip=user,
             ))
+    return out
+
+
+def monologues(corpus: Any, split: str, *, frames_per_turn: int = MOTION_FPS) -> list[Conversation]:
+    """Every monologue clip of a split as a conversation side with a silent, still user.
+
+    Extra training material for the audio-to-motion part of the model: in a SynthTalk conversation a
+    silent partner's channel is silence (each clip holds only its speaker's voice), so the user here
+    gets zero audio, and the split's mean pose as motion (a constant shared by every clip, so it
+    leaks nothing about the agent). ``user_clip`` is -1.
+
+    Args:
+        corpus: a :class:`jaxtalk.data.synthtalk.SynthTalkCorpus`.
+        split: ``"train"``, ``"val"``, ``"test"`` or ``"ood"``.
+        frames_per_turn: frames per turn.
+
+    Returns:
+        One :class:`Conversation` per monologue clip with at least one whole turn.
+
+    Raises:
+        ValueError: a split without monologue clips.
+    """
+    clips = [i for i in corpus.split(split) if not corpus.clips[i].is_conversation]
+    if not clips:
+        raise ValueError(f"split {split!r} has no monologue clips")
+    still = np.mean(np.concatenate([corpus.motion(i) for i in clips]), axis=0).astype(np.float32)
+    spt = AUDIO_SAMPLE_RATE * frames_per_turn // MOTION_FPS
+    silence = {}
+    out = []
+    for i in clips:
+        turns = corpus.clips[i].num_frames // frames_per_turn
+        if turns < 1:
+            continue
+        t = turns * frames_per_turn
+        if turns not in silence:
+            silence[turns] = turn_speech_features(np.zeros(turns * spt, np.float32), turns, frames_per_turn=frames_per_turn)
+        out.append(Conversation(
+            agent_speech=turn_speech_features(corpus.audio(i), turns, frames_per_turn=frames_per_turn),
+            agent_motion=np.asarray(corpus.motion(i)[:t], np.float32), user_speech=silence[turns],
+            user_motion=np.broadcast_to(still, (t, PARAM_DIM)).copy(),
+            agent_oracle=np.asarray(corpus.oracle(i)[:t], np.float32), agent_clip=i, user_clip=-1,
+        ))
     return out
 
 

@@ -16,22 +16,57 @@ turns (:mod:`~jaxtalk.models.timar.stream`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxtalk.models.timar.config import NUM_SEPARATORS, TimarConfig
 from jaxtalk.models.timar.tokens import interleave, turn_layout
 from jaxtalk.nn import MLP, TransformerBlock, bias_from_mask
+from jaxtalk.nn.embeddings import sinusoidal_embedding
 from jaxtalk.types import Array, Bool, Float, Int
 
-__all__ = ["TimarEncoder", "KVCache", "init_encoder"]
+__all__ = ["TimarEncoder", "KVCache", "init_encoder", "aligned_position_init"]
 
 # Per encoder layer: (keys, values), each (batch, length, heads, head_dim); the length differs between
 # the cache passed in and the one returned, hence the loose annotation.
 KVCache = tuple[tuple[Float[Array, "..."], Float[Array, "..."]], ...]
+
+
+def aligned_position_init(config: TimarConfig) -> Callable[..., Float[Array, "positions width"]]:
+    """Initialiser of the learned positional table ``P1``: frame-aligned sinusoids (still trained).
+
+    Why: an agent-motion (mask) token must read the speech of ITS frame, 2F + 4 tokens away. With a
+    small random table the identical mask tokens cannot tell their frames apart, and on a CPU-sized
+    budget the encoder only learns turn-level averages (the mouth is never predicted). Here every
+    span token starts with a sinusoidal code of its frame inside the turn (the same code in all four
+    spans, so "same frame" is one dot product for the attention to find), separators with codes
+    after the frames, and the last quarter of the channels codes the turn slot.
+
+    Args:
+        config: model config (frames per turn, turns, width).
+
+    Returns:
+        A Flax initialiser ``(key, shape, dtype) -> (max_turns (4F + 10), width)``.
+    """
+
+    def init(key: Any, shape: tuple[int, ...], dtype: Any = jnp.float32) -> Array:
+        del key  # deterministic
+        layout = turn_layout(config.frames_per_turn)
+        code = np.where(layout.span >= 0, layout.frame, config.frames_per_turn + layout.separator)
+        turn = np.repeat(np.arange(config.max_turns), layout.tokens)
+        w = shape[-1]
+        w_turn = max(w // 4, 2) if w >= 8 else 0
+        parts = [sinusoidal_embedding(jnp.asarray(np.tile(code, config.max_turns)), w - w_turn, max_period=100.0)]
+        if w_turn:
+            parts.append(sinusoidal_embedding(jnp.asarray(turn), w_turn, max_period=100.0))
+        return jnp.concatenate(parts, axis=-1).astype(dtype)
+
+    return init
 
 
 class TimarEncoder(nn.Module):
@@ -52,7 +87,7 @@ class TimarEncoder(nn.Module):
         self.separators = self.param("separators", small, (NUM_SEPARATORS, w))
         self.mask_token = self.param("mask_token", small, (w,))
         self.fake_token = self.param("fake_token", small, (w,))
-        self.pos_embed = self.param("pos_embed", small, (c.max_turns * c.tokens_per_turn, w))
+        self.pos_embed = self.param("pos_embed", aligned_position_init(c), (c.max_turns * c.tokens_per_turn, w))
         self.head_pos_embed = self.param("head_pos_embed", small, (c.max_turns * c.frames_per_turn, w))
         self.in_norm = nn.LayerNorm(name="in_norm")
         self.blocks = [

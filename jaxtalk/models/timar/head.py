@@ -19,11 +19,16 @@ from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.nn import MLP, AdaLNFinalLayer, AdaLNResBlock, TimestepEmbedding
 from jaxtalk.types import Array, Float, PRNGKeyArray
 
-__all__ = ["DiffusionHead", "MLPHead", "init_head", "apply_head"]
+__all__ = ["DiffusionHead", "MLPHead", "init_head", "apply_head", "head_condition", "apply_head_hoisted"]
 
 
 class DiffusionHead(nn.Module):
     """adaLN residual MLP denoiser of one frame: ``(x_t, t, z) -> x0`` (and variance channels).
+
+    The condition ``c = TimestepEmbedding(t) + Dense(z)`` is split into its two parts so that a
+    sampler can compute ``Dense(z)`` once per frame (it does not change between diffusion steps)
+    and the timestep embedding once per step (every frame of a step shares ``t``):
+    :meth:`embed_condition`, :meth:`embed_time`, :meth:`denoise`.
 
     Attributes:
         width: hidden width d_m.
@@ -35,7 +40,28 @@ class DiffusionHead(nn.Module):
     blocks: int
     out_dim: int
 
-    @nn.compact
+    def setup(self) -> None:
+        self.time_embed = TimestepEmbedding(self.width, frequency_dim=256, order="cos_sin")
+        self.cond_embed = nn.Dense(self.width)
+        self.input_proj = nn.Dense(self.width)
+        self.res_blocks = [AdaLNResBlock() for _ in range(self.blocks)]  # K is a static handful
+        self.final = AdaLNFinalLayer(self.out_dim)
+
+    def embed_condition(self, z: Float[Array, " cond_dim"]) -> Float[Array, " width"]:
+        """``Dense(z)``: the step-independent part of the condition."""
+        return self.cond_embed(z)
+
+    def embed_time(self, t: Float[Array, ""]) -> Float[Array, " width"]:
+        """The timestep embedding (frame-independent within a sampling step)."""
+        return self.time_embed(t)
+
+    def denoise(self, x: Float[Array, " param_dim"], c: Float[Array, " width"]) -> Float[Array, " out_dim"]:
+        """Residual adaLN blocks on the projected noisy frame, modulated by ``c``."""
+        h = self.input_proj(x)
+        for block in self.res_blocks:
+            h = block(h, c)
+        return self.final(h, c)
+
     def __call__(
         self, x: Float[Array, " param_dim"], t: Float[Array, ""], z: Float[Array, " cond_dim"]
     ) -> Float[Array, " out_dim"]:
@@ -49,12 +75,7 @@ class DiffusionHead(nn.Module):
         Returns:
             ``(out_dim,)`` x0 estimate (first ``param_dim``) and, if learned, the variance values.
         """
-        c = TimestepEmbedding(self.width, frequency_dim=256, order="cos_sin", name="time_embed")(t)
-        c = c + nn.Dense(self.width, name="cond_embed")(z)
-        h = nn.Dense(self.width, name="input_proj")(x)
-        for k in range(self.blocks):  # K is a static handful of layers
-            h = AdaLNResBlock(name=f"block_{k}")(h, c)
-        return AdaLNFinalLayer(self.out_dim, name="final")(h, c)
+        return self.denoise(x, self.embed_time(t) + self.embed_condition(z))
 
 
 class MLPHead(nn.Module):
@@ -149,3 +170,57 @@ def apply_head(
     for _ in lead:
         fn = jax.vmap(fn)
     return fn(z)
+
+
+def _nest_vmap(fn: Any, depth: int) -> Any:
+    for _ in range(depth):
+        fn = jax.vmap(fn)
+    return fn
+
+
+def head_condition(
+    config: TimarConfig, params: dict[str, Any], z: Float[Array, "*frames cond_dim"]
+) -> Float[Array, "*frames head_width"]:
+    """``Dense(z)`` of every frame: the diffusion head's step-independent condition (hoisted).
+
+    Args:
+        config: model config (diffusion head).
+        params: head parameters.
+        z: ``(*F, cond_dim)`` conditioning features.
+
+    Returns:
+        ``(*F, head_width)``.
+    """
+    module = _module(config)
+    one = lambda zi: module.apply({"params": params}, zi, method=DiffusionHead.embed_condition)  # noqa: E731
+    return _nest_vmap(one, z.ndim - 1)(z)
+
+
+def apply_head_hoisted(
+    config: TimarConfig,
+    params: dict[str, Any],
+    cz: Float[Array, "batch *frames head_width"],
+    x: Float[Array, "batch *frames param_dim"],
+    t: Float[Array, " batch"],
+) -> Float[Array, "batch *frames out_dim"]:
+    """The diffusion head with one timestep per batch row and a precomputed ``Dense(z)``.
+
+    Equal to :func:`apply_head` with ``t`` broadcast over the frames, but the timestep MLP runs once
+    per row instead of once per frame and ``Dense(z)`` is not recomputed (sampling loops call this
+    every step with the same ``cz``).
+
+    Args:
+        config: model config (diffusion head).
+        params: head parameters.
+        cz: ``(B, *F, head_width)`` from :func:`head_condition`.
+        x: ``(B, *F, param_dim)`` noisy frames.
+        t: ``(B,)`` timesteps.
+
+    Returns:
+        ``(B, *F, out_dim)``.
+    """
+    module = _module(config)
+    temb = jax.vmap(lambda ti: module.apply({"params": params}, ti, method=DiffusionHead.embed_time))(t.astype(x.dtype))
+    c = cz + temb.reshape(temb.shape[:1] + (1,) * (cz.ndim - 2) + temb.shape[1:])
+    one = lambda xi, ci: module.apply({"params": params}, xi, ci, method=DiffusionHead.denoise)  # noqa: E731
+    return _nest_vmap(one, x.ndim - 1)(x, c)

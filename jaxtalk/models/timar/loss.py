@@ -57,6 +57,9 @@ def sample_mask_ratio(config: TimarConfig, key: PRNGKeyArray) -> Float[Array, ""
     Returns:
         ``()`` float32 ratio.
     """
+    if config.mask_ratio_min >= 1.0:
+        # Every agent frame masked, as at inference (the truncated normal would be degenerate).
+        return jnp.ones((), jnp.float32)
     std = config.mask_ratio_std
     lower = (config.mask_ratio_min - 1.0) / std
     z = jax.random.truncated_normal(key, lower, 0.0, (), jnp.float32)

@@ -20,6 +20,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from jaxtalk.data.standardize import standardize
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import (
     Condition,
@@ -106,8 +107,11 @@ def _check_batch(batch: dict[str, Any], config: TokTalkConfig) -> None:
 def _flow_loss(
     params: PyTree, batch: dict[str, Any], tokens: Array, key: PRNGKeyArray, config: TokTalkConfig
 ) -> tuple[Array, dict[str, Array]]:
-    x1 = batch["motion"]
     valid = jnp.asarray(batch["mask"]).astype(bool)
+    # The flow runs on standardised motion (unit-variance noise needs unit-spread data per channel).
+    x1 = batch["motion"]
+    if "norm" in params:
+        x1 = standardize(params["norm"], x1) * valid[..., None].astype(x1.dtype)
     b, t, d = x1.shape
     k_t, k_z, k_drop, k_known, k_chunk, k_style, k_dropout = jax.random.split(key, 7)
     times = jax.random.uniform(k_t, (b,), x1.dtype)

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.audio.framerate import default_num_frames, interpolation_plan
+from jaxtalk.data.standardize import identity_standardizer, standardize
 from jaxtalk.models.toktalk.adapter import Adapter
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.decoder import Decoder
@@ -31,6 +32,7 @@ __all__ = [
     "adapt_tokens",
     "check_tokens",
     "check_finite",
+    "preconditioning",
 ]
 
 PyTree = Any
@@ -153,10 +155,15 @@ def init_params(
         adapter_src_dim: width of the source token space to adapt from (None: no adapter).
 
     Returns:
-        ``{"decoder": ..., "style": ...}`` plus ``"adapter"`` when requested.
+        ``{"decoder": ..., "style": ..., "norm": ...}`` plus ``"adapter"`` when requested. ``norm`` is
+        the motion standardiser (``{"mean", "std"}``, identity here; :func:`train_base` fits it on
+        the training motion): the decoder and the style encoder work on standardised motion, every
+        public input and output is in raw parameter units.
     """
     # One jitted program: op-by-op initialisation dispatches (and compiles) every primitive.
-    return _init_params(key, config, adapter_src_dim)
+    params = _init_params(key, config, adapter_src_dim)
+    params["norm"] = {k: jnp.asarray(v) for k, v in identity_standardizer(config.param_dim).items()}
+    return params
 
 
 @functools.partial(jax.jit, static_argnames=("config", "adapter_src_dim"))
@@ -217,9 +224,45 @@ def velocity(
         ``(B, T, param_dim)``.
     """
     rngs = None if dropout_key is None else {"dropout": dropout_key}
-    return Decoder(config).apply(
-        {"params": params["decoder"]}, x, t, *cond, deterministic=dropout_key is None, rngs=rngs
+    if not config.precondition:
+        return Decoder(config).apply(
+            {"params": params["decoder"]}, x, t, *cond, deterministic=dropout_key is None, rngs=rngs
+        )
+    c_skip, c_out, c_in = preconditioning(t, config.sigma_min)
+    col = lambda c: c[:, None, None].astype(x.dtype)  # noqa: E731  (B,) -> (B, 1, 1)
+    f = Decoder(config).apply(
+        {"params": params["decoder"]}, x * col(c_in), t, *cond, deterministic=dropout_key is None, rngs=rngs
     )
+    return col(c_skip) * x + col(c_out) * f
+
+
+def preconditioning(
+    t: Float[Array, " batch"], sigma_min: float | int = 0.0
+) -> tuple[Float[Array, " batch"], Float[Array, " batch"], Float[Array, " batch"]]:
+    """Skip, output and input scales that make the decoder learn a unit-variance residual.
+
+    On the path ``x_t = a z + t x1`` with ``a = 1 - (1 - sigma_min) t`` and standardised data
+    (unit variance, like the noise), the best LINEAR predictor of the target ``u = x1 - (1 -
+    sigma_min) z`` from ``x_t`` is ``c_skip x_t`` with ``c_skip = (t - (1 - sigma_min) a) / (a^2 +
+    t^2)``, and its residual has standard deviation ``c_out = sqrt(1 + (1 - sigma_min)^2 - c_skip^2
+    (a^2 + t^2))``. So ``v = c_skip x_t + c_out F(c_in x_t, ...)`` with ``c_in = 1 / sqrt(a^2 + t^2)``
+    (a unit-variance input) leaves the network a unit-scale residual to learn instead of the
+    near-identity map of the noise (EDM's preconditioning, Karras et al. 2022, for this path). For
+    Gaussian data ``F = 0`` is already exact, so the decoder starts from the right answer's linear part.
+
+    Args:
+        t: ``(B,)`` flow times.
+        sigma_min: minimum noise of the path.
+
+    Returns:
+        ``(c_skip, c_out, c_in)``, each ``(B,)``.
+    """
+    k = 1.0 - sigma_min
+    a = 1.0 - k * t
+    var = a * a + t * t
+    c_skip = (t - k * a) / var
+    c_out = jnp.sqrt(jnp.maximum(1.0 + k * k - c_skip * c_skip * var, 1e-12))
+    return c_skip, c_out, jax.lax.rsqrt(var)
 
 
 def _sampler_velocity(config: TokTalkConfig, params: PyTree, x: Array, t: Array, cond: Condition) -> Array:
@@ -239,8 +282,10 @@ def style_distribution(
     *,
     dropout_key: PRNGKeyArray | None = None,
 ) -> tuple[Float[Array, "batch style"], Float[Array, "batch style"]]:
-    """``(mu, logvar)`` of the style encoder for reference clips (no validation; jit-friendly)."""
+    """``(mu, logvar)`` of the style encoder for raw-unit reference clips (no validation; jit-friendly)."""
     rngs = None if dropout_key is None else {"dropout": dropout_key}
+    if "norm" in params:
+        clip = standardize(params["norm"], clip)
     return StyleEncoder(config).apply(
         {"params": params["style"]}, clip, mask, deterministic=dropout_key is None, rngs=rngs
     )

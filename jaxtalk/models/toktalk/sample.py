@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.data.standardize import standardize, unstandardize
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import (
     Condition,
@@ -191,18 +192,21 @@ def generate_frames(
         params, config: the model.
         tokens: ``(B, Tt, token_dim)`` at the base rate; interpolated to ``T = noise.shape[1]`` frames.
         style_vec: ``(B, style_dim)``.
-        noise: ``(B, T, param_dim)`` starting noise.
+        noise: ``(B, T, param_dim)`` starting noise (in the model's standardised motion space).
         ts: ``(N + 1,)`` time grid.
         cfg_scale: ``()`` guidance weight.
-        known, known_mask: optional inpainting values ``(B, T, D)`` and mask ``(B, T)``.
+        known, known_mask: optional inpainting values ``(B, T, D)`` (raw units) and mask ``(B, T)``.
         mask: ``(B, T)`` real frames (None: all).
         chunked: ``()`` chunk attention flag (None: full attention).
         remat: checkpoint each Euler step.
 
     Returns:
-        ``(B, T, param_dim)``, zero on padded frames.
+        ``(B, T, param_dim)`` in raw parameter units, zero on padded frames.
     """
     b, t, d = noise.shape
+    norm = params.get("norm") if isinstance(params, dict) else None
+    if known is not None and norm is not None:
+        known = standardize(norm, known)
     frames_tokens = interpolate_tokens(tokens, config.token_rate, config.fps, t)
     mask = jnp.ones((b, t), bool) if mask is None else mask
     chunked = jnp.zeros((), bool) if chunked is None else chunked
@@ -228,4 +232,6 @@ def generate_frames(
         sigma_min=config.sigma_min,
         remat=remat,
     )
+    if norm is not None:
+        x = unstandardize(norm, x)
     return x * mask[..., None].astype(x.dtype)

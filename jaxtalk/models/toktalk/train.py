@@ -21,13 +21,14 @@ import jax
 import numpy as np
 
 from jaxtalk.data.batching import BatchIterator
+from jaxtalk.data.standardize import fit_standardizer
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.loss import adapter_loss, cfm_loss
 from jaxtalk.models.toktalk.model import init_adapter, init_params
 from jaxtalk.train import OptimConfig, TrainResult, train
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["make_windows", "train_base", "train_adapter", "adapter_trainable"]
+__all__ = ["make_windows", "train_base", "train_adapter", "adapter_trainable", "base_trainable"]
 
 PyTree = Any
 
@@ -147,7 +148,8 @@ def train_base(
         optim: optimiser settings (``total_steps`` is the training length unless ``max_steps``).
         key: PRNG key (initialisation and the per-step keys).
         batch_size: windows per batch.
-        params: initial parameters (default: fresh from ``key``).
+        params: initial parameters (default: fresh from ``key``, with the motion standardiser fitted
+            on ``windows``).
         seed: data order seed.
         **train_kwargs: passed to :func:`jaxtalk.train.train` (``ckpt_dir``, ``eval_fn``, ``progress``...).
 
@@ -157,9 +159,17 @@ def train_base(
     k_init, k_train = jax.random.split(key)
     if params is None:
         params = init_params(config, k_init)
+        # Standardise with the training motion's statistics (the flow adds unit-variance noise per
+        # channel; raw jaw/neck spreads are ~100x smaller than expression ones).
+        params["norm"] = fit_standardizer(windows["motion"], windows["mask"])
     loss = functools.partial(cfm_loss, config=config)
     return train(loss, params, _model_batches(windows, batch_size, seed), optim, key=k_train,
-                 metadata={"model": "toktalk", "stage": 1}, **train_kwargs)
+                 trainable=base_trainable, metadata={"model": "toktalk", "stage": 1}, **train_kwargs)
+
+
+def base_trainable(path: str, leaf: Any) -> bool:
+    """The stage-1 ``trainable`` predicate: everything but the fitted standardiser ``norm/``."""
+    return path.split("/", 1)[0] != "norm"
 
 
 def adapter_trainable(path: str, leaf: Any) -> bool:

@@ -1,0 +1,281 @@
+"""``jaxtalk sample`` and ``jaxtalk stream``: a trained run + speech -> 56-d head parameters (.npz).
+
+Inputs: an audio file (WAV/FLAC, any rate, mono or stereo) or, for TokTalk, a ``.npy`` of token
+embeddings ``(tokens, token_dim)`` at the model's token rate (e.g. your own audio-LLM tokens). TokTalk
+turns audio into tokens with the tokenizer of the corpus it was trained on; TIMAR turns it into
+per-turn log-mel features and animates the agent (the partner is silent and still unless
+``--partner`` names their audio). Outputs are written with :func:`jaxtalk.data.formats.save_npz`
+(``params (T, 56)``, ``fps``, and the audio), in raw FLAME units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jaxtalk.commands.runs import LoadedRun, load_run, open_corpus
+
+__all__ = ["SampleOptions", "SampleResult", "sample_run", "stream_run", "AUDIO_SUFFIXES"]
+
+AUDIO_SUFFIXES = (".wav", ".flac", ".ogg", ".aiff", ".aif")
+_SPEECH_MODELS = ("toktalk", "timar")
+
+
+@dataclasses.dataclass(frozen=True)
+class SampleOptions:
+    """Settings of :func:`sample_run` / :func:`stream_run`.
+
+    Attributes:
+        run_dir: a folder written by ``jaxtalk train``.
+        input: audio file, or (TokTalk) ``.npy`` token embeddings.
+        out: output ``.npz`` (default: beside the input, ``<stem>_params.npz``).
+        style: TokTalk reference motion (``.npz`` with ``params``, e.g. a previous output); default: a
+            training clip of the run's corpus.
+        partner: TIMAR: the partner's audio (default: silence).
+        cfg_scale: guidance weight (default: the config's).
+        num_steps: sampler steps (default: the config's).
+        seed: noise seed.
+    """
+
+    run_dir: Path
+    input: Path
+    out: Path | None = None
+    style: Path | None = None
+    partner: Path | None = None
+    cfg_scale: float | None = None
+    num_steps: int | None = None
+    seed: int = 0
+
+
+@dataclasses.dataclass
+class SampleResult:
+    """Output of :func:`sample_run` / :func:`stream_run`.
+
+    Attributes:
+        path: the ``.npz`` written.
+        params: ``(T, 56)`` motion.
+        chunk_ms: wall time of every streamed chunk/turn in ms (empty for offline sampling; the first
+            includes compilation).
+        chunk_s: duration of one chunk/turn in seconds (None offline).
+    """
+
+    path: Path
+    params: np.ndarray
+    chunk_ms: list[float]
+    chunk_s: float | None
+
+
+def _check_input(opts: SampleOptions, model: str) -> str:
+    path = Path(opts.input)
+    if not path.is_file():
+        raise FileNotFoundError(f"input file not found: {str(path)!r}")
+    suffix = path.suffix.lower()
+    if suffix in AUDIO_SUFFIXES:
+        return "audio"
+    if suffix == ".npy" and model == "toktalk":
+        return "tokens"
+    kinds = "an audio file (" + ", ".join(AUDIO_SUFFIXES) + ")" + (" or a .npy of token embeddings"
+                                                                   if model == "toktalk" else "")
+    raise ValueError(f"{str(path)!r}: expected {kinds} for a {model} run")
+
+
+def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
+    from jaxtalk.commands.runs import RunRecord
+
+    record = RunRecord.load(opts.run_dir)
+    if record.model not in _SPEECH_MODELS:
+        raise ValueError(
+            f"{opts.run_dir} is a {record.model} run; sample/stream animate speech with toktalk or timar runs "
+            "(FreeTalk's ATS gives landmarks and STM maps them onto a mesh: see jaxtalk.models.freetalk)"
+        )
+    kind = _check_input(opts, record.model)
+    if opts.num_steps is not None and opts.num_steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {opts.num_steps}")
+    return load_run(opts.run_dir), kind
+
+
+def _toktalk_inputs(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(tokens (Tt, D), style clip (1, S, 56), audio or None)``."""
+    from jaxtalk.audio import load_audio
+
+    config = run.config
+    corpus = open_corpus(run.record.corpus)
+    audio = None
+    if kind == "audio":
+        audio = load_audio(opts.input)
+        tokens = np.asarray(corpus.tokenizer("A").encode(audio).embeddings, np.float32)
+    else:
+        tokens = np.load(opts.input, allow_pickle=False)
+        if tokens.ndim != 2 or tokens.shape[1] != config.token_dim or tokens.shape[0] < 1:
+            raise ValueError(f"{str(opts.input)!r}: token embeddings must have shape (tokens, {config.token_dim}) "
+                             f"at {config.token_rate:g} Hz, got {tokens.shape}")
+        if not np.all(np.isfinite(tokens)):
+            raise ValueError(f"{str(opts.input)!r}: token embeddings contain NaN or inf")
+        tokens = tokens.astype(np.float32)
+    if opts.style is not None:
+        from jaxtalk.commands.rendering import read_params
+
+        style = read_params(opts.style)
+    else:
+        style = np.asarray(corpus.motion(corpus.split("train")[0]), np.float32)
+    s = 4 * config.style_frames
+    if style.shape[0] < config.style_min_frames:
+        raise ValueError(f"style clip {opts.style} has {style.shape[0]} frames, fewer than {config.style_min_frames}")
+    return tokens, style[None, :s], audio
+
+
+def _timar_inputs(run: LoadedRun, opts: SampleOptions) -> tuple[dict[str, np.ndarray], np.ndarray, int]:
+    """Normalised ``(1, T, .)`` streams for ``stream_conversation``, the agent audio, and the turns."""
+    from jaxtalk.audio import load_audio
+    from jaxtalk.models.timar.data import Normalizer, turn_speech_features
+    from jaxtalk.types import AUDIO_SAMPLE_RATE, PARAM_DIM
+
+    config = run.config
+    norm = Normalizer.from_dict(run.record.extra["normalizer"])
+    audio = load_audio(opts.input)
+    spt = AUDIO_SAMPLE_RATE * config.frames_per_turn // 25
+    turns = audio.shape[0] // spt
+    if turns < 1:
+        raise ValueError(f"{str(opts.input)!r} is {audio.shape[0] / AUDIO_SAMPLE_RATE:.2f} s long; TIMAR needs at "
+                         f"least one {spt / AUDIO_SAMPLE_RATE:g}-s turn")
+    if opts.partner is not None:
+        partner = load_audio(opts.partner, allow_silence=True)
+        partner = np.pad(partner, (0, max(turns * spt - partner.shape[0], 0)))
+    else:
+        partner = np.zeros(turns * spt, np.float32)
+    frames = turns * config.frames_per_turn
+    streams = {
+        "user_speech": norm.speech(turn_speech_features(partner, turns, frames_per_turn=config.frames_per_turn)),
+        "agent_speech": norm.speech(turn_speech_features(audio, turns, frames_per_turn=config.frames_per_turn)),
+        # A still partner at the training mean pose is zero in the normalised space.
+        "user_motion": np.zeros((frames, PARAM_DIM), np.float32),
+    }
+    return {k: v[None] for k, v in streams.items()}, audio[: turns * spt], turns
+
+
+def _write(opts: SampleOptions, params: np.ndarray, audio: np.ndarray | None) -> Path:
+    from jaxtalk.data.formats import MotionClip, save_npz
+    from jaxtalk.types import MOTION_FPS
+
+    out = Path(opts.out) if opts.out is not None else Path(opts.input).with_name(f"{Path(opts.input).stem}_params.npz")
+    if out.suffix != ".npz":
+        raise ValueError(f"output must be a .npz file, got {str(out)!r}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    clip = MotionClip(name=Path(opts.input).stem, fps=MOTION_FPS, params=np.asarray(params, np.float32),
+                      audio=None if audio is None else np.asarray(audio, np.float32))
+    return save_npz(out, clip)
+
+
+def sample_run(opts: SampleOptions) -> SampleResult:
+    """Animate ``opts.input`` offline (TokTalk: the whole sequence in one sampler call; TIMAR: turn by
+    turn, its only mode).
+
+    Returns:
+        :class:`SampleResult`.
+
+    Raises:
+        FileNotFoundError: missing run, checkpoint, input, style or partner file.
+        ValueError: a run of another model, an input of the wrong kind/shape, a too-short audio.
+    """
+    import jax
+
+    run, kind = _load(opts)
+    key = jax.random.key(opts.seed)
+    if run.record.model == "toktalk":
+        from jaxtalk.models import toktalk
+
+        tokens, style, audio = _toktalk_inputs(run, opts, kind)
+        motion = toktalk.sample(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
+                                num_steps=opts.num_steps)
+    else:
+        from jaxtalk.models.timar.data import Normalizer
+        from jaxtalk.models.timar.stream import stream_conversation
+
+        streams, audio, turns = _timar_inputs(run, opts)
+        context = max(run.record.extra.get("num_turns", run.config.max_turns) - 1, 0)
+        motion = stream_conversation(run.config, run.params, streams["user_speech"], streams["user_motion"],
+                                     streams["agent_speech"], key, context=context, cfg_scale=opts.cfg_scale,
+                                     num_steps=opts.num_steps)
+        motion = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(motion)
+    params = np.asarray(motion, np.float32)[0]
+    return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=[], chunk_s=None)
+
+
+def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> SampleResult:
+    """Animate ``opts.input`` chunk by chunk (TokTalk) or turn by turn (TIMAR) as a live stream would,
+    echoing each chunk's wall time as it is produced.
+
+    Returns:
+        :class:`SampleResult` with the per-chunk times.
+
+    Raises:
+        See :func:`sample_run`.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from jaxtalk.types import AUDIO_SAMPLE_RATE
+
+    run, kind = _load(opts)
+    key = jax.random.key(opts.seed)
+    config = run.config
+    outs, times = [], []
+
+    def report(i: int, n: int, dt: float, chunk_s: float) -> None:
+        times.append(1e3 * dt)
+        note = " (incl. compile)" if i == 0 else f" (real-time factor {dt / chunk_s:.3f})"
+        echo(f"chunk {i + 1:3d}/{n}: {1e3 * dt:8.1f} ms for {chunk_s:.2f} s{note}")
+
+    if run.record.model == "toktalk":
+        from jaxtalk.models import toktalk
+        from jaxtalk.samplers import cosine_grid
+
+        tokens, style, audio = _toktalk_inputs(run, opts, kind)
+        ct = toktalk.tokens_per_chunk(config)
+        frames = int(round(tokens.shape[0] * config.fps / config.token_rate))
+        if audio is not None:  # the tokenizer may round the token count up
+            frames = min(frames, int(round(audio.shape[0] / AUDIO_SAMPLE_RATE * config.fps)))
+        n = -(-tokens.shape[0] // ct)
+        tokens = np.concatenate([tokens, np.repeat(tokens[-1:], n * ct - tokens.shape[0], axis=0)], axis=0)
+        style_vec = toktalk.encode_style(run.params, config, style)
+        ts = None if opts.num_steps is None else jnp.asarray(cosine_grid(opts.num_steps), jnp.float32)
+        # Committed like the restored parameters: an uncommitted first state would compile twice.
+        state = jax.device_put(toktalk.init_stream(config, key), jax.devices()[0])
+        chunk_s = config.chunk_frames / config.fps
+        for i in range(n):
+            t0 = time.perf_counter()
+            state, out = toktalk.stream_step(run.params, config, state, tokens[None, i * ct:(i + 1) * ct], style_vec,
+                                             cfg_scale=opts.cfg_scale, ts=ts)
+            outs.append(np.asarray(jax.block_until_ready(out))[0])
+            report(i, n, time.perf_counter() - t0, chunk_s)
+        params = np.concatenate(outs)[:frames]
+    else:
+        from jaxtalk.models.timar.data import Normalizer
+        from jaxtalk.models.timar.stream import stream_init, stream_step
+
+        streams, audio, turns = _timar_inputs(run, opts)
+        f = config.frames_per_turn
+        context = max(run.record.extra.get("num_turns", config.max_turns) - 1, 0)
+        state = jax.device_put(stream_init(config, 1, context), jax.devices()[0])
+        for i in range(turns):
+            sl = slice(i * f, (i + 1) * f)
+            t0 = time.perf_counter()
+            state, out = stream_step(config, run.params, state, streams["user_speech"][:, sl],
+                                     streams["user_motion"][:, sl], streams["agent_speech"][:, sl],
+                                     jax.random.fold_in(key, i), cfg_scale=opts.cfg_scale, num_steps=opts.num_steps)
+            outs.append(np.asarray(jax.block_until_ready(out))[0])
+            report(i, turns, time.perf_counter() - t0, f / 25)
+        params = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(np.concatenate(outs))
+        chunk_s = f / 25
+    if len(times) > 1:
+        steady = times[1:]
+        echo(f"median {statistics.median(steady):.1f} ms per {chunk_s:.2f}-s chunk after the first "
+             f"(real-time factor {statistics.median(steady) / 1e3 / chunk_s:.3f})")
+    params = np.asarray(params, np.float32)
+    return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=times, chunk_s=chunk_s)

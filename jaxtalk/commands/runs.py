@@ -1,0 +1,272 @@
+"""Training runs on disk: the model registry, ``--set key=value`` overrides, ``run.json``, loading.
+
+A run directory holds ``checkpoint/`` (orbax, written by :class:`jaxtalk.train.Checkpointer` through
+the shared loop) and ``run.json``: the model, preset, overrides, the full model and optimiser
+configs, the corpus it was trained on, and what sampling needs besides the parameters (TIMAR's
+normaliser, ATS's displacement statistics, STM's meshes). Loading rebuilds a train state of the same
+structure and restores the newest checkpoint into it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "MODELS",
+    "RUN_FILE",
+    "RunRecord",
+    "LoadedRun",
+    "config_class",
+    "preset_names",
+    "parse_overrides",
+    "build_config",
+    "checkpoint_dir",
+    "load_run",
+    "open_corpus",
+]
+
+MODELS = ("toktalk", "ats", "stm", "timar")
+RUN_FILE = "run.json"
+_PRESETS = ("paper", "small", "tiny")
+
+
+def config_class(model: str) -> type:
+    """The frozen config dataclass of ``model`` (imported on demand).
+
+    Raises:
+        ValueError: unknown model name.
+    """
+    if model == "toktalk":
+        from jaxtalk.models.toktalk import TokTalkConfig
+
+        return TokTalkConfig
+    if model == "timar":
+        from jaxtalk.models.timar import TimarConfig
+
+        return TimarConfig
+    if model in ("ats", "stm"):
+        from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
+
+        return ATSConfig if model == "ats" else STMConfig
+    raise ValueError(f"unknown model {model!r}; expected one of {', '.join(MODELS)}")
+
+
+def preset_names(model: str) -> tuple[str, ...]:
+    """The presets (``paper``, ``small``, ``tiny``) that ``model``'s config class defines."""
+    cls = config_class(model)
+    return tuple(p for p in _PRESETS if callable(getattr(cls, p, None)))
+
+
+_TRUE = {"true", "1", "yes", "on"}
+_FALSE = {"false", "0", "no", "off"}
+
+
+def _parse_value(name: str, text: str, annotation: Any) -> Any:
+    """``text`` converted to the field's annotated type (int, float, bool, str, optional)."""
+    args = typing.get_args(annotation)
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        if type(None) in args and text.strip().lower() in ("none", "null"):
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _parse_value(name, text, inner[0]) if len(inner) == 1 else text
+    try:
+        if annotation is bool:
+            low = text.strip().lower()
+            if low not in _TRUE | _FALSE:
+                raise ValueError
+            return low in _TRUE
+        if annotation is int:
+            return int(text)
+        if annotation is float:
+            return float(text)
+    except ValueError:
+        raise ValueError(f"--set {name}={text}: expected {annotation.__name__}, got {text!r}") from None
+    return text
+
+
+def parse_overrides(cls: type, items: Sequence[str]) -> dict[str, Any]:
+    """Parse ``["key=value", ...]`` into typed keyword arguments of the dataclass ``cls``.
+
+    Args:
+        cls: a config dataclass.
+        items: ``key=value`` strings (later ones win).
+
+    Returns:
+        ``{field: value}`` with values converted to the fields' types.
+
+    Raises:
+        ValueError: an item without ``=``, an unknown field (the valid ones are listed), or a value
+            that does not parse as the field's type.
+    """
+    hints = typing.get_type_hints(cls)
+    fields = [f.name for f in dataclasses.fields(cls)]
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got {item!r}")
+        key, value = (s.strip() for s in item.split("=", 1))
+        if key not in fields:
+            raise ValueError(f"--set {key}: {cls.__name__} has no field {key!r}; fields: {', '.join(fields)}")
+        out[key] = _parse_value(key, value, hints[key])
+    return out
+
+
+def build_config(model: str, preset: str, items: Sequence[str] = ()) -> Any:
+    """``model``'s config from a preset plus ``key=value`` overrides (validated by the dataclass).
+
+    Raises:
+        ValueError: unknown model or preset, bad overrides, or values the config rejects.
+    """
+    cls = config_class(model)
+    if preset not in preset_names(model):
+        raise ValueError(f"{model} has no preset {preset!r}; expected one of {', '.join(preset_names(model))}")
+    return getattr(cls, preset)(**parse_overrides(cls, items))
+
+
+def checkpoint_dir(run_dir: str | Path) -> Path:
+    """Where a run's orbax checkpoints live."""
+    return Path(run_dir) / "checkpoint"
+
+
+@dataclasses.dataclass
+class RunRecord:
+    """The ``run.json`` of a training run.
+
+    Attributes:
+        model: ``toktalk``, ``ats``, ``stm`` or ``timar``.
+        preset: config preset name.
+        overrides: the ``--set`` values, as parsed.
+        config: every field of the model config (``dataclasses.asdict``).
+        optim: every field of the :class:`jaxtalk.train.OptimConfig` (its structure, EMA and
+            clipping, is what a restore needs).
+        corpus: ``{"size", "seed", "cache_dir"}`` of the SynthTalk corpus trained on.
+        seed: training seed.
+        batch_size: examples per step.
+        extra: what sampling needs besides the parameters (normalisers, meshes, window sizes).
+    """
+
+    model: str
+    preset: str
+    overrides: dict[str, Any]
+    config: dict[str, Any]
+    optim: dict[str, Any]
+    corpus: dict[str, Any]
+    seed: int
+    batch_size: int
+    extra: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def save(self, run_dir: str | Path) -> Path:
+        """Write ``run_dir/run.json`` (atomically) and return its path."""
+        path = Path(run_dir) / RUN_FILE
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{RUN_FILE}.tmp")
+        tmp.write_text(json.dumps(dataclasses.asdict(self), indent=1, default=str))
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, run_dir: str | Path) -> RunRecord:
+        """Read ``run_dir/run.json``.
+
+        Raises:
+            FileNotFoundError: no run directory or no ``run.json`` in it.
+            ValueError: a ``run.json`` that is not a run record.
+        """
+        path = Path(run_dir) / RUN_FILE
+        if not path.is_file():
+            raise FileNotFoundError(f"{run_dir} is not a training run (no {RUN_FILE}; make one with `jaxtalk train`)")
+        try:
+            raw = json.loads(path.read_text())
+            return cls(**raw)
+        except (json.JSONDecodeError, TypeError) as err:
+            raise ValueError(f"{path} is not a jaxtalk run record: {err}") from None
+
+    def model_config(self) -> Any:
+        """The model config instance."""
+        return config_class(self.model)(**self.config)
+
+    def optim_config(self) -> Any:
+        """The :class:`jaxtalk.train.OptimConfig` instance."""
+        from jaxtalk.train import OptimConfig
+
+        return OptimConfig(**self.optim)
+
+
+@dataclasses.dataclass
+class LoadedRun:
+    """A trained run ready to sample.
+
+    Attributes:
+        record: its ``run.json``.
+        config: the model config.
+        params: the evaluation parameters (the EMA when the run kept one).
+        step: the checkpoint step they come from.
+    """
+
+    record: RunRecord
+    config: Any
+    params: Any
+    step: int
+
+
+def open_corpus(corpus: dict[str, Any]) -> Any:
+    """The SynthTalk corpus a run record names (loaded from its cache, regenerated if missing)."""
+    from jaxtalk.data import synthtalk
+
+    return synthtalk.generate(size=corpus["size"], seed=int(corpus["seed"]), cache_dir=corpus.get("cache_dir"))
+
+
+def _restore_state(directory: Path, step: int | None) -> tuple[dict[str, Any], int]:
+    """The saved train state as stored (a dict of arrays), without a template.
+
+    A template would have to repeat each model's training-time structure (TokTalk's data-dependent
+    normalisation entry, the optimiser's frozen-parameter mask); the checkpoint already knows it.
+    """
+    import orbax.checkpoint as ocp
+
+    from jaxtalk.train import Checkpointer
+
+    with Checkpointer(directory, read_only=True) as ckpt:  # validates the folder, lists complete steps
+        steps = ckpt.all_steps()
+    if not steps:
+        raise FileNotFoundError(f"no complete checkpoint in {directory} (train first: `jaxtalk train`)")
+    step = steps[-1] if step is None else int(step)
+    if step not in steps:
+        raise FileNotFoundError(f"no checkpoint for step {step} in {directory} (have {steps})")
+    options = ocp.CheckpointManagerOptions(read_only=True)
+    manager = ocp.CheckpointManager(directory, options=options, item_names=("state", "data", "meta"))
+    try:
+        restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+    except Exception as err:  # orbax/tensorstore raise many types; name the path for the user
+        detail = str(err).splitlines()[0][:300] if str(err) else type(err).__name__
+        raise ValueError(f"checkpoint {directory / str(step)} cannot be read: {detail}") from err
+    finally:
+        manager.close()
+    return dict(restored.state), step
+
+
+def load_run(run_dir: str | Path, *, step: int | None = None) -> LoadedRun:
+    """Restore a run's newest (or a given) checkpoint.
+
+    Args:
+        run_dir: the folder ``jaxtalk train`` wrote.
+        step: checkpoint step (default: the newest).
+
+    Returns:
+        :class:`LoadedRun` with the EMA parameters when the run kept an EMA.
+
+    Raises:
+        FileNotFoundError: not a run, or no complete checkpoint in it.
+        ValueError: a corrupt checkpoint.
+    """
+    record = RunRecord.load(run_dir)
+    config = record.model_config()
+    state, step = _restore_state(checkpoint_dir(run_dir).absolute(), step)
+    params = state.get("ema_params") or state["params"]
+    return LoadedRun(record=record, config=config, params=params, step=step)

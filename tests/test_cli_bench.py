@@ -1,0 +1,62 @@
+"""``jaxtalk bench`` and :mod:`jaxtalk.bench`: table structure, FLOP accounting, fraction of peak."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from jaxtalk import bench
+from jaxtalk.cli import app
+
+runner = CliRunner()
+
+
+def test_random_params_match_the_initialiser_shapes():
+    from jaxtalk.models.toktalk import TokTalkConfig, init_params
+
+    config = TokTalkConfig.tiny()
+    got = bench.random_params(lambda k: init_params(config, k), seed=1)
+    want = jax.eval_shape(lambda k: init_params(config, k), jax.random.key(0))
+    assert jax.tree.structure(got) == jax.tree.structure(want)
+    for (path, g), w in zip(jax.tree_util.tree_flatten_with_path(got)[0], jax.tree.leaves(want)):
+        assert g.shape == w.shape and g.dtype == w.dtype
+        name = jax.tree_util.keystr(path)
+        if name.endswith("['scale']") or name.endswith("['std']"):
+            assert np.all(np.asarray(g) == 1)
+        elif name.endswith("['bias']"):
+            assert np.all(np.asarray(g) == 0)
+    again = bench.random_params(lambda k: init_params(config, k), seed=1)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(again)))
+
+
+def test_with_peak_divides_and_keeps_unknowns():
+    rows = bench.with_peak([{"gflop_s": 5.0}, {"gflop_s": None}, {"x": 1}], 20.0)
+    assert rows[0]["of_peak"] == 0.25 and rows[1]["of_peak"] is None and rows[2]["of_peak"] is None
+
+
+def test_toktalk_table_rates_and_fraction_of_peak(monkeypatch, fast_compile):
+    from jaxtalk import benchmarking
+    from jaxtalk.models.toktalk import TokTalkConfig
+
+    monkeypatch.setattr(benchmarking, "measure_matmul_peak", lambda *a, **k: 50e9)  # tested in test_benchmarking
+    config = TokTalkConfig.tiny()
+    lines: list[str] = []
+    peak, tables = bench.run_benchmarks(["toktalk"], repeats=1, configs={"toktalk": config}, echo=lines.append)
+    assert peak == 50.0 and len(tables) == 1 and lines
+    (row,) = tables[0].rows
+    assert row["model"] == "TokTalk" and row["window_frames"] == config.context_frames + config.chunk_frames
+    assert row["rtf"] == pytest.approx(row["latency_s"] / (config.chunk_frames / config.fps))
+    assert row["gflop_s"] == pytest.approx(row["gflops"] / row["latency_s"])
+    assert row["of_peak"] == pytest.approx(row["gflop_s"] / 50.0)
+    # At least the decoder's matmuls: 2 (CFG) x steps x window x channels^2 (one dense layer's worth).
+    floor = 2 * config.num_steps * row["window_frames"] * config.channels**2 * 2 / 1e9
+    assert row["gflops"] > floor
+
+
+def test_bench_user_errors():
+    result = runner.invoke(app, ["bench", "--model", "wavenet"])
+    assert result.exit_code == 2 and "unknown benchmark model(s) ['wavenet']" in result.output
+    with pytest.raises(ValueError, match="repeats must be >= 1"):
+        bench.run_benchmarks(["toktalk"], repeats=0)

@@ -1,0 +1,195 @@
+"""``jaxtalk train / sample / stream / eval`` end to end on a tiny TokTalk trained for a few steps.
+
+One module-scoped run (2 steps, then resumed to 4) serves every test. The CLI's outputs are checked
+against the library called directly with the same inputs, so a wiring mistake (wrong style clip, wrong
+key, dropped frames, normalisation applied twice) fails here.
+"""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+import soundfile as sf
+from typer.testing import CliRunner
+
+from jaxtalk.cli import app
+
+runner = CliRunner()
+
+COMMANDS = ["data", "demo", "train", "sample", "stream", "eval", "bench", "render"]
+
+
+def _ok(args: list[str]) -> str:
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def _user_error(args: list[str], message: str) -> None:
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message in errors[0], result.output
+    assert "Traceback" not in result.output
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_command_has_help(command):
+    output = _ok([command, "--help"])
+    assert "Usage" in output and command in output
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, synthtalk_tiny):
+    """A tiny TokTalk trained 2 steps, then resumed to 4 (the resume is a test of its own)."""
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)  # compile time dominates these tiny runs
+    root = tmp_path_factory.mktemp("cli_run")
+    out = root / "run"
+    cache = str(synthtalk_tiny._cache_dir)
+    # The tiny preset without middle stages: the smallest graph, hence the shortest compile.
+    args = ["train", "toktalk", "--preset", "tiny", "--set", "num_mid_blocks=0", "--batch-size", "4", "--no-progress",
+            "--cache-dir", cache,
+            "--out", str(out)]
+    first = _ok(args + ["--steps", "2"])
+    second = _ok(["train", "toktalk", "--steps", "4", "--no-progress", "--out", str(out)])
+    yield {"dir": out, "root": root, "first": first, "second": second, "corpus": synthtalk_tiny}
+    jax.config.update("jax_disable_most_optimizations", previous)
+
+
+def test_train_writes_run_and_resume_continues_the_step_count(run):
+    from jaxtalk.commands.runs import RunRecord, load_run
+    from jaxtalk.train import Checkpointer, latest_checkpoint_step
+
+    assert "step 0 -> 2" in run["first"]
+    assert "resuming toktalk (tiny) from step 2 to 4" in run["second"] and "step 2 -> 4" in run["second"]
+    assert latest_checkpoint_step(run["dir"] / "checkpoint") == 4
+    with Checkpointer(run["dir"] / "checkpoint", read_only=True) as ckpt:
+        assert {2, 4} <= set(ckpt.all_steps())
+    record = RunRecord.load(run["dir"])
+    assert record.model == "toktalk" and record.preset == "tiny" and record.batch_size == 4
+    assert record.model_config().chunk_frames == 4  # the tiny preset, restored from run.json
+    at2, at4 = load_run(run["dir"], step=2), load_run(run["dir"])
+    assert (at2.step, at4.step) == (2, 4)
+    moved = jax.tree.map(lambda a, b: float(np.max(np.abs(np.asarray(a) - np.asarray(b)))), at2.params, at4.params)
+    assert max(jax.tree.leaves(moved)) > 0  # the resumed steps trained
+
+
+def test_train_user_errors_are_one_line(run, tmp_path):
+    out = str(tmp_path / "fresh")
+    _user_error(["train", "toktalk", "--set", "nonsense=1", "--out", out], "has no field 'nonsense'")
+    _user_error(["train", "toktalk", "--set", "num_steps=many", "--out", out], "expected int")
+    _user_error(["train", "toktalk", "--set", "chunk_frames=5", "--out", out], "chunk_frames=5 must be even")
+    _user_error(["train", "toktalk", "--set", "channels", "--out", out], "expects key=value")
+    _user_error(["train", "toktalk", "--preset", "huge", "--out", out], "no preset 'huge'")
+    _user_error(["train", "waveglow", "--out", out], "unknown model 'waveglow'")
+    _user_error(["train", "timar", "--out", str(run["dir"])], "holds a toktalk run")
+    _user_error(["train", "toktalk", "--set", "num_steps=5", "--out", str(run["dir"]), "--steps", "5"],
+                "resume it with the same settings")
+    _user_error(["train", "toktalk", "--steps", "3", "--out", str(run["dir"])], "already at step 4 > --steps 3")
+
+
+def test_parse_overrides_types_values_by_field():
+    from jaxtalk.commands.runs import build_config, parse_overrides
+    from jaxtalk.models.timar import TimarConfig
+    from jaxtalk.train import OptimConfig
+
+    got = parse_overrides(TimarConfig, ["width=64", "cfg_scale=2.5", "learn_sigma=yes", "head=mlp"])
+    assert got == {"width": 64, "cfg_scale": 2.5, "learn_sigma": True, "head": "mlp"}
+    assert parse_overrides(OptimConfig, ["ema_decay=none", "clip_norm=0.5"]) == {"ema_decay": None, "clip_norm": 0.5}
+    config = build_config("timar", "small", ["num_layers=2", "num_layers=3"])  # the last one wins
+    assert config.num_layers == 3 and config.width == TimarConfig.small().width
+
+
+def _tokens(run, n: int = 20) -> tuple[np.ndarray, object]:
+    corpus = run["corpus"]
+    clip = corpus.split("test")[0]
+    return np.asarray(corpus.tokens(clip, "A").embeddings, np.float32)[:n], corpus
+
+
+def _default_style(loaded, corpus) -> np.ndarray:
+    # The CLI's documented default: a training clip's first 4 x style_frames frames.
+    return np.asarray(corpus.motion(corpus.split("train")[0]), np.float32)[None, : 4 * loaded.config.style_frames]
+
+
+def test_sample_tokens_equals_the_library_call(run, tmp_path):
+    from jaxtalk.commands.runs import load_run
+    from jaxtalk.data.formats import read_npz
+    from jaxtalk.models import toktalk
+
+    tokens, corpus = _tokens(run)
+    np.save(tmp_path / "tokens.npy", tokens)
+    out = tmp_path / "sampled.npz"
+    _ok(["sample", str(run["dir"]), str(tmp_path / "tokens.npy"), "--out", str(out), "--seed", "3"])
+    clip = read_npz(out)
+    loaded = load_run(run["dir"])
+    want = toktalk.sample(loaded.params, loaded.config, tokens[None], _default_style(loaded, corpus), jax.random.key(3))
+    assert clip.fps == 25 and clip.params.shape == (2 * tokens.shape[0], 56)  # 12.5 Hz tokens -> 25 fps
+    np.testing.assert_allclose(clip.params, np.asarray(want)[0], rtol=1e-5, atol=1e-5)
+
+
+def test_stream_prints_each_chunk_and_equals_the_streaming_engine(run, tmp_path):
+    from jaxtalk.commands.runs import load_run
+    from jaxtalk.data.formats import read_npz
+    from jaxtalk.models import toktalk
+
+    tokens, corpus = _tokens(run, 19)  # not a whole number of chunks: the last one is padded and cropped
+    np.save(tmp_path / "tokens.npy", tokens)
+    out = tmp_path / "streamed.npz"
+    output = _ok(["stream", str(run["dir"]), str(tmp_path / "tokens.npy"), "--out", str(out)])
+    loaded = load_run(run["dir"])
+    chunks = -(-tokens.shape[0] // toktalk.tokens_per_chunk(loaded.config))
+    lines = [line for line in output.splitlines() if line.startswith("chunk")]
+    assert len(lines) == chunks and lines[-1].startswith(f"chunk {chunks:3d}/{chunks}")
+    assert all(" ms for " in line for line in lines) and "median" in output
+    style_vec = toktalk.encode_style(loaded.params, loaded.config, _default_style(loaded, corpus))
+    want = toktalk.stream(loaded.params, loaded.config, tokens[None], style_vec, jax.random.key(0))
+    got = read_npz(out).params
+    assert got.shape == (2 * tokens.shape[0], 56)
+    np.testing.assert_allclose(got, np.asarray(want)[0], rtol=1e-5, atol=1e-5)
+
+
+def test_sample_stereo_audio_at_another_rate(run, tmp_path):
+    from jaxtalk.audio import resample_audio
+    from jaxtalk.data.formats import read_npz
+
+    corpus = run["corpus"]
+    audio = np.asarray(corpus.audio(corpus.split("test")[0]), np.float32)[: 16000 * 3 // 2]  # 1.5 s
+    stereo = np.stack([resample_audio(audio, 16000, 22050)] * 2, axis=1)
+    sf.write(tmp_path / "speech.wav", stereo, 22050)
+    _ok(["sample", str(run["dir"]), str(tmp_path / "speech.wav")])
+    clip = read_npz(tmp_path / "speech_params.npz")  # the default output name
+    assert clip.params.shape == (round(1.5 * 25), 56) and np.isfinite(clip.params).all()
+    assert clip.audio is not None and abs(clip.audio.shape[0] - audio.shape[0]) <= 2  # 16 kHz mono, stored
+
+
+def test_sample_user_errors(run, tmp_path):
+    run_dir = str(run["dir"])
+    _user_error(["sample", run_dir, str(tmp_path / "missing.wav")], "input file not found")
+    (tmp_path / "notes.txt").write_text("hello")
+    _user_error(["sample", run_dir, str(tmp_path / "notes.txt")], "expected an audio file")
+    np.save(tmp_path / "wide.npy", np.zeros((10, 7), np.float32))
+    _user_error(["sample", run_dir, str(tmp_path / "wide.npy")], "must have shape (tokens, 64)")
+    bad = np.zeros((10, 64), np.float32)
+    bad[3, 3] = np.nan
+    np.save(tmp_path / "nan.npy", bad)
+    _user_error(["stream", run_dir, str(tmp_path / "nan.npy")], "NaN")
+    _user_error(["sample", str(tmp_path), str(tmp_path / "wide.npy")], "is not a training run")
+
+
+def test_eval_table_brackets_the_model_between_baselines(run, tmp_path):
+    out = tmp_path / "eval.json"
+    output = _ok(["eval", str(run["dir"]), "--max-clips", "1", "--json", str(out)])
+    rows = {r["method"]: r for r in json.loads(out.read_text())}
+    assert set(rows) == {"toktalk (streamed)", "mean pose", "oracle"}
+    assert all(r["clips"] == 1 for r in rows.values())
+    # The corpus's deterministic part beats the mean pose on every error measure.
+    for metric in ("MSE", "LVE_mm2", "MVE_mm"):
+        assert rows["oracle"][metric] < rows["mean pose"][metric]
+    assert rows["mean pose"]["jitter"] == 0.0  # a constant track has no second difference
+    assert np.isfinite(rows["toktalk (streamed)"]["MSE"]) and "mean pose" in output
+    _user_error(["eval", str(run["dir"]), "--split", "holdout"], "unknown split 'holdout'")
+    _user_error(["eval", str(run["dir"]), "--max-clips", "0"], "--max-clips must be >= 1")
