@@ -109,6 +109,9 @@ def demo(
     size: Annotated[str, typer.Option(help="SynthTalk size: tiny (quick look) or small.")] = "small",
     steps: Annotated[int, typer.Option(help="Training steps of the small TokTalk model.")] = DemoOptions.train_steps,
     seed: Annotated[int, typer.Option(help="Corpus and training seed.")] = 0,
+    sample_steps: Annotated[
+        int, typer.Option(help="Euler steps of the streamed clip (1 = the posterior mean).")
+    ] = DemoOptions.sample_steps,
     retrain: Annotated[bool, typer.Option(help="Ignore an existing checkpoint and retrain.")] = False,
     sweep: Annotated[bool, typer.Option(help="Run the chunk size x Euler steps sweep.")] = True,
     render: Annotated[bool, typer.Option(help="Write the mp4 and GIF.")] = True,
@@ -117,7 +120,7 @@ def demo(
     """Train TokTalk on SynthTalk, stream a held-out clip, and write video, plots and a report."""
     from jaxtalk.demo import DemoOptions, run_demo
 
-    options = DemoOptions(out_dir=out, size=size, seed=seed, train_steps=steps, retrain=retrain,
+    options = DemoOptions(out_dir=out, size=size, seed=seed, train_steps=steps, sample_steps=sample_steps, retrain=retrain,
                           audio=audio, sweep=sweep, render=render, progress=progress)
     result = run_demo(options, echo=typer.echo)
     from jaxtalk.benchmarking import format_table

@@ -43,6 +43,9 @@ class DemoOptions:
         learning_rate: peak AdamW learning rate.
         retrain: ignore an existing checkpoint and cached results.
         audio: the user's own audio file to animate (skips nothing else).
+        sample_steps: Euler steps of the streamed clip and of ``audio``. One step from pure noise is
+            the model's posterior mean (smooth, lowest error); more steps add sampled detail that a
+            model trained for minutes on 2 CPU cores has not learned well (the sweep shows both).
         sweep: run the chunk x steps sweep.
         render: write the mp4 and GIF.
         render_size: panel size in pixels.
@@ -53,6 +56,7 @@ class DemoOptions:
     size: str = "small"
     seed: int = 0
     train_steps: int = 1200
+    sample_steps: int = 1
     batch_size: int = 16
     window_frames: int = 100
     learning_rate: float = 2e-3
@@ -238,7 +242,7 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
     stream = corpus.tokenizer("A").encode(audio)
     tokens = np.asarray(stream.embeddings, np.float32)
     frames = int(round(audio.shape[0] / 16000 * 25))
-    config = _model_config()
+    config = _model_config(num_steps=options.sample_steps)
     pred, times = _stream_timed(params, config, tokens, style_vec, jax.random.key(2), frames)
     stem = Path(options.audio).stem
     files["user_params"] = options.out_dir / f"{stem}_params.npz"
@@ -273,6 +277,8 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     from jaxtalk.models.toktalk import encode_style
 
     wall = time.perf_counter()
+    if options.sample_steps < 1:
+        raise ValueError(f"sample_steps must be >= 1, got {options.sample_steps}")
     if options.train_steps < 1:
         raise ValueError(f"train_steps must be >= 1, got {options.train_steps}")
     if options.audio is not None:
@@ -288,7 +294,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     params, history, trained = _train_or_load(corpus, options, echo)
     files["checkpoint"] = out / "checkpoint"
 
-    config = _model_config()
+    config = _model_config(num_steps=options.sample_steps)
     clip, style_ref = _pick_clips(corpus)
     gt = np.asarray(corpus.motion(clip), np.float32)
     tokens = np.asarray(corpus.tokens(clip, "A").embeddings, np.float32)
@@ -369,6 +375,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
         "LVE in mm^2 (max squared lip-vertex error per frame, mean over frames), MVE in mm, jitter = mean "
         "norm of the parameter second difference (all frames / within 2 frames of chunk boundaries).\n",
         _markdown_table(quality),
+        f"Streamed with {config.num_steps} Euler step(s) (`--sample-steps`); the sweep below compares 1-20.\n",
         "## Streaming latency (this machine, compile excluded)\n",
         _markdown_table([latency]),
     ]

@@ -63,6 +63,10 @@ class TokTalkConfig:
         dropout: dropout rate in the transformer blocks (training only).
         precondition: wrap the decoder in the Gaussian-optimal skip/scale of the flow path (see
             :func:`jaxtalk.models.toktalk.model.velocity`); False = the raw decoder output, as in CosyVoice.
+        time_sampling: training flow times: "cosine" (``t = 1 - cos(u pi / 2)``, ``u ~ U(0, 1)``:
+            more weight near the noise end, where the conditional mean is learned; CosyVoice's
+            ``t_scheduler: cosine``) or "uniform" (``t ~ U(0, 1)``). On SynthTalk small (600 steps)
+            cosine cut the one-step mouth error from 0.091 to 0.067 (mean pose 0.106).
     """
 
     param_dim: int = PARAM_DIM
@@ -101,6 +105,7 @@ class TokTalkConfig:
     chunk_mask_prob: float = 0.5
     dropout: float = 0.0
     precondition: bool = True
+    time_sampling: str = "cosine"
 
     def __post_init__(self) -> None:
         positive = (
@@ -136,6 +141,7 @@ class TokTalkConfig:
             _check(name, 0.0 <= value <= 1.0, value)
         _check("sigma_min", 0.0 <= self.sigma_min < 1.0, self.sigma_min)
         _check("kl_weight", self.kl_weight >= 0.0, self.kl_weight)
+        _check("time_sampling", self.time_sampling in ("uniform", "cosine"), self.time_sampling)
 
     # ------------------------------------------------------------------------------- presets
     @classmethod

@@ -115,6 +115,8 @@ def _flow_loss(
     b, t, d = x1.shape
     k_t, k_z, k_drop, k_known, k_chunk, k_style, k_dropout = jax.random.split(key, 7)
     times = jax.random.uniform(k_t, (b,), x1.dtype)
+    if config.time_sampling == "cosine":
+        times = 1.0 - jnp.cos(times * (0.5 * jnp.pi))
     z = jax.random.normal(k_z, x1.shape, x1.dtype)
     x_t, u = flow_matching_terms(x1, z, times, config.sigma_min)
 

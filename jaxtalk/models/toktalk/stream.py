@@ -101,7 +101,7 @@ def init_stream(
         raise ValueError(f"buffer_frames={buffer_frames} must be at least the window ({w} frames)")
     tokens_per_chunk(config)
     wt = tokens_per_chunk(config, w)
-    return StreamState(
+    state = StreamState(
         tokens=jnp.zeros((batch, wt, config.token_dim), dtype),
         motion=jnp.zeros((batch, w, config.param_dim), dtype),
         valid=jnp.zeros((batch, w), bool),
@@ -109,6 +109,9 @@ def init_stream(
         position=jnp.zeros((), jnp.int32),
         step=jnp.zeros((), jnp.int32),
     )
+    # Commit the state to a device like the step's outputs are: an uncommitted first state gives the
+    # jitted step a different cache key from every later one, so chunk 2 would compile again.
+    return jax.device_put(state, jax.devices()[0])
 
 
 def stream_step(
