@@ -24,11 +24,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.bench import timar_stream
 from jaxtalk.benchmarking import machine_info, measure_matmul_peak, print_table, time_jitted, write_json, xla_flops
 from jaxtalk.models.timar import TimarConfig, init_params
 from jaxtalk.models.timar.head import apply_head_hoisted, head_condition
 from jaxtalk.models.timar.sample import sample_frames
-from jaxtalk.models.timar.stream import _condition, stream_init, stream_step
+from jaxtalk.models.timar.stream import _condition, stream_init
 
 
 def _turn_inputs(config: TimarConfig, batch: int, turns: int, seed: int = 0):
@@ -37,28 +38,6 @@ def _turn_inputs(config: TimarConfig, batch: int, turns: int, seed: int = 0):
     return (jnp.asarray(rng.normal(size=(batch, t, config.speech_dim)), jnp.float32),
             jnp.asarray(rng.normal(size=(batch, t, 56)), jnp.float32),
             jnp.asarray(rng.normal(size=(batch, t, config.speech_dim)), jnp.float32))
-
-
-def stream_latency(config: TimarConfig, params, *, context: int, turns: int, repeats: int, cfg_scale: float = 1.5):
-    """Per-turn latency (median over repeats) of a streamed conversation, excluding compilation."""
-    f = config.frames_per_turn
-    us, um, as_ = _turn_inputs(config, 1, turns)
-    per_turn = [[] for _ in range(turns)]
-    compile_s = None
-    for r in range(repeats + 1):
-        state = stream_init(config, 1, context)
-        for i in range(turns):
-            sl = slice(i * f, (i + 1) * f)
-            t0 = time.perf_counter()
-            state, x = stream_step(config, params, state, us[:, sl], um[:, sl], as_[:, sl],
-                                   jax.random.fold_in(jax.random.key(r), i), cfg_scale=cfg_scale)
-            jax.block_until_ready(x)
-            dt = time.perf_counter() - t0
-            if r == 0 and i == 0:
-                compile_s = dt  # first call: compile + run
-            elif r > 0:
-                per_turn[i].append(dt)
-    return compile_s, [statistics.median(v) for v in per_turn]
 
 
 def head_latency(steps: int, repeats: int):
@@ -116,8 +95,8 @@ def main() -> None:
     args = ap.parse_args()
 
     small = TimarConfig.small()
-    params = init_params(small, jax.random.key(0))
-    compile_s, per_turn = stream_latency(small, params, context=7, turns=args.turns, repeats=args.repeats)
+    # The streaming measurement lives in the library (also behind `jaxtalk bench`).
+    compile_s, per_turn = timar_stream(small, context=7, turns=args.turns, repeats=args.repeats)
     rows = [{"turn": i, "cached": i <= 7, "latency_ms": 1e3 * t} for i, t in enumerate(per_turn)]
     print_table(rows, f"TIMAR small, n=7, 5 DDIM steps + CFG: per-turn latency (first call incl. compile {compile_s:.1f} s)")
 
