@@ -53,3 +53,15 @@ def synthtalk_tiny(tmp_path_factory):
     from jaxtalk.data import synthtalk
 
     return synthtalk.generate("tiny", seed=0, cache_dir=tmp_path_factory.mktemp("synthtalk_tiny"))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drops JAX's in-memory caches of compiled programs after every test module.
+
+    A full run compiles thousands of programs; keeping all of them alive for the whole session grew the
+    process by gigabytes and once ended in a segfault inside XLA's compiler late in a CI run. Modules
+    rarely share programs, so this costs little compile time.
+    """
+    yield
+    jax.clear_caches()
