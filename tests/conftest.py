@@ -59,9 +59,10 @@ def synthtalk_tiny(tmp_path_factory):
 def _release_compiled_programs():
     """Drops JAX's in-memory caches of compiled programs after every test module.
 
-    A full run compiles thousands of programs; keeping all of them alive for the whole session grew the
-    process by gigabytes and once ended in a segfault inside XLA's compiler late in a CI run. Modules
-    rarely share programs, so this costs little compile time.
+    A full run compiles thousands of programs and keeps every one alive for the whole session unless
+    told otherwise; a CI rehearsal once segfaulted inside XLA's compiler late in the run (the same test
+    passes alone), so the suite no longer accumulates them. Modules rarely share programs, so this
+    costs little compile time.
     """
     yield
     jax.clear_caches()
