@@ -80,6 +80,21 @@ def test_save_restore_round_trip_is_bitwise(tmp_path, run):
     np.testing.assert_array_equal(jax.random.key_data(restored.rng), jax.random.key_data(key))
 
 
+def test_restore_saved_reads_params_without_a_template_and_names_missing_steps(tmp_path, run):
+    for i in (2, 3):
+        save_checkpoint(tmp_path / "c", run["states"][i], data_state=run["positions"][i])
+    with Checkpointer(tmp_path / "c", read_only=True) as ckpt:
+        raw, step = ckpt.restore_saved()
+        assert step == 3 and int(raw["step"]) == 3
+        _assert_bitwise(raw["params"], run["states"][3].params)
+        _assert_bitwise(raw["ema_params"], run["states"][3].ema_params)
+        raw2, step2 = ckpt.restore_saved(2)
+        assert step2 == 2
+        _assert_bitwise(raw2["params"], run["states"][2].params)
+        with pytest.raises(FileNotFoundError, match="no checkpoint for step 5"):
+            ckpt.restore_saved(5)
+
+
 def test_writes_go_to_a_tmp_dir_renamed_when_complete(tmp_path, run, monkeypatch):
     renames = []
     original = async_path.rename

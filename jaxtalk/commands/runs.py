@@ -228,27 +228,15 @@ def _restore_state(directory: Path, step: int | None) -> tuple[dict[str, Any], i
     A template would have to repeat each model's training-time structure (TokTalk's data-dependent
     normalisation entry, the optimiser's frozen-parameter mask); the checkpoint already knows it.
     """
-    import orbax.checkpoint as ocp
-
     from jaxtalk.train import Checkpointer
 
-    with Checkpointer(directory, read_only=True) as ckpt:  # validates the folder, lists complete steps
-        steps = ckpt.all_steps()
-    if not steps:
-        raise FileNotFoundError(f"no complete checkpoint in {directory} (train first: `jaxtalk train`)")
-    step = steps[-1] if step is None else int(step)
-    if step not in steps:
-        raise FileNotFoundError(f"no checkpoint for step {step} in {directory} (have {steps})")
-    options = ocp.CheckpointManagerOptions(read_only=True)
-    manager = ocp.CheckpointManager(directory, options=options, item_names=("state", "data", "meta"))
     try:
-        restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
-    except Exception as err:  # orbax/tensorstore raise many types; name the path for the user
-        detail = str(err).splitlines()[0][:300] if str(err) else type(err).__name__
-        raise ValueError(f"checkpoint {directory / str(step)} cannot be read: {detail}") from err
-    finally:
-        manager.close()
-    return dict(restored.state), step
+        with Checkpointer(directory, read_only=True) as ckpt:
+            return ckpt.restore_saved(step)
+    except FileNotFoundError as err:
+        if "no complete checkpoint" in str(err):  # nothing trained yet: tell the user what to do
+            raise FileNotFoundError(f"{err} (train first: `jaxtalk train`)") from err
+        raise
 
 
 def load_run(run_dir: str | Path, *, step: int | None = None) -> LoadedRun:

@@ -121,13 +121,7 @@ class Checkpointer:
             ValueError: the checkpoint is corrupt or does not fit ``template`` (names the path).
         """
         ocp = self._ocp
-        self._manager.wait_until_finished()
-        steps = self.all_steps()
-        if not steps:
-            raise FileNotFoundError(f"no complete checkpoint in {self.directory}")
-        step = steps[-1] if step is None else int(step)
-        if step not in steps:
-            raise FileNotFoundError(f"no checkpoint for step {step} in {self.directory} (have {steps})")
+        step = self._complete_step(step)
         path = self.directory / str(step)
         saved_template = _saveable(template)
         try:
@@ -156,6 +150,44 @@ class Checkpointer:
             rng=jax.random.wrap_key_data(raw["rng"], impl=impl),
         )
         return state, dict(restored.data or {}), dict(restored.meta or {})
+
+    def _complete_step(self, step: int | None) -> int:
+        # The newest complete step, or ``step`` after checking that it is complete.
+        self._manager.wait_until_finished()
+        steps = self.all_steps()
+        if not steps:
+            raise FileNotFoundError(f"no complete checkpoint in {self.directory}")
+        step = steps[-1] if step is None else int(step)
+        if step not in steps:
+            raise FileNotFoundError(f"no checkpoint for step {step} in {self.directory} (have {steps})")
+        return step
+
+    def restore_saved(self, step: int | None = None) -> tuple[dict[str, Any], int]:
+        """The saved train state exactly as stored (a dict of arrays), without a template.
+
+        For readers that only need parameters (inference, the CLI) and should not have to rebuild each
+        model's training-time structure (data-dependent entries, the optimiser's frozen-leaf mask).
+
+        Args:
+            step: checkpoint step (default: the newest complete one).
+
+        Returns:
+            ``(state, step)``: ``state`` has ``step``, ``params``, ``opt_state``, ``ema_params`` and
+            ``rng`` (raw key data).
+
+        Raises:
+            FileNotFoundError: the directory holds no complete checkpoint, or ``step`` is absent.
+            ValueError: the checkpoint cannot be read (names the path).
+        """
+        ocp = self._ocp
+        step = self._complete_step(step)
+        path = self.directory / str(step)
+        try:
+            restored = self._manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+        except Exception as err:  # orbax/tensorstore raise many types; name the path for the user
+            detail = str(err).splitlines()[0][:400] if str(err) else type(err).__name__
+            raise ValueError(f"checkpoint {path} cannot be read: {detail}") from err
+        return dict(restored.state), step
 
     def wait(self) -> None:
         """Block until background saves are written."""
