@@ -117,7 +117,7 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     params = random_params(lambda k: tt.init_params(config, k))
     rng = np.random.default_rng(0)
     ct = tt.tokens_per_chunk(config)
-    style = jnp.asarray(rng.normal(size=(1, config.style_dim)), jnp.float32)
+    style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
     state = tt.init_stream(config, jax.random.key(0), batch=1, buffer_frames=2000)
     chunk = jnp.asarray(rng.normal(size=(1, ct, config.token_dim)), jnp.float32)
     ts = jnp.asarray(default_grid(config), jnp.float32)
@@ -132,7 +132,7 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     # One guided velocity evaluation (conditional + unconditional as a batch of 2) per Euler step.
     wf = config.window_frames
     cond = Condition(
-        tokens=jnp.zeros((2, wf, config.token_dim)), style=jnp.zeros((2, config.style_dim)),
+        tokens=jnp.zeros((2, wf, config.token_dim)), style=jnp.zeros((2, config.style_vector_dim)),
         known=jnp.zeros((2, wf, config.param_dim)), known_mask=jnp.zeros((2, wf), bool),
         keep=jnp.ones((2,)), mask=jnp.ones((2, wf), bool), chunked=jnp.ones((2,), bool),
     )
@@ -167,7 +167,7 @@ def toktalk_growth(config: Any, chunks: int = 50, repeats: int = 10) -> dict[str
     params = random_params(lambda k: tt.init_params(config, k))
     rng = np.random.default_rng(1)
     ct = tt.tokens_per_chunk(config)
-    style = jnp.asarray(rng.normal(size=(1, config.style_dim)), jnp.float32)
+    style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
     state = tt.init_stream(config, jax.random.key(0), batch=1, buffer_frames=max(2000, 2 * chunks * config.chunk_frames))
     times = {}
     for i in range(1, chunks + 1):

@@ -60,7 +60,7 @@ def toktalk(toktalk_cache, fast_compile):
         d.params = tt.init_params(TT_CFG, jax.random.key(0))
         d.tokens = rng.normal(size=(B, TOKENS, TT_CFG.token_dim)).astype(np.float32)
         d.noise = rng.normal(size=(B, FRAMES, TT_CFG.param_dim)).astype(np.float32)
-        d.style = rng.normal(size=(B, TT_CFG.style_dim)).astype(np.float32)
+        d.style = rng.normal(size=(B, TT_CFG.style_vector_dim)).astype(np.float32)
     return d
 
 
@@ -245,7 +245,7 @@ def test_bad_input_raises_value_errors(toktalk, freetalk):
         (dict(tokens=t.tokens[..., :10]), "tokens must have shape"),
         (dict(noise=t.noise[:, :8]), "noise must have the target's shape"),
         (dict(noise=np.full_like(t.noise, np.inf)), "noise holds NaN or inf"),
-        (dict(init=np.zeros(TT_CFG.style_dim + 1)), "init must have shape"),
+        (dict(init=np.zeros(TT_CFG.style_vector_dim + 1)), "init must have shape"),
         (dict(mask=np.ones((B, FRAMES), np.int32)), "mask must be a bool array"),
         (dict(mask=np.zeros((B, FRAMES), bool)), "no real frame"),
         (dict(solver="adam"), "solver must be one of"),

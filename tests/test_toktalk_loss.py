@@ -73,16 +73,52 @@ def test_random_known_mask_is_one_contiguous_segment_inside_real_frames():
     assert len(set(starts)) > 3  # not always a prefix
 
 
+def _constant_pose_batch(seed=0):
+    # Every frame of an example, and every frame of its reference clip, is the same unit-scale pose.
+    batch = _batch(seed)
+    pose = np.random.default_rng(seed + 10).normal(size=(B, 1, 56)).astype(np.float32)
+    return {**batch, "motion": np.repeat(pose, T, 1), "style": np.repeat(pose, CFG.style_frames, 1)}
+
+
 def test_cfm_loss_of_zero_velocity_model_is_noise_energy(params):
-    # x1 = 0 and v = 0 (raw decoder, no preconditioning skip): the loss is mean((1 - sigma_min)^2 z^2)
-    # over real frames = 1 up to sampling.
+    # Motion equal to the reference clip's (constant) pose is x1 = 0 in the anchored flow coordinates;
+    # with v = 0 (raw decoder, no preconditioning skip) the loss is mean((1 - sigma_min)^2 z^2) over
+    # real frames = 1 up to sampling. Without the anchor the same batch has x1 = pose, so the target
+    # u = x1 - z adds mean(pose^2) = 1: the loss is 2.
     raw = dataclasses.replace(CFG, precondition=False)
-    loss, metrics = jax.jit(functools.partial(tt.cfm_loss, config=raw))(_zero_output(params), _batch(0), jax.random.key(3))
-    n = (_batch(0)["mask"].sum()) * 56
+    batch = _constant_pose_batch()
+    loss, metrics = jax.jit(functools.partial(tt.cfm_loss, config=raw))(_zero_output(params), batch, jax.random.key(3))
+    n = (batch["mask"].sum()) * 56
     assert abs(float(metrics["flow"]) - 1.0) < 4 * np.sqrt(2.0 / n)
     assert float(metrics["kl"]) >= 0.0
     np.testing.assert_allclose(float(loss), float(metrics["flow"]) + CFG.kl_weight * float(metrics["kl"]),
                                rtol=1e-6)
+    plain = dataclasses.replace(raw, style_anchor=False)
+    plain_params = tt.init_params(plain, jax.random.key(0))
+    _, m2 = jax.jit(functools.partial(tt.cfm_loss, config=plain))(_zero_output(plain_params), batch, jax.random.key(3))
+    expect = 1.0 + float(np.sum(np.square(batch["motion"]) * batch["mask"][..., None]) / n)
+    assert abs(float(m2["flow"]) - expect) < 0.06
+
+
+def test_flow_space_is_standardised_motion_minus_the_reference_mean_pose(params):
+    rng = np.random.default_rng(3)
+    norm = {"mean": rng.normal(size=56).astype(np.float32), "std": rng.uniform(0.5, 2.0, 56).astype(np.float32)}
+    p = {**params, "norm": {k: jnp.asarray(v) for k, v in norm.items()}}
+    clip = rng.normal(size=(2, 12, 56)).astype(np.float32)
+    mask = np.ones((2, 12), bool)
+    mask[1, 7:] = False
+    style = np.asarray(tt.encode_style(p, CFG, clip, mask))
+    assert style.shape == (2, CFG.style_dim + 56) == (2, CFG.style_vector_dim)
+    # The anchor part, entry by entry: mean over the real frames of (clip - mean) / std.
+    for b, n in ((0, 12), (1, 7)):
+        expect = ((clip[b, :n] - norm["mean"]) / norm["std"]).mean(0)
+        np.testing.assert_allclose(style[b, CFG.style_dim :], expect, rtol=1e-5, atol=1e-5)
+    motion = rng.normal(size=(2, 5, 56)).astype(np.float32)
+    x = np.asarray(tt.to_flow_space(p, CFG, jnp.asarray(motion), jnp.asarray(style)))
+    expect = (motion - norm["mean"]) / norm["std"] - style[:, None, CFG.style_dim :]
+    np.testing.assert_allclose(x, expect, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(tt.from_flow_space(p, CFG, jnp.asarray(x), jnp.asarray(style)), motion,
+                               rtol=1e-5, atol=1e-5)
 
 
 def test_cfm_loss_ignores_padded_frames_and_has_gradients(params):

@@ -25,7 +25,7 @@ def params():
 def _cond(rng, t=T, chunked=False, keep=1.0, mask=None):
     return tt.Condition(
         tokens=jnp.asarray(rng.normal(size=(B, t, CFG.token_dim)), jnp.float32),
-        style=jnp.asarray(rng.normal(size=(B, CFG.style_dim)), jnp.float32),
+        style=jnp.asarray(rng.normal(size=(B, CFG.style_vector_dim)), jnp.float32),
         known=jnp.asarray(rng.normal(size=(B, t, CFG.param_dim)), jnp.float32),
         known_mask=jnp.asarray(np.arange(t)[None, :] < 3).repeat(B, 0),
         keep=jnp.full((B,), keep, jnp.float32),
@@ -131,7 +131,7 @@ def test_style_encoder_ignores_padding_and_uses_frame_positions(params):
     rng = np.random.default_rng(3)
     clip = jnp.asarray(rng.normal(size=(B, 20, 56)), jnp.float32)
     v = tt.encode_style(params, CFG, clip)
-    assert v.shape == (B, CFG.style_dim)
+    assert v.shape == (B, CFG.style_vector_dim)
     padded = jnp.concatenate([clip, 50.0 * jnp.ones((B, 6, 56))], 1)
     mask = jnp.asarray(np.arange(26)[None, :] < 20).repeat(B, 0)
     np.testing.assert_allclose(tt.encode_style(params, CFG, padded, mask), v, atol=1e-4)

@@ -27,7 +27,7 @@ def params():
 def _inputs(seed=0):
     rng = np.random.default_rng(seed)
     tokens = rng.normal(size=(B, TT, CFG.token_dim)).astype(np.float32)
-    style = rng.normal(size=(B, CFG.style_dim)).astype(np.float32)
+    style = rng.normal(size=(B, CFG.style_vector_dim)).astype(np.float32)
     noise = rng.normal(size=(B, 2 * TT, CFG.param_dim)).astype(np.float32)
     known = rng.normal(size=(B, 2 * TT, CFG.param_dim)).astype(np.float32)
     known_mask = np.zeros((B, 2 * TT), bool)
@@ -38,8 +38,14 @@ def _inputs(seed=0):
 
 
 def _reference(params, tokens, style, noise, known, known_mask, mask, ts, w):
-    """Euler with CFG and inpainting written out step by step (no scan, no sampler module)."""
+    """Euler with CFG and inpainting written out step by step (no scan, no sampler module).
+
+    The flow runs centred on the style's anchor pose (its last param_dim entries; the fresh params'
+    standardiser is the identity): known frames go in minus the anchor, the result comes out plus it.
+    """
     t_frames = noise.shape[1]
+    anchor = style[:, None, CFG.style_dim :]
+    known = known - anchor
     cond = tt.Condition(
         tokens=tt.interpolate_tokens(jnp.asarray(tokens), CFG.token_rate, CFG.fps, t_frames),
         style=jnp.asarray(style),
@@ -59,7 +65,7 @@ def _reference(params, tokens, style, noise, known, known_mask, mask, ts, w):
         v = np.asarray((1 + w) * vc - w * vu)
         x = x + (ts[k + 1] - ts[k]) * v
         x = np.where(km, (1 - (1 - s) * ts[k + 1]) * noise + ts[k + 1] * known, x)
-    x = np.where(km, known, x)
+    x = np.where(km, known, x) + anchor
     return x * mask[..., None]
 
 

@@ -26,7 +26,7 @@ def params():
 
 def test_stream_compiles_once_and_keeps_fixed_state(params):
     rng = np.random.default_rng(0)
-    style = rng.normal(size=(B, CFG.style_dim)).astype(np.float32)
+    style = rng.normal(size=(B, CFG.style_vector_dim)).astype(np.float32)
     state = tt.init_stream(CFG, jax.random.key(1), batch=B, buffer_frames=64)
     shapes = jax.tree.map(jnp.shape, state)
     ct = tt.tokens_per_chunk(CFG)
@@ -52,7 +52,7 @@ def test_stream_compiles_once_and_keeps_fixed_state(params):
 
 def test_stream_step_equals_offline_core_on_the_same_window(params):
     rng = np.random.default_rng(1)
-    style = jnp.asarray(rng.normal(size=(B, CFG.style_dim)), jnp.float32)
+    style = jnp.asarray(rng.normal(size=(B, CFG.style_vector_dim)), jnp.float32)
     ct, c, ctx = tt.tokens_per_chunk(CFG), CFG.chunk_frames, CFG.context_frames
     n_chunks = 2
     tokens = rng.normal(size=(B, n_chunks * ct, CFG.token_dim)).astype(np.float32)
@@ -86,12 +86,12 @@ def test_stream_step_equals_offline_core_on_the_same_window(params):
 def test_stream_whole_sequence_and_errors(params):
     rng = np.random.default_rng(2)
     tokens = rng.normal(size=(1, 7, CFG.token_dim)).astype(np.float32)  # 3.5 chunks
-    out = tt.stream(params, CFG, tokens, np.zeros((1, CFG.style_dim), np.float32), jax.random.key(0),
+    out = tt.stream(params, CFG, tokens, np.zeros((1, CFG.style_vector_dim), np.float32), jax.random.key(0),
                     buffer_frames=32)
     assert out.shape == (1, 14, 56) and bool(jnp.all(jnp.isfinite(out)))
     state = tt.init_stream(CFG, jax.random.key(0), batch=1, buffer_frames=32)
     with pytest.raises(ValueError, match="one chunk of 4 frames"):
-        tt.stream_step(params, CFG, state, tokens[:, :3], np.zeros((1, CFG.style_dim), np.float32))
+        tt.stream_step(params, CFG, state, tokens[:, :3], np.zeros((1, CFG.style_vector_dim), np.float32))
     with pytest.raises(ValueError, match="buffer_frames=4"):
         tt.init_stream(CFG, jax.random.key(0), buffer_frames=4)
     with pytest.raises(ValueError, match="not a whole number of tokens"):

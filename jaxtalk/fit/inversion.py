@@ -78,7 +78,7 @@ class InversionResult:
     """Outcome of an inversion (a pytree of arrays); every example is its own problem (vmapped).
 
     Attributes:
-        value: the recovered condition: style vectors ``(B, style_dim)`` or intensities ``(B,)``.
+        value: the recovered condition: style vectors ``(B, style_vector_dim)`` or intensities ``(B,)``.
         loss: per-example mean squared error of the sample at ``value`` against the target, ``(B,)``.
         init_loss: the same at the starting point (for :func:`invert_style` with ``init=None``:
             the style encoder's estimate), ``(B,)``.
@@ -247,7 +247,7 @@ def style_loss(
         tokens: ``(B, Tt, token_dim)`` base-space token embeddings.
         target: ``(B, T, param_dim)`` target motion (raw FLAME units).
         noise: ``(B, T, param_dim)`` the sampler's starting noise.
-        style: ``(B, style_dim)`` style vectors.
+        style: ``(B, style_vector_dim)`` style vectors.
         cfg_scale: guidance weight (traced; default ``config.cfg_scale``).
         num_steps: Euler steps (default ``config.num_steps``).
         mask: ``(B, T)`` real frames, passed to the sampler and scoring only those (None: all).
@@ -278,7 +278,7 @@ def _invert_style_core(params, tokens, target, noise, mask, init, cfg_scale, pri
     fn = functools.partial(_style_residuals, config=config, num_steps=num_steps, remat=remat)
 
     # One problem per example, vmapped: a joint problem would make Levenberg-Marquardt build a
-    # block-diagonal (B style_dim)-column Jacobian, B times the forward-mode passes needed.
+    # block-diagonal (B style_vector_dim)-column Jacobian, B times the forward-mode passes needed.
     def one(tok, tgt, nz, m, s0):
         args = (params, tok[None], tgt[None], nz[None], m[None], cfg_scale, prior)
         style, loss, code, steps = _solve(fn, s0[None], args, solver, rtol, atol, max_steps)
@@ -320,7 +320,7 @@ def invert_style(
         target: ``(B, T, param_dim)`` target motion in raw FLAME units; NaN allowed only on frames
             outside ``mask``.
         noise: ``(B, T, param_dim)`` the fixed starting noise of the sampler.
-        init: starting style, ``(style_dim,)`` or ``(B, style_dim)``. ``None``: the style encoder's
+        init: starting style, ``(style_vector_dim,)`` or ``(B, style_vector_dim)``. ``None``: the style encoder's
             estimate for the target clip (needs ``T >= config.style_min_frames``).
         mask: ``(B, T)`` bool, real frames (given to the sampler, and only they are scored).
         cfg_scale: guidance weight (default ``config.cfg_scale``).
@@ -335,7 +335,7 @@ def invert_style(
         on_failure: ``"raise"`` (default) or ``"return"`` a result with ``converged`` False.
 
     Returns:
-        :class:`InversionResult` with ``value`` ``(B, style_dim)``.
+        :class:`InversionResult` with ``value`` ``(B, style_vector_dim)``.
 
     Raises:
         ValueError: wrong shapes or widths, tokens that do not cover ``T`` frames, NaN/inf in
@@ -383,11 +383,11 @@ def invert_style(
         init_arr = np.asarray(tt.encode_style(params, config, target_arr, mask_arr), dtype)
     else:
         init_arr = _float_array(init, "init", dtype)
-        if init_arr.shape == (config.style_dim,):
-            init_arr = np.broadcast_to(init_arr, (batch, config.style_dim))
-        elif init_arr.shape != (batch, config.style_dim):
+        if init_arr.shape == (config.style_vector_dim,):
+            init_arr = np.broadcast_to(init_arr, (batch, config.style_vector_dim))
+        elif init_arr.shape != (batch, config.style_vector_dim):
             raise ValueError(
-                f"init must have shape ({config.style_dim},) or ({batch}, {config.style_dim}), got {init_arr.shape}"
+                f"init must have shape ({config.style_vector_dim},) or ({batch}, {config.style_vector_dim}), got {init_arr.shape}"
             )
         _check_finite(init_arr, "init")
     rtol_, atol_ = _tolerances(rtol, atol, dtype)

@@ -16,9 +16,11 @@ from jaxtalk.models.toktalk.model import (
     Condition,
     adapt_tokens,
     encode_style,
+    from_flow_space,
     init_adapter,
     init_params,
     interpolate_tokens,
+    to_flow_space,
     velocity,
 )
 from jaxtalk.models.toktalk.sample import sample
@@ -37,6 +39,8 @@ __all__ = [
     "velocity",
     "interpolate_tokens",
     "encode_style",
+    "to_flow_space",
+    "from_flow_space",
     "adapt_tokens",
     "kl_divergence",
     "flow_matching_terms",

@@ -114,7 +114,7 @@ class Decoder(nn.Module):
             x: ``(B, T, param_dim)`` noisy motion at time ``t``.
             t: ``(B,)`` flow times in [0, 1].
             tokens: ``(B, T, token_dim)`` token embeddings already at the motion frame rate.
-            style: ``(B, style_dim)`` style vectors.
+            style: ``(B, style_vector_dim)`` style vectors.
             known: ``(B, T, param_dim)`` known frames (values elsewhere are ignored).
             known_mask: ``(B, T)`` True on known frames.
             keep: ``(B,)`` 1 to condition, 0 to drop tokens, style and known frames (CFG).

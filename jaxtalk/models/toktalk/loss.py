@@ -11,6 +11,11 @@ sits just before the new chunk). Per batch, the chunk mask is used with probabil
 
 Batches are dicts: ``motion (B, T, D)``, ``tokens (B, Tt, token_dim)`` at the base token rate,
 ``style (B, S, D)`` reference clips, ``mask (B, T)`` bool; stage 2 adds ``src_tokens (B, Ts, src_dim)``.
+
+With ``config.style_anchor`` the flow runs in coordinates centred on the reference clip's mean pose
+(:func:`~jaxtalk.models.toktalk.model.to_flow_space`), so ``x1`` above is the target relative to it. That
+centring is a change of coordinates, not a condition: the CFG-dropped branch runs in the same coordinates
+(it learns the average motion around a speaker's resting pose).
 """
 
 from __future__ import annotations
@@ -20,13 +25,15 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxtalk.data.standardize import standardize
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import (
     Condition,
     adapter_forward,
+    anchor_pose,
     interpolate_tokens,
+    join_style,
     style_distribution,
+    to_flow_space,
     velocity,
 )
 from jaxtalk.models.toktalk.style import kl_divergence
@@ -108,23 +115,22 @@ def _flow_loss(
     params: PyTree, batch: dict[str, Any], tokens: Array, key: PRNGKeyArray, config: TokTalkConfig
 ) -> tuple[Array, dict[str, Array]]:
     valid = jnp.asarray(batch["mask"]).astype(bool)
-    # The flow runs on standardised motion (unit-variance noise needs unit-spread data per channel).
-    x1 = batch["motion"]
-    if "norm" in params:
-        x1 = standardize(params["norm"], x1) * valid[..., None].astype(x1.dtype)
-    b, t, d = x1.shape
     k_t, k_z, k_drop, k_known, k_chunk, k_style, k_dropout = jax.random.split(key, 7)
+    style_clip = batch["style"]
+    style_mask = batch.get("style_mask")
+    dropout_key = k_dropout if config.dropout > 0 else None
+    mu, logvar = style_distribution(params, config, style_clip, style_mask, dropout_key=dropout_key)
+    latent = mu + jnp.exp(0.5 * logvar) * jax.random.normal(k_style, mu.shape, mu.dtype)
+    style = join_style(config, latent, anchor_pose(params, style_clip, style_mask))
+    # The flow runs on standardised motion (unit-variance noise needs unit-spread data per channel),
+    # centred on the reference clip's anchor pose when the style carries one.
+    x1 = to_flow_space(params, config, batch["motion"], style) * valid[..., None].astype(batch["motion"].dtype)
+    b, t, d = x1.shape
     times = jax.random.uniform(k_t, (b,), x1.dtype)
     if config.time_sampling == "cosine":
         times = 1.0 - jnp.cos(times * (0.5 * jnp.pi))
     z = jax.random.normal(k_z, x1.shape, x1.dtype)
     x_t, u = flow_matching_terms(x1, z, times, config.sigma_min)
-
-    style_clip = batch["style"]
-    style_mask = batch.get("style_mask")
-    dropout_key = k_dropout if config.dropout > 0 else None
-    mu, logvar = style_distribution(params, config, style_clip, style_mask, dropout_key=dropout_key)
-    style = mu + jnp.exp(0.5 * logvar) * jax.random.normal(k_style, mu.shape, mu.dtype)
 
     known_mask = random_known_mask(k_known, valid, config.known_prob, config.known_max_fraction)
     keep = jax.random.bernoulli(k_drop, 1.0 - config.cond_dropout, (b,)).astype(x1.dtype)

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.audio.framerate import default_num_frames, interpolation_plan
-from jaxtalk.data.standardize import identity_standardizer, standardize
+from jaxtalk.data.standardize import identity_standardizer, standardize, unstandardize
 from jaxtalk.models.toktalk.adapter import Adapter
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.decoder import Decoder
@@ -33,6 +33,11 @@ __all__ = [
     "check_tokens",
     "check_finite",
     "preconditioning",
+    "style_vector",
+    "anchor_pose",
+    "join_style",
+    "to_flow_space",
+    "from_flow_space",
 ]
 
 PyTree = Any
@@ -43,7 +48,7 @@ class Condition(NamedTuple):
 
     Attributes:
         tokens: ``(B, T, token_dim)`` token embeddings at the motion frame rate.
-        style: ``(B, style_dim)`` style vectors.
+        style: ``(B, style_vector_dim)`` style vectors.
         known: ``(B, T, param_dim)`` known frames (values elsewhere ignored).
         known_mask: ``(B, T)`` True on known frames.
         keep: ``(B,)`` 1 = conditional, 0 = unconditional (CFG / condition dropout).
@@ -173,7 +178,7 @@ def _init_params(key: PRNGKeyArray, config: TokTalkConfig, adapter_src_dim: int 
     z = jnp.zeros((b, t, config.param_dim))
     cond = Condition(
         tokens=jnp.zeros((b, t, config.token_dim)),
-        style=jnp.zeros((b, config.style_dim)),
+        style=jnp.zeros((b, config.style_vector_dim)),
         known=z,
         known_mask=jnp.zeros((b, t), bool),
         keep=jnp.ones((b,)),
@@ -282,13 +287,76 @@ def style_distribution(
     *,
     dropout_key: PRNGKeyArray | None = None,
 ) -> tuple[Float[Array, "batch style"], Float[Array, "batch style"]]:
-    """``(mu, logvar)`` of the style encoder for raw-unit reference clips (no validation; jit-friendly)."""
+    """``(mu, logvar)`` of the style encoder's latent for raw-unit reference clips (jit-friendly).
+
+    The latent is ``style_dim`` wide; the full style vector (:func:`style_vector`) appends the anchor.
+    """
     rngs = None if dropout_key is None else {"dropout": dropout_key}
     if "norm" in params:
         clip = standardize(params["norm"], clip)
     return StyleEncoder(config).apply(
         {"params": params["style"]}, clip, mask, deterministic=dropout_key is None, rngs=rngs
     )
+
+
+def anchor_pose(
+    params: dict[str, PyTree],
+    clip: Float[Array, "batch frames param"],
+    mask: Bool[Array, "batch frames"] | None = None,
+) -> Float[Array, "batch param"]:
+    """The reference clip's (masked) mean pose in standardised units: the style vector's anchor part."""
+    if "norm" in params:
+        clip = standardize(params["norm"], clip)
+    if mask is None:
+        return jnp.mean(clip, axis=1)
+    w = mask.astype(clip.dtype)[..., None]
+    return jnp.sum(clip * w, axis=1) / jnp.maximum(jnp.sum(w, axis=1), 1.0)
+
+
+def join_style(
+    config: TokTalkConfig, latent: Float[Array, "batch style"], anchor: Float[Array, "batch param"]
+) -> Float[Array, "batch vector"]:
+    """``[latent | anchor]`` with ``style_anchor``, else the latent alone (``style_vector_dim`` wide)."""
+    return jnp.concatenate([latent, anchor], axis=-1) if config.style_anchor else latent
+
+
+def style_vector(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    clip: Float[Array, "batch frames param"],
+    mask: Bool[Array, "batch frames"] | None = None,
+) -> Float[Array, "batch vector"]:
+    """The full style vector of raw-unit reference clips: encoder mean (+ anchor pose); no validation."""
+    return join_style(config, style_distribution(params, config, clip, mask)[0], anchor_pose(params, clip, mask))
+
+
+def _anchor_of(config: TokTalkConfig, style_vec: Array) -> Array | None:
+    return style_vec[:, config.style_dim :] if config.style_anchor else None
+
+
+def to_flow_space(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    motion: Float[Array, "batch frames param"],
+    style_vec: Float[Array, "batch vector"],
+) -> Float[Array, "batch frames param"]:
+    """Raw motion -> the coordinates the flow runs in: standardised, minus the style's anchor pose."""
+    x = standardize(params["norm"], motion) if "norm" in params else motion
+    anchor = _anchor_of(config, style_vec)
+    return x if anchor is None else x - anchor[:, None, :].astype(x.dtype)
+
+
+def from_flow_space(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    x: Float[Array, "batch frames param"],
+    style_vec: Float[Array, "batch vector"],
+) -> Float[Array, "batch frames param"]:
+    """Inverse of :func:`to_flow_space`."""
+    anchor = _anchor_of(config, style_vec)
+    if anchor is not None:
+        x = x + anchor[:, None, :].astype(x.dtype)
+    return unstandardize(params["norm"], x) if "norm" in params else x
 
 
 def check_style_clip(clip: Any, config: TokTalkConfig) -> None:
@@ -313,8 +381,9 @@ def encode_style(
     config: TokTalkConfig,
     clip: Float[Array, "batch frames param"] | Float[np.ndarray, "batch frames param"],
     mask: Bool[Array, "batch frames"] | Bool[np.ndarray, "batch frames"] | None = None,
-) -> Float[Array, "batch style"]:
-    """The style vector (the encoder's mean) of reference motion clips.
+) -> Float[Array, "batch vector"]:
+    """The style vector of reference motion clips: the encoder's mean, then (``style_anchor``) the
+    clip's mean pose in standardised units.
 
     Args:
         params: model parameters.
@@ -323,7 +392,7 @@ def encode_style(
         mask: ``(B, S)`` True on real frames (None: all real).
 
     Returns:
-        ``(B, style_dim)``.
+        ``(B, style_vector_dim)``.
 
     Raises:
         ValueError: bad clip shape, too short, NaN/inf.
@@ -334,7 +403,7 @@ def encode_style(
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def _encode_style(params: PyTree, clip: Array, mask: Array | None, config: TokTalkConfig) -> Array:
-    return style_distribution(params, config, clip, mask)[0]
+    return style_vector(params, config, clip, mask)
 
 
 def adapter_forward(

@@ -14,7 +14,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.data.standardize import standardize, unstandardize
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import (
     Condition,
@@ -23,7 +22,9 @@ from jaxtalk.models.toktalk.model import (
     check_tokens,
     interpolate_tokens,
     sampler_model,
-    style_distribution,
+    from_flow_space,
+    style_vector,
+    to_flow_space,
 )
 from jaxtalk.samplers import cosine_grid, sample_euler
 from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
@@ -39,16 +40,16 @@ def default_grid(config: TokTalkConfig, num_steps: int | None = None) -> np.ndar
 
 
 def resolve_style(params: PyTree, config: TokTalkConfig, style: Any, batch: int) -> Array:
-    """A ``(B, style_dim)`` style vector from a vector or a ``(B, S, param_dim)`` reference clip.
+    """A ``(B, style_vector_dim)`` style vector from a vector or a ``(B, S, param_dim)`` reference clip.
 
     Args:
         params: model parameters (the style encoder is used for clips).
         config: model settings.
-        style: ``(B, style_dim)`` vector, ``(style_dim,)`` vector for every example, or a clip.
+        style: ``(B, style_vector_dim)`` vector, ``(style_vector_dim,)`` for every example, or a clip.
         batch: the batch size B.
 
     Returns:
-        ``(B, style_dim)``.
+        ``(B, style_vector_dim)``.
 
     Raises:
         ValueError: a shape that is neither, a batch mismatch, a too-short clip, NaN/inf.
@@ -56,15 +57,15 @@ def resolve_style(params: PyTree, config: TokTalkConfig, style: Any, batch: int)
     shape = tuple(np.shape(style))
     if len(shape) == 3:
         check_style_clip(style, config)
-        vec = style_distribution(params, config, jnp.asarray(style))[0]
-    elif len(shape) in (1, 2) and shape[-1] == config.style_dim:
+        vec = style_vector(params, config, jnp.asarray(style))
+    elif len(shape) in (1, 2) and shape[-1] == config.style_vector_dim:
         check_finite("style vector", style)
         vec = jnp.asarray(style)
         if vec.ndim == 1:
-            vec = jnp.broadcast_to(vec[None], (batch, config.style_dim))
+            vec = jnp.broadcast_to(vec[None], (batch, config.style_vector_dim))
     else:
         raise ValueError(
-            f"style must be a (batch, {config.style_dim}) vector or a (batch, frames, {config.param_dim}) "
+            f"style must be a (batch, {config.style_vector_dim}) vector or a (batch, frames, {config.param_dim}) "
             f"reference clip, got shape {shape}"
         )
     if vec.shape[0] != batch:
@@ -96,7 +97,7 @@ def sample(
         params: model parameters.
         config: model settings.
         tokens: ``(B, Tt, token_dim)`` base-space token embeddings at ``config.token_rate``.
-        style: ``(B, style_dim)`` style vector(s) or a ``(B, S, param_dim)`` reference clip.
+        style: ``(B, style_vector_dim)`` style vector(s) or a ``(B, S, param_dim)`` reference clip.
         key: PRNG key for the starting noise (required unless ``noise`` is given).
         num_frames: expected number of frames (checked against the token count and rate).
         num_steps: Euler steps (default ``config.num_steps``; static).
@@ -175,7 +176,7 @@ def generate_frames(
     params: PyTree,
     config: TokTalkConfig,
     tokens: Float[Array, "batch tokens width"],
-    style_vec: Float[Array, "batch style"],
+    style_vec: Float[Array, "batch vector"],
     noise: Float[Array, "batch frames param"],
     ts: Float[Array, " grid"],
     cfg_scale: Float[Array, ""],
@@ -191,8 +192,9 @@ def generate_frames(
     Args:
         params, config: the model.
         tokens: ``(B, Tt, token_dim)`` at the base rate; interpolated to ``T = noise.shape[1]`` frames.
-        style_vec: ``(B, style_dim)``.
-        noise: ``(B, T, param_dim)`` starting noise (in the model's standardised motion space).
+        style_vec: ``(B, style_vector_dim)``.
+        noise: ``(B, T, param_dim)`` starting noise (in the flow's coordinates, see
+            :func:`~jaxtalk.models.toktalk.model.to_flow_space`).
         ts: ``(N + 1,)`` time grid.
         cfg_scale: ``()`` guidance weight.
         known, known_mask: optional inpainting values ``(B, T, D)`` (raw units) and mask ``(B, T)``.
@@ -204,9 +206,9 @@ def generate_frames(
         ``(B, T, param_dim)`` in raw parameter units, zero on padded frames.
     """
     b, t, d = noise.shape
-    norm = params.get("norm") if isinstance(params, dict) else None
-    if known is not None and norm is not None:
-        known = standardize(norm, known)
+    known_raw = known
+    if known is not None:
+        known = to_flow_space(params, config, known, style_vec)
     frames_tokens = interpolate_tokens(tokens, config.token_rate, config.fps, t)
     mask = jnp.ones((b, t), bool) if mask is None else mask
     chunked = jnp.zeros((), bool) if chunked is None else chunked
@@ -232,6 +234,8 @@ def generate_frames(
         sigma_min=config.sigma_min,
         remat=remat,
     )
-    if norm is not None:
-        x = unstandardize(norm, x)
+    x = from_flow_space(params, config, x, style_vec)
+    if has_known:
+        # The round trip through flow coordinates is exact only up to rounding: paste the given frames.
+        x = jnp.where(cond.known_mask[..., None], known_raw.astype(x.dtype), x)
     return x * mask[..., None].astype(x.dtype)

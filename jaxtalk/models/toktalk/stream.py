@@ -131,7 +131,7 @@ def stream_step(
         config: model settings.
         state: the carried :class:`StreamState`.
         chunk_tokens: ``(B, tokens_per_chunk, token_dim)`` base-space tokens of the new chunk.
-        style: ``(B, style_dim)`` style vector or a ``(B, S, param_dim)`` reference clip (encoding a
+        style: ``(B, style_vector_dim)`` style vector or a ``(B, S, param_dim)`` reference clip (encoding a
             clip every chunk costs time: pass the vector).
         cfg_scale: guidance weight (traced; default ``config.cfg_scale``).
         ts: time grid (traced values; its length sets the step count; default the cosine grid).
