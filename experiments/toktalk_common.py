@@ -1,7 +1,8 @@
 """Shared pieces of the TokTalk experiments: corpus, trained ``small`` model (cached), evaluation.
 
-The trained parameters are cached as ``.npz`` under ``experiments/results/toktalk_cache/`` keyed by
-the corpus size, seed and number of steps, so the sweep and the quality table reuse one training run.
+The base model is trained with the demo's recipe (:func:`jaxtalk.demo.train_or_load`) into a
+checkpoint under ``experiments/results/toktalk_cache/`` keyed by corpus, steps and seed; the stage-2
+adapter is cached beside it, so the sweep and the quality table reuse one training run.
 """
 
 from __future__ import annotations
@@ -15,14 +16,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.data import synthtalk
+from jaxtalk.demo import DemoOptions, model_config, train_or_load
 from jaxtalk.metrics import jitter, lve
 from jaxtalk.models import toktalk as tt
-from jaxtalk.models.toktalk.train import make_windows, train_adapter, train_base
+from jaxtalk.models.toktalk.train import make_windows, train_adapter
 from jaxtalk.train import OptimConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CACHE = RESULTS / "toktalk_cache"
-WINDOW = 50
 
 
 def load_corpus(size: str, seed: int = 0):
@@ -42,28 +43,33 @@ def _load(path: Path, like):
 
 
 def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0):
-    """Stage 1 then stage 2 on the corpus's train split (cached on disk). Returns (config, params, info)."""
-    cfg = tt.TokTalkConfig.small()
-    tag = f"{corpus.key}-small-s{steps}-a{adapter_steps}-seed{seed}"
-    path = CACHE / f"{tag}.npz"
-    like = jax.eval_shape(lambda k: tt.init_params(cfg, k, adapter_src_dim=48), jax.random.key(0))
-    if path.is_file():
-        return cfg, _load(path, like), {"cached": str(path)}
+    """The demo's base model (same recipe, :func:`jaxtalk.demo.train_or_load`) then stage 2 on stream B.
+
+    Both stages are cached under ``toktalk_cache/`` (the base as a resumable checkpoint, the adapter as
+    ``.npz``). Returns ``(config, params, info)``.
+    """
+    cfg = model_config()
+    options = DemoOptions(out_dir=CACHE / f"{corpus.key}-demo-s{steps}-seed{seed}", size=corpus.size,
+                          seed=seed, train_steps=steps, progress=True)
     t0 = time.perf_counter()
-    windows = make_windows(corpus, corpus.split("train"), cfg, window_frames=WINDOW, hop_frames=10,
-                           src_stream="B", seed=seed)
-    base = train_base(cfg, windows, OptimConfig(lr=5e-4, warmup_steps=50, total_steps=steps, weight_decay=0.0),
-                      key=jax.random.key(seed), batch_size=16, progress=True, log_every=50)
+    base, history, _ = train_or_load(corpus, options)
     t1 = time.perf_counter()
-    adapted = train_adapter(cfg, base.state.params, windows,
+    path = options.out_dir / f"adapter-a{adapter_steps}.npz"
+    like = jax.eval_shape(lambda k: tt.init_params(cfg, k, adapter_src_dim=48), jax.random.key(0))
+    info = {"base_checkpoint": str(options.out_dir / "checkpoint"), "stage1_s": t1 - t0,
+            "stage1_final_loss": history[-1]["loss"] if history else None}
+    if path.is_file():
+        return cfg, _load(path, like), {**info, "adapter_cached": str(path)}
+    windows = make_windows(corpus, corpus.split("train"), cfg, window_frames=options.window_frames,
+                           hop_frames=options.window_frames // 4, src_stream="B", seed=seed)
+    adapted = train_adapter(cfg, base, windows,
                             OptimConfig(lr=5e-4, warmup_steps=20, total_steps=adapter_steps, weight_decay=0.0),
                             key=jax.random.key(seed + 1), src_rate=25.0, batch_size=16, progress=True,
                             log_every=50)
     params = adapted.state.params
     _save(path, params)
-    info = {"stage1_s": t1 - t0, "stage2_s": time.perf_counter() - t1,
-            "stage1_final_loss": base.history[-1]["loss"], "stage2_final_loss": adapted.history[-1]["loss"]}
-    return cfg, params, info
+    return cfg, params, {**info, "stage2_s": time.perf_counter() - t1,
+                         "stage2_final_loss": adapted.history[-1]["loss"]}
 
 
 def style_clip_for(corpus, clip: int, frames: int, rng: np.random.Generator) -> np.ndarray:

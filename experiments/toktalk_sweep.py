@@ -7,7 +7,7 @@ per-chunk latency (compile excluded) and the compile time of the cell's program.
 
 The paper's claim to check: quality and smoothness improve with more steps and larger chunks.
 
-Usage: ``python experiments/toktalk_sweep.py [--size tiny] [--steps 1500] [--clips 4]``
+Usage: ``python experiments/toktalk_sweep.py [--size small] [--steps 1200] [--clips 4]``
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ STEPS = (1, 5, 10, 20)
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--size", default="tiny")
-    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--size", default="small")
+    parser.add_argument("--steps", type=int, default=1200, help="base training steps (the demo's: 1200)")
     parser.add_argument("--adapter-steps", type=int, default=400)
     parser.add_argument("--clips", type=int, default=4)
     parser.add_argument("--out", default=str(RESULTS / "toktalk_sweep.json"))

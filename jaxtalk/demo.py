@@ -103,7 +103,8 @@ def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
-def _model_config(chunk_frames: int = 10, num_steps: int = 10):
+def model_config(chunk_frames: int = 10, num_steps: int = 10):
+    """The demo model's config at a chunk size (frames) and Euler step count (inference settings)."""
     from jaxtalk.models.toktalk import TokTalkConfig
 
     # Left context: two chunks (at least 20 frames), so latency is bounded whatever the chunk.
@@ -119,13 +120,27 @@ def _pick_clips(corpus: Any) -> tuple[int, int]:
     return clip, (same[0] if same else clip)
 
 
-def _train_or_load(corpus: Any, options: DemoOptions, echo: Callable[[str], None]) -> tuple[Any, list[dict], bool]:
+def train_or_load(corpus: Any, options: DemoOptions, echo: Callable[[str], None] = print) -> tuple[Any, list[dict], bool]:
+    """The demo's TokTalk ``small`` training recipe, resumed or loaded from ``options.out_dir/checkpoint``.
+
+    Shared by the demo and the TokTalk experiments, so the tables describe the model the demo ships.
+
+    Args:
+        corpus: a SynthTalk corpus (its ``train`` split is used).
+        options: ``out_dir``, ``train_steps``, ``batch_size``, ``window_frames``, ``learning_rate``,
+            ``seed``, ``retrain``, ``progress`` are used.
+        echo: where progress lines go.
+
+    Returns:
+        ``(params, history, trained)``: the EMA parameters, the loss history (empty when loaded) and
+        whether any training ran.
+    """
     import jax
 
     from jaxtalk.models.toktalk.train import make_windows, train_base
     from jaxtalk.train import OptimConfig, latest_checkpoint_step
 
-    config = _model_config()
+    config = model_config()
     ckpt = options.out_dir / "checkpoint"
     done = latest_checkpoint_step(ckpt) if ckpt.exists() else None
     trained = options.retrain or done != options.train_steps
@@ -142,11 +157,18 @@ def _train_or_load(corpus: Any, options: DemoOptions, echo: Callable[[str], None
                            hop_frames=options.window_frames // 4, seed=options.seed)
     optim = OptimConfig(lr=options.learning_rate, weight_decay=1e-2, warmup_steps=min(100, options.train_steps // 10),
                         total_steps=options.train_steps, clip_norm=1.0, ema_decay=0.99)
-    result = train_base(
-        config, windows, optim, key=jax.random.key(options.seed), batch_size=options.batch_size,
-        seed=options.seed, ckpt_dir=ckpt, save_every=max(options.train_steps // 5, 1),
-        progress=options.progress and trained,
-    )
+    try:
+        result = train_base(
+            config, windows, optim, key=jax.random.key(options.seed), batch_size=options.batch_size,
+            seed=options.seed, ckpt_dir=ckpt, save_every=max(options.train_steps // 5, 1),
+            progress=options.progress and trained,
+        )
+    except ValueError as err:
+        if "does not match the train state" not in str(err):
+            raise
+        # A checkpoint from another version of the model (e.g. before the style anchor): say what to do.
+        raise ValueError(f"{err}\nThe checkpoint in {ckpt} was written by a different model "
+                         "configuration; run again with --retrain (or another --out folder).") from err
     return result.state.eval_params, result.history, trained
 
 
@@ -203,7 +225,7 @@ def _sweep(params: Any, corpus: Any, clip: int, style_clip: np.ndarray, echo: Ca
     for chunk_s in SWEEP_CHUNKS_S:
         chunk = int(round(chunk_s * 25))
         for steps in SWEEP_STEPS:
-            config = _model_config(chunk_frames=chunk, num_steps=steps)
+            config = model_config(chunk_frames=chunk, num_steps=steps)
             style_vec = encode_style(params, config, style_clip[None])
             pred, times = _stream_timed(params, config, tokens, style_vec, jax.random.key(1), gt.shape[0])
             boundaries = range(chunk, gt.shape[0] - 1, chunk)
@@ -242,7 +264,7 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
     stream = corpus.tokenizer("A").encode(audio)
     tokens = np.asarray(stream.embeddings, np.float32)
     frames = int(round(audio.shape[0] / 16000 * 25))
-    config = _model_config(num_steps=options.sample_steps)
+    config = model_config(num_steps=options.sample_steps)
     pred, times = _stream_timed(params, config, tokens, style_vec, jax.random.key(2), frames)
     stem = Path(options.audio).stem
     files["user_params"] = options.out_dir / f"{stem}_params.npz"
@@ -291,10 +313,10 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
 
     echo(f"SynthTalk {options.size}: generating or loading from {out / 'cache'}")
     corpus = synthtalk.generate(size=options.size, seed=options.seed, cache_dir=out / "cache")
-    params, history, trained = _train_or_load(corpus, options, echo)
+    params, history, trained = train_or_load(corpus, options, echo)
     files["checkpoint"] = out / "checkpoint"
 
-    config = _model_config(num_steps=options.sample_steps)
+    config = model_config(num_steps=options.sample_steps)
     clip, style_ref = _pick_clips(corpus)
     gt = np.asarray(corpus.motion(clip), np.float32)
     tokens = np.asarray(corpus.tokens(clip, "A").embeddings, np.float32)
