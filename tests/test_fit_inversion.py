@@ -182,12 +182,10 @@ def test_intensity_recovered_from_segment_starts(freetalk):
     # One start in each example's own segment (the same compiled program) recovers it too ...
     near = invert_intensity(d.params, ATS_CFG, d.cond, target, d.noise, init=[1.2, 2.9, 2.2])
     np.testing.assert_allclose(np.asarray(near.value), TRUE_INTENSITY, atol=1e-4)
-    # ... while a start in the other segment stops in that segment's local minimum: the reason for
-    # one start per segment.
-    far = invert_intensity(d.params, ATS_CFG, d.cond, target, d.noise, init=[2.9, 1.1, 1.5])
-    assert far.all_converged
-    assert float(np.max(far.loss)) > 1e-4
-    assert np.max(np.abs(np.asarray(far.value) - TRUE_INTENSITY)) > 0.3
+    # ... and, ATS's affect embedding being affine in the intensity (no kinks at the levels), so does a
+    # start in the other segment (it may use up the step budget on the flat approach: returned, not raised).
+    far = invert_intensity(d.params, ATS_CFG, d.cond, target, d.noise, init=[2.9, 1.1, 1.5], on_failure="return")
+    np.testing.assert_allclose(np.asarray(far.value), TRUE_INTENSITY, atol=1e-3)
 
 
 def test_intensity_loss_gradient_matches_central_differences_with_and_without_remat(freetalk, float64):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -119,6 +121,25 @@ def test_emotion_and_intensity_change_the_prediction(model):
     np.testing.assert_array_equal(again, outs["happy", 2.0])
 
 
+def test_affect_embedding_is_emotion_plus_intensity_scaled_direction(model):
+    # g(e, i) = A_e + (i / I) B_e: affine in the intensity within one emotion (so levels a corpus lacks
+    # for an emotion are still defined by its other levels), clipped to [1, I], and emotions differ.
+    cfg, params = model
+    affect = ats._AffectEmbedding(cfg)
+    variables = {"params": params["params"]["affect"]}
+
+    def g(emotion, intensity):
+        return np.asarray(affect.apply(variables, jnp.asarray([emotion], jnp.int32), jnp.asarray([intensity])))[0]
+
+    a = params["params"]["affect"]["emotion"]
+    b = params["params"]["affect"]["intensity_direction"]
+    np.testing.assert_allclose(g(5, 2.0), a[5] + (2.0 / 3.0) * b[5], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(g(5, 2.0), 0.5 * (g(5, 1.0) + g(5, 3.0)), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(g(5, 1.5), 0.75 * g(5, 1.0) + 0.25 * g(5, 3.0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(g(5, 7.0), g(5, 3.0), rtol=1e-6)  # clipped to the trained range
+    assert float(np.abs(g(5, 2.0) - g(6, 2.0)).max()) > 1e-2
+
+
 def test_padding_frames_do_not_affect_real_frames(model):
     cfg, params = model
     b_audio = _audio(2)
@@ -143,6 +164,28 @@ def test_one_ddim_step_is_the_denoiser_at_step_zero(model):
     noise = jax.random.normal(jax.random.split(key)[0], (2, T, cfg.motion_dim))
     ref = ats.ats_denoise(params, cfg, noise, jnp.zeros((2,)), cond) / cfg.displacement_scale
     np.testing.assert_allclose(out.reshape(2, T, -1), ref, rtol=1e-4, atol=1e-6)
+
+
+def test_explicit_noise_and_remat_reproduce_the_keyed_sampler(model):
+    cfg, params = model
+    cond = _cond(cfg, _audio(6, b=2), ["sad", "happy"], [2.0, 1.0])
+    key = jax.random.key(11)
+    keyed = ats.sample_ats(params, cfg, cond, key, num_steps=3)
+    noise = jax.random.normal(jax.random.split(key)[0], (2, T, cfg.motion_dim))
+    np.testing.assert_array_equal(ats.sample_ats(params, cfg, cond, None, num_steps=3, noise=noise), keyed)
+    np.testing.assert_allclose(ats.sample_ats(params, cfg, cond, None, num_steps=3, noise=noise, remat=True),
+                               keyed, rtol=1e-5, atol=1e-7)
+    # The sample is a differentiable function of the starting noise (used by jaxtalk.fit's inversions).
+    grad = jax.grad(lambda n: jnp.sum(ats.sample_ats(params, cfg, cond, None, num_steps=3, noise=n, remat=True)))
+    assert float(jnp.abs(grad(noise)).max()) > 0
+    with pytest.raises(ValueError, match=r"noise must have shape \(2, 12, 204\)"):
+        ats.sample_ats(params, cfg, cond, None, noise=noise[:, :5])
+    with pytest.raises(ValueError, match="NaN or inf"):
+        ats.sample_ats(params, cfg, cond, None, noise=np.full((2, T, cfg.motion_dim), np.nan, np.float32))
+    with pytest.raises(ValueError, match="needs a key"):
+        ats.sample_ats(params, cfg, cond, None)
+    with pytest.raises(ValueError, match="needs a key for eta > 0"):
+        ats.sample_ats(params, cfg, cond, None, noise=noise, eta=0.5)
 
 
 def test_ddim_shapes_and_no_recompilation_for_traced_knobs(model):
@@ -246,3 +289,27 @@ def test_training_schedule_is_the_linear_ddpm_table():
     np.testing.assert_allclose(abar, make_schedule("linear", 1000).alphas_cumprod)
     np.testing.assert_allclose(abar[0], 1 - 1e-4)
     np.testing.assert_allclose(abar[-1], np.prod(1 - np.linspace(1e-4, 0.02, 1000)))
+
+
+def test_fit_ats_resumes_exactly_from_its_checkpoint(tmp_path):
+    # A fresh call resuming from the step-2 checkpoint ends bitwise where the uninterrupted run did.
+    from jaxtalk.models.freetalk.fit import fit_ats
+    from jaxtalk.train import OptimConfig
+
+    cfg = _config(max_frames=T, displacement_scale=1.0)
+    rng = np.random.default_rng(8)
+    windows = {
+        "displacements": (0.003 * rng.normal(size=(6, T, 68, 3))).astype(np.float32),
+        "audio": rng.normal(size=(6, T, AUDIO_DIM)).astype(np.float32),
+        "emotion": rng.integers(0, 12, 6).astype(np.int32),
+        "intensity": rng.integers(1, 4, 6).astype(np.float32),
+    }
+    optim = OptimConfig(lr=1e-3, warmup_steps=1, total_steps=4)
+    straight = fit_ats(cfg, windows, optim, jax.random.key(0), batch_size=2, ckpt_dir=tmp_path, save_every=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["2", "4"]
+    shutil.rmtree(tmp_path / "4")  # as if the run had died after its step-2 checkpoint
+    resumed = fit_ats(cfg, windows, optim, jax.random.key(0), batch_size=2, ckpt_dir=tmp_path)
+    assert [h["step"] for h in resumed.history] == [3, 4]
+    for a, b in zip(jax.tree.leaves(resumed.params), jax.tree.leaves(straight.params), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert [h["loss"] for h in resumed.history] == [h["loss"] for h in straight.history[2:]]

@@ -30,6 +30,31 @@ def test_audio_features_stack_four_mel_frames_per_motion_frame():
         data.audio_features(np.zeros((0,), np.float32), 3)
 
 
+def test_displacement_stats_standardise_per_coordinate_with_a_floor():
+    rng = np.random.default_rng(1)
+    spread = np.ones((68, 3))
+    spread[5, 2] = 1e-4  # a nearly static coordinate: floored at 0.2 x the mean std, not blown up
+    disp = (0.002 + 0.003 * spread * rng.normal(size=(40, 16, 68, 3))).astype(np.float32)
+    stats = data.DisplacementStats.fit(disp)
+    flat = disp.reshape(-1, 68, 3).astype(np.float64)
+    np.testing.assert_allclose(stats.mean, flat.mean(0), rtol=1e-4, atol=1e-8)
+    raw_std = flat.std(0)
+    np.testing.assert_allclose(stats.std[0], raw_std[0], rtol=1e-4)
+    np.testing.assert_allclose(stats.std[5, 2], 0.2 * raw_std.mean(), rtol=1e-3)
+    z = stats.normalize(disp)
+    assert isinstance(z, np.ndarray) and z.shape == disp.shape
+    np.testing.assert_allclose(z.reshape(-1, 68, 3)[:, 0].std(0), 1.0, rtol=1e-3)
+    np.testing.assert_allclose(stats.denormalize(z), disp, rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(stats.denormalize(jnp.asarray(z)), disp, rtol=1e-4, atol=1e-7)
+    assert stats.as_standardizer()["mean"].shape == (204,)
+    with pytest.raises(ValueError, match="at least 2"):
+        data.DisplacementStats.fit(disp[:1, :1])
+    with pytest.raises(ValueError, match="NaN"):
+        data.DisplacementStats.fit(np.full((2, 3, 68, 3), np.nan, np.float32))
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., frames, N, 3\)"):
+        data.DisplacementStats.fit(np.zeros((68, 3), np.float32))
+
+
 def test_window_starts_cover_the_sequence():
     assert data.window_starts(10, 4, 3) == [0, 3, 6]
     assert data.window_starts(11, 4, 3) == [0, 3, 6, 7]

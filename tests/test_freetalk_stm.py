@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -110,6 +112,36 @@ def test_frames_are_decoded_independently_from_shared_features(model):
     np.testing.assert_allclose(flat, together, rtol=1e-6, atol=1e-9)
 
 
+def test_fusion_matches_a_brute_force_reference(model):
+    # W [f_i | g_t | c_t,i] with c_t,i the softmax attention of vertex i's query over all 68 landmark
+    # keys, written out in float64 NumPy from the parameters (the per-mesh/per-frame split and the
+    # merged output projection must not change the function).
+    cfg, mesh, params = model
+    p = jax.tree.map(lambda a: np.asarray(a, np.float64), params["params"])
+    model_ = stm.SparseToMesh(cfg)
+    features = np.asarray(stm.stm_mesh_features(params, cfg, mesh), np.float64)
+    disp = _motion(1, seed=9)[0] * cfg.displacement_scale
+    context = model_.apply(params, jnp.asarray(features, jnp.float32), method=stm.SparseToMesh.mesh_context)
+    fused = np.asarray(model_.apply(params, context, jnp.asarray(disp), method=stm.SparseToMesh.fuse_frame))
+    lms = np.asarray(model_.apply(params, jnp.asarray(disp), method=lambda m, d: m.landmarks(d)), np.float64)
+
+    def dense(x, layer):
+        return np.tensordot(x, layer["kernel"], axes=1) + layer.get("bias", 0.0)
+
+    ca = p["cross_attention"]
+    q, k, v = dense(features, ca["query"]), dense(lms, ca["key"]), dense(lms, ca["value"])
+    heads, head_dim = q.shape[1:]
+    expected = dense(features, p["fuse_features"]) + disp.reshape(-1) @ p["fuse_global"]["kernel"]
+    for i in range(0, mesh.num_vertices, 97):
+        c = np.zeros((heads, head_dim))
+        for h in range(heads):
+            logits = k[:, h] @ q[i, h] / np.sqrt(head_dim)
+            w = np.exp(logits - logits.max())
+            c[h] = (w / w.sum()) @ v[:, h]
+        np.testing.assert_allclose(fused[i], expected[i] + np.einsum("hd,hdo->o", c, ca["out"]["kernel"]),
+                                   rtol=2e-4, atol=2e-5)
+
+
 def test_padding_vertices_do_not_change_real_vertices(model, face):
     cfg, mesh, params = model
     padded = stm.prepare_mesh(*face, cfg, num_vertices=mesh.num_vertices + 37)
@@ -191,3 +223,27 @@ def test_prepare_meshes_pads_to_common_shapes(face):
     assert stm.stack_meshes(meshes).vertices.shape == (2, len(variant.vertices), 3)
     with pytest.raises(ValueError, match="at least one"):
         stm.prepare_meshes([], cfg)
+
+
+def test_fit_stm_resumes_exactly_from_its_checkpoint(model, tmp_path):
+    # A fresh call resuming from the step-2 checkpoint ends bitwise where the uninterrupted run did.
+    from jaxtalk.models.freetalk.fit import fit_stm
+    from jaxtalk.train import OptimConfig
+
+    cfg, mesh, _ = model
+    rng = np.random.default_rng(3)
+    windows = {
+        "mesh": np.zeros(4, np.int32),
+        "landmarks": np.stack([_motion(3, seed=s) for s in range(4)]),
+        "vertices": (0.003 * rng.normal(size=(4, 3, mesh.num_vertices, 3))).astype(np.float32),
+    }
+    optim = OptimConfig(lr=1e-3, warmup_steps=1, total_steps=4)
+    straight, full = fit_stm(cfg, [mesh], windows, optim, jax.random.key(0), batch_size=2, ckpt_dir=tmp_path,
+                             save_every=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["2", "4"]
+    shutil.rmtree(tmp_path / "4")  # as if the run had died after its step-2 checkpoint
+    resumed, history = fit_stm(cfg, [mesh], windows, optim, jax.random.key(0), batch_size=2, ckpt_dir=tmp_path)
+    assert [h["step"] for h in history] == [3, 4]
+    for a, b in zip(jax.tree.leaves(resumed), jax.tree.leaves(straight), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert [h["loss"] for h in history] == [h["loss"] for h in full[2:]]

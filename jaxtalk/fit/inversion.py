@@ -9,11 +9,11 @@ sampled clip is a deterministic, differentiable function of the condition:
   so ``init_loss`` vs ``loss`` of the result compares the encoder with the inversion directly.
 * :func:`invert_intensity`: FreeTalk's continuous emotion intensity whose ATS sample (deterministic
   DDIM, ``eta = 0``, :func:`sample_ats_from_noise`) matches a target landmark-displacement clip.
-  ATS already embeds a float intensity by interpolating linearly between its learned per-level
-  vectors, so the intensity is differentiable as it is (no hook needed). The model clips intensities
-  to ``[1, L]`` (flat loss outside), so the solver works on a latent ``z`` reflected into the range;
-  and because the loss is not convex in the intensity (one local minimum per segment between
-  levels), by default the solver runs once from each segment's midpoint and keeps the best.
+  ATS embeds a float intensity affinely (emotion vector + intensity-scaled direction), so the
+  intensity is differentiable as it is (no hook needed). The model clips intensities to ``[1, L]``
+  (flat loss outside), so the solver works on a latent ``z`` reflected into the range; the sampled
+  clip is still a non-convex function of the intensity through the transformer, so by default the
+  solver runs once from the midpoint of each stretch between levels and keeps the best.
 
 The objective is the per-example mean squared error over real frames and coordinates (TokTalk: raw
 FLAME units; ATS: the model's units, i.e. ``displacement_scale`` x metres, or standardised units for
@@ -38,7 +38,6 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -47,9 +46,8 @@ import optimistix as optx
 from jaxtalk.audio.framerate import default_num_frames
 from jaxtalk.fit.face_fit import _check_finite, _float_array, result_name
 from jaxtalk.models import toktalk as tt
-from jaxtalk.models.freetalk.ats import ATSCondition, ATSDenoiser
+from jaxtalk.models.freetalk.ats import ATSCondition, sample_ats
 from jaxtalk.models.freetalk.config import ATSConfig
-from jaxtalk.samplers import make_schedule, respace, sample_ddim
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray, Shaped
 
 __all__ = [
@@ -423,28 +421,6 @@ def _check_observed_finite(target: np.ndarray, mask: np.ndarray) -> None:
 # ---- FreeTalk ATS intensity -----------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=16)
-def _ddim_schedule(num_timesteps: int, num_steps: int):
-    # The same respaced linear schedule that sample_ats uses (float64 NumPy tables).
-    return respace(make_schedule("linear", num_timesteps), num_steps)
-
-
-def _ats_apply(config: ATSConfig, params: PyTree, x: Array, t: Array, cond: tuple[Array, ATSCondition]) -> Array:
-    memory, rest = cond
-    return nn.apply(lambda m: m(x, t, memory, rest), ATSDenoiser(config))(params)
-
-
-def _ats_model_units(params: PyTree, config: ATSConfig, cond: ATSCondition, noise: Array, num_steps: int,
-                     remat: bool) -> Array:
-    """Deterministic DDIM (eta 0) from ``noise``, ``(B, T, 3N)`` in model units (the traced core)."""
-    # The audio memory does not depend on the diffusion step: encode it once, outside the scan.
-    memory = nn.apply(lambda m: m.encode_memory(cond.audio), ATSDenoiser(config))(params)
-    apply_fn = jax.tree_util.Partial(functools.partial(_ats_apply, config), params)
-    # With eta = 0 the per-step keys are never used; any fixed key keeps the program deterministic.
-    return sample_ddim(apply_fn, noise, (memory, cond), _ddim_schedule(config.num_timesteps, num_steps),
-                       jax.random.key(0), eta=0.0, prediction="x0", remat=remat)
-
-
 def _resolve_steps(config: ATSConfig, num_steps: Any) -> int:
     steps = config.num_sampling_steps if num_steps is None else num_steps
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= config.num_timesteps:
@@ -470,13 +446,6 @@ def ats_noise(config: ATSConfig, cond: ATSCondition, key: PRNGKeyArray) -> Float
     return jax.random.normal(k_noise, (b, frames, config.motion_dim))
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "remat"))
-def _sample_ats_from_noise(params, config, cond, noise, num_steps, remat):
-    b, frames = cond.mask.shape
-    x = _ats_model_units(params, config, cond, noise, num_steps, remat)
-    return x.reshape(b, frames, config.num_landmarks, 3) / config.displacement_scale
-
-
 def sample_ats_from_noise(
     params: PyTree,
     config: ATSConfig,
@@ -488,9 +457,8 @@ def sample_ats_from_noise(
 ) -> Float[Array, "batch frames landmarks 3"]:
     """Deterministic DDIM sampling of ATS from explicit starting noise (``sample_ats`` with ``eta = 0``).
 
-    ``sample_ats`` draws its noise from a key and has no ``remat`` switch; this is the same program
-    with the noise as an argument (so it can be held fixed and differentiated through) and
-    ``jax.checkpoint`` on the DDIM step available.
+    ``sample_ats(params, config, cond, None, noise=noise, remat=remat)``: the noise is an argument
+    (held fixed and differentiable), with ``jax.checkpoint`` on the DDIM step available.
 
     Args:
         params: ATS variables.
@@ -506,21 +474,16 @@ def sample_ats_from_noise(
     Raises:
         ValueError: a bad step count, or noise of the wrong shape or with NaN/inf.
     """
-    steps = _resolve_steps(config, num_steps)
-    shape = (*cond.mask.shape, config.motion_dim)
-    if tuple(np.shape(noise)) != shape:
-        raise ValueError(f"noise must have shape {shape}, got {tuple(np.shape(noise))}")
-    if not isinstance(noise, jax.core.Tracer):
-        _check_finite(np.asarray(noise), "noise")
-    return _sample_ats_from_noise(params, config, cond, jnp.asarray(noise), steps, bool(remat))
+    return sample_ats(params, config, cond, None, num_steps=num_steps, noise=noise, remat=remat)
 
 
 def _intensity_data(intensity, params, cond, target, noise, *, config, num_steps, remat):
     """Weighted residuals ``(B, T, 3N)`` (model units) whose per-example sum of squares is the MSE."""
     b, frames = cond.mask.shape
-    x = _ats_model_units(params, config, cond._replace(intensity=intensity), noise, num_steps, remat)
+    x = sample_ats(params, config, cond._replace(intensity=intensity), None, num_steps=num_steps, noise=noise,
+                   remat=remat).reshape(b, frames, -1)
     w = _frame_weights(cond.mask, config.motion_dim, x.dtype)
-    return (x - config.displacement_scale * target.reshape(b, frames, -1)) * w[..., None]
+    return config.displacement_scale * (x - target.reshape(b, frames, -1)) * w[..., None]
 
 
 @functools.partial(jax.jit, static_argnames=("config", "num_steps", "remat"))

@@ -83,10 +83,14 @@ def cross_attention_mask(config: ATSConfig, num_frames: int, num_audio_frames: i
 
 
 class _AffectEmbedding(nn.Module):
-    """``g_c(e, i)``: an MLP over [emotion embedding | intensity embedding].
+    """``g_c(e, i) = A_e + (i / I) B_e``: an emotion embedding plus an intensity-scaled emotion direction.
 
-    The intensity embedding interpolates linearly between learned per-level vectors, so integer
-    intensities reproduce the paper's discrete labels and a traced float moves smoothly between them.
+    Every (emotion, intensity) cell shares its emotion's two vectors, so the embedding is learned
+    from all clips of an emotion whatever their intensity (a per-cell lookup would see a handful of
+    clips per cell on a small corpus, and none at all for cells the corpus happens to lack). The
+    embedding is affine in the intensity, so a traced float moves smoothly between the discrete
+    levels (clipped to ``[1, num_intensities]``) and reaches cells the corpus lacks; the transformer downstream stays free to respond
+    to it non-linearly.
     """
 
     config: ATSConfig
@@ -94,17 +98,14 @@ class _AffectEmbedding(nn.Module):
     @nn.compact
     def __call__(self, emotion: Array, intensity: Array) -> Array:
         cfg = self.config
-        emo = nn.Embed(cfg.num_emotions, cfg.width, name="emotion")(emotion)
-        levels = self.param("intensity_levels", nn.initializers.normal(1.0), (cfg.num_intensities, cfg.width))
-        pos = jnp.clip(intensity.astype(jnp.float32) - 1.0, 0.0, cfg.num_intensities - 1.0)
-        lo = jnp.floor(pos)
-        frac = (pos - lo)[:, None]
-        lo_i = lo.astype(jnp.int32)
-        hi_i = jnp.minimum(lo_i + 1, cfg.num_intensities - 1)
-        inten = (1.0 - frac) * levels[lo_i] + frac * levels[hi_i]
-        h = jnp.concatenate([emo, inten], axis=-1)
-        h = nn.silu(nn.Dense(cfg.width, name="hidden")(h))
-        return nn.Dense(cfg.width, name="out")(h)
+        init = nn.initializers.normal(1.0)
+        base = self.param("emotion", init, (cfg.num_emotions, cfg.width))
+        direction = self.param("intensity_direction", init, (cfg.num_emotions, cfg.width))
+        # Clipped to the trained range, as make_condition enforces at the API boundary (a traced value
+        # inside someone else's jit, e.g. an intensity inversion, cannot be checked there).
+        level = jnp.clip(intensity.astype(jnp.float32), 1.0, float(cfg.num_intensities))
+        scale = (level / cfg.num_intensities)[:, None]
+        return base[emotion] + scale * direction[emotion]
 
 
 class ATSDenoiser(nn.Module):
@@ -196,13 +197,18 @@ def init_ats(config: ATSConfig, key: PRNGKeyArray) -> PyTree:
     Returns:
         The ``{"params": ...}`` variables of :class:`ATSDenoiser`.
     """
-    model = ATSDenoiser(config)
+    return _init(config, key)
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def _init(config: ATSConfig, key: PRNGKeyArray) -> PyTree:
+    # Module level with a static config: compiled once per configuration, not once per call.
     x, t, cond = _dummy(config, 4)
 
     def both(m: ATSDenoiser) -> Array:
         return m(x, t, m.encode_memory(cond.audio), cond)
 
-    return jax.jit(lambda k: nn.init(both, model)(k))(key)
+    return nn.init(both, ATSDenoiser(config))(key)
 
 
 def make_condition(
@@ -392,21 +398,25 @@ def _respaced(num_timesteps: int, num_steps: int):
     return respace(make_schedule("linear", num_timesteps), num_steps)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps"))
-def _sample(params, config: ATSConfig, cond: ATSCondition, key, eta, num_steps: int):
-    model = ATSDenoiser(config)
+def _apply_denoiser(config: ATSConfig, params: PyTree, x: Array, t: Array, cond: tuple[Array, ATSCondition]) -> Array:
+    memory, rest = cond
+    return nn.apply(lambda m: m(x, t, memory, rest), ATSDenoiser(config))(params)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "num_steps", "remat"))
+def _sample(params, config: ATSConfig, cond: ATSCondition, key, eta, noise, num_steps: int, remat: bool):
     b, frames = cond.mask.shape
-    memory = nn.apply(lambda m: m.encode_memory(cond.audio), model)(params)
-
-    def apply_fn(x, t, c):
-        mem, rest = c
-        return nn.apply(lambda m: m(x, t, mem, rest), model)(params)
-
+    # The audio memory does not depend on the diffusion step: encode it once, outside the scan.
+    memory = nn.apply(lambda m: m.encode_memory(cond.audio), ATSDenoiser(config))(params)
+    # A Partial (a pytree) rather than a closure, so the parameters are traced leaves of the scan
+    # (differentiable, e.g. by jaxtalk.fit's intensity inversion) and not baked-in constants.
+    apply_fn = jax.tree_util.Partial(functools.partial(_apply_denoiser, config), params)
     k_noise, k_steps = jax.random.split(key)
-    noise = jax.random.normal(k_noise, (b, frames, config.motion_dim))
+    if noise is None:
+        noise = jax.random.normal(k_noise, (b, frames, config.motion_dim))
     x0 = sample_ddim(
         apply_fn, noise, (memory, cond), _respaced(config.num_timesteps, num_steps), k_steps,
-        eta=eta, prediction="x0",
+        eta=eta, prediction="x0", remat=remat,
     )
     return x0.reshape(b, frames, config.num_landmarks, 3) / config.displacement_scale
 
@@ -415,37 +425,65 @@ def sample_ats(
     params: PyTree,
     config: ATSConfig,
     cond: ATSCondition,
-    key: PRNGKeyArray,
+    key: PRNGKeyArray | None,
     *,
     num_steps: int | None = None,
     eta: Float[Array, ""] | float = 0.0,
+    noise: Float[Array, "batch frames motion"] | Float[np.ndarray, "batch frames motion"] | None = None,
+    remat: bool = False,
 ) -> Float[Array, "batch frames landmarks 3"]:
     """Generate landmark displacement sequences with DDIM (one jitted program per shape and step count).
 
-    Static: ``config``, ``num_steps`` and the shapes in ``cond``. Traced: ``params``, ``eta``, the
-    emotion ids and intensities, the audio and masks (so an intensity or eta sweep never recompiles).
+    Static: ``config``, ``num_steps``, ``remat``, whether ``noise`` is given, and the shapes in
+    ``cond``. Traced: ``params``, ``eta``, ``noise``, the emotion ids and intensities, the audio and
+    masks (so an intensity or eta sweep never recompiles, and the output is differentiable in all
+    of them).
 
     Args:
         params: ATS variables.
         config: static configuration.
         cond: from :func:`make_condition`.
-        key: PRNG key (initial noise and, with ``eta > 0``, per-step noise).
+        key: PRNG key: the starting noise is drawn from ``split(key)[0]`` unless ``noise`` is given;
+            with ``eta > 0`` the per-step noise comes from ``split(key)[1]``. May be None when
+            ``noise`` is given and ``eta = 0`` (deterministic DDIM).
         num_steps: DDIM steps (default ``config.num_sampling_steps``; any count in
             ``[1, num_timesteps]``).
         eta: DDIM stochasticity (0 = deterministic).
+        noise: ``(B, T, 3N)`` explicit starting noise in model units (e.g. held fixed while an input
+            is optimised through the sampler); default: drawn from ``key``.
+        remat: ``jax.checkpoint`` each DDIM step (memory of a reverse pass through the sampler).
 
     Returns:
-        ``(B, T, N, 3)`` displacements in metres (relative to the neutral landmarks).
+        ``(B, T, N, 3)`` displacements in metres (relative to the neutral landmarks), i.e. model
+        units / ``displacement_scale``.
 
     Raises:
-        ValueError: a bad step count or a non-scalar / non-finite eta.
+        ValueError: a bad step count, a non-scalar / non-finite eta, noise of the wrong shape or with
+            NaN/inf, or no key where one is needed.
     """
     steps = config.num_sampling_steps if num_steps is None else num_steps
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= config.num_timesteps:
         raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
-    eta_arr = jnp.asarray(eta, jnp.float32)
-    if eta_arr.ndim != 0:
-        raise ValueError(f"eta must be a scalar, got shape {eta_arr.shape}")
-    if not isinstance(eta_arr, jax.core.Tracer) and not bool(jnp.isfinite(eta_arr)):
+    if np.ndim(eta) != 0:
+        raise ValueError(f"eta must be a scalar, got shape {np.shape(eta)}")
+    # Inspect the value as given: inside someone else's jit even a Python float becomes a tracer
+    # once converted.
+    concrete_eta = not isinstance(eta, jax.core.Tracer)
+    if concrete_eta and not np.isfinite(float(np.asarray(eta))):
         raise ValueError(f"eta must be finite, got {eta!r}")
-    return _sample(params, config, cond, key, eta_arr, int(steps))
+    eta_arr = jnp.asarray(eta, jnp.float32)
+    if noise is not None:
+        shape = (*cond.mask.shape, config.motion_dim)
+        if tuple(np.shape(noise)) != shape:
+            raise ValueError(f"noise must have shape {shape} (batch, frames, 3N), got {tuple(np.shape(noise))}")
+        if not isinstance(noise, jax.core.Tracer) and not bool(np.all(np.isfinite(np.asarray(noise)))):
+            raise ValueError("noise contains NaN or inf")
+        noise = jnp.asarray(noise)
+    if key is None:
+        if noise is None:
+            raise ValueError("sample_ats needs a key to draw the starting noise (or an explicit noise=)")
+        if not concrete_eta or float(np.asarray(eta)) != 0.0:
+            raise ValueError("sample_ats needs a key for eta > 0 (the per-step noise); got key=None")
+        # Deterministic DDIM never reads its step keys: any fixed key gives the same program.
+        key = jax.random.key(0)
+    return _sample(params, config, cond, key, eta_arr, noise, int(steps), bool(remat))

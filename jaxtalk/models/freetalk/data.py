@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.audio import log_mel
+from jaxtalk.data.standardize import fit_standardizer, standardize, unstandardize
 from jaxtalk.models.freetalk.emotions import emotion_ids
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, NECK_SLICE, PARAM_DIM, Float
 
@@ -51,8 +52,10 @@ AUDIO_FEATURE_DIM = 80 * MEL_FRAMES_PER_FRAME  # 320
 class DisplacementStats:
     """Per-coordinate mean and spread of landmark displacements, to train ATS on standardised data.
 
-    The diffusion noise is unit-variance per coordinate, so ATS learns best on data with zero mean
-    and unit spread; the mean is also the mean-pose baseline. Use with ``displacement_scale = 1``.
+    A landmark-shaped view of :mod:`jaxtalk.data.standardize` (which fits and applies the statistics;
+    the 3N coordinates are its channels). The diffusion noise is unit-variance per coordinate, so ATS
+    learns best on data with zero mean and unit spread; the mean is also the mean-pose baseline. Use
+    with ``displacement_scale = 1``.
 
     Attributes:
         mean: ``(N, 3)`` mean displacement (metres).
@@ -68,22 +71,33 @@ class DisplacementStats:
         """Statistics over every leading axis of ``displacements`` (e.g. windows and frames).
 
         Raises:
-            ValueError: fewer than 2 frames or NaN/inf values.
+            ValueError: fewer than 2 frames, NaN/inf values, or not ``(..., N, 3)``.
         """
-        d = np.asarray(displacements, np.float64).reshape(-1, *np.shape(displacements)[-2:])
-        if d.shape[0] < 2 or not np.all(np.isfinite(d)):
-            raise ValueError(f"need at least 2 finite frames of displacements, got shape {np.shape(displacements)}")
-        std = d.std(axis=0)
-        std = np.maximum(std, floor * std.mean())
-        return cls(mean=d.mean(axis=0).astype(np.float32), std=std.astype(np.float32))
+        d = np.asarray(displacements)
+        if d.ndim < 3 or d.shape[-1] != 3:
+            raise ValueError(f"displacements must have shape (..., frames, N, 3), got {d.shape}")
+        try:
+            stats = fit_standardizer(d.reshape(-1, d.shape[-2] * 3), floor=floor)
+        except ValueError as err:
+            raise ValueError(f"cannot fit displacement statistics on shape {d.shape}: {err}") from None
+        return cls(mean=stats["mean"].reshape(d.shape[-2:]), std=stats["std"].reshape(d.shape[-2:]))
+
+    def as_standardizer(self) -> dict[str, np.ndarray]:
+        """The ``{"mean", "std"}`` dict of :mod:`jaxtalk.data.standardize` (flat ``(3N,)`` channels)."""
+        return {"mean": self.mean.reshape(-1), "std": self.std.reshape(-1)}
 
     def normalize(self, displacements: Any) -> Any:
-        """``(d - mean) / std`` (NumPy or JAX, any leading axes)."""
-        return (displacements - self.mean) / self.std
+        """``(d - mean) / std`` (NumPy or JAX, any leading axes; NumPy in, NumPy out)."""
+        return self._map(standardize, displacements)
 
     def denormalize(self, standardized: Any) -> Any:
         """Inverse of :meth:`normalize`."""
-        return standardized * self.std + self.mean
+        return self._map(unstandardize, standardized)
+
+    def _map(self, fn: Any, x: Any) -> Any:
+        flat = jnp.asarray(x, jnp.float32).reshape(*np.shape(x)[:-2], -1)
+        out = fn(self.as_standardizer(), flat).reshape(np.shape(x))
+        return np.asarray(out) if isinstance(x, np.ndarray) else out
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

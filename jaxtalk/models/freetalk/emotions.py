@@ -3,7 +3,8 @@
 ATS is conditioned on a discrete emotion category ``e`` and an intensity ``i``. Intensity enters the
 model as a traced float (changing it never recompiles) that must lie in ``[1, num_intensities]``:
 integer values are the dataset's discrete levels (MEAD has 3; neutral-only data uses 1, as in the
-paper), values in between interpolate the learned level embeddings.
+paper); the embedding is affine in the intensity (an emotion vector plus the intensity times an
+emotion direction, see ``ats._AffectEmbedding``), so values in between are well defined.
 """
 
 from __future__ import annotations

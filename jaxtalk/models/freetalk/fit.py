@@ -8,6 +8,7 @@ dense vertex displacement windows over several meshes (identities and topologies
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -44,6 +45,9 @@ def fit_ats(
     *,
     batch_size: int = 16,
     progress: bool = False,
+    ckpt_dir: str | os.PathLike[str] | None = None,
+    save_every: int | None = None,
+    max_steps: int | None = None,
 ) -> FittedATS:
     """Train ATS on windows from :func:`~jaxtalk.models.freetalk.data.ats_windows`.
 
@@ -57,6 +61,12 @@ def fit_ats(
         key: PRNG key (initialisation and training).
         batch_size: windows per step.
         progress: show the loop's progress bar.
+        ckpt_dir: checkpoint directory (atomic orbax checkpoints of the train state and the data
+            position through :func:`jaxtalk.train.train`); a run over an existing directory resumes
+            from its newest checkpoint exactly. None: no checkpoints.
+        save_every: also checkpoint every this many steps (the final step is always saved).
+        max_steps: stop at this step (default ``optim.total_steps``; the schedule still spans
+            ``total_steps``), e.g. to train in several sessions with ``ckpt_dir``.
 
     Returns:
         :class:`FittedATS`.
@@ -86,7 +96,8 @@ def fit_ats(
     params = ats.init_ats(config, k_init)
     it = BatchIterator(data, batch_size, seed=int(jax.random.randint(k_init, (), 0, 2**30)))
     result = train(ats.make_ats_loss(config), params, it, optim, key=k_train, progress=progress,
-                   log_every=max(1, optim.total_steps // 20))
+                   log_every=max(1, optim.total_steps // 20), ckpt_dir=ckpt_dir, save_every=save_every,
+                   max_steps=max_steps, metadata={"model": "freetalk_ats", "model_config": dataclasses.asdict(config)})
     return FittedATS(config, result.state.eval_params, stats, result.history)
 
 
@@ -128,6 +139,9 @@ def fit_stm(
     *,
     batch_size: int = 4,
     progress: bool = False,
+    ckpt_dir: str | os.PathLike[str] | None = None,
+    save_every: int | None = None,
+    max_steps: int | None = None,
 ) -> tuple[PyTree, list[dict[str, Any]]]:
     """Train STM on windows from :func:`~jaxtalk.models.freetalk.data.stm_windows`.
 
@@ -140,6 +154,10 @@ def fit_stm(
         key: PRNG key.
         batch_size: windows per step.
         progress: show the loop's progress bar.
+        ckpt_dir: checkpoint directory (resumes exactly from its newest checkpoint; see
+            :func:`fit_ats`). None: no checkpoints.
+        save_every: also checkpoint every this many steps.
+        max_steps: stop at this step (default ``optim.total_steps``).
 
     Returns:
         ``(params, history)``.
@@ -155,5 +173,6 @@ def fit_stm(
     params = stm.init_stm(config, k_init, meshes[0])
     it = BatchIterator(dict(windows), batch_size, seed=int(jax.random.randint(k_init, (), 0, 2**30)))
     result = train(stm.make_stm_loss(config, stacked), params, it, optim, key=k_train, progress=progress,
-                   log_every=max(1, optim.total_steps // 20))
+                   log_every=max(1, optim.total_steps // 20), ckpt_dir=ckpt_dir, save_every=save_every,
+                   max_steps=max_steps, metadata={"model": "freetalk_stm", "model_config": dataclasses.asdict(config)})
     return result.state.eval_params, result.history
