@@ -102,7 +102,8 @@ def test_cfm_loss_of_zero_velocity_model_is_noise_energy(params):
 
 def test_flow_space_is_standardised_motion_minus_the_reference_mean_pose(params):
     rng = np.random.default_rng(3)
-    norm = {"mean": rng.normal(size=56).astype(np.float32), "std": rng.uniform(0.5, 2.0, 56).astype(np.float32)}
+    norm = {"mean": rng.normal(size=56).astype(np.float32), "std": rng.uniform(0.5, 2.0, 56).astype(np.float32),
+            "flow_scale": rng.uniform(0.2, 1.5, 56).astype(np.float32)}
     p = {**params, "norm": {k: jnp.asarray(v) for k, v in norm.items()}}
     clip = rng.normal(size=(2, 12, 56)).astype(np.float32)
     mask = np.ones((2, 12), bool)
@@ -115,7 +116,7 @@ def test_flow_space_is_standardised_motion_minus_the_reference_mean_pose(params)
         np.testing.assert_allclose(style[b, CFG.style_dim :], expect, rtol=1e-5, atol=1e-5)
     motion = rng.normal(size=(2, 5, 56)).astype(np.float32)
     x = np.asarray(tt.to_flow_space(p, CFG, jnp.asarray(motion), jnp.asarray(style)))
-    expect = (motion - norm["mean"]) / norm["std"] - style[:, None, CFG.style_dim :]
+    expect = ((motion - norm["mean"]) / norm["std"] - style[:, None, CFG.style_dim :]) / norm["flow_scale"]
     np.testing.assert_allclose(x, expect, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(tt.from_flow_space(p, CFG, jnp.asarray(x), jnp.asarray(style)), motion,
                                rtol=1e-5, atol=1e-5)
@@ -178,3 +179,29 @@ def test_preconditioning_is_the_best_linear_velocity_for_standardised_data(sigma
         assert c_skip == pytest.approx(slope, abs=6e-3)
         assert c_out**2 == pytest.approx(np.var(u - slope * xt), abs=1e-2)
         assert c_in * np.std(xt) == pytest.approx(1.0, abs=5e-3)
+
+
+def test_fit_flow_scale_is_the_rms_of_the_anchored_standardised_motion():
+    from jaxtalk.models.toktalk.model import fit_flow_scale
+
+    rng = np.random.default_rng(4)
+    mean, std = rng.normal(size=56), rng.uniform(0.5, 2.0, 56)
+    p = {"norm": {"mean": mean, "std": std}}
+    motion = rng.normal(size=(3, 6, 56))
+    mask = np.ones((3, 6), bool)
+    mask[2, 2:] = False
+    style = rng.normal(size=(3, 4, 56))
+    # Hand-built: channel 0 of every real frame, its own window's anchor subtracted.
+    vals = [((motion[n, t, 0] - mean[0]) / std[0] - ((style[n, :, 0] - mean[0]) / std[0]).mean())
+            for n in range(3) for t in range(6) if mask[n, t]]
+    scale = fit_flow_scale(p, CFG, motion, mask, style, floor=0.0)
+    assert scale.shape == (56,) and scale.dtype == np.float32
+    np.testing.assert_allclose(scale[0], np.sqrt(np.mean(np.square(vals))), rtol=1e-6)
+    # Without the anchor it is the plain RMS of the standardised motion; a still channel is floored.
+    plain = dataclasses.replace(CFG, style_anchor=False)
+    motion[:, :, 5] = mean[5]
+    np.testing.assert_allclose(fit_flow_scale(p, plain, motion, mask, style, floor=0.0)[1],
+                               np.sqrt(np.mean(np.square((motion[mask][:, 1] - mean[1]) / std[1]))), rtol=1e-6)
+    assert fit_flow_scale(p, plain, motion, mask, style, floor=0.05)[5] == np.float32(0.05)
+    with pytest.raises(ValueError, match="at least one real frame"):
+        fit_flow_scale(p, CFG, motion, np.zeros_like(mask), style)

@@ -38,6 +38,7 @@ __all__ = [
     "join_style",
     "to_flow_space",
     "from_flow_space",
+    "fit_flow_scale",
 ]
 
 PyTree = Any
@@ -161,13 +162,15 @@ def init_params(
 
     Returns:
         ``{"decoder": ..., "style": ..., "norm": ...}`` plus ``"adapter"`` when requested. ``norm`` is
-        the motion standardiser (``{"mean", "std"}``, identity here; :func:`train_base` fits it on
-        the training motion): the decoder and the style encoder work on standardised motion, every
+        the motion standardiser (``{"mean", "std"}``) and the flow's per-channel scale
+        (``"flow_scale"``), identity here; :func:`train_base` fits them on the training motion (see
+        :func:`fit_flow_scale`): the decoder and the style encoder work on standardised motion, every
         public input and output is in raw parameter units.
     """
     # One jitted program: op-by-op initialisation dispatches (and compiles) every primitive.
     params = _init_params(key, config, adapter_src_dim)
     params["norm"] = {k: jnp.asarray(v) for k, v in identity_standardizer(config.param_dim).items()}
+    params["norm"]["flow_scale"] = jnp.ones((config.param_dim,), jnp.float32)
     return params
 
 
@@ -340,10 +343,16 @@ def to_flow_space(
     motion: Float[Array, "batch frames param"],
     style_vec: Float[Array, "batch vector"],
 ) -> Float[Array, "batch frames param"]:
-    """Raw motion -> the coordinates the flow runs in: standardised, minus the style's anchor pose."""
-    x = standardize(params["norm"], motion) if "norm" in params else motion
+    """Raw motion -> the coordinates the flow runs in: standardised, minus the style's anchor pose,
+    divided by ``norm["flow_scale"]`` (the per-channel RMS of that residual on the training data)."""
+    norm = params.get("norm", {})
+    x = standardize(norm, motion) if norm else motion
     anchor = _anchor_of(config, style_vec)
-    return x if anchor is None else x - anchor[:, None, :].astype(x.dtype)
+    if anchor is not None:
+        x = x - anchor[:, None, :].astype(x.dtype)
+    if "flow_scale" in norm:
+        x = x / jax.lax.stop_gradient(jnp.asarray(norm["flow_scale"], x.dtype))[None, None, :]
+    return x
 
 
 def from_flow_space(
@@ -353,10 +362,47 @@ def from_flow_space(
     style_vec: Float[Array, "batch vector"],
 ) -> Float[Array, "batch frames param"]:
     """Inverse of :func:`to_flow_space`."""
+    norm = params.get("norm", {})
+    if "flow_scale" in norm:
+        x = x * jax.lax.stop_gradient(jnp.asarray(norm["flow_scale"], x.dtype))[None, None, :]
     anchor = _anchor_of(config, style_vec)
     if anchor is not None:
         x = x + anchor[:, None, :].astype(x.dtype)
-    return unstandardize(params["norm"], x) if "norm" in params else x
+    return unstandardize(norm, x) if norm else x
+
+
+def fit_flow_scale(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    motion: Float[np.ndarray, "n frames param"],
+    mask: Bool[np.ndarray, "n frames"],
+    style: Float[np.ndarray, "n style_frames param"],
+    floor: float = 0.05,
+) -> Float[np.ndarray, " param"]:
+    """Per-channel RMS of the anchored, standardised training motion (floored), for ``norm["flow_scale"]``.
+
+    Anchoring removes most of a channel's spread when it is a speaker constant (SynthTalk's resting
+    expression channels keep ~0.3 of their standard deviation): rescaling gives the flow unit-spread
+    data in every channel again, which the preconditioning's skip (derived for unit variance) and the
+    unit noise assume.
+
+    Args:
+        params: parameters with the fitted ``norm`` (``mean``, ``std``).
+        config: model settings.
+        motion, mask, style: training windows (:func:`~jaxtalk.models.toktalk.train.make_windows`).
+        floor: smallest scale (a channel that never moves is not blown up).
+
+    Returns:
+        ``(param_dim,)`` float32.
+    """
+    mean, std = np.asarray(params["norm"]["mean"], np.float64), np.asarray(params["norm"]["std"], np.float64)
+    z = (np.asarray(motion, np.float64) - mean) / std
+    if config.style_anchor:
+        z = z - ((np.asarray(style, np.float64) - mean) / std).mean(axis=1)[:, None, :]
+    z = z[np.asarray(mask, bool)]
+    if z.shape[0] == 0:
+        raise ValueError("fit_flow_scale needs at least one real frame")
+    return np.maximum(np.sqrt(np.mean(z * z, axis=0)), floor).astype(np.float32)
 
 
 def check_style_clip(clip: Any, config: TokTalkConfig) -> None:

@@ -24,7 +24,7 @@ from jaxtalk.data.batching import BatchIterator
 from jaxtalk.data.standardize import fit_standardizer
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.loss import adapter_loss, cfm_loss
-from jaxtalk.models.toktalk.model import init_adapter, init_params
+from jaxtalk.models.toktalk.model import fit_flow_scale, init_adapter, init_params
 from jaxtalk.train import OptimConfig, TrainResult, train
 from jaxtalk.types import PRNGKeyArray
 
@@ -148,8 +148,8 @@ def train_base(
         optim: optimiser settings (``total_steps`` is the training length unless ``max_steps``).
         key: PRNG key (initialisation and the per-step keys).
         batch_size: windows per batch.
-        params: initial parameters (default: fresh from ``key``, with the motion standardiser fitted
-            on ``windows``).
+        params: initial parameters (default: fresh from ``key``, with the motion standardiser and the
+            flow scale fitted on ``windows``).
         seed: data order seed.
         **train_kwargs: passed to :func:`jaxtalk.train.train` (``ckpt_dir``, ``eval_fn``, ``progress``...).
 
@@ -162,6 +162,8 @@ def train_base(
         # Standardise with the training motion's statistics (the flow adds unit-variance noise per
         # channel; raw jaw/neck spreads are ~100x smaller than expression ones).
         params["norm"] = fit_standardizer(windows["motion"], windows["mask"])
+        params["norm"]["flow_scale"] = fit_flow_scale(params, config, windows["motion"], windows["mask"],
+                                                      windows["style"])
     loss = functools.partial(cfm_loss, config=config)
     return train(loss, params, _model_batches(windows, batch_size, seed), optim, key=k_train,
                  trainable=base_trainable, metadata={"model": "toktalk", "stage": 1}, **train_kwargs)
