@@ -1,7 +1,7 @@
 """TIMAR speed: streaming per-turn latency (small preset), the diffusion head alone, the paper preset.
 
 * ``small`` preset, 1-s turns, context n = 7, 5 DDIM steps with CFG: latency of every streamed turn
-  (turns 0..7 use the key/value cache, later turns slide the window and recompute it). Target: at
+  (turns 0..7 use the key/value cache, later turns slide the window and rebuild it). Target: at
   most 250 ms per turn, and a per-turn cost that does not grow with the turn index while cached.
 * Diffusion head alone at the reference size (width 1024, 3 blocks, 56 in, learned variance), one
   turn (25 frames) with CFG, 5 and 100 DDIM steps. The public PyTorch sampler: 0.135 s and 2.7 s on
@@ -27,8 +27,8 @@ import numpy as np
 from jaxtalk.bench import timar_stream
 from jaxtalk.benchmarking import machine_info, measure_matmul_peak, print_table, time_jitted, write_json, xla_flops
 from jaxtalk.models.timar import TimarConfig, init_params
-from jaxtalk.models.timar.head import apply_head_hoisted, head_condition
-from jaxtalk.models.timar.sample import sample_frames
+from jaxtalk.models.timar.head import apply_head_modulated, head_condition, head_modulations, time_embedding
+from jaxtalk.models.timar.sample import respaced_schedule, sample_frames
 from jaxtalk.models.timar.stream import _condition, stream_init
 
 
@@ -40,24 +40,33 @@ def _turn_inputs(config: TimarConfig, batch: int, turns: int, seed: int = 0):
             jnp.asarray(rng.normal(size=(batch, t, config.speech_dim)), jnp.float32))
 
 
-def head_latency(steps: int, repeats: int):
+def head_latency(steps: int, repeats: int, precompute: bool | None = None):
     """The diffusion head alone at the reference size: one 25-frame turn with CFG.
 
-    Returns the timing and the FLOPs of the whole sampler: XLA's cost analysis counts a scanned
-    loop body once, so the per-step FLOPs (one CFG-batched head call on 2 x 25 frames) are
-    measured separately, multiplied by the steps, plus the hoisted ``Dense(z)`` of both branches.
+    Returns the timing and the FLOPs of the whole sampler. XLA's cost analysis counts a scanned
+    loop body once, so the FLOPs are counted in parts: before the loop, ``Dense(z)`` of both CFG
+    branches and the adaLN modulations of every (step, frame) pair; per step, one CFG-batched head
+    call on 2 x 25 frames with those modulations (the same total as computing them in the loop).
     """
     cfg = TimarConfig.paper(num_layers=1)  # only the head is used
     params = init_params(cfg, jax.random.key(0))
     z = jax.random.normal(jax.random.key(1), (1, 25, cfg.width))
-    fn = lambda p, zc, zu, k: sample_frames(cfg, p, zc, zu, k, cfg_scale=1.5, num_steps=steps)  # noqa: E731
+    fn = lambda p, zc, zu, k: sample_frames(cfg, p, zc, zu, k, cfg_scale=1.5, num_steps=steps,  # noqa: E731
+                                            precompute=precompute)
     timing = time_jitted(fn, params, z, z * 0.5, jax.random.key(2), repeats=repeats, warmup=1)
     zz = jnp.concatenate([z, z * 0.5])
+    times = jnp.asarray(respaced_schedule(cfg.schedule, cfg.num_timesteps, steps).timesteps, jnp.float32)
+
+    def before_loop(p, zz):
+        cz = head_condition(cfg, p["head"], zz)
+        c = cz[None] + time_embedding(cfg, p["head"], times)[:, None, None]
+        return head_modulations(cfg, p["head"], c)
+
+    mods = tuple(m[0] for m in before_loop(params, zz))
     x = jnp.zeros((2, 25, cfg.param_dim))
-    step = lambda p, cz, x: apply_head_hoisted(cfg, p["head"], cz, x, jnp.full((2,), 500.0))  # noqa: E731
-    cond = lambda p, zz: head_condition(cfg, p["head"], zz)  # noqa: E731
-    f_step, f_cond = xla_flops(step, params, cond(params, zz), x), xla_flops(cond, params, zz)
-    flops = None if f_step is None or f_cond is None else steps * f_step + f_cond
+    step = lambda p, x, m: apply_head_modulated(cfg, p["head"], x, m)  # noqa: E731
+    f_step, f_pre = xla_flops(step, params, x, mods), xla_flops(before_loop, params, zz)
+    flops = None if f_step is None or f_pre is None else steps * f_step + f_pre
     return timing, flops
 
 
@@ -67,11 +76,12 @@ def paper_turn(repeats: int, peak: float):
     params = init_params(cfg, jax.random.key(0))
     us, um, as_ = _turn_inputs(cfg, 1, 1)
     rows = []
-    for label, turn in (("paper turn 0 (cached, n=7)", 0), ("paper turn 8 (full window, n=7)", 8)):
+    for label, turn, mode in (("paper turn 0 (cached, n=7)", 0, "cached"),
+                              ("paper turn 8 (sliding window, n=7)", 8, "sliding")):
         state = stream_init(cfg, 1, 7)._replace(turn=jnp.asarray(turn, jnp.int32))
 
-        def step(p, s, a, b, c, k):
-            s2, z = _condition(cfg, p, s, a, b, c, True)
+        def step(p, s, a, b, c, k, mode=mode):
+            s2, z = _condition(cfg, p, s, a, b, c, True, mode)
             return sample_frames(cfg, p, z[:1], z[1:], k, cfg_scale=1.5, num_steps=5)
 
         args = (params, state, us, um, as_, jax.random.key(0))

@@ -19,23 +19,20 @@ from jaxtalk.data.synthtalk import generate
 from jaxtalk.models.timar.data import conversations
 from jaxtalk.models.timar.train import train_timar
 
-from timar_context import KEYS, add_model_args, metrics, predict, training_setup  # noqa: E402  (sibling script)
+from timar_common import KEYS, add_training_args, metrics, predict, training_setup  # noqa: E402  (sibling script)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", default="small")
-    ap.add_argument("--steps", type=int, default=2000)
-    ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--lr", type=float, default=1e-3)
+    add_training_args(ap)
     ap.add_argument("--context", type=int, default=7)
     ap.add_argument("--scales", default="0,0.5,1,1.5,2,3")
+    ap.add_argument("--eval-convs", type=int, default=None, help="evaluate on the first N test conversations only")
     ap.add_argument("--out", default="experiments/results/timar_ablation.json")
-    add_model_args(ap)
     args = ap.parse_args()
 
-    corpus = generate(args.size, 0)
-    test_convs = conversations(corpus, "test")
+    corpus = generate(args.size, 0, cache_dir=args.cache_dir)
+    test_convs = conversations(corpus, "test")[: args.eval_convs]
     config, norm, data = training_setup(args, corpus)
     variants = {
         "diffusion head + TLCA (default)": config,

@@ -14,105 +14,22 @@ Usage: ``python experiments/timar_context.py [--size small] [--steps 2000] [--ou
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import pickle
 import time
-from pathlib import Path
 
-import jax
 import numpy as np
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
 from jaxtalk.data.synthtalk import generate
-from jaxtalk.layout import GROUPS
-from jaxtalk.metrics.conversation import conversation_metrics
-from jaxtalk.models.timar import TimarConfig
-from jaxtalk.models.timar.data import Normalizer, conversations, fit_normalizer, monologues, windows
-from jaxtalk.models.timar.stream import stream_conversation
+from jaxtalk.models.timar.data import conversations
 from jaxtalk.models.timar.train import train_timar
 
-KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_exp", "MSE_exp", "MSE_jaw", "MSE_pose", "MSE_mouth_spk", "MSE_jaw_spk",
-        "SID_fit_gt_exp", "rPCC_exp")
-
-
-def predict(config, params, normalizer, convs, *, context, cfg_scale, seed=0):
-    """Stream every conversation with ``context`` turns of history; raw (denormalised) motion."""
-    out = []
-    for i, c in enumerate(convs):
-        x = stream_conversation(
-            config, params, normalizer.speech(c.user_speech)[None], normalizer.motion(c.user_motion)[None],
-            normalizer.speech(c.agent_speech)[None], jax.random.key(seed + i), context=context, cfg_scale=cfg_scale,
-        )
-        out.append(normalizer.unmotion(np.asarray(x)[0]))
-    return out
-
-
-def metrics(preds, convs, corpus=None):
-    """DualTalk metrics (published scaling) plus MSE of the audio-predictable groups.
-
-    On SynthTalk most of the exp variance is a per-speaker/per-emotion offset no audio reveals, so a
-    SAMPLE of a correct model scores about twice the conditional variance on MSE_exp and loses to the
-    mean pose there; the mean pose in turn has no motion at all, so FD/P-FD (distribution match)
-    is where it is poor. ``MSE_mouth_spk`` / ``MSE_jaw_spk`` (mouth = 12 lip components + jaw, on the
-    agent's speaking frames, raw units) measure what the audio does determine.
-    """
-    out = conversation_metrics(preds, [c.agent_motion for c in convs], [c.user_motion for c in convs], scaled=True)
-    if corpus is not None:
-        for group in ("mouth", "jaw"):
-            idx = GROUPS[group]
-            errs = []
-            for p, c in zip(preds, convs):
-                speaking = corpus.voice_activity(c.agent_clip)[: c.num_frames]
-                errs.append(((p - c.agent_motion)[speaking][:, idx] ** 2).mean())
-            out[f"MSE_{group}_spk"] = float(np.mean(errs))
-    return out
-
-
-def save_model(path, config, params, norm) -> None:
-    """Pickle the trained model (config fields, NumPy parameters, normaliser) for other scripts."""
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        pickle.dump({"config": dataclasses.asdict(config), "params": jax.device_get(params),
-                     "normalizer": norm.to_dict()}, f)
-
-
-def load_model(path):
-    """``(config, params, normaliser)`` written by :func:`save_model`."""
-    with open(path, "rb") as f:
-        d = pickle.load(f)
-    return TimarConfig(**d["config"]), d["params"], Normalizer.from_dict(d["normalizer"])
-
-
-def add_model_args(ap: argparse.ArgumentParser) -> None:
-    """CPU-budget knobs shared with ``timar_ablation.py`` (defaults: the ``small`` preset)."""
-    ap.add_argument("--width", type=int, default=128)
-    ap.add_argument("--layers", type=int, default=4)
-    ap.add_argument("--head-width", type=int, default=128)
-    ap.add_argument("--monologues", action="store_true", help="also train on the train split's monologues")
-
-
-def training_setup(args, corpus, **overrides):
-    """Config (8-turn window), normaliser and 8-turn training windows from the train split."""
-    train_convs = conversations(corpus, "train")
-    if args.monologues:
-        train_convs = train_convs + monologues(corpus, "train")
-    norm = fit_normalizer(train_convs)
-    config = TimarConfig.small(max_turns=8, width=args.width, num_layers=args.layers, head_width=args.head_width,
-                               num_heads=max(1, args.width // 32), **overrides)
-    data = windows(train_convs, norm, num_turns=8, stride_turns=1)
-    return config, norm, data
-
+from timar_common import KEYS, add_training_args, metrics, predict, save_model, training_setup  # noqa: E402
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", default="small")
-    ap.add_argument("--steps", type=int, default=2000)
-    ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--lr", type=float, default=1e-3)
+    add_training_args(ap)
     ap.add_argument("--cfg-scale", type=float, default=1.5)
     ap.add_argument("--contexts", default="0,1,3,7")
-    ap.add_argument("--cache-dir", default=None)
-    add_model_args(ap)
     ap.add_argument("--out", default="experiments/results/timar_context.json")
     ap.add_argument("--model-out", default="experiments/results/timar_context_model.pkl")
     args = ap.parse_args()

@@ -36,7 +36,7 @@ from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar.data import turn_speech_features
 from jaxtalk.models.timar.stream import stream_conversation
 
-from timar_context import load_model  # noqa: E402  (sibling script)
+from timar_common import load_model  # noqa: E402  (sibling script)
 
 DEMO = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "dualtalk_demo"
 KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_jaw", "MSE_exp", "MSE_jaw", "MSE_pose", "rPCC_jaw")

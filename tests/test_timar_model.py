@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from jaxtalk.models.timar import TimarConfig, encode_window, init_params, sample
-from jaxtalk.models.timar.head import apply_head, apply_head_hoisted, head_condition, init_head
+from jaxtalk.models.timar.head import (
+    apply_head,
+    apply_head_hoisted,
+    apply_head_modulated,
+    head_condition,
+    head_modulations,
+    init_head,
+    time_embedding,
+)
 from jaxtalk.models.timar.inputs import to_turns
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
@@ -130,6 +138,17 @@ def test_hoisted_head_equals_the_per_frame_head(params):
     ref, got = np.asarray(plain(params["head"])), np.asarray(hoisted(params["head"]))
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
     assert np.abs(ref[0] - ref[1]).max() > 1e-3  # the timestep matters
+    # The precomputed-modulation path (every adaLN modulation from c = TimestepEmbedding(t) + Dense(z)).
+
+    def modulated(p):
+        c = head_condition(CFG, p, z) + time_embedding(CFG, p, t)[:, None, None]
+        return apply_head_modulated(CFG, p, x, head_modulations(CFG, p, c))
+
+    np.testing.assert_allclose(np.asarray(jax.jit(modulated)(params["head"])), ref, rtol=1e-5, atol=1e-5)
+    mods = head_modulations(CFG, params["head"], z[0, 0])
+    assert [m.shape for m in mods] == [(5, 3 * CFG.head_width)] * CFG.head_blocks + [(5, 2 * CFG.head_width)]
+    with pytest.raises(ValueError, match="expected 4 modulations"):
+        apply_head_modulated(CFG, params["head"], x[0, 0], mods[:-1])
 
 
 def test_fresh_diffusion_head_predicts_zero_and_has_a_gradient():
@@ -181,3 +200,19 @@ def test_config_presets_and_errors():
                 {"cfg_prob": 1.0}, {"num_layers": 0}, {"sample_steps": 2000}, {"param_dim": 50}):
         with pytest.raises(ValueError):
             TimarConfig.small(**bad)
+
+
+def test_train_timar_runs_short_schedules_and_rejects_bad_steps():
+    # Fewer steps than the default warm-up (20) used to leave the cosine decay no steps at all.
+    from jaxtalk.models.timar.train import train_timar
+
+    rng = np.random.default_rng(0)
+    cfg = TimarConfig.small(**{**CFG.__dict__, "num_layers": 1, "max_turns": 2})
+    data = {k: rng.normal(size=(2, 2 * F, 8 if "speech" in k else 56)).astype(np.float32)
+            for k in ("user_speech", "user_motion", "agent_speech", "agent_motion")}
+    result = train_timar(cfg, data, steps=2, batch_size=2)
+    assert len(result.history) >= 1 and np.isfinite(result.history[-1]["loss"])
+    with pytest.raises(ValueError, match="steps must be a positive integer"):
+        train_timar(cfg, data, steps=0)
+    with pytest.raises(ValueError, match="warmup_steps"):
+        train_timar(cfg, data, steps=5, warmup_steps=-1)

@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 from jaxtalk.models.timar import TimarConfig, init_params, sample
+from jaxtalk.models.timar.head import apply_head, init_head
 from jaxtalk.models.timar.inputs import to_turns
+from jaxtalk.models.timar.sample import respaced_schedule
 from jaxtalk.models.timar.sample import conditions as _conditions_eager
 from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
 
 conditions = jax.jit(_conditions_eager, static_argnums=0, static_argnames="guidance")
-sample_frames = jax.jit(_sample_frames_eager, static_argnums=0, static_argnames=("num_steps", "sampler"))
+sample_frames = jax.jit(_sample_frames_eager, static_argnums=0, static_argnames=("num_steps", "sampler", "precompute"))
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -86,11 +88,44 @@ def test_guided_sample_equals_eq9_applied_to_head_outputs_with_one_step(params):
     zc, zu = conditions(CFG, params, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     k_noise, _ = jax.random.split(key)
     noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
-    from jaxtalk.models.timar.head import apply_head
 
     t = jnp.zeros(zc.shape[:-1])
     oc, ou = apply_head(CFG, params["head"], zc, noise, t), apply_head(CFG, params["head"], zu, noise, t)
     np.testing.assert_allclose(got, np.asarray(ou + omega * (oc - ou)).reshape(B, N * F, 56), atol=1e-5)
+
+
+@pytest.mark.parametrize("learn_sigma", [False, True])
+def test_sampler_equals_a_python_loop_ddim_reference(params, learn_sigma):
+    # Independent reference: the plain per-frame head (nothing hoisted, t broadcast to every frame),
+    # Eq. (9) guidance, and deterministic DDIM written out step by step in float64. Both sampler
+    # paths (modulations precomputed for every step before the scan, or computed inside it) must
+    # match it.
+    cfg = TimarConfig.small(**{**CFG.__dict__, "learn_sigma": learn_sigma})
+    # Only the head changes with a learned variance (112 outputs): re-initialise it alone.
+    p = params if not learn_sigma else {**params, "head": _perturb(init_head(cfg, jax.random.key(0)), jax.random.key(8))}
+    us, um, as_ = _streams()
+    zc, zu = conditions(cfg, p, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    key, omega, steps = jax.random.key(9), 1.6, 4
+    sched = respaced_schedule(cfg.schedule, cfg.num_timesteps, steps)
+    k_noise, _ = jax.random.split(key)
+    x = np.asarray(jax.random.normal(k_noise, zc.shape[:-1] + (56,)), np.float64)
+    for i in reversed(range(steps)):  # noisiest first
+        t = jnp.full(zc.shape[:-1], float(sched.timesteps[i]))
+        xf = jnp.asarray(x, jnp.float32)
+        oc = np.asarray(apply_head(cfg, p["head"], zc, xf, t), np.float64)[..., :56]
+        ou = np.asarray(apply_head(cfg, p["head"], zu, xf, t), np.float64)[..., :56]
+        x0 = ou + omega * (oc - ou)
+        abar, abar_prev = sched.alphas_cumprod[i], sched.alphas_cumprod_prev[i]
+        eps = (x - np.sqrt(abar) * x0) / np.sqrt(1 - abar)
+        x = np.sqrt(abar_prev) * x0 + np.sqrt(1 - abar_prev) * eps
+    assert np.abs(x).max() > 0.1
+    got = {pc: np.asarray(sample_frames(cfg, p, zc, zu, key, cfg_scale=omega, num_steps=steps, precompute=pc))
+           for pc in (True, False)}
+    # float32 sampler vs the float64 reference: a few float32 ulps of the O(1) values.
+    for pc in (True, False):
+        np.testing.assert_allclose(got[pc], x, atol=5e-5, rtol=1e-5)
+    # The optimised sampler vs the previous one (modulations in the loop): same float32 math.
+    np.testing.assert_allclose(got[True], got[False], atol=1e-5, rtol=1e-5)
 
 
 def test_ddpm_and_step_counts_and_mlp_head(params):

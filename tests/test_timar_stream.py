@@ -87,8 +87,30 @@ def test_stream_step_samples_with_the_window_conditions_and_compiles_once(params
         ref = sample_frames(CFG, params, jnp.asarray(z[:B]), jnp.asarray(z[B:]), key, cfg_scale=1.0 + 0.3 * t,
                             num_steps=CFG.sample_steps)
         np.testing.assert_allclose(np.asarray(x), np.asarray(ref), atol=1e-4)
-    # One program serves the filling and the sliding turns and every scale.
-    assert stream_mod._step._cache_size() - before <= 1
+    # Two programs (filling, sliding) serve every turn and every scale: a second stream with new
+    # scales compiles nothing.
+    compiled = stream_mod._step._cache_size()
+    assert compiled - before <= 2
+    state = stream_init(CFG, B, context)
+    for t in range(4):
+        sl = slice(t * F, (t + 1) * F)
+        state, _ = stream_step(CFG, params, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], jax.random.key(t),
+                               cfg_scale=2.0 - 0.1 * t)
+    assert stream_mod._step._cache_size() == compiled
+
+
+def test_stream_under_an_outer_jit_uses_one_program_with_the_same_outputs(params):
+    # Under an outer trace the turn counter is abstract: the lax.cond program must agree with the
+    # host-dispatched filling/sliding programs on both kinds of turn.
+    s = _streams(4)
+    cond = jax.jit(lambda st, a, b, c: stream_mod._condition(CFG, params, st, a, b, c, True, "auto"))
+    state_h, state_j = stream_init(CFG, B, 1), stream_init(CFG, B, 1)
+    for t in range(4):
+        sl = slice(t * F, (t + 1) * F)
+        turn = tuple(jnp.asarray(x[:, sl]) for x in s)
+        state_h, z_h = stream_condition(CFG, params, state_h, *turn)
+        state_j, z_j = cond(state_j, *turn)
+        np.testing.assert_allclose(np.asarray(z_j), np.asarray(z_h), atol=1e-5)
 
 
 def test_stream_causality_future_turn_does_not_change_past_outputs(params):

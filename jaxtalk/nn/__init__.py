@@ -15,7 +15,7 @@ model can run in bfloat16 with float32 parameters.
 
 from __future__ import annotations
 
-from jaxtalk.nn.adaln import AdaLNFinalLayer, AdaLNResBlock, modulate
+from jaxtalk.nn.adaln import AdaLNFinalLayer, AdaLNResBlock, adaln_modulation, modulate
 from jaxtalk.nn.attention import (
     BLOCKED,
     Bias,
@@ -51,6 +51,7 @@ __all__ = [
     "sinusoidal_embedding",
     "TimestepEmbedding",
     "modulate",
+    "adaln_modulation",
     "AdaLNResBlock",
     "AdaLNFinalLayer",
     "masked_group_norm",

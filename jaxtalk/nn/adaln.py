@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jaxtalk.nn.mlp import MLP
 from jaxtalk.types import Array, Float
 
-__all__ = ["modulate", "AdaLNResBlock", "AdaLNFinalLayer"]
+__all__ = ["modulate", "adaln_modulation", "AdaLNResBlock", "AdaLNFinalLayer"]
 
 Dtype = Any
 Initializer = Any
@@ -42,10 +42,55 @@ def modulate(
     return x * (1 + scale) + shift
 
 
+def adaln_modulation(
+    params: dict[str, Any], c: Float[Array, "*batch cond_features"]
+) -> Float[Array, "*batch modulation_features"]:
+    """The modulation ``Dense(SiLU(c))`` of an adaLN layer, from that layer's ``"modulation"`` params.
+
+    Lets a caller compute the modulations of many conditions in one batched matmul ahead of time
+    (e.g. every (diffusion step, frame) pair of a sampler, whose timesteps are known in advance) and
+    feed them to :class:`AdaLNResBlock` / :class:`AdaLNFinalLayer` through ``modulation=``.
+
+    Args:
+        params: ``{"kernel": (cond_features, chunks * features), "bias": (chunks * features,)}``,
+            i.e. ``layer_params["modulation"]``.
+        c: ``(*batch, cond_features)`` conditions.
+
+    Returns:
+        ``(*batch, chunks * features)``: ``(shift, scale, gate)`` (res block) or ``(shift, scale)``
+        (final layer) concatenated on the last axis.
+
+    Raises:
+        ValueError: if ``c``'s width does not match the kernel.
+    """
+    kernel, bias = params["kernel"], params["bias"]
+    if c.shape[-1] != kernel.shape[0]:
+        raise ValueError(f"condition width {c.shape[-1]} does not match the modulation kernel {kernel.shape}")
+    out = jax.nn.silu(c) @ kernel
+    return out + jnp.reshape(bias, (1,) * (out.ndim - 1) + (-1,))  # explicit rank (no promotion)
+
+
+def _split_modulation(modulation: Array, features: int, chunks: int) -> list[Array]:
+    if modulation.shape[-1] != chunks * features:
+        raise ValueError(
+            f"modulation must have {chunks} x {features} = {chunks * features} features, got {modulation.shape}"
+        )
+    return jnp.split(modulation, chunks, axis=-1)
+
+
 def _modulation(
-    c: Array, features: int, chunks: int, dtype: Dtype | None, param_dtype: Dtype
+    c: Array | None,
+    modulation: Array | None,
+    features: int,
+    chunks: int,
+    dtype: Dtype | None,
+    param_dtype: Dtype,
 ) -> list[Array]:
-    """``chunks`` zero-initialised ``(*batch, features)`` maps of ``SiLU(c)``."""
+    """``chunks`` zero-initialised ``(*batch, features)`` maps of ``SiLU(c)`` (or of a precomputed one)."""
+    if (c is None) == (modulation is None):
+        raise ValueError("pass exactly one of the condition c and a precomputed modulation")
+    if modulation is not None:
+        return _split_modulation(modulation, features, chunks)
     params = nn.Dense(
         chunks * features,
         dtype=dtype,
@@ -81,25 +126,32 @@ class AdaLNResBlock(nn.Module):
 
     @nn.compact
     def __call__(
-        self, x: Float[Array, "*batch features"], c: Float[Array, "*batch cond_features"]
+        self,
+        x: Float[Array, "*batch features"],
+        c: Float[Array, "*batch cond_features"] | None = None,
+        *,
+        modulation: Float[Array, "*batch modulation_features"] | None = None,
     ) -> Float[Array, "*batch features"]:
         """Applies the block.
 
         Args:
             x: ``(*batch, features)``.
             c: condition ``(*batch, cond_features)`` with the same leading axes as ``x``.
+            modulation: instead of ``c``, a precomputed ``(*batch, 3 features)``
+                :func:`adaln_modulation` of this block's ``"modulation"`` params.
 
         Returns:
             ``(*batch, features)``.
 
         Raises:
-            ValueError: if ``mlp_ratio`` gives a hidden width below 1.
+            ValueError: if ``mlp_ratio`` gives a hidden width below 1, if not exactly one of ``c``
+                and ``modulation`` is given, or ``modulation`` has the wrong width.
         """
         width = x.shape[-1]
         hidden = int(round(self.mlp_ratio * width))
         if hidden < 1:
             raise ValueError(f"mlp_ratio {self.mlp_ratio} gives hidden width {hidden} for width {width}")
-        shift, scale, gate = _modulation(c, width, 3, self.dtype, self.param_dtype)
+        shift, scale, gate = _modulation(c, modulation, width, 3, self.dtype, self.param_dtype)
         h = nn.LayerNorm(
             epsilon=self.layer_norm_epsilon,
             use_scale=self.use_layer_norm_affine,
@@ -137,18 +189,28 @@ class AdaLNFinalLayer(nn.Module):
 
     @nn.compact
     def __call__(
-        self, x: Float[Array, "*batch features"], c: Float[Array, "*batch cond_features"]
+        self,
+        x: Float[Array, "*batch features"],
+        c: Float[Array, "*batch cond_features"] | None = None,
+        *,
+        modulation: Float[Array, "*batch modulation_features"] | None = None,
     ) -> Float[Array, "*batch {self.out_features}"]:
         """Applies the layer.
 
         Args:
             x: ``(*batch, features)``.
             c: condition ``(*batch, cond_features)``.
+            modulation: instead of ``c``, a precomputed ``(*batch, 2 features)``
+                :func:`adaln_modulation` of this layer's ``"modulation"`` params.
 
         Returns:
             ``(*batch, out_features)``.
+
+        Raises:
+            ValueError: if not exactly one of ``c`` and ``modulation`` is given, or ``modulation``
+                has the wrong width.
         """
-        shift, scale = _modulation(c, x.shape[-1], 2, self.dtype, self.param_dtype)
+        shift, scale = _modulation(c, modulation, x.shape[-1], 2, self.dtype, self.param_dtype)
         h = nn.LayerNorm(
             epsilon=self.layer_norm_epsilon,
             use_scale=False,

@@ -6,12 +6,15 @@ model's own outputs are never fed back), so a past turn's tokens are fixed once 
 While the window is not full (turn index t <= n), turn t sits at slot t and, under turn-causal
 attention, the keys/values of slots < t cannot depend on it: they are cached per layer in a
 fixed-size buffer, and turn t's step encodes only its own 110 tokens against that cache. Once the
-window slides (t > n) every turn moves to a new positional slot, so the window is recomputed in full
-(a constant n + 1 turns of work per step). The bidirectional ablation always recomputes.
+window slides (t > n) every past turn moves to a new positional slot, so their keys/values are
+rebuilt from the slid window (n turns, turn-causal) and the current turn runs against them as in a
+filling turn (a constant n + 1 turns of work per step, minus the past turns' last-layer queries
+whose outputs are never read). The bidirectional ablation always recomputes the whole window.
 
-The state is an explicit pytree; :func:`stream_step` is one jitted program for every turn (the
-cached / full choice is a ``lax.cond`` on the traced turn counter). CFG stacks the conditional and
-the unconditional window (user tokens -> fake token) along the batch axis.
+The state is an explicit pytree. :func:`stream_step` compiles two programs, filling and sliding,
+and picks one on the host from the turn counter (under an outer ``jit`` the counter is abstract and
+one program with a ``lax.cond`` is used instead). CFG stacks the conditional and the unconditional
+window (user tokens -> fake token) along the batch axis.
 """
 
 from __future__ import annotations
@@ -100,7 +103,23 @@ def _encoder_call(config: TimarConfig, params: Any, method: str, *args: Any, **k
     return TimarEncoder(config).apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
 
 
-def _condition(config, params, state, us, um, as_, guidance):
+MODES = ("auto", "cached", "sliding")
+
+
+def _mode(config: TimarConfig, state: StreamState) -> str:
+    """The branch of this turn, decided on the host when the turn counter is concrete.
+
+    Two programs (filling the window / sliding it) chosen here run faster than one program with a
+    ``lax.cond`` between them (XLA:CPU runs a conditional's branches as separate, less optimised
+    computations); under an outer trace the counter is abstract and the ``lax.cond`` remains.
+    """
+    n = state.tokens.shape[1] - 1
+    if config.attention != "turn_causal" or n == 0 or isinstance(state.turn, jax.core.Tracer):
+        return "auto"
+    return "cached" if int(state.turn) <= n else "sliding"
+
+
+def _condition(config, params, state, us, um, as_, guidance, mode="auto"):
     n = state.tokens.shape[1] - 1
     tpt = config.tokens_per_turn
     b = us.shape[0]
@@ -116,49 +135,65 @@ def _condition(config, params, state, us, um, as_, guidance):
     slot = jnp.minimum(t, n)
     written = jax.lax.dynamic_update_slice_in_dim(state.tokens, tok, slot, axis=1)
     shifted = jnp.concatenate([state.tokens[:, 1:], tok], axis=1)
-    tokens = jnp.where(t > n, shifted, written)
     causal = config.attention == "turn_causal"
     layout = turn_layout(config.frames_per_turn)
-    static_mask = jnp.asarray(layout.attention_mask(n + 1, causal=causal))
-    key_slot = jnp.asarray(np.repeat(np.arange(n + 1), tpt))
 
-    def full(_: Any) -> tuple[Array, Any, Any]:
+    if not causal or n == 0:
+        # Bidirectional: past turns attend to the current one, nothing can be cached; n = 0: the
+        # window is the current turn alone.
+        tokens = jnp.where(t > n, shifted, written)
+        static_mask = jnp.asarray(layout.attention_mask(n + 1, causal=causal))
+        key_slot = jnp.asarray(np.repeat(np.arange(n + 1), tpt))
         visible = static_mask & (key_slot <= slot)[None, :]
         feats = _encoder_call(config, params, "encode", tokens, 0, bias_from_mask(visible))
         z = _encoder_call(config, params, "head_condition", feats, 0)
-        return jax.lax.dynamic_index_in_dim(z, slot, axis=1, keepdims=False), state.keys, state.values
+        z = jax.lax.dynamic_index_in_dim(z, slot, axis=1, keepdims=False)
+        return StreamState(tokens, state.keys, state.values, t + 1), z
 
-    def cached(_: Any) -> tuple[Array, Any, Any]:
-        cache_slot = jnp.asarray(np.repeat(np.arange(n), tpt))
-        visible = jnp.concatenate([cache_slot < t, jnp.ones((tpt,), bool)])
-        caches = tuple(zip(state.keys, state.values))
-        feats, kvs = _encoder_call(
-            config, params, "encode", tok, t, bias_from_mask(visible)[None, :], caches, True
-        )
-        z = _encoder_call(config, params, "head_condition", feats, t)[:, 0]
-        # The newest turn's keys/values go to its slot; at t == n the cache is full and never read
-        # again (the next turn slides), so it is left as is.
-        keep = t >= n
-        new_k = tuple(
-            jnp.where(keep, k_old, jax.lax.dynamic_update_slice_in_dim(k_old, k_all[:, n * tpt:], t * tpt, axis=1))
-            for k_old, (k_all, _) in zip(state.keys, kvs)
-        )
-        new_v = tuple(
-            jnp.where(keep, v_old, jax.lax.dynamic_update_slice_in_dim(v_old, v_all[:, n * tpt:], t * tpt, axis=1))
-            for v_old, (_, v_all) in zip(state.values, kvs)
-        )
-        return z, new_k, new_v
+    def rebuild(_: Any) -> tuple[Any, Any]:
+        # The window slid: every past turn moved to a new slot (new positional embedding), so their
+        # keys/values are recomputed, turn-causally, from the n past turns now at slots 0..n-1. The
+        # current turn then runs against them exactly as in a filling turn: only ITS queries pass
+        # through the last layer (a full-window pass would also push the n past turns' queries
+        # through it, for outputs nobody reads).
+        past_mask = jnp.asarray(layout.attention_mask(n, causal=True))
+        _, kvs = _encoder_call(config, params, "encode", shifted[:, :n], 0, bias_from_mask(past_mask), None, True)
+        return tuple(k for k, _ in kvs), tuple(v for _, v in kvs)
 
-    if causal and n > 0:
-        z, keys, values = jax.lax.cond(t <= n, cached, full, None)
+    def keep(_: Any) -> tuple[Any, Any]:
+        return state.keys, state.values
+
+    if mode == "auto":
+        tokens = jnp.where(t > n, shifted, written)
+        keys, values = jax.lax.cond(t > n, rebuild, keep, None)
+    elif mode == "sliding":
+        tokens, (keys, values) = shifted, rebuild(None)
     else:
-        z, keys, values = full(None)
-    return StreamState(tokens, keys, values, t + 1), z
+        tokens, (keys, values) = written, keep(None)
+
+    cache_slot = jnp.asarray(np.repeat(np.arange(n), tpt))
+    visible = jnp.concatenate([cache_slot < slot, jnp.ones((tpt,), bool)])
+    feats, kvs = _encoder_call(
+        config, params, "encode", tok, slot, bias_from_mask(visible)[None, :], tuple(zip(keys, values)), True
+    )
+    z = _encoder_call(config, params, "head_condition", feats, slot)[:, 0]
+    # While filling (t < n) the newest turn's keys/values go to its slot. From t == n on, the cache is
+    # never read again (later turns rebuild it from the slid window), so it is left as is.
+    fill = t < n
+    new_k = tuple(
+        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(k_old, k_all[:, n * tpt:], t * tpt, axis=1), k_old)
+        for k_old, (k_all, _) in zip(state.keys, kvs)
+    )
+    new_v = tuple(
+        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(v_old, v_all[:, n * tpt:], t * tpt, axis=1), v_old)
+        for v_old, (_, v_all) in zip(state.values, kvs)
+    )
+    return StreamState(tokens, new_k, new_v, t + 1), z
 
 
-@functools.partial(jax.jit, static_argnames=("config", "guidance"))
-def _condition_jit(config, params, state, us, um, as_, guidance):
-    return _condition(config, params, state, us, um, as_, guidance)
+@functools.partial(jax.jit, static_argnames=("config", "guidance", "mode"))
+def _condition_jit(config, params, state, us, um, as_, guidance, mode):
+    return _condition(config, params, state, us, um, as_, guidance, mode)
 
 
 def _check_turn(config: TimarConfig, state: StreamState, us: Any, um: Any, as_: Any, guidance: bool) -> None:
@@ -207,13 +242,15 @@ def stream_condition(
     _check_turn(config, state, user_speech, user_motion, agent_speech, guidance)
     return _condition_jit(
         config, params, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
-        jnp.asarray(agent_speech, jnp.float32), bool(guidance),
+        jnp.asarray(agent_speech, jnp.float32), bool(guidance), _mode(config, state),
     )
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance"), donate_argnums=(2,))
-def _step(config, params, state, us, um, as_, key, cfg_scale, eta, num_steps, sampler, guidance):
-    state, z = _condition(config, params, state, us, um, as_, guidance)
+@functools.partial(
+    jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance", "mode"), donate_argnums=(2,)
+)
+def _step(config, params, state, us, um, as_, key, cfg_scale, eta, num_steps, sampler, guidance, mode):
+    state, z = _condition(config, params, state, us, um, as_, guidance, mode)
     b = us.shape[0]
     z_c, z_u = (z[:b], z[b:]) if guidance else (z, None)
     x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta)
@@ -270,7 +307,7 @@ def stream_step(
     return _step(
         config, params, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32), num_steps, sampler,
-        bool(guidance),
+        bool(guidance), _mode(config, state),
     )
 
 

@@ -40,7 +40,8 @@ def train_timar(
         batch_size: windows per batch.
         lr: peak learning rate (the paper: 1e-4 at batch 32 on a 1024-wide model; small models on
             CPU train faster with 1e-3).
-        warmup_steps: linear warm-up (the paper: 100 iterations).
+        warmup_steps: linear warm-up (the paper: 100 iterations), capped at ``steps // 10`` so
+            short runs keep a decay phase (optax's cosine needs ``decay > warm-up`` steps).
         weight_decay: AdamW weight decay.
         ema_decay: EMA of the weights (None: off).
         seed: seeds parameters, data order and the per-step keys.
@@ -52,8 +53,13 @@ def train_timar(
         :class:`jaxtalk.train.TrainResult` (``result.state.eval_params`` are the parameters to use).
 
     Raises:
-        ValueError: missing streams in ``windows`` or bad optimiser settings.
+        ValueError: missing streams in ``windows``, ``steps`` < 1, negative ``warmup_steps`` or
+            bad optimiser settings.
     """
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be a positive integer, got {steps!r}")
+    if warmup_steps < 0:
+        raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
     missing = [k for k in STREAMS if k not in windows]
     if missing:
         raise ValueError(f"windows is missing streams {missing}")
@@ -64,7 +70,7 @@ def train_timar(
     n = int(windows["agent_motion"].shape[0])
     data = BatchIterator({k: windows[k] for k in STREAMS}, min(batch_size, n), seed=seed)
     opt = OptimConfig(
-        lr=lr, weight_decay=weight_decay, warmup_steps=min(warmup_steps, steps), total_steps=steps,
+        lr=lr, weight_decay=weight_decay, warmup_steps=min(warmup_steps, steps // 10), total_steps=steps,
         ema_decay=ema_decay, final_lr_ratio=0.1,
     )
     return train(
