@@ -73,15 +73,13 @@ def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0):
 
 
 def style_clip_for(corpus, clip: int, frames: int, rng: np.random.Generator) -> np.ndarray:
-    """A crop of another clip of the same speaker (the clip itself when the speaker has no other)."""
+    """Up to ``frames`` frames of another clip of the same speaker (the clip itself when the speaker has
+    no other), ``(1, S, D)``; a shorter clip is used whole (padding would bias its mean pose)."""
     sp = corpus.clips[clip].speaker
     others = [c.index for c in corpus.clips if c.speaker == sp and c.index != clip] or [clip]
     ref = np.asarray(corpus.motion(others[int(rng.integers(len(others)))]), np.float32)
     r0 = int(rng.integers(max(ref.shape[0] - frames, 0) + 1))
-    ref = ref[r0 : r0 + frames]
-    if ref.shape[0] < frames:
-        ref = np.concatenate([ref, np.repeat(ref[-1:], frames - ref.shape[0], 0)])
-    return ref[None]
+    return ref[r0 : r0 + frames][None]
 
 
 def evaluate(corpus, pred: np.ndarray, clip: int, chunk: int | None = None) -> dict:

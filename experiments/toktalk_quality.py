@@ -4,7 +4,7 @@ The model is the demo's (:func:`jaxtalk.demo.train_or_load`, TokTalk ``small``);
 for stream B, 25 Hz x 48) is trained on top with the base frozen. Every TokTalk row runs the streaming
 engine (chunk 0.4 s, CFG w = 0.7), as the paper evaluates in its real-time setting, at each requested
 Euler step count (1 step from pure noise = the posterior mean, the demo's default; 10 = the paper's).
-"With style" encodes a crop of ANOTHER clip of the same test speaker; "without style" uses the mean
+"With style" encodes a crop (8 s by default) of ANOTHER clip of the same test speaker; "without style" uses the mean
 training style vector (the same network; the paper trains a separate model without style input).
 Baselines: the training mean pose, and the mean pose of the same style reference clip (what the
 style anchor alone gives); the oracle is SynthTalk's deterministic motion. LVE = max over lip vertices
@@ -38,6 +38,8 @@ def main() -> None:
     parser.add_argument("--adapter-steps", type=int, default=400)
     parser.add_argument("--sample-steps", default="1,10", help="Euler step counts, comma separated")
     parser.add_argument("--clips", type=int, default=0, help="test clips to use (0: all)")
+    parser.add_argument("--style-seconds", type=float, default=8.0,
+                        help="length of the reference clip (a crop of another clip of the same speaker)")
     parser.add_argument("--out", default=str(RESULTS / "toktalk_quality.json"))
     args = parser.parse_args()
     step_counts = [int(s) for s in args.sample_steps.split(",")]
@@ -54,7 +56,7 @@ def main() -> None:
     t0 = time.perf_counter()
     for i, clip in enumerate(clips):
         gt = np.asarray(corpus.motion(clip))
-        ref = style_clip_for(corpus, clip, cfg.style_frames, rng)
+        ref = style_clip_for(corpus, clip, round(args.style_seconds * cfg.fps), rng)
         rows["mean pose"].append(evaluate(corpus, np.repeat(mean_pose[None], len(gt), 0), clip))
         rows["reference-clip mean pose"].append(evaluate(corpus, np.repeat(ref[0].mean(0)[None], len(gt), 0), clip))
         rows["oracle"].append(evaluate(corpus, np.asarray(corpus.oracle(clip)), clip))

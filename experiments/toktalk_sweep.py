@@ -45,7 +45,7 @@ def main() -> None:
     base_cfg, params, _ = trained_small(corpus, args.steps, args.adapter_steps)
     clips = corpus.split("test")[: args.clips]
     rng = np.random.default_rng(0)
-    styles = {c: tt.encode_style(params, base_cfg, style_clip_for(corpus, c, base_cfg.style_frames, rng)) for c in clips}
+    styles = {c: tt.encode_style(params, base_cfg, style_clip_for(corpus, c, 8 * base_cfg.fps, rng)) for c in clips}
     table = []
     for chunk in CHUNKS:
         cfg = dataclasses.replace(base_cfg, chunk_frames=chunk, context_frames=max(20, chunk))
