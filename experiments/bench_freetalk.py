@@ -65,7 +65,7 @@ def bench_ats(name: str, cfg: ATSConfig, steps: int, repeats: int) -> dict:
     params = ats.init_ats(cfg, jax.random.key(0))
     audio = np.random.default_rng(0).normal(size=(1, CLIP_FRAMES, cfg.audio_dim)).astype(np.float32)
     cond = ats.make_condition(cfg, audio, "happy", 2.0)
-    fn = functools.partial(ats._sample, config=cfg, num_steps=steps)
+    fn = functools.partial(ats._sample, config=cfg, num_steps=steps, noise=None, remat=False)
     timing = bm.time_jitted(lambda p, c, k, e: fn(p, cond=c, key=k, eta=e), params, cond, jax.random.key(1),
                             jax.numpy.float32(0.0), repeats=repeats, warmup=1)
     return {

@@ -324,7 +324,7 @@ def ats_clip(config: Any, name: str, *, steps: int = 100, frames: int = 100, rep
     params = random_params(lambda k: ats.init_ats(config, k))
     audio = np.random.default_rng(0).normal(size=(1, frames, config.audio_dim)).astype(np.float32)
     cond = ats.make_condition(config, audio, "happy", 2.0)
-    sample = functools.partial(ats._sample, config=config, num_steps=steps)
+    sample = functools.partial(ats._sample, config=config, num_steps=steps, noise=None, remat=False)
     timing = time_jitted(lambda p, c, k, e: sample(p, cond=c, key=k, eta=e), params, cond, jax.random.key(1),
                          jnp.float32(0.0), repeats=repeats, warmup=1)
     x = jnp.zeros((1, frames, config.motion_dim))
