@@ -25,8 +25,9 @@ import jax
 import numpy as np
 
 from jaxtalk import benchmarking as bm
+from jaxtalk.bench import ats_clip
 from jaxtalk.face import builtin_face
-from jaxtalk.models.freetalk import ats, stm
+from jaxtalk.models.freetalk import stm
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 
 FRAMES = 25
@@ -62,19 +63,16 @@ def bench_stm(name: str, cfg: STMConfig, repeats: int) -> dict:
 
 
 def bench_ats(name: str, cfg: ATSConfig, steps: int, repeats: int) -> dict:
-    params = ats.init_ats(cfg, jax.random.key(0))
-    audio = np.random.default_rng(0).normal(size=(1, CLIP_FRAMES, cfg.audio_dim)).astype(np.float32)
-    cond = ats.make_condition(cfg, audio, "happy", 2.0)
-    fn = functools.partial(ats._sample, config=cfg, num_steps=steps, noise=None, remat=False)
-    timing = bm.time_jitted(lambda p, c, k, e: fn(p, cond=c, key=k, eta=e), params, cond, jax.random.key(1),
-                            jax.numpy.float32(0.0), repeats=repeats, warmup=1)
+    row = ats_clip(cfg, name, steps=steps, frames=CLIP_FRAMES, repeats=repeats)
     return {
         "model": f"ATS {name}",
-        "clip_s": CLIP_FRAMES / 25,
+        "clip_s": row["clip_s"],
         "ddim_steps": steps,
-        "compile_s": timing.compile_s,
-        "run_s": timing.run_median_s,
-        "real_time_factor": timing.run_median_s / (CLIP_FRAMES / 25),
+        "compile_s": row["compile_s"],
+        "run_s": row["latency_s"],
+        "real_time_factor": row["rtf"],
+        "gflops": row["gflops"],
+        "gflop_s": row["gflop_s"],
     }
 
 

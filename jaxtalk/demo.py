@@ -138,7 +138,7 @@ def train_or_load(corpus: Any, options: DemoOptions, echo: Callable[[str], None]
     import jax
 
     from jaxtalk.models.toktalk.train import make_windows, train_base
-    from jaxtalk.train import OptimConfig, latest_checkpoint_step
+    from jaxtalk.train import CheckpointMismatchError, OptimConfig, latest_checkpoint_step
 
     config = model_config()
     ckpt = options.out_dir / "checkpoint"
@@ -163,9 +163,7 @@ def train_or_load(corpus: Any, options: DemoOptions, echo: Callable[[str], None]
             seed=options.seed, ckpt_dir=ckpt, save_every=max(options.train_steps // 5, 1),
             progress=options.progress and trained,
         )
-    except ValueError as err:
-        if "does not match the train state" not in str(err):
-            raise
+    except CheckpointMismatchError as err:
         # A checkpoint from another version of the model (e.g. before the style anchor): say what to do.
         raise ValueError(f"{err}\nThe checkpoint in {ckpt} was written by a different model "
                          "configuration; run again with --retrain (or another --out folder).") from err

@@ -15,6 +15,7 @@ from orbax.checkpoint._src.path import async_path
 
 from jaxtalk.data.batching import BatchIterator
 from jaxtalk.train import (
+    CheckpointMismatchError,
     Checkpointer,
     OptimConfig,
     create_train_state,
@@ -176,7 +177,7 @@ def test_missing_empty_and_corrupt_directories_raise_naming_the_path(tmp_path, r
         restore_checkpoint(tmp_path / "c", state, step=5)
     # Wrong template (other parameter shapes) is reported, naming the step directory.
     other = create_train_state({"w": jnp.ones((2, 2)), "b": jnp.zeros(2)}, make_optimizer(CFG), key, ema=True)
-    with pytest.raises(ValueError, match=f"checkpoint {tmp_path / 'c' / '1'} is corrupt or does not match"):
+    with pytest.raises(CheckpointMismatchError, match=f"checkpoint {tmp_path / 'c' / '1'} is corrupt or does not match"):
         restore_checkpoint(tmp_path / "c", other)
     # Corrupt the array store: the error names the checkpoint, both directly and through train().
     for p in (tmp_path / "c" / "1" / "state").rglob("*"):

@@ -10,7 +10,13 @@
 
 from __future__ import annotations
 
-from jaxtalk.train.checkpoint import Checkpointer, latest_checkpoint_step, restore_checkpoint, save_checkpoint
+from jaxtalk.train.checkpoint import (
+    Checkpointer,
+    CheckpointMismatchError,
+    latest_checkpoint_step,
+    restore_checkpoint,
+    save_checkpoint,
+)
 from jaxtalk.train.checks import BatchSpec, check_finite
 from jaxtalk.train.ema import ema_update
 from jaxtalk.train.loop import NonFiniteLossError, TrainResult, train
@@ -32,6 +38,7 @@ __all__ = [
     "create_train_state",
     "make_train_step",
     "Checkpointer",
+    "CheckpointMismatchError",
     "save_checkpoint",
     "restore_checkpoint",
     "latest_checkpoint_step",

@@ -15,9 +15,20 @@ import jax
 
 from jaxtalk.train.state import TrainState
 
-__all__ = ["Checkpointer", "save_checkpoint", "restore_checkpoint", "latest_checkpoint_step"]
+__all__ = [
+    "Checkpointer",
+    "CheckpointMismatchError",
+    "save_checkpoint",
+    "restore_checkpoint",
+    "latest_checkpoint_step",
+]
 
 PyTree = Any
+
+
+class CheckpointMismatchError(ValueError):
+    """A checkpoint that cannot be read, or whose arrays do not fit the train state it is restored into
+    (e.g. written by another model configuration)."""
 
 
 def _saveable(state: TrainState) -> dict[str, PyTree]:
@@ -140,7 +151,9 @@ class Checkpointer:
                 )
         except Exception as err:  # orbax/tensorstore raise many types; name the path for the user
             detail = str(err).splitlines()[0][:400] if str(err) else type(err).__name__  # tensorstore specs are huge
-            raise ValueError(f"checkpoint {path} is corrupt or does not match the train state: {detail}") from err
+            raise CheckpointMismatchError(
+                f"checkpoint {path} is corrupt or does not match the train state: {detail}"
+            ) from err
         impl = jax.random.key_impl(template.rng)
         state = TrainState(
             step=raw["step"],
