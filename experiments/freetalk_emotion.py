@@ -11,14 +11,24 @@ For each (emotion, intensity) and the upper face (brows 17-26, eyes 36-47), in m
   motion that the label change merely shifted in time (these are random in SynthTalk, not driven by
   the label), so it sits well above the true offsets and is reported for reference only.
 * ``true``: SynthTalk's own upper-face offset of that emotion and intensity on the same face.
+* ``along``: the model's mean offset projected on the direction of the true one (signed, per
+  landmark, averaged; mm). Sampling noise that does not depend on the label averages out of this one
+  instead of adding a positive floor, so it shows whether the label moves the face the right way.
+
+Every sample is drawn with ``--seeds`` noise seeds (the same seeds for every label) and the offsets
+are pooled over seeds, windows and frames; ``upper_se`` is the seed-to-seed standard error of
+``upper`` (how much of a difference between intensities is noise).
 
 Checks (issue 5): ``upper`` grows with intensity and differs between emotions (coefficient of
 variation at intensity 3, and its correlation with ``true``). Accuracy: lip-landmark error (mm) of
 ATS samples with the true labels against the mean-pose baseline and the generator's oracle motion,
 on the same windows.
 
+The trained model is checkpointed in ``--ckpt-dir`` (default under ``experiments/results``); a
+second run with the same arguments loads it instead of training again.
+
 Usage: python experiments/freetalk_emotion.py [--size small|tiny] [--steps N] [--ddim-steps N]
-       [--out PATH]
+       [--seeds N] [--ckpt-dir DIR] [--out PATH]
 """
 
 from __future__ import annotations
@@ -50,6 +60,9 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=32)
     parser.add_argument("--ddim-steps", type=int, default=20)
     parser.add_argument("--cache", default=None)
+    parser.add_argument("--seeds", type=int, default=4)
+    parser.add_argument("--ckpt-dir", type=Path, default=None,
+                        help="default: experiments/results/freetalk_emotion_ckpt/<size>-<steps>")
     parser.add_argument("--out", type=Path, default=Path("experiments/results/freetalk_emotion.json"))
     args = parser.parse_args()
     t0 = time.time()
@@ -59,7 +72,8 @@ def main() -> None:
     test_w = data.ats_windows(corpus, test_clips, window=args.window, hop=args.window)
     cfg = ATSConfig.small(max_frames=args.window, displacement_scale=1.0)
     optim = OptimConfig(lr=1e-3, warmup_steps=min(100, args.steps // 10), total_steps=args.steps)
-    fitted = fit_ats(cfg, train_w, optim, jax.random.key(0), progress=True)
+    ckpt = args.ckpt_dir or Path("experiments/results/freetalk_emotion_ckpt") / f"{args.size}-{args.steps}"
+    fitted = fit_ats(cfg, train_w, optim, jax.random.key(0), progress=True, ckpt_dir=ckpt.resolve())
     train_s = time.time() - t0
     print(f"trained {args.steps} steps in {train_s:.0f} s", flush=True)
 
@@ -84,20 +98,34 @@ def main() -> None:
     bm.print_table(accuracy, "Lip-landmark error on held-out windows (true emotion labels)")
 
     audio = test_w["audio"]
-    neutral = sample_displacements(fitted, audio, "neutral", 1.0, key, num_steps=args.ddim_steps)
+    keys = jax.random.split(jax.random.key(2), args.seeds)
+
+    def upper_samples(emotion: str, level: float) -> np.ndarray:
+        """(seeds, windows, frames, 22, 3) upper-face displacements, the same noise for every label."""
+        return np.stack([sample_displacements(fitted, audio, emotion, level, k, num_steps=args.ddim_steps)[:, :, UPPER]
+                         for k in keys])
+
+    neutral = upper_samples("neutral", 1.0)
     reference = generator_offsets(face)
     rows = []
     for emotion in EMOTIONS[1:]:
         row = {"emotion": emotion}
         for level in (1, 2, 3):
-            s = sample_displacements(fitted, audio, emotion, float(level), key, num_steps=args.ddim_steps)
-            diff = s[:, :, UPPER] - neutral[:, :, UPPER]
-            # The expression offset: the mean displacement change over every window and frame.
-            row[f"upper_mm_i{level}"] = float(np.linalg.norm(diff.mean(axis=(0, 1)), axis=-1).mean() * 1000)
+            diff = upper_samples(emotion, float(level)) - neutral
+            per_seed = diff.mean(axis=(1, 2))  # (seeds, 22, 3) mean offset of each landmark
+            offset = per_seed.mean(axis=0)
+            # The expression offset: the mean displacement change over every seed, window and frame.
+            row[f"upper_mm_i{level}"] = float(np.linalg.norm(offset, axis=-1).mean() * 1000)
+            se = np.sqrt(per_seed.var(axis=0, ddof=1).sum(axis=-1) / args.seeds) if args.seeds > 1 else np.nan
+            row[f"upper_se_i{level}"] = float(np.mean(se) * 1000)
+            true = reference[emotion]["offset"][level - 1]
+            direction = true / np.maximum(np.linalg.norm(true, axis=-1, keepdims=True), 1e-12)
+            row[f"along_mm_i{level}"] = float(np.sum(offset * direction, axis=-1).mean() * 1000)
             # Frame by frame: also counts blinks and brow motion that merely moved in time.
             row[f"frame_mm_i{level}"] = float(np.linalg.norm(diff, axis=-1).mean() * 1000)
-            row[f"true_mm_i{level}"] = reference[emotion][level - 1]
+            row[f"true_mm_i{level}"] = reference[emotion]["mm"][level - 1]
         row["grows"] = row["upper_mm_i1"] < row["upper_mm_i2"] < row["upper_mm_i3"]
+        row["grows_along"] = row["along_mm_i1"] < row["along_mm_i2"] < row["along_mm_i3"]
         rows.append(row)
     bm.print_table(rows, "Upper-face deviation from neutral (mm) by emotion and intensity "
                          "(upper: expression offset; frame: per-frame distance; true: SynthTalk's own offset)")
@@ -105,6 +133,7 @@ def main() -> None:
     true3 = np.array([r["true_mm_i3"] for r in rows])
     verdict = {
         "grows_with_intensity": sum(r["grows"] for r in rows),
+        "grows_along_true_direction": sum(r["grows_along"] for r in rows),
         "of": len(rows),
         "emotion_spread_cv": float(at3.std() / at3.mean()),
         "corr_with_true_offsets_i3": float(np.corrcoef(at3, true3)[0, 1]),
@@ -116,16 +145,21 @@ def main() -> None:
     print(f"wrote {bm.write_json(args.out, payload)}")
 
 
-def generator_offsets(face) -> dict[str, list[float]]:
-    """SynthTalk's own upper-face emotion offsets (mm) on ``face`` at intensities 1-3, head pose removed."""
+def generator_offsets(face) -> dict[str, dict[str, list]]:
+    """SynthTalk's own upper-face emotion offsets on ``face`` at intensities 1-3, head pose removed.
+
+    Returns, per emotion, ``mm`` (mean landmark offset norm in mm, one per intensity) and ``offset``
+    (the (22, 3) upper-face landmark offsets in metres, one per intensity).
+    """
     neutral = data.neutral_landmarks(face)
     out = {}
     for emotion in EMOTIONS[1:]:
-        out[emotion] = []
+        out[emotion] = {"mm": [], "offset": []}
         for level in (1, 2, 3):
             offset = data.without_head_pose(face_offset(emotion, level)[None].astype(np.float32))[0]
-            lms = np.asarray(face.landmarks(jax.numpy.asarray(offset)))
-            out[emotion].append(float(np.linalg.norm(lms[UPPER] - neutral[UPPER], axis=-1).mean() * 1000))
+            delta = np.asarray(face.landmarks(jax.numpy.asarray(offset)))[UPPER] - neutral[UPPER]
+            out[emotion]["mm"].append(float(np.linalg.norm(delta, axis=-1).mean() * 1000))
+            out[emotion]["offset"].append(delta)
     return out
 
 
