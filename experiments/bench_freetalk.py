@@ -17,17 +17,10 @@ Usage: python experiments/bench_freetalk.py [--out PATH] [--repeats N] [--skip-p
 from __future__ import annotations
 
 import argparse
-import functools
-import time
 from pathlib import Path
 
-import jax
-import numpy as np
-
 from jaxtalk import benchmarking as bm
-from jaxtalk.bench import ats_clip
-from jaxtalk.face import builtin_face
-from jaxtalk.models.freetalk import stm
+from jaxtalk.bench import ats_clip, stm_frames
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 
 FRAMES = 25
@@ -35,30 +28,20 @@ CLIP_FRAMES = 100
 
 
 def bench_stm(name: str, cfg: STMConfig, repeats: int) -> dict:
-    face = builtin_face(0, resolution="high")
-    vertices, faces = np.asarray(face.template, np.float64), np.asarray(face.faces)
-    t0 = time.perf_counter()
-    mesh = stm.prepare_mesh(vertices, faces, cfg)
-    precompute_ops = time.perf_counter() - t0
-    params = stm.init_stm(cfg, jax.random.key(0), mesh)
-    feat_fn = functools.partial(stm._mesh_features, config=cfg)
-    feat_timing = bm.time_jitted(lambda p, m: feat_fn(p, mesh=m), params, mesh, repeats=max(3, repeats // 2))
-    features = stm.stm_mesh_features(params, cfg, mesh)
-    motion = (0.004 * np.random.default_rng(0).normal(size=(FRAMES, 68, 3))).astype(np.float32)
-    decode = functools.partial(stm._decode, config=cfg)
-    timing = bm.time_jitted(lambda p, f, d, o: decode(p, features=f, disp=d, ops=o), params, features,
-                            jax.numpy.asarray(motion), mesh.ops, repeats=repeats)
-    per_frame = timing.run_median_s / FRAMES
+    row = stm_frames(cfg, name, resolution="high", frames=FRAMES, repeats=repeats)
+    per_frame = row["latency_s"] / FRAMES
     return {
         "model": f"STM {name}",
-        "vertices": mesh.num_vertices,
+        "vertices": row["vertices"],
         "k": cfg.num_eigenpairs,
-        "operators_s": precompute_ops,
-        "mesh_features_s": feat_timing.run_median_s,
-        "compile_s": timing.compile_s,
+        "operators_s": row["operators_s"],
+        "mesh_features_s": row["mesh_features_s"],
+        "compile_s": row["compile_s"],
         "s_per_frame": per_frame,
         "frames_per_s": 1.0 / per_frame,
         "real_time_25fps": 1.0 / per_frame >= 25.0,
+        "gflop_per_frame": None if row["gflops"] is None else row["gflops"] / FRAMES,
+        "gflop_s": row["gflop_s"],
     }
 
 
