@@ -2,64 +2,104 @@
 and a CFG-scale sweep (FD and P-FD vs omega; omega is traced, so every scale reuses one compiled
 streaming step).
 
-Each variant is trained with the same data, steps and seed as the default model, then streamed with
-n = 7 turns of context on the test split. The bidirectional variant is evaluated by recomputing the
-window every turn (it cannot be cached), which is what the paper's "w/ Bi-Attention" row measures.
+Variants (``--variants``) are each trained with the same data, steps and seed (the default model is
+retrained with them, so the rows compare equal budgets), then streamed with n = 7 turns of context on
+the test split. The bidirectional variant is evaluated by recomputing the window every turn (it cannot
+be cached), which is what the paper's "w/ Bi-Attention" row measures. The CFG sweep runs on
+``--load-model`` (the context experiment's model) when given, else on the retrained default. Results
+of separate invocations (e.g. one variant each, to keep every run short) are merged into ``--out``.
 
-Usage: ``python experiments/timar_ablation.py [--size small] [--steps 2000] [--out ...]``
+Usage: ``python experiments/timar_ablation.py [--size small] [--steps 2000] [--variants default,mlp]
+[--load-model experiments/results/timar_context_model.pkl] [--out ...]``
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+import time
+from pathlib import Path
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
 from jaxtalk.data.synthtalk import generate
 from jaxtalk.models.timar.data import conversations
 from jaxtalk.models.timar.train import train_timar
 
-from timar_common import KEYS, add_training_args, metrics, predict, training_setup  # noqa: E402  (sibling script)
+from timar_common import KEYS, add_training_args, load_model, metrics, predict, training_setup  # noqa: E402  (sibling script)
+
+VARIANTS = {
+    "default": ("diffusion head + TLCA (default)", {}),
+    "mlp": ("MLP head", {"head": "mlp"}),
+    "bidirectional": ("bidirectional attention", {"attention": "bidirectional"}),
+    "paper_mask": ("paper mask ratio (r ~ TN[0.7, 1])", {"mask_ratio_min": 0.7}),
+}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_training_args(ap)
     ap.add_argument("--context", type=int, default=7)
-    ap.add_argument("--scales", default="0,0.5,1,1.5,2,3")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated subset of {list(VARIANTS)} ('' = none)")
+    ap.add_argument("--scales", default="0,0.5,1,1.5,2,3", help="CFG sweep ('' = no sweep)")
+    ap.add_argument("--sampler", default="ddim", help="ddim (5-step samples, the paper) or mean (the guided posterior mean)")
+    ap.add_argument("--load-model", default=None, help="model for the CFG sweep (default: the retrained default variant)")
     ap.add_argument("--eval-convs", type=int, default=None, help="evaluate on the first N test conversations only")
     ap.add_argument("--out", default="experiments/results/timar_ablation.json")
     args = ap.parse_args()
+    names = [v for v in args.variants.split(",") if v]
+    unknown = [v for v in names if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
 
     corpus = generate(args.size, 0, cache_dir=args.cache_dir)
     test_convs = conversations(corpus, "test")[: args.eval_convs]
-    config, norm, data = training_setup(args, corpus)
-    variants = {
-        "diffusion head + TLCA (default)": config,
-        "MLP head": dataclasses.replace(config, head="mlp"),
-        "bidirectional attention": dataclasses.replace(config, attention="bidirectional"),
-        "paper mask ratio (r ~ TN[0.7, 1])": dataclasses.replace(config, mask_ratio_min=0.7),
-    }
-    rows, record, trained = [], {}, {}
-    for name, cfg in variants.items():
-        res = train_timar(cfg, data, steps=args.steps, batch_size=args.batch, lr=args.lr, progress=True)
-        trained[name] = (cfg, res.state.eval_params)
-        m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=1.5), test_convs, corpus)
-        record[name] = m
-        rows.append({"variant": name, **{k: m.get(k) for k in KEYS}})
-    print_table(rows, f"TIMAR ablations on SynthTalk-{args.size} test (n={args.context}, published scaling)")
+    out = Path(args.out)
+    record = json.loads(out.read_text()) if out.is_file() else {}
+    record.setdefault("variants", {})
+    record.setdefault("runs", [])
+    trained = {}
+    if names:
+        config, norm, data = training_setup(args, corpus)
+        for name in names:
+            label, overrides = VARIANTS[name]
+            cfg = dataclasses.replace(config, **overrides)
+            t0 = time.perf_counter()
+            res = train_timar(cfg, data, steps=args.steps, batch_size=args.batch, lr=args.lr, warmup_steps=args.warmup,
+                              progress=True)
+            train_s = time.perf_counter() - t0
+            trained[name] = (cfg, res.state.eval_params, norm)
+            m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=1.5,
+                                sampler=args.sampler), test_convs, corpus)
+            record["variants"][label] = {**m, "steps": args.steps, "train_s": train_s, "final_loss": res.history[-1]["loss"],
+                                         "sampler": args.sampler}
+    rows = [{"variant": k, "steps": v.get("steps"), **{key: v.get(key) for key in KEYS}} for k, v in record["variants"].items()]
+    if rows:
+        print_table(rows, f"TIMAR ablations on SynthTalk-{args.size} test (n={args.context}, published scaling)")
 
-    cfg, params = trained["diffusion head + TLCA (default)"]
-    sweep = []
-    for w in (float(v) for v in args.scales.split(",")):
-        m = metrics(predict(cfg, params, norm, test_convs, context=args.context, cfg_scale=w), test_convs, corpus)
-        sweep.append({"omega": w, "FD_exp": m["FD_exp"], "P-FD_exp": m["P-FD_exp"], "FD_jaw": m["FD_jaw"],
-                      "P-FD_jaw": m["P-FD_jaw"], "MSE_exp": m["MSE_exp"], "MSE_mouth_spk": m["MSE_mouth_spk"]})
-    print_table(sweep, "CFG scale sweep (paper's omega: 0 = unconditional, 1 = conditional)")
-    best = min(sweep, key=lambda r: r["FD_exp"])
-    print(f"best omega by FD_exp: {best['omega']} (paper: guidance above 1 improves FD and P-FD)")
-    write_json(args.out, {"machine": machine_info(), "args": vars(args), "variants": record, "cfg_sweep": sweep,
-                          "best_omega_fd_exp": best["omega"]})
+    scales = [float(v) for v in args.scales.split(",") if v]
+    if scales:
+        if args.load_model:
+            cfg, params, norm = load_model(args.load_model)
+        elif "default" in trained:
+            cfg, params, norm = trained["default"]
+        else:
+            raise SystemExit("the CFG sweep needs --load-model or the default variant in --variants")
+        sweep = []
+        for w in scales:
+            m = metrics(predict(cfg, params, norm, test_convs, context=min(args.context, cfg.max_turns - 1), cfg_scale=w,
+                                sampler=args.sampler), test_convs, corpus)
+            sweep.append({"omega": w, "FD_exp": m["FD_exp"], "P-FD_exp": m["P-FD_exp"], "FD_jaw": m["FD_jaw"],
+                          "P-FD_jaw": m["P-FD_jaw"], "FD_pose": m["FD_pose"], "P-FD_pose": m["P-FD_pose"],
+                          "MSE_exp": m["MSE_exp"], "MSE_mouth_spk": m["MSE_mouth_spk"]})
+        print_table(sweep, "CFG scale sweep (paper's omega: 0 = unconditional, 1 = conditional)")
+        best = min(sweep, key=lambda r: r["FD_exp"])
+        print(f"best omega by FD_exp: {best['omega']} (paper: guidance above 1 improves FD and P-FD)")
+        record["cfg_sweep"] = sweep
+        record["cfg_sweep_model"] = args.load_model or "retrained default"
+        record["best_omega_fd_exp"] = best["omega"]
+    record["runs"].append({"machine": machine_info(), "args": vars(args)})
+    write_json(args.out, record)
 
 
 if __name__ == "__main__":

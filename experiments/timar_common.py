@@ -25,7 +25,7 @@ def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None
 
     Defaults: the ``small`` corpus and the ``small`` preset's sizes.
     """
-    ap.add_argument("--size", default="small", help="SynthTalk size")
+    ap.add_argument("--size", default="small", help="SynthTalk size (full: 120 train speakers, 12 test conversations)")
     ap.add_argument("--cache-dir", default=None, help="SynthTalk cache directory")
     ap.add_argument("--steps", type=int, default=steps)
     ap.add_argument("--batch", type=int, default=16)
@@ -33,20 +33,28 @@ def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--layers", type=int, default=4)
     ap.add_argument("--head-width", type=int, default=128)
+    ap.add_argument("--warmup", type=int, default=20, help="learning-rate warm-up steps")
+    ap.add_argument("--batch-mul", type=int, default=1, help="diffusion (t, noise) draws per frame (MAR: 4)")
     ap.add_argument("--monologues", action="store_true", help="also train on the train split's monologues")
+    ap.add_argument("--stride", type=int, default=1, help="hop between 8-turn training windows, in turns")
 
 
 KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_exp", "MSE_exp", "MSE_jaw", "MSE_pose", "MSE_mouth_spk", "MSE_jaw_spk",
         "SID_fit_gt_exp", "rPCC_exp")
 
 
-def predict(config, params, normalizer, convs, *, context, cfg_scale, seed=0):
-    """Stream every conversation with ``context`` turns of history; raw (denormalised) motion."""
+def predict(config, params, normalizer, convs, *, context, cfg_scale, temperature=1.0, sampler="ddim", seed=0):
+    """Stream every conversation with ``context`` turns of history; raw (denormalised) motion.
+
+    ``temperature`` scales the initial diffusion noise (1: samples of the learned distribution, the
+    paper's sampling); ``sampler="mean"`` gives the guided posterior mean instead (see ``sample_frames``).
+    """
     out = []
     for i, c in enumerate(convs):
         x = stream_conversation(
             config, params, normalizer.speech(c.user_speech)[None], normalizer.motion(c.user_motion)[None],
             normalizer.speech(c.agent_speech)[None], jax.random.key(seed + i), context=context, cfg_scale=cfg_scale,
+            temperature=temperature, sampler=sampler,
         )
         out.append(normalizer.unmotion(np.asarray(x)[0]))
     return out
@@ -95,6 +103,55 @@ def training_setup(args, corpus, **overrides):
         train_convs = train_convs + monologues(corpus, "train")
     norm = fit_normalizer(train_convs)
     config = TimarConfig.small(max_turns=8, width=args.width, num_layers=args.layers, head_width=args.head_width,
-                               num_heads=max(1, args.width // 32), **overrides)
-    data = windows(train_convs, norm, num_turns=8, stride_turns=1)
+                               num_heads=max(1, args.width // 32), diffusion_batch_mul=args.batch_mul, **overrides)
+    data = windows(train_convs, norm, num_turns=8, stride_turns=getattr(args, "stride", 1))
     return config, norm, data
+
+
+def context_sensitivity(config, params, normalizer, convs, *, cfg_scale, windows_per_conv=4, seed=0):
+    """How much the last turn of an 8-turn window moves when parts of the input are swapped.
+
+    Posterior means (``sampler="mean"``, so no sampling noise) of the LAST turn of windows of
+    ``max_turns`` turns (= streaming with n = max_turns - 1), recomputed with (a) the user's streams
+    of the PAST turns, (b) the user's streams of the CURRENT turn, (c) the agent's speech of the past
+    turns taken from another conversation (same window position). Returns the RMS change per group
+    (exp / jaw / neck) in normalised units, and the RMS of the original output's deviation from 0
+    (the training mean) for scale.
+    """
+    from jaxtalk.models.timar.config import LOSS_GROUPS
+    from jaxtalk.models.timar.sample import sample
+
+    f, n = config.frames_per_turn, config.max_turns
+    length = n * f
+    win = {"us": [], "um": [], "as": []}
+    for c in convs:
+        starts = np.linspace(0, c.num_frames - length, windows_per_conv).astype(int) // f * f
+        for s in starts:
+            sl = slice(s, s + length)
+            win["us"].append(normalizer.speech(c.user_speech[sl]))
+            win["um"].append(normalizer.motion(c.user_motion[sl]))
+            win["as"].append(normalizer.speech(c.agent_speech[sl]))
+    win = {k: np.stack(v) for k, v in win.items()}
+    other = {k: np.roll(v, windows_per_conv, axis=0) for k, v in win.items()}  # another conversation's window
+    past, cur = slice(0, length - f), slice(length - f, length)
+
+    def last_turn(us, um, as_):
+        x = sample(config, params, us, um, as_, jax.random.key(seed), cfg_scale=cfg_scale, sampler="mean")
+        return np.asarray(x)[:, -f:]
+
+    def swap(name, part):
+        x = win[name].copy()
+        x[:, part] = other[name][:, part]
+        return x
+
+    base = last_turn(win["us"], win["um"], win["as"])
+    variants = {
+        "user past turns": last_turn(swap("us", past), swap("um", past), win["as"]),
+        "user current turn": last_turn(swap("us", cur), swap("um", cur), win["as"]),
+        "agent speech past turns": last_turn(win["us"], win["um"], swap("as", past)),
+    }
+    rms = lambda d, lo, hi: float(np.sqrt(np.mean(d[..., lo:hi] ** 2)))  # noqa: E731
+    out = {"output": {g: rms(base, lo, hi) for g, lo, hi in LOSS_GROUPS}}
+    for name, x in variants.items():
+        out[name] = {g: rms(x - base, lo, hi) for g, lo, hi in LOSS_GROUPS}
+    return out

@@ -116,7 +116,10 @@ def test_fit_normalizer_matches_hand_statistics_and_floors_constant_channels():
     # Agent streams only (the user side of a conversation is the agent of its swapped copy).
     assert norm.motion_mean[0] == pytest.approx(3.5)
     assert norm.motion_std[0] == pytest.approx(np.std([1, 2, 3, 4, 5, 6]))
-    assert norm.motion_std[1] == pytest.approx(1e-3)  # constant channel -> floor
+    # A constant channel gets the floor: 1e-3 x the mean raw std over channels (the shared
+    # fit_standardizer's relative floor), not 0.
+    assert norm.motion_std[1] == pytest.approx(1e-3 * np.std([1, 2, 3, 4, 5, 6]) / 56, rel=1e-5)
+    np.testing.assert_allclose(norm.motion(m1)[:, 1], 0.0)  # finite, no division by zero
     assert norm.speech_mean[0] == pytest.approx(4.0)  # (4 * 2 + 2 * 8) / 6
     assert norm.speech_std[0] == pytest.approx(np.std([2, 2, 2, 2, 8, 8]))
     with pytest.raises(ValueError, match="at least one"):

@@ -160,3 +160,42 @@ def test_sample_rejects_bad_input(params):
         sample(CFG, params, us, um, as_, key, num_steps=0)
     with pytest.raises(ValueError, match="scalar"):
         sample(CFG, params, us, um, as_, key, cfg_scale=jnp.ones(2))
+
+
+def test_temperature_scales_the_initial_noise(params):
+    us, um, as_ = _streams()
+    zc, zu = conditions(CFG, params, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    k1, k2 = jax.random.key(1), jax.random.key(2)
+    run = lambda k, tau, steps=4: np.asarray(  # noqa: E731
+        sample_frames(CFG, params, zc, zu, k, cfg_scale=1.5, num_steps=steps, temperature=tau))
+    # 1 is the plain sampler; 0 is deterministic (DDIM, eta = 0: the initial noise is the only randomness).
+    np.testing.assert_array_equal(run(k1, 1.0), np.asarray(sample_frames(CFG, params, zc, zu, k1, cfg_scale=1.5, num_steps=4)))
+    np.testing.assert_array_equal(run(k1, 0.0), run(k2, 0.0))
+    assert np.abs(run(k1, 1.0) - run(k2, 1.0)).max() > 1e-3
+    # One step from x_T = 0 at t = 0 is the guided head output at x = 0 (sample(temperature=...) too).
+    t = jnp.zeros(zc.shape[:-1])
+    zero = jnp.zeros(zc.shape[:-1] + (56,))
+    oc, ou = apply_head(CFG, params["head"], zc, zero, t), apply_head(CFG, params["head"], zu, zero, t)
+    np.testing.assert_allclose(run(k1, 0.0, steps=1), np.asarray(ou + 1.5 * (oc - ou)), atol=1e-5)
+    got = sample(CFG, params, us, um, as_, k2, cfg_scale=1.5, num_steps=1, temperature=0.0)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(ou + 1.5 * (oc - ou)).reshape(B, N * F, 56), atol=1e-5)
+    with pytest.raises(ValueError, match="temperature"):
+        sample(CFG, params, us, um, as_, k1, temperature=-1.0)
+    with pytest.raises(ValueError, match="temperature"):
+        sample(CFG, params, us, um, as_, k1, temperature=jnp.ones(2))
+
+
+def test_mean_sampler_is_the_guided_head_output_at_the_last_timestep(params):
+    # sampler="mean": one head call at t = T - 1 on the initial noise, guided (Eq. 9); without
+    # guidance it is posterior_mean's estimate given the same noise.
+    us, um, as_ = _streams()
+    zc, zu = conditions(CFG, params, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    key, omega = jax.random.key(4), 1.3
+    k_noise, _ = jax.random.split(key)
+    noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
+    t = jnp.full(zc.shape[:-1], CFG.num_timesteps - 1.0)
+    oc, ou = apply_head(CFG, params["head"], zc, noise, t), apply_head(CFG, params["head"], zu, noise, t)
+    got = sample_frames(CFG, params, zc, zu, key, cfg_scale=omega, num_steps=5, sampler="mean")
+    np.testing.assert_allclose(np.asarray(got), np.asarray(ou + omega * (oc - ou)), atol=1e-5)
+    cond = sample(CFG, params, us, um, as_, key, sampler="mean", guidance=False)
+    np.testing.assert_allclose(np.asarray(cond), np.asarray(oc).reshape(B, N * F, 56), atol=1e-5)

@@ -122,6 +122,11 @@ def test_stream_causality_future_turn_does_not_change_past_outputs(params):
     b = np.asarray(stream_conversation(CFG, params, *s2, jax.random.key(2), context=1))
     np.testing.assert_array_equal(a[:, : 3 * F], b[:, : 3 * F])
     assert np.abs(a[:, 3 * F :] - b[:, 3 * F :]).max() > 1e-4
+    # The temperature reaches every turn's sampler: at 0 the stream no longer depends on the key.
+    c0 = np.asarray(stream_conversation(CFG, params, *s, jax.random.key(2), context=1, temperature=0.0))
+    c1 = np.asarray(stream_conversation(CFG, params, *s, jax.random.key(3), context=1, temperature=0.0))
+    np.testing.assert_array_equal(c0, c1)
+    assert np.abs(c0 - a).max() > 1e-3
 
 
 def test_stream_rejects_bad_input(params):

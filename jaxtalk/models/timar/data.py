@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.audio import log_mel, resample_features
+from jaxtalk.data.standardize import fit_standardizer, standardize, unstandardize
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM, Float, Shaped
 
 __all__ = [
@@ -177,6 +178,10 @@ def monologues(corpus: Any, split: str, *, frames_per_turn: int = MOTION_FPS) ->
 class Normalizer:
     """Per-channel standardisation of speech features and head motion (fit on training data).
 
+    A pair of :mod:`jaxtalk.data.standardize` statistics (``{"mean", "std"}``) under the field names
+    that TIMAR checkpoints store (:meth:`to_dict`); :meth:`speech_stats` / :meth:`motion_stats` give
+    them in the shared form.
+
     Attributes:
         speech_mean, speech_std: ``(80,)``.
         motion_mean, motion_std: ``(56,)``.
@@ -187,15 +192,27 @@ class Normalizer:
     motion_mean: np.ndarray
     motion_std: np.ndarray
 
+    @property
+    def speech_stats(self) -> dict[str, np.ndarray]:
+        """The speech statistics as a :func:`jaxtalk.data.standardize.standardize` dict."""
+        return {"mean": self.speech_mean, "std": self.speech_std}
+
+    @property
+    def motion_stats(self) -> dict[str, np.ndarray]:
+        """The motion statistics as a :func:`jaxtalk.data.standardize.standardize` dict."""
+        return {"mean": self.motion_mean, "std": self.motion_std}
+
     def speech(self, x: Float[np.ndarray, "*frames dim"]) -> np.ndarray:
-        return ((np.asarray(x) - self.speech_mean) / self.speech_std).astype(np.float32)
+        """Raw speech features -> standardised (float32 NumPy)."""
+        return np.asarray(standardize(self.speech_stats, jnp.asarray(x, jnp.float32)))
 
     def motion(self, x: Float[np.ndarray, "*frames 56"]) -> np.ndarray:
-        return ((np.asarray(x) - self.motion_mean) / self.motion_std).astype(np.float32)
+        """Raw head parameters -> standardised (float32 NumPy)."""
+        return np.asarray(standardize(self.motion_stats, jnp.asarray(x, jnp.float32)))
 
     def unmotion(self, x: Any) -> np.ndarray:
         """Normalised motion back to raw head parameters."""
-        return (np.asarray(x) * self.motion_std + self.motion_mean).astype(np.float32)
+        return np.asarray(unstandardize(self.motion_stats, jnp.asarray(x, jnp.float32)))
 
     def to_dict(self) -> dict[str, list[float]]:
         return {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(self).items()}
@@ -205,27 +222,32 @@ class Normalizer:
         return cls(**{k: np.asarray(v, np.float32) for k, v in d.items()})
 
 
-def fit_normalizer(convs: Sequence[Conversation], *, min_std: float = 1e-3) -> Normalizer:
-    """Fit means and standard deviations on training conversations (both roles pooled).
+def fit_normalizer(convs: Sequence[Conversation], *, floor: float = 1e-3) -> Normalizer:
+    """Fit means and standard deviations on training conversations (agent sides; both roles of a
+    conversation are two entries, so every speaker is pooled).
+
+    Uses :func:`jaxtalk.data.standardize.fit_standardizer`, whose floor is relative to the mean std
+    over channels: with ``1e-3`` a channel that is constant in the training data gets a std of a
+    thousandth of the typical one (motion: ~4e-4) instead of 0, and every real channel keeps its own
+    std. (The near-constant jaw channels of SynthTalk have std 2e-3 and 5e-3: a larger floor, such
+    as the shared default 0.05, would shrink them in the grouped loss; a zero floor would divide by
+    zero.)
 
     Args:
         convs: training conversations.
-        min_std: floor on every std (constant channels).
+        floor: relative std floor (see :func:`~jaxtalk.data.standardize.fit_standardizer`).
 
     Returns:
         :class:`Normalizer`.
 
     Raises:
-        ValueError: no conversations.
+        ValueError: no conversations, or fewer than 2 frames in all.
     """
     if not convs:
         raise ValueError("fit_normalizer needs at least one conversation")
-    speech = np.concatenate([c.agent_speech for c in convs])
-    motion = np.concatenate([c.agent_motion for c in convs])
-    return Normalizer(
-        speech.mean(0).astype(np.float32), np.maximum(speech.std(0), min_std).astype(np.float32),
-        motion.mean(0).astype(np.float32), np.maximum(motion.std(0), min_std).astype(np.float32),
-    )
+    speech = fit_standardizer(np.concatenate([c.agent_speech for c in convs]), floor=floor)
+    motion = fit_standardizer(np.concatenate([c.agent_motion for c in convs]), floor=floor)
+    return Normalizer(speech["mean"], speech["std"], motion["mean"], motion["std"])
 
 
 def windows(

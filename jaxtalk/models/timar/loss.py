@@ -6,11 +6,12 @@ Per batch (Sec. 3.4 and the public code):
    ``[mask_ratio_min, 1]``; in every example exactly ``ceil(r L)`` of the ``L = N F`` agent-motion
    tokens, chosen uniformly at random, are replaced by the learned mask token (MAR's recipe);
 2. with probability ``cfg_prob`` all of an example's user tokens become the learned fake token;
-3. every frame gets its own timestep ``t ~ U{0..T-1}`` and noise; the head predicts x0 from
+3. every frame gets its own timesteps ``t ~ U{0..T-1}`` and noises (``diffusion_batch_mul`` draws,
+   MAR's recipe, sharing the frame's one encoder feature); the head predicts x0 from
    ``x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) eps`` and the encoder feature of that frame;
 4. the loss of a frame is the sum over the groups (exp, jaw, neck) of the group's mean squared error
    (plus, with a learned variance, improved diffusion's variational bound with the mean frozen),
-   averaged over the MASKED frames only.
+   averaged over the draws and over the MASKED frames only.
 
 The MLP-head ablation regresses x0 directly from the feature with the same grouped loss.
 """
@@ -215,22 +216,29 @@ def masked_loss(
         dropout_key=k_dropout if config.dropout_rate > 0 else None,
     )
     metrics: dict[str, Array] = {}
+    weight = mask.astype(jnp.float32)
     if config.head == "diffusion":
+        # diffusion_batch_mul draws of (t, noise) per frame on a leading axis, all reading the same
+        # encoder feature (broadcast, not copied, into the vmapped head).
+        m = config.diffusion_batch_mul
         tables = diffusion_tables(config)
-        t = jax.random.randint(k_t, mask.shape, 0, config.num_timesteps)
+        t = jax.random.randint(k_t, (m, *mask.shape), 0, config.num_timesteps)
         abar = tables["alpha_bar"][t][..., None]
-        eps = jax.random.normal(k_noise, targets.shape, targets.dtype)
-        xt = jnp.sqrt(abar) * targets + jnp.sqrt(1.0 - abar) * eps
-        out = apply_head(config, params["head"], z, xt, t.astype(jnp.float32))
+        eps = jax.random.normal(k_noise, (m, *targets.shape), targets.dtype)
+        x0 = jnp.broadcast_to(targets, eps.shape)
+        xt = jnp.sqrt(abar) * x0 + jnp.sqrt(1.0 - abar) * eps
+        out = apply_head(config, params["head"], jnp.broadcast_to(z, (m, *z.shape)), xt, t.astype(jnp.float32))
         x0_hat = out[..., : config.param_dim]
-        per_frame, groups = grouped_mse(x0_hat, targets)
+        per_frame, groups = grouped_mse(x0_hat, x0)
         if config.learn_sigma:
-            vlb = _vlb_bits(tables, t, targets, xt, x0_hat, out[..., config.param_dim :])
+            vlb = _vlb_bits(tables, t, x0, xt, x0_hat, out[..., config.param_dim :])
             groups["vlb"] = vlb
             per_frame = per_frame + config.vlb_weight * vlb
+        # Average over the draws: the loss keeps the scale of one draw per frame.
+        per_frame = jnp.mean(per_frame, axis=0)
+        groups = {name: jnp.mean(value, axis=0) for name, value in groups.items()}
     else:
         per_frame, groups = grouped_mse(apply_head(config, params["head"], z), targets)
-    weight = mask.astype(jnp.float32)
     denom = jnp.maximum(jnp.sum(weight), 1.0)
     loss = jnp.sum(per_frame * weight) / denom
     for name, value in groups.items():

@@ -45,13 +45,15 @@ __all__ = [
     "SAMPLERS",
     "MODULATION_TABLE_BYTES",
     "respaced_schedule",
+    "check_temperature",
     "conditions",
     "sample_frames",
     "sample",
     "posterior_mean",
 ]
 
-SAMPLERS = ("ddim", "ddpm")
+# "mean": no denoising loop, the head's x0 estimate at the last training timestep (the posterior mean).
+SAMPLERS = ("ddim", "ddpm", "mean")
 # Largest precomputed modulation table (bytes) before the sampler falls back to computing the
 # modulations inside its loop: 100 steps x 2 x 25 frames of the 1024-wide paper head is 225 MB.
 MODULATION_TABLE_BYTES = 512 * 2**20
@@ -143,6 +145,7 @@ def sample_frames(
     num_steps: int,
     sampler: str = "ddim",
     eta: Float[Array, ""] | float = 0.0,
+    temperature: Float[Array, ""] | float = 1.0,
     precompute: bool | None = None,
 ) -> Float[Array, "batch *frames param_dim"]:
     """Sample every frame's head parameters from its condition (jit-able building block).
@@ -155,8 +158,17 @@ def sample_frames(
         key: PRNG key (initial noise and, for DDPM / eta > 0, the step noise).
         cfg_scale: ``()`` omega (traced); ignored without ``z_uncond``.
         num_steps: respaced steps (static).
-        sampler: ``"ddim"`` or ``"ddpm"`` (static).
+        sampler: ``"ddim"``, ``"ddpm"`` or ``"mean"`` (static). ``"mean"`` evaluates the head once, at
+            the last training timestep on the initial noise (which carries no information about
+            x0 there), with guidance: the (guided) posterior mean ``E[x0 | condition]``, the point
+            estimate for MSE-type scores (as :func:`posterior_mean`). A deterministic DDIM
+            trajectory (temperature 0) is NOT that: after its first step it denoises the mean
+            towards the training data, e.g. towards a training speaker's resting face.
         eta: ``()`` DDIM stochasticity (traced).
+        temperature: ``()`` scale of the initial noise x_T (traced; MAR's sampling temperature).
+            With DDIM and ``eta = 0`` x_T is the only randomness: 1 samples the learned
+            distribution, 0 the deterministic trajectory from x_T = 0. The per-step noise of
+            DDPM / ``eta > 0`` is not scaled.
         precompute: compute every step's adaLN modulations before the loop (static; None: when
             the table fits in :data:`MODULATION_TABLE_BYTES`). Both ways give the same samples up
             to float32 summation order.
@@ -173,7 +185,15 @@ def sample_frames(
         return out
     k_noise, k_steps = jax.random.split(key)
     noise = jax.random.normal(k_noise, z_cond.shape[:-1] + (config.param_dim,), jnp.float32)
+    noise = noise * jnp.asarray(temperature, jnp.float32)
     hp = params["head"]
+    if sampler == "mean":
+        t_last = jnp.full(noise.shape[:-1], config.num_timesteps - 1.0)
+        out = apply_head(config, hp, z_cond, noise, t_last)[..., : config.param_dim]
+        if z_uncond is not None:
+            out_u = apply_head(config, hp, z_uncond, noise, t_last)[..., : config.param_dim]
+            out = out_u + omega * (out - out_u)
+        return out
     schedule = respaced_schedule(config.schedule, config.num_timesteps, num_steps)
     # Hoisted out of the step loop: the head's projection of the condition (both CFG branches).
     cz = head_condition(config, hp, z_cond)
@@ -200,11 +220,32 @@ def sample_frames(
     return sample_ddpm(model, noise, {"cz": cz}, schedule, k_steps, **kwargs)
 
 
+def check_temperature(temperature: Any) -> Array:
+    """The sampling temperature as a float32 scalar.
+
+    Args:
+        temperature: a scalar >= 0 (a traced value is passed through unchecked).
+
+    Returns:
+        ``()`` float32.
+
+    Raises:
+        ValueError: a non-scalar, negative or NaN value.
+    """
+    tau = jnp.asarray(temperature, jnp.float32)
+    if tau.ndim:
+        raise ValueError(f"temperature must be a scalar, got shape {tau.shape}")
+    if not isinstance(tau, jax.core.Tracer) and not bool(tau >= 0):
+        raise ValueError(f"temperature must be >= 0, got {float(tau)}")
+    return tau
+
+
 @functools.partial(jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance"))
-def _sample(config, params, us, um, as_, key, cfg_scale, eta, num_steps, sampler, guidance):
+def _sample(config, params, us, um, as_, key, cfg_scale, eta, temperature, num_steps, sampler, guidance):
     f = config.frames_per_turn
     z_c, z_u = conditions(config, params, to_turns(us, f), to_turns(um, f), to_turns(as_, f), guidance=guidance)
-    x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta)
+    x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta,
+                      temperature=temperature)
     return from_turns(x)
 
 
@@ -220,6 +261,7 @@ def sample(
     num_steps: int | None = None,
     sampler: str = "ddim",
     eta: Float[Array, ""] | float = 0.0,
+    temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
 ) -> Float[Array, "batch frames param_dim"]:
     """Agent head motion for a whole window of N <= ``max_turns`` turns in one pass.
@@ -235,8 +277,9 @@ def sample(
         key: PRNG key.
         cfg_scale: ``()`` guidance omega (traced; default ``config.cfg_scale``).
         num_steps: respaced diffusion steps (static; default ``config.sample_steps``).
-        sampler: ``"ddim"`` or ``"ddpm"``.
+        sampler: ``"ddim"``, ``"ddpm"`` or ``"mean"`` (the guided posterior mean; see :func:`sample_frames`).
         eta: DDIM stochasticity (traced).
+        temperature: initial-noise scale (traced; see :func:`sample_frames`).
         guidance: run the unconditional branch (False: conditional only, ``cfg_scale`` ignored).
 
     Returns:
@@ -263,7 +306,7 @@ def sample(
         config, params,
         jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32),
-        num_steps, sampler, bool(guidance),
+        check_temperature(temperature), num_steps, sampler, bool(guidance),
     )
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.models.timar.inputs import check_streams
-from jaxtalk.models.timar.sample import SAMPLERS, sample_frames
+from jaxtalk.models.timar.sample import SAMPLERS, check_temperature, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.nn import bias_from_mask
 from jaxtalk.types import Array, Float, Shaped, Int, PRNGKeyArray
@@ -249,11 +249,12 @@ def stream_condition(
 @functools.partial(
     jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance", "mode"), donate_argnums=(2,)
 )
-def _step(config, params, state, us, um, as_, key, cfg_scale, eta, num_steps, sampler, guidance, mode):
+def _step(config, params, state, us, um, as_, key, cfg_scale, eta, temperature, num_steps, sampler, guidance, mode):
     state, z = _condition(config, params, state, us, um, as_, guidance, mode)
     b = us.shape[0]
     z_c, z_u = (z[:b], z[b:]) if guidance else (z, None)
-    x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta)
+    x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta,
+                      temperature=temperature)
     return state, x
 
 
@@ -270,6 +271,7 @@ def stream_step(
     num_steps: int | None = None,
     sampler: str = "ddim",
     eta: Float[Array, ""] | float = 0.0,
+    temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
 ) -> tuple[StreamState, Float[Array, "batch frames param_dim"]]:
     """One streaming turn: encode it against the window, sample the agent's motion for it.
@@ -285,8 +287,9 @@ def stream_step(
         key: PRNG key of this turn.
         cfg_scale: ``()`` omega (traced; default ``config.cfg_scale``).
         num_steps: respaced diffusion steps (static; default ``config.sample_steps``).
-        sampler: ``"ddim"`` or ``"ddpm"``.
+        sampler: ``"ddim"``, ``"ddpm"`` or ``"mean"`` (see :func:`~jaxtalk.models.timar.sample.sample_frames`).
         eta: DDIM stochasticity (traced).
+        temperature: initial-noise scale (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`).
         guidance: must match the state.
 
     Returns:
@@ -306,7 +309,8 @@ def stream_step(
         raise ValueError(f"cfg_scale must be a scalar, got shape {cfg.shape}")
     return _step(
         config, params, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
-        jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32), num_steps, sampler,
+        jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature),
+        num_steps, sampler,
         bool(guidance), _mode(config, state),
     )
 
@@ -323,6 +327,7 @@ def stream_conversation(
     cfg_scale: Shaped[Array, "..."] | float | None = None,
     num_steps: int | None = None,
     sampler: str = "ddim",
+    temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
 ) -> Float[Array, "batch frames param_dim"]:
     """Stream whole conversations turn by turn (any number of turns; the window slides).
@@ -337,7 +342,7 @@ def stream_conversation(
         user_motion: ``(B, N F, 56)``.
         key: PRNG key.
         context: n previous turns in the window.
-        cfg_scale, num_steps, sampler, guidance: see :func:`stream_step`.
+        cfg_scale, num_steps, sampler, temperature, guidance: see :func:`stream_step`.
 
     Returns:
         ``(B, N F, 56)`` agent motion.
@@ -354,7 +359,7 @@ def stream_conversation(
         state, x = stream_step(
             config, params, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl],
             jax.random.fold_in(key, i), cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler,
-            guidance=guidance,
+            temperature=temperature, guidance=guidance,
         )
         out.append(x)
     return jnp.concatenate(out, axis=1)
