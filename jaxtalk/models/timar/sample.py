@@ -177,23 +177,14 @@ def sample_frames(
         ``(B, *F, 56)`` samples (the MLP head's prediction for the ``"mlp"`` ablation).
     """
     omega = jnp.asarray(cfg_scale, jnp.float32)
+    hp = params["head"]
     if config.head == "mlp":
-        out = apply_head(config, params["head"], z_cond)
-        if z_uncond is not None:
-            out_u = apply_head(config, params["head"], z_uncond)
-            out = out_u + omega * (out - out_u)
-        return out
+        return _guided(lambda z: apply_head(config, hp, z), z_cond, z_uncond, omega)
     k_noise, k_steps = jax.random.split(key)
     noise = jax.random.normal(k_noise, z_cond.shape[:-1] + (config.param_dim,), jnp.float32)
     noise = noise * jnp.asarray(temperature, jnp.float32)
-    hp = params["head"]
     if sampler == "mean":
-        t_last = jnp.full(noise.shape[:-1], config.num_timesteps - 1.0)
-        out = apply_head(config, hp, z_cond, noise, t_last)[..., : config.param_dim]
-        if z_uncond is not None:
-            out_u = apply_head(config, hp, z_uncond, noise, t_last)[..., : config.param_dim]
-            out = out_u + omega * (out - out_u)
-        return out
+        return _guided(lambda z: _head_at_last_timestep(config, hp, z, noise), z_cond, z_uncond, omega)
     schedule = respaced_schedule(config.schedule, config.num_timesteps, num_steps)
     # Hoisted out of the step loop: the head's projection of the condition (both CFG branches).
     cz = head_condition(config, hp, z_cond)
@@ -218,6 +209,22 @@ def sample_frames(
     if sampler == "ddim":
         return sample_ddim(model, noise, {"cz": cz}, schedule, k_steps, eta=eta, **kwargs)
     return sample_ddpm(model, noise, {"cz": cz}, schedule, k_steps, **kwargs)
+
+
+def _guided(fn: Any, z_cond: Array, z_uncond: Array | None, omega: Array) -> Array:
+    """``fn(z_cond)``, or with guidance ``u + omega (c - u)`` (Eq. 9) for ``u = fn(z_uncond)``."""
+    out = fn(z_cond)
+    if z_uncond is None:
+        return out
+    out_u = fn(z_uncond)
+    return out_u + omega * (out - out_u)
+
+
+def _head_at_last_timestep(config: TimarConfig, head_params: Any, z: Array, noise: Array) -> Array:
+    """The head's x0 estimate at the last training timestep, where ``noise`` carries no information
+    about x0: the posterior mean ``E[x0 | z]`` of an x0-predicting head."""
+    t_last = jnp.full(noise.shape[:-1], config.num_timesteps - 1.0)
+    return apply_head(config, head_params, z, noise, t_last)[..., : config.param_dim]
 
 
 def check_temperature(temperature: Any) -> Array:
@@ -317,8 +324,7 @@ def _posterior_mean(config, params, us, um, as_, key):
     if config.head == "mlp":
         return from_turns(apply_head(config, params["head"], z))
     noise = jax.random.normal(key, z.shape[:-1] + (config.param_dim,), jnp.float32)
-    t_last = jnp.full(z.shape[:-1], config.num_timesteps - 1.0)
-    return from_turns(apply_head(config, params["head"], z, noise, t_last)[..., : config.param_dim])
+    return from_turns(_head_at_last_timestep(config, params["head"], z, noise))
 
 
 def posterior_mean(

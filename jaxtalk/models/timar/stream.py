@@ -103,9 +103,6 @@ def _encoder_call(config: TimarConfig, params: Any, method: str, *args: Any, **k
     return TimarEncoder(config).apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
 
 
-MODES = ("auto", "cached", "sliding")
-
-
 def _mode(config: TimarConfig, state: StreamState) -> str:
     """The branch of this turn, decided on the host when the turn counter is concrete.
 
