@@ -395,10 +395,10 @@ def fit_flow_scale(
     Returns:
         ``(param_dim,)`` float32.
     """
-    mean, std = np.asarray(params["norm"]["mean"], np.float64), np.asarray(params["norm"]["std"], np.float64)
-    z = (np.asarray(motion, np.float64) - mean) / std
+    # The model's own standardisation and anchor (what to_flow_space subtracts), not a re-derivation.
+    z = np.asarray(standardize(params["norm"], jnp.asarray(motion, jnp.float32)), np.float64)
     if config.style_anchor:
-        z = z - ((np.asarray(style, np.float64) - mean) / std).mean(axis=1)[:, None, :]
+        z = z - np.asarray(anchor_pose(params, jnp.asarray(style, jnp.float32)), np.float64)[:, None, :]
     z = z[np.asarray(mask, bool)]
     if z.shape[0] == 0:
         raise ValueError("fit_flow_scale needs at least one real frame")
