@@ -285,9 +285,9 @@ class MeshContext(NamedTuple):
 
 
 class SparseToMesh(nn.Module):
-    """The STM network. ``mesh_features`` and ``mesh_context`` run once per mesh, ``fuse_frame`` once
-    per frame, and ``decode_fused`` once on all frames stacked ``(V, T, width)`` (``decode_frame``:
-    one frame end to end).
+    """The STM network. ``mesh_features`` and ``mesh_context`` run once per mesh; ``fuse_frame`` and
+    ``decode_fused`` run per frame (``decode_fused`` also takes frames stacked ``(V, T, width)``;
+    ``decode_frame``: one frame end to end).
 
     Attributes:
         config: static :class:`STMConfig`.
