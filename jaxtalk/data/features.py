@@ -1,0 +1,98 @@
+"""Per-clip model inputs computed once by ``jaxtalk prepare``: the audio feature streams every model
+reads, landmark displacements, and token embeddings.
+
+Audio features come in two alignments, both at the 25-fps motion rate:
+
+* ``speech (T, D)``: computed over the whole clip (FreeTalk's ATS and offline uses). With log-mel
+  this is four 10 ms frames of 80 bands stacked per 40 ms motion frame (``D = 320``).
+* ``turn_speech (turns * 25, D)``: each 1-s turn computed from that turn's audio ALONE (TIMAR's
+  per-chunk tokenisation), so no future audio reaches a past turn. With log-mel ``D = 80``.
+
+With a pretrained encoder (``hubert:PATH`` / ``wav2vec2:PATH``, a local Hugging Face folder) both
+streams are the encoder's features resampled to 25 fps, the per-turn one again turn by turn.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import numpy as np
+
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
+
+__all__ = ["AudioFeatures", "parse_audio_features", "SAMPLES_PER_FRAME", "TURN_FRAMES"]
+
+SAMPLES_PER_FRAME = AUDIO_SAMPLE_RATE // MOTION_FPS  # 640
+TURN_FRAMES = MOTION_FPS  # one 1-s turn
+
+
+@dataclasses.dataclass(frozen=True)
+class AudioFeatures:
+    """An audio front end: ``kind`` is ``logmel``, ``hubert`` or ``wav2vec2`` (``path`` for the latter two)."""
+
+    kind: str = "logmel"
+    path: str | None = None
+
+    @property
+    def spec(self) -> str:
+        """The command-line spelling (``logmel`` or ``hubert:PATH``)."""
+        return self.kind if self.path is None else f"{self.kind}:{self.path}"
+
+    @functools.cached_property
+    def _encoder(self) -> Any:
+        from jaxtalk.audio.encoders import SpeechEncoder
+
+        return SpeechEncoder.from_pretrained(self.path)
+
+    def speech(self, audio: np.ndarray, num_frames: int) -> np.ndarray:
+        """Whole-clip features ``(num_frames, D)`` float32 of ``audio`` (16 kHz, any length)."""
+        if self.kind == "logmel":
+            from jaxtalk.models.freetalk.data import audio_features
+
+            return audio_features(audio, num_frames)
+        feats = np.asarray(self._encoder.features_at(_fit(audio, num_frames * SAMPLES_PER_FRAME), MOTION_FPS))
+        return _fit(feats, num_frames).astype(np.float32)
+
+    def turn_speech(self, audio: np.ndarray, num_turns: int) -> np.ndarray:
+        """Per-turn features ``(num_turns * 25, D)``: each 1-s turn from its own audio only."""
+        if self.kind == "logmel":
+            from jaxtalk.models.timar.data import turn_speech_features
+
+            return turn_speech_features(audio, num_turns)
+        spt = TURN_FRAMES * SAMPLES_PER_FRAME
+        turns = [_fit(np.asarray(self._encoder.features_at(audio[k * spt:(k + 1) * spt], MOTION_FPS)), TURN_FRAMES)
+                 for k in range(num_turns)]
+        return np.concatenate(turns).astype(np.float32)
+
+
+def _fit(x: np.ndarray, n: int) -> np.ndarray:
+    """Crop, or zero-pad (audio) / edge-pad (features), ``x`` to ``n`` rows."""
+    x = np.asarray(x)
+    if x.shape[0] >= n:
+        return x[:n]
+    if x.ndim == 1:
+        return np.pad(x, (0, n - x.shape[0]))
+    return np.concatenate([x, np.repeat(x[-1:], n - x.shape[0], axis=0)])
+
+
+def parse_audio_features(spec: str) -> AudioFeatures:
+    """``logmel`` | ``hubert:PATH`` | ``wav2vec2:PATH`` -> :class:`AudioFeatures`.
+
+    Raises:
+        ValueError: an unknown kind, or an encoder without a folder.
+        FileNotFoundError: the encoder folder does not exist.
+    """
+    from pathlib import Path
+
+    kind, _, path = spec.partition(":")
+    if kind == "logmel" and not path:
+        return AudioFeatures()
+    if kind not in ("hubert", "wav2vec2"):
+        raise ValueError(f"unknown audio features {spec!r}; expected logmel, hubert:PATH or wav2vec2:PATH")
+    if not path:
+        raise ValueError(f"{kind} features need a local checkpoint folder: {kind}:PATH")
+    if not Path(path).is_dir():
+        raise FileNotFoundError(f"{kind} checkpoint folder not found: {path!r} (config.json + model.safetensors)")
+    return AudioFeatures(kind, str(Path(path).absolute()))

@@ -1,0 +1,266 @@
+"""The one loader every model trains from: a prepared dataset (``jaxtalk prepare``) read through grain.
+
+* :class:`PreparedData` opens a prepared folder: the manifest, the splits, and random access to each
+  clip's record in the ArrayRecord shards (only the arrays asked for are decoded).
+* A model's recipe says how windows are cut: ``recipe.table(data, split)`` lists every window as a
+  row of integers (clip, start, ...) from the manifest alone, and ``recipe.example(data, row)`` reads
+  one window. :func:`make_loader` turns that into batches with grain: per-process sharding of the
+  window table (``jax.process_index()`` of ``jax.process_count()``), a seeded shuffle that differs
+  every epoch, the recipe's map, and batching. Its position (``get_state``/``set_state``) is saved in
+  the orbax checkpoint by the training loop, so an interrupted run resumes on the same batch.
+
+Memory stays bounded by the batch, not the dataset: windows are read from disk when they are needed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from jaxtalk.data.prepare import FORMAT_VERSION, MANIFEST, SHARDS, decode_record
+
+__all__ = ["PreparedData", "WindowRecipe", "WindowLoader", "make_loader", "open_data", "iter_windows"]
+
+
+class PreparedData:
+    """A prepared dataset folder.
+
+    Attributes:
+        root: the folder.
+        manifest: ``manifest.json`` as a dict.
+        clips: the manifest's clip entries (name, speaker, split, frames, partner, ...), in record order.
+    """
+
+    def __init__(self, root: str | Path) -> None:
+        """Open ``root``.
+
+        Raises:
+            FileNotFoundError: no folder, or no ``manifest.json`` in it (not prepared yet).
+            ValueError: a manifest of another format version, or shards missing from disk.
+        """
+        self.root = Path(root)
+        path = self.root / MANIFEST
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"{str(self.root)!r} is not a prepared dataset (no {MANIFEST}); make one with `jaxtalk prepare SRC --out DIR`"
+            )
+        self.manifest = json.loads(path.read_text())
+        if self.manifest.get("format") != FORMAT_VERSION:
+            raise ValueError(f"{path}: format {self.manifest.get('format')!r}, this jaxtalk reads {FORMAT_VERSION}; prepare again")
+        self.clips: list[dict[str, Any]] = self.manifest["clips"]
+        self._by_name = {c["name"]: i for i, c in enumerate(self.clips)}
+        missing = [s for s in self.manifest["shards"] if not (self.root / SHARDS / s).is_file()]
+        if missing:
+            raise ValueError(f"{self.root}: shards missing from disk: {missing[:3]}; prepare again")
+
+    def __len__(self) -> int:
+        return len(self.clips)
+
+    def __repr__(self) -> str:
+        counts = {s: len(v) for s, v in self.manifest["splits"].items() if v}
+        return f"PreparedData({str(self.root)!r}, clips={len(self)}, splits={counts})"
+
+    def __getstate__(self) -> dict:
+        # Readers hold file handles: a copy (e.g. a grain worker) reopens them.
+        return {k: v for k, v in self.__dict__.items() if k != "_readers"}
+
+    @property
+    def key(self) -> str:
+        """Identifies the prepared content (source spec and feature settings), for run records."""
+        return f"{self.manifest['source']['spec']}#{self.manifest['settings_hash']}"
+
+    def index(self, name: str) -> int:
+        """The position of clip ``name``.
+
+        Raises:
+            KeyError: no such clip (naming it).
+        """
+        if name not in self._by_name:
+            raise KeyError(f"no clip {name!r} in {self.root}")
+        return self._by_name[name]
+
+    def split(self, name: str, *, motion: bool = True) -> list[int]:
+        """Clip positions of a split (only clips with motion when ``motion``).
+
+        Raises:
+            ValueError: an unknown split.
+        """
+        if name not in self.manifest["splits"]:
+            raise ValueError(f"unknown split {name!r}; known: {', '.join(self.manifest['splits'])}")
+        return [i for i, c in enumerate(self.clips) if c["split"] == name and (c["has_motion"] or not motion)]
+
+    def partner(self, i: int) -> int | None:
+        """Position of clip ``i``'s conversation partner, or None."""
+        p = self.clips[i]["partner"]
+        return self._by_name.get(p) if p is not None else None
+
+    @functools.cached_property
+    def _readers(self) -> dict[str, Any]:
+        from array_record.python.array_record_module import ArrayRecordReader
+
+        return {s: ArrayRecordReader(str(self.root / SHARDS / s)) for s in self.manifest["shards"]}
+
+    def record(self, i: int, keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """The arrays of clip ``i`` (only ``keys`` when given; absent keys are left out)."""
+        c = self.clips[i]
+        data = self._readers[c["shard"]].read([c["index"]])[0]
+        return decode_record(data, keys)
+
+    def motion_stats(self) -> dict[str, np.ndarray]:
+        """Mean and std of the training split's 56-d motion (per channel).
+
+        Raises:
+            ValueError: a dataset whose training split has no motion.
+        """
+        stats = self.manifest["stats"]
+        if stats is None:
+            raise ValueError(f"{self.root}: the training split has no motion clips (no statistics)")
+        return {"mean": np.asarray(stats["motion_mean"], np.float32), "std": np.asarray(stats["motion_std"], np.float32)}
+
+    def tokenizer(self) -> Any:
+        """The VQ tokenizer fitted by ``prepare`` (``--tokens vq``), or None."""
+        if not self.manifest.get("tokenizer"):
+            return None
+        from jaxtalk.audio import VQTokenizer
+
+        return VQTokenizer.load(self.root / self.manifest["tokenizer"])
+
+
+def open_data(spec: str | Path, *, cache_dir: str | Path = ".cache/prepared", progress: bool = True) -> PreparedData:
+    """A prepared dataset from a folder, or ``synthtalk:SIZE[:SEED]`` (prepared once into ``cache_dir``).
+
+    Raises:
+        FileNotFoundError: a folder that is not a prepared dataset.
+    """
+    text = str(spec)
+    if text.startswith("synthtalk:"):
+        from jaxtalk.data.prepare import prepare
+        from jaxtalk.data.sources import open_source
+
+        parts = text.split(":")
+        seed = parts[2] if len(parts) > 2 else "0"
+        out = Path(cache_dir) / f"synthtalk-{parts[1]}-seed{seed}"
+        if not (out / MANIFEST).is_file():
+            prepare(open_source(text, cache_dir=Path(cache_dir) / "synthtalk"), out, progress=progress)
+        return PreparedData(out)
+    return PreparedData(spec)
+
+
+class WindowRecipe(Protocol):
+    """How a model cuts its training examples from prepared clips."""
+
+    def table(self, data: PreparedData, split: str) -> np.ndarray:
+        """Every window of ``split`` as an ``(N, k)`` int64 table, a pure function of the manifest."""
+
+    def example(self, data: PreparedData, row: np.ndarray) -> dict[str, np.ndarray]:
+        """The arrays of one window (no batch axis)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class _Example:
+    # A top-level callable (not a lambda) so that grain can copy the pipeline into workers.
+    data: PreparedData
+    recipe: Any
+
+    def __call__(self, row: np.ndarray) -> dict[str, np.ndarray]:
+        return self.recipe.example(self.data, row)
+
+
+class WindowLoader(Iterator[dict[str, np.ndarray]]):
+    """Endless, deterministic batches of windows with a checkpointable position (see :func:`make_loader`).
+
+    Attributes:
+        num_windows: windows of this process's shard.
+        batch_size: windows per batch (this process's part of a global batch).
+        variable_axes: ``()``: every batch has the same shape.
+    """
+
+    variable_axes: tuple[int, ...] = ()
+
+    def __init__(self, dataset: Any, fingerprint: dict[str, Any], num_windows: int, batch_size: int) -> None:
+        self._dataset = dataset
+        self._fingerprint = fingerprint
+        self._it = iter(dataset)
+        self.num_windows = num_windows
+        self.batch_size = batch_size
+
+    def __next__(self) -> dict[str, np.ndarray]:
+        return next(self._it)
+
+    def get_state(self) -> dict[str, Any]:
+        """The position (JSON-serialisable) plus what it is valid for."""
+        return {**self._fingerprint, "grain": self._it.get_state()}
+
+    def set_state(self, state: Mapping[str, Any]) -> None:
+        """Continue from a :meth:`get_state` position.
+
+        Raises:
+            ValueError: a position saved for other data, windows, seed, batch size or process shard.
+        """
+        for k, v in self._fingerprint.items():
+            if state.get(k) != v:
+                raise ValueError(f"loader state was saved with {k}={state.get(k)!r}, this loader has {v!r}")
+        self._it.set_state(state["grain"])
+
+
+def make_loader(
+    data: PreparedData,
+    recipe: WindowRecipe,
+    split: str,
+    batch_size: int,
+    *,
+    seed: int = 0,
+    shuffle: bool = True,
+    num_epochs: int | None = None,
+    shard: tuple[int, int] | None = None,
+) -> WindowLoader:
+    """Batches of ``recipe`` windows of ``split``, through grain.
+
+    Args:
+        data: the prepared dataset.
+        recipe: the model's window recipe.
+        split: which split.
+        batch_size: windows per batch on this process.
+        seed: shuffle seed (epoch ``e`` has its own order).
+        shuffle: shuffle the windows (False: table order).
+        num_epochs: stop after this many passes (None: endless).
+        shard: ``(index, count)`` of this process (default ``jax.process_index()``,
+            ``jax.process_count()``): process ``i`` reads windows ``i, i + count, ...``.
+
+    Returns:
+        :class:`WindowLoader`.
+
+    Raises:
+        ValueError: no window in the split, or fewer windows on this process than one batch.
+    """
+    import grain
+
+    if shard is None:
+        import jax
+
+        shard = (jax.process_index(), jax.process_count())
+    table = np.asarray(recipe.table(data, split), np.int64)
+    if table.size == 0:
+        raise ValueError(f"split {split!r} of {data.root} has no {type(recipe).__name__} window")
+    ds = grain.MapDataset.source(table)[shard[0]::shard[1]]
+    n = len(ds)
+    if n < batch_size:
+        raise ValueError(f"split {split!r} has {n} windows on this process, fewer than batch_size={batch_size}")
+    if shuffle:
+        ds = ds.shuffle(seed=seed)
+    ds = ds.repeat(num_epochs).map(_Example(data, recipe)).batch(batch_size, drop_remainder=True)
+    fingerprint = {"data": data.key, "split": split, "windows": int(len(table)), "seed": seed,
+                   "batch_size": batch_size, "shard": list(shard), "recipe": type(recipe).__name__}
+    return WindowLoader(ds.to_iter_dataset(), fingerprint, n, batch_size)
+
+
+def iter_windows(data: PreparedData, recipe: WindowRecipe, split: str) -> Iterator[dict[str, np.ndarray]]:
+    """Every window of ``split`` once, in table order (evaluation)."""
+    for row in np.asarray(recipe.table(data, split), np.int64):
+        yield recipe.example(data, row)

@@ -1,0 +1,478 @@
+"""``jaxtalk prepare SRC --out DATA``: every clip read, checked and turned into model inputs once,
+written as sharded ArrayRecord files plus a manifest that the grain loader reads.
+
+Layout of ``DATA``::
+
+    manifest.json          source, feature settings and their hash, fps, clips (name, speaker,
+                           split, frames, partner, emotion, intensity, record index), splits,
+                           normalisation statistics, token rate/width, feature widths
+    shards/NNNNN.array_record   one record per clip (an uncompressed .npz of its arrays)
+    shards/NNNNN.json      the shard's clip entries (name, content hash, settings hash, sums)
+    tokenizer.npz          the VQ tokenizer fitted on the training split (``--tokens vq``)
+    report.csv             every clip that was skipped: file, reason
+
+A record holds ``motion (T, 56)`` (or ``vertices (T, V, 3)`` + ``template``), ``speech (T, D)``,
+``turn_speech (turns*25, D)``, ``landmarks (T, 68, 3)`` (displacements on the built-in face, for
+FreeTalk), ``tokens (Tt, W)`` and ``oracle (T, 56)`` where known; T is at 25 fps.
+
+Incremental and resumable: each shard is written under a temporary name and renamed, then its
+``.json`` index (also atomically); a run killed half way keeps every finished shard. A second run
+re-reads only clips whose content hash (their files' bytes) or feature settings changed; the
+manifest is rewritten at the end of every run.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import io
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jaxtalk.data.features import SAMPLES_PER_FRAME, TURN_FRAMES, AudioFeatures, parse_audio_features
+from jaxtalk.data.sources import BadClip, ClipEntry, RawClip, Source, check_clip, open_source
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
+
+__all__ = ["PrepareSettings", "PrepareResult", "prepare", "MANIFEST", "REPORT", "FORMAT_VERSION",
+           "encode_record", "decode_record", "clip_record", "atomic_write_text"]
+
+MANIFEST = "manifest.json"
+REPORT = "report.csv"
+SHARDS = "shards"
+TOKENIZER = "tokenizer.npz"
+FORMAT_VERSION = 1
+SPLITS = ("train", "val", "test", "ood")
+
+
+@dataclasses.dataclass(frozen=True)
+class PrepareSettings:
+    """What ``prepare`` computes (everything that changes a record is in :meth:`digest`).
+
+    Attributes:
+        audio: ``logmel`` (default), ``hubert:PATH`` or ``wav2vec2:PATH``.
+        tokens: ``auto`` (the clips' own token files when the source has them, else ``vq``), ``clip``,
+            ``vq`` (a VQ tokenizer fitted on the training split, as SynthTalk's streams are made) or
+            ``none``.
+        vq_rate, vq_width, vq_codes: the VQ token stream (TokTalk's base stream: 12.5 Hz x 64).
+        min_frames: shortest usable clip in 25-fps frames (default one 1-s turn).
+        val_fraction, test_fraction: shares of speakers drawn into val / test where the layout
+            gives no splits (a layout with train but no val gives val_fraction of its train speakers).
+        split_seed: seed of those draws.
+        landmarks: compute 68-landmark displacements through the built-in face (FreeTalk's ATS).
+    """
+
+    audio: str = "logmel"
+    tokens: str = "auto"
+    vq_rate: float = 12.5
+    vq_width: int = 64
+    vq_codes: int = 256
+    min_frames: int = TURN_FRAMES
+    val_fraction: float = 0.1
+    test_fraction: float = 0.1
+    split_seed: int = 0
+    landmarks: bool = True
+
+    def __post_init__(self) -> None:
+        if self.tokens not in ("auto", "clip", "vq", "none"):
+            raise ValueError(f"tokens must be auto, clip, vq or none, got {self.tokens!r}")
+        if self.min_frames < 1:
+            raise ValueError(f"min_frames must be >= 1, got {self.min_frames}")
+        if not (0 <= self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
+            raise ValueError(f"val/test fractions must be in [0, 1) with a sum < 1, got {self.val_fraction}, {self.test_fraction}")
+        parse_audio_features(self.audio)
+
+    def digest(self) -> str:
+        """Hash of the settings that shape a record (splits are not part of a record)."""
+        keys = ("audio", "tokens", "vq_rate", "vq_width", "vq_codes", "landmarks")
+        return hashlib.sha1(json.dumps({k: getattr(self, k) for k in keys}, sort_keys=True).encode()).hexdigest()[:16]
+
+
+@dataclasses.dataclass
+class PrepareResult:
+    """What :func:`prepare` did.
+
+    Attributes:
+        out: the prepared folder.
+        clips: clips in the manifest.
+        new: clips prepared by this run (the rest were kept from an earlier run).
+        skipped: ``(file, reason)`` of every clip left out.
+        seconds: wall time.
+    """
+
+    out: Path
+    clips: int
+    new: int
+    skipped: list[tuple[str, str]]
+    seconds: float
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename (never a half-written file)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def encode_record(arrays: dict[str, np.ndarray]) -> bytes:
+    """A clip's arrays as the bytes of an uncompressed .npz (random access to each array on read)."""
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def decode_record(data: bytes, keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of a record (only ``keys`` when given: the others are not decoded)."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as z:
+        return {k: z[k] for k in (z.files if keys is None else keys) if k in z.files}
+
+
+def _to_motion_rate(x: np.ndarray, fps: float) -> np.ndarray:
+    if fps == MOTION_FPS:
+        return x
+    from jaxtalk.audio.framerate import default_num_frames, resample_features
+
+    count = default_num_frames(x.shape[0], fps, MOTION_FPS)
+    flat = x.reshape(x.shape[0], -1)
+    return np.asarray(resample_features(flat, fps, MOTION_FPS, num_frames=count), np.float32).reshape(count, *x.shape[1:])
+
+
+def clip_record(raw: RawClip, features: AudioFeatures, *, tokenizer: Any = None, landmarks: bool = True) -> dict[str, np.ndarray]:
+    """The prepared arrays of one checked clip (see the module docstring).
+
+    Args:
+        raw: a clip that passed :func:`~jaxtalk.data.sources.check_clip`.
+        features: the audio front end.
+        tokenizer: a ``VQTokenizer`` to encode the audio with (replaces the clip's own tokens), or None.
+        landmarks: add landmark displacements (needs ``params``).
+    """
+    out: dict[str, np.ndarray] = {}
+    if raw.params is not None:
+        out["motion"] = _to_motion_rate(raw.params.astype(np.float32), raw.fps)
+    if raw.vertices is not None:
+        out["vertices"] = _to_motion_rate(raw.vertices.astype(np.float32), raw.fps)
+        if raw.template is not None:
+            out["template"] = raw.template.astype(np.float32)
+    if raw.oracle is not None:
+        out["oracle"] = _to_motion_rate(raw.oracle.astype(np.float32), raw.fps)
+    frames = next((v.shape[0] for k, v in out.items() if k in ("motion", "vertices")), None)
+    audio = raw.audio.astype(np.float32)
+    if frames is None:  # audio-only clip: as many frames as the audio covers
+        frames = max(int(round(audio.size / SAMPLES_PER_FRAME)), 1)
+    out["speech"] = features.speech(audio, frames)
+    turns = frames // TURN_FRAMES
+    if turns:
+        out["turn_speech"] = features.turn_speech(np.pad(audio, (0, max(turns * TURN_FRAMES * SAMPLES_PER_FRAME - audio.size, 0))), turns)
+    if landmarks and "motion" in out:
+        from jaxtalk.face import builtin_face
+        from jaxtalk.models.freetalk.data import landmark_motion, without_head_pose
+
+        out["landmarks"] = landmark_motion(builtin_face(0), without_head_pose(out["motion"]))
+    if tokenizer is not None:
+        out["tokens"] = np.asarray(tokenizer.encode(audio).embeddings, np.float32)
+    elif raw.tokens is not None:
+        out["tokens"] = raw.tokens.astype(np.float32)
+    return out
+
+
+def _assign_splits(entries: Sequence[ClipEntry], settings: PrepareSettings) -> dict[str, str]:
+    """Split per clip: the layout's where it has one; else speaker-disjoint seeded draws by group."""
+    given = {e.name: e.split for e in entries if e.split is not None}
+    for name, split in given.items():
+        if split not in SPLITS:
+            raise ValueError(f"clip {name!r} has split {split!r}; expected one of {', '.join(SPLITS)}")
+    rng = np.random.default_rng(settings.split_seed)
+    out = dict(given)
+    free = sorted({e.split_group for e in entries if e.split is None})
+    if free:
+        order = [free[i] for in_ in [rng.permutation(len(free))] for i in in_]
+        n_val, n_test = int(round(settings.val_fraction * len(order))), int(round(settings.test_fraction * len(order)))
+        if len(order) >= 3:
+            n_val, n_test = max(n_val, 1 if settings.val_fraction else 0), max(n_test, 1 if settings.test_fraction else 0)
+        group_split = {g: ("val" if k < n_val else "test" if k < n_val + n_test else "train") for k, g in enumerate(order)}
+        out.update({e.name: group_split[e.split_group] for e in entries if e.split is None})
+    if given and "val" not in given.values() and settings.val_fraction:
+        # A layout with train but no val: hold out a share of the training groups for validation.
+        groups = sorted({e.split_group for e in entries if out[e.name] == "train"})
+        take = max(int(round(settings.val_fraction * len(groups))), 1) if len(groups) > 1 else 0
+        chosen = {groups[i] for i in rng.permutation(len(groups))[:take]}
+        out.update({e.name: "val" for e in entries if out[e.name] == "train" and e.split_group in chosen})
+    return out
+
+
+def _read_checked(entry: ClipEntry, settings: PrepareSettings, names: set[str]) -> RawClip:
+    if entry.requires_partner and entry.partner not in names:
+        raise BadClip(f"missing partner: conversation side {entry.partner!r} is not in the dataset")
+    try:
+        raw = entry.read()
+    except BadClip:
+        raise
+    except FileNotFoundError as err:
+        raise BadClip(f"missing file: {err}") from None
+    except Exception as err:  # noqa: BLE001 - any reader failure is this clip's problem, reported
+        raise BadClip(f"unreadable: {type(err).__name__}: {err}") from None
+    # DualTalk's audio-only sides are partners, not training clips: motion is optional for them.
+    check_clip(raw, min_frames=settings.min_frames, motion_required=not (entry.requires_partner and raw.num_frames == 0))
+    return raw
+
+
+def _existing(shard_dir: Path, digest: str) -> dict[str, dict[str, Any]]:
+    """Clip entries of finished shards of this settings digest; other shards and leftovers removed."""
+    kept: dict[str, dict[str, Any]] = {}
+    if not shard_dir.is_dir():
+        return kept
+    indexed = set()
+    for index in sorted(shard_dir.glob("[0-9]*.json")):
+        info = json.loads(index.read_text())
+        shard = index.with_suffix(".array_record")
+        if info.get("settings") != digest or not shard.is_file():
+            index.unlink()
+            shard.unlink(missing_ok=True)
+            continue
+        indexed.add(shard.name)
+        for clip in info["clips"]:
+            kept[clip["name"]] = {**clip, "shard": shard.name}
+    for leftover in list(shard_dir.glob("*.array_record")) + list(shard_dir.glob(".*")):
+        if leftover.name not in indexed:
+            leftover.unlink()  # a shard whose index was never written: an interrupted run
+    return kept
+
+
+def _write_shard(shard_dir: Path, number: int, records: list[tuple[dict, bytes]], digest: str) -> str:
+    from array_record.python.array_record_module import ArrayRecordWriter
+
+    name = f"{number:05d}.array_record"
+    tmp = shard_dir / f".{name}.tmp"
+    writer = ArrayRecordWriter(str(tmp), "group_size:1")
+    for _, data in records:
+        writer.write(data)
+    writer.close()
+    os.replace(tmp, shard_dir / name)
+    clips = [{**meta, "index": i} for i, (meta, _) in enumerate(records)]
+    atomic_write_text(shard_dir / f"{number:05d}.json", json.dumps({"settings": digest, "clips": clips}))
+    return name
+
+
+def _fit_tokenizer(entries: Sequence[ClipEntry], splits: dict[str, str], settings: PrepareSettings,
+                   names: set[str], out: Path, digest: str) -> Any:
+    """The VQ tokenizer of the training split (reused from ``out`` when its settings match)."""
+    from jaxtalk.audio import VQTokenizer
+
+    path = out / TOKENIZER
+    tag = out / f"{TOKENIZER}.settings"
+    if path.is_file() and tag.is_file() and tag.read_text() == digest:
+        return VQTokenizer.load(path)
+    piece, pieces, total = 4 * AUDIO_SAMPLE_RATE, [], 0.0
+    # The training split's audio; a dataset without one (evaluation only) uses all of its clips.
+    use = "train" if "train" in splits.values() else None
+    for e in entries:
+        if (use is not None and splits.get(e.name) != use) or total >= 600:  # 10 min fit a 256-code book well
+            continue
+        try:
+            audio = _read_checked(e, settings, names).audio
+        except BadClip:
+            continue
+        usable = audio[: audio.size // piece * piece]
+        pieces += list(usable.reshape(-1, piece))
+        total += usable.size / AUDIO_SAMPLE_RATE
+    if not pieces:
+        raise ValueError("no training clip has 4 s of readable audio to fit the VQ tokenizer on")
+    tok = VQTokenizer.fit(pieces, rate=settings.vq_rate, num_codes=min(settings.vq_codes, len(pieces) * int(4 * settings.vq_rate)),
+                          width=settings.vq_width, seed=settings.split_seed)
+    tmp = tok.save(out / f".tokenizer.{os.getpid()}.tmp.npz")
+    os.replace(tmp, path)
+    atomic_write_text(tag, digest)
+    return tok
+
+
+def prepare(
+    source: Source | str | os.PathLike,
+    out: str | os.PathLike,
+    settings: PrepareSettings = PrepareSettings(),
+    *,
+    strict: bool = False,
+    shard_clips: int = 64,
+    progress: bool = True,
+    echo: Callable[[str], None] = print,
+) -> PrepareResult:
+    """Prepare a dataset folder (or SynthTalk) into ``out`` (see the module docstring).
+
+    Args:
+        source: a :class:`~jaxtalk.data.sources.Source` or what ``open_source`` accepts.
+        out: the prepared folder (created; an earlier preparation there is continued).
+        settings: features and splits.
+        strict: stop at the first bad clip with an error naming it (default: skip and report).
+        shard_clips: clips per ArrayRecord shard.
+        progress: show a progress bar with clips/s.
+        echo: where the summary goes.
+
+    Returns:
+        :class:`PrepareResult`.
+
+    Raises:
+        BadClip: with ``strict``, the first bad clip (its file and reason).
+        ValueError: a source without one usable clip, or bad settings.
+    """
+    from tqdm.auto import tqdm
+
+    start = time.perf_counter()
+    src = source if isinstance(source, Source) else open_source(source)
+    out = Path(out)
+    shard_dir = out / SHARDS
+    shard_dir.mkdir(parents=True, exist_ok=True)
+    features = parse_audio_features(settings.audio)
+    tokens_mode = settings.tokens
+    if tokens_mode == "auto":
+        has_tokens = src.layout == "synthtalk" or (src.layout == "generic" and (Path(src.spec) / "tokens.json").is_file())
+        tokens_mode = "clip" if has_tokens else "vq"
+    digest = hashlib.sha1(f"{settings.digest()}:{tokens_mode}".encode()).hexdigest()[:16]
+    splits = _assign_splits(src.entries, settings)
+    names = {e.name for e in src.entries}
+    done = _existing(shard_dir, digest)
+    tokenizer = _fit_tokenizer(src.entries, splits, settings, names, out, digest) if tokens_mode == "vq" else None
+
+    skipped: list[tuple[str, str]] = []
+    buffer: list[tuple[dict, bytes]] = []
+    number = max((int(p.stem) for p in shard_dir.glob("[0-9]*.json")), default=-1) + 1
+    new = 0
+    bar = tqdm(src.entries, desc="prepare", unit="clip", disable=not progress)
+    for entry in bar:
+        chash = entry.content_hash()
+        if entry.name in done and done[entry.name]["hash"] == chash:
+            continue
+        where = str(entry.files[0]) if entry.files else entry.name
+        try:
+            raw = _read_checked(entry, settings, names)
+            if tokens_mode == "clip" and raw.tokens is None:
+                raise BadClip("no token file (<clip>.tokens.npy) while the dataset's other clips have one")
+            arrays = clip_record(raw, features, tokenizer=tokenizer, landmarks=settings.landmarks)
+        except BadClip as err:
+            if strict:
+                raise BadClip(f"{where}: {err}") from None
+            skipped.append((where, str(err)))
+            continue
+        motion = arrays.get("motion")
+        meta = {
+            "name": entry.name, "hash": chash,
+            "frames": int(arrays["speech"].shape[0]), "has_motion": motion is not None,
+            "has_vertices": "vertices" in arrays,
+            "tokens": int(arrays["tokens"].shape[0]) if "tokens" in arrays else 0,
+            "sum": motion.sum(0, dtype=np.float64).tolist() if motion is not None else None,
+            "sumsq": np.square(motion, dtype=np.float64).sum(0).tolist() if motion is not None else None,
+        }
+        buffer.append((meta, encode_record(arrays)))
+        new += 1
+        if len(buffer) >= shard_clips:
+            _write_shard(shard_dir, number, buffer, digest)
+            number, buffer = number + 1, []
+        bar.set_postfix(skipped=len(skipped), refresh=False)
+    bar.close()
+    if buffer:
+        _write_shard(shard_dir, number, buffer, digest)
+    manifest = _write_manifest(out, src, settings, tokens_mode, digest, splits, features, tokenizer)
+    _write_report(out, skipped)
+    n = len(manifest["clips"])
+    if n == 0:
+        raise ValueError(f"no usable clip in {src.spec} ({len(skipped)} skipped; see {out / REPORT})")
+    result = PrepareResult(out=out, clips=n, new=new, skipped=skipped, seconds=time.perf_counter() - start)
+    counts = {s: len(v) for s, v in manifest["splits"].items() if v}
+    echo(f"prepared {n} clips ({new} new, {n - new} kept) in {result.seconds:.1f} s -> {out}; splits {counts}")
+    if skipped:
+        echo(f"skipped {len(skipped)} bad clip(s), listed in {out / REPORT}:")
+        for where, why in skipped[:10]:
+            echo(f"  {where}: {why}")
+        if len(skipped) > 10:
+            echo(f"  ... and {len(skipped) - 10} more")
+    return result
+
+
+def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mode: str, digest: str,
+                    splits: dict[str, str], features: AudioFeatures, tokenizer: Any) -> dict[str, Any]:
+    by_name = {e.name: e for e in src.entries}
+    shard_dir = out / SHARDS
+    shard_names = sorted(p.with_suffix(".array_record").name for p in shard_dir.glob("[0-9]*.json"))
+    current = _existing(shard_dir, digest)
+    # The newest record of each clip still in the source (an edited clip has an old and a new one).
+    clips = []
+    for name, meta in sorted(current.items()):
+        entry = by_name.get(name)
+        if entry is None:
+            continue
+        clips.append({
+            "name": name, "speaker": entry.speaker, "split": splits[name], "frames": meta["frames"],
+            "has_motion": meta["has_motion"], "has_vertices": meta["has_vertices"], "tokens": meta["tokens"],
+            "partner": entry.partner, "emotion": entry.emotion, "intensity": entry.intensity,
+            "shard": meta["shard"], "index": meta["index"], "hash": meta["hash"],
+            "sum": meta["sum"], "sumsq": meta["sumsq"],
+        })
+    present = {c["name"] for c in clips}
+    for c in clips:
+        if c["partner"] not in present:
+            c["partner"] = None
+    train = [c for c in clips if c["split"] == "train" and c["has_motion"]]
+    stats = None
+    if train:
+        count = sum(c["frames"] for c in train)
+        mean = np.sum([c["sum"] for c in train], axis=0) / count
+        var = np.maximum(np.sum([c["sumsq"] for c in train], axis=0) / count - mean**2, 0.0)
+        stats = {"motion_mean": mean.tolist(), "motion_std": np.sqrt(var).tolist(), "frames": int(count)}
+    sample = _first_record(shard_dir, clips)
+    manifest = {
+        "format": FORMAT_VERSION,
+        "source": {"spec": src.spec, "layout": src.layout},
+        "settings": {**dataclasses.asdict(settings), "tokens": tokens_mode},
+        "settings_hash": digest,
+        "fps": MOTION_FPS,
+        "sample_rate": AUDIO_SAMPLE_RATE,
+        "turn_frames": TURN_FRAMES,
+        "speech_dim": int(sample["speech"].shape[1]) if "speech" in sample else None,
+        "turn_speech_dim": int(sample["turn_speech"].shape[1]) if "turn_speech" in sample else None,
+        "token_dim": int(sample["tokens"].shape[1]) if "tokens" in sample else None,
+        "token_rate": _token_rate(src, tokens_mode, settings, tokenizer),
+        "tokenizer": TOKENIZER if tokenizer is not None else None,
+        "shards": [s for s in shard_names if any(c["shard"] == s for c in clips)],
+        "clips": [{k: v for k, v in c.items() if k not in ("sum", "sumsq")} for c in clips],
+        "splits": {s: [c["name"] for c in clips if c["split"] == s] for s in SPLITS},
+        "stats": stats,
+    }
+    atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=1))
+    return manifest
+
+
+def _token_rate(src: Source, mode: str, settings: PrepareSettings, tokenizer: Any) -> float | None:
+    if tokenizer is not None:
+        return float(settings.vq_rate)
+    if mode == "clip":
+        if src.layout == "synthtalk":
+            from jaxtalk.data.synthtalk.corpus import TOKEN_STREAMS
+
+            return float(TOKEN_STREAMS["A"][0])
+        return float(json.loads((Path(src.spec) / "tokens.json").read_text())["rate"])
+    return None
+
+
+def _first_record(shard_dir: Path, clips: list[dict]) -> dict[str, np.ndarray]:
+    from array_record.python.array_record_module import ArrayRecordReader
+
+    if not clips:
+        return {}
+    c = clips[0]
+    reader = ArrayRecordReader(str(shard_dir / c["shard"]))
+    try:
+        return decode_record(reader.read([c["index"]])[0])
+    finally:
+        reader.close()
+
+
+def _write_report(out: Path, skipped: list[tuple[str, str]]) -> None:
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(["file", "reason"])
+    writer.writerows(skipped)
+    atomic_write_text(out / REPORT, buf.getvalue())

@@ -1,0 +1,191 @@
+"""FreeTalk's recipes: ATS (audio -> 68 landmark displacements) and STM (landmarks -> any mesh), each
+with its windows over a prepared dataset and the one way it is trained.
+
+* ATS windows: ``window`` frames of the landmark displacements ``prepare`` computed on the built-in
+  face (head pose removed), standardised per coordinate with statistics of the training split, with
+  the whole-clip speech features, the clip's emotion (neutral when the dataset has none) and
+  intensity (1 when unknown).
+* STM windows: 16-frame windows of the training motion rendered on several face identities and mesh
+  topologies (three by default), landmark and vertex displacements, vertices zero-padded to the
+  largest mesh.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxtalk.data.loader import PreparedData, make_loader
+from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
+from jaxtalk.models.freetalk.data import DisplacementStats
+from jaxtalk.train import OptimConfig
+from jaxtalk.train.recipes import RecipeResult, split_validation, window_starts
+from jaxtalk.types import PRNGKeyArray
+
+__all__ = ["ATSWindows", "STMWindows", "STM_MESHES", "fit_displacement_stats", "train_ats", "train_stm"]
+
+# Three face identities on three mesh topologies (FreeTalk's seen meshes).
+STM_MESHES = ((0, "base"), (1, "decimated"), (2, "subdivided"))
+
+
+def fit_displacement_stats(data: PreparedData) -> DisplacementStats:
+    """Per-coordinate landmark displacement statistics of the training split.
+
+    Raises:
+        ValueError: a training split without landmarks (a dataset without 56-d motion).
+    """
+    clips = [data.record(i, ("landmarks",)) for i in data.split("train")]
+    lms = [c["landmarks"] for c in clips if "landmarks" in c]
+    if not lms:
+        raise ValueError(f"{data.root}: no landmark displacements in the training split (ATS needs 56-d motion)")
+    return DisplacementStats.fit(np.concatenate(lms))
+
+
+@dataclasses.dataclass(frozen=True)
+class ATSWindows:
+    """ATS's window recipe (see the module docstring)."""
+
+    window: int
+    stats: DisplacementStats
+
+    def table(self, data: PreparedData, split: str) -> np.ndarray:
+        """Rows ``(clip, start)``; clips shorter than a window give none."""
+        rows = [(i, s) for i in data.split(split) if data.clips[i]["frames"] >= self.window
+                for s in window_starts(data.clips[i]["frames"], self.window, max(self.window // 4, 1))]
+        return np.asarray(rows, np.int64).reshape(-1, 2)
+
+    def example(self, data: PreparedData, row: np.ndarray) -> dict[str, np.ndarray]:
+        from jaxtalk.models.freetalk.emotions import NEUTRAL, emotion_ids
+
+        i, s = (int(v) for v in row)
+        rec = data.record(i, ("landmarks", "speech"))
+        clip = data.clips[i]
+        sl = slice(s, s + self.window)
+        return {"displacements": np.asarray(self.stats.normalize(rec["landmarks"][sl]), np.float32),
+                "audio": rec["speech"][sl].astype(np.float32),
+                "emotion": np.int32(emotion_ids(clip["emotion"] or NEUTRAL)[0]),
+                "intensity": np.float32(clip["intensity"] if clip["intensity"] is not None else 1.0)}
+
+
+def train_ats(
+    config: ATSConfig,
+    data: PreparedData,
+    optim: OptimConfig,
+    *,
+    steps: int | None = None,
+    key: PRNGKeyArray,
+    batch_size: int = 16,
+    seed: int = 0,
+    window: int | None = None,
+    params: Any = None,
+    ckpt_dir: Any = None,
+    mesh: Any = None,
+    eval_every: int | None = None,
+    **loop_kwargs: Any,
+) -> RecipeResult:
+    """Train ATS on ``data``'s training split (arguments as every recipe's ``train``).
+
+    The model sees standardised displacements, so ``config.displacement_scale`` must be 1.
+
+    Returns:
+        :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the window and the statistics.
+
+    Raises:
+        ValueError: ``displacement_scale != 1``, or speech features of another width than ``audio_dim``.
+    """
+    from jaxtalk.models.freetalk import ats
+    from jaxtalk.train import train as train_loop
+
+    if config.displacement_scale != 1.0:
+        raise ValueError(f"ATS trains on standardised displacements: displacement_scale must be 1.0, "
+                         f"got {config.displacement_scale}")
+    if data.manifest["speech_dim"] != config.audio_dim:
+        raise ValueError(f"{data.root} has {data.manifest['speech_dim']}-d speech features but the model expects "
+                         f"audio_dim={config.audio_dim} (--set audio_dim=...)")
+    stats = fit_displacement_stats(data)
+    recipe = ATSWindows(window or min(config.max_frames, 50), stats)
+    loader = make_loader(data, recipe, "train", batch_size, seed=seed)
+    k_init, k_train, k_eval = jax.random.split(key, 3)
+    params = ats.init_ats(config, k_init) if params is None else params
+    loss = ats.make_ats_loss(config)
+    eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
+    result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, metadata={"model": "ats"},
+                        ckpt_dir=ckpt_dir, mesh=mesh, eval_fn=eval_fn,
+                        eval_every=eval_every if eval_fn is not None else None, **loop_kwargs)
+    extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}
+    return RecipeResult(state=result.state, history=result.history, extra=extra, windows=loader.num_windows)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class STMWindows:
+    """STM's window recipe (see the module docstring).
+
+    Attributes:
+        meshes: the face meshes (``freetalk.data.FaceMesh``) the motion is rendered on.
+        num_vertices: padded vertex count (the largest mesh).
+        window: frames per window.
+    """
+
+    meshes: tuple[Any, ...]
+    num_vertices: int
+    window: int = 16
+
+    def table(self, data: PreparedData, split: str) -> np.ndarray:
+        """Rows ``(mesh, clip, start)``: every clip's windows on every mesh."""
+        rows = [(k, i, s) for k in range(len(self.meshes)) for i in data.split(split)
+                if data.clips[i]["frames"] >= self.window
+                for s in window_starts(data.clips[i]["frames"], self.window, self.window)]
+        return np.asarray(rows, np.int64).reshape(-1, 3)
+
+    def example(self, data: PreparedData, row: np.ndarray) -> dict[str, np.ndarray]:
+        from jaxtalk.models.freetalk.data import without_head_pose
+
+        k, i, s = (int(v) for v in row)
+        motion = data.record(i, ("motion",))["motion"][s:s + self.window]
+        lms, verts = self.meshes[k].motion(without_head_pose(motion))
+        return {"mesh": np.int32(k), "landmarks": lms.astype(np.float32),
+                "vertices": np.pad(verts, ((0, 0), (0, self.num_vertices - verts.shape[1]), (0, 0))).astype(np.float32)}
+
+
+def train_stm(
+    config: STMConfig,
+    data: PreparedData,
+    optim: OptimConfig,
+    *,
+    steps: int | None = None,
+    key: PRNGKeyArray,
+    batch_size: int = 16,
+    seed: int = 0,
+    meshes: tuple[tuple[int, str], ...] = STM_MESHES,
+    resolution: str = "low",
+    params: Any = None,
+    ckpt_dir: Any = None,
+    mesh: Any = None,
+    eval_every: int | None = None,
+    **loop_kwargs: Any,
+) -> RecipeResult:
+    """Train STM on ``data``'s training motion rendered on ``meshes`` (identity, topology) pairs.
+
+    Returns:
+        :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the meshes, resolution and window.
+    """
+    from jaxtalk.models.freetalk import stm
+    from jaxtalk.models.freetalk.data import face_mesh
+    from jaxtalk.train import train as train_loop
+
+    faces = tuple(face_mesh(i, kind, resolution=resolution) for i, kind in meshes)
+    prepared = stm.prepare_meshes([(m.vertices, m.faces) for m in faces], config)
+    recipe = STMWindows(faces, max(p.num_vertices for p in prepared))
+    loader = make_loader(data, recipe, "train", batch_size, seed=seed)
+    k_init, k_train, k_eval = jax.random.split(key, 3)
+    params = stm.init_stm(config, k_init, prepared[0]) if params is None else params
+    loss = stm.make_stm_loss(config, stm.stack_meshes(prepared))
+    eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
+    result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, metadata={"model": "stm"},
+                        ckpt_dir=ckpt_dir, mesh=mesh, eval_fn=eval_fn,
+                        eval_every=eval_every if eval_fn is not None else None, **loop_kwargs)
+    extra = {"meshes": [list(m) for m in meshes], "resolution": resolution, "window": recipe.window}
+    return RecipeResult(state=result.state, history=result.history, extra=extra, windows=loader.num_windows)

@@ -1,0 +1,179 @@
+"""TokTalk's recipe: windows of a prepared dataset, and the one way the base model is trained.
+
+A window is ``window_frames`` motion frames (a whole number of base tokens) with the aligned tokens,
+its padding mask, and a reference style clip: a crop of ANOTHER clip of the same speaker in the same
+split when there is one (the paper crops the target itself, which lets the style vector copy the
+target; another clip measures real style transfer). The CLI, the demo and the experiments train
+through :func:`train`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxtalk.data.loader import PreparedData, make_loader
+from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.train import OptimConfig
+from jaxtalk.train.recipes import RecipeResult, spread, split_validation, window_starts
+from jaxtalk.types import PRNGKeyArray
+
+__all__ = ["TokTalkWindows", "default_window", "check_data", "train"]
+
+PyTree = Any
+
+
+def default_window(config: TokTalkConfig) -> int:
+    """Training window in frames: 100 (4 s) for chunks up to 20 frames, else five chunks."""
+    return 100 if config.chunk_frames <= 20 else 5 * config.chunk_frames
+
+
+def _fit_length(x: np.ndarray, n: int) -> np.ndarray:
+    """Crop or edge-pad ``x`` along axis 0 to exactly ``n`` rows."""
+    if x.shape[0] >= n:
+        return x[:n]
+    return np.concatenate([x, np.repeat(x[-1:], n - x.shape[0], axis=0)], axis=0)
+
+
+def check_data(config: TokTalkConfig, data: PreparedData) -> None:
+    """Raise ValueError unless ``data`` carries tokens of the config's width and rate."""
+    m = data.manifest
+    if not m.get("token_dim"):
+        raise ValueError(f"{data.root} has no token stream: prepare it with --tokens vq (or clip token files)")
+    if m["token_dim"] != config.token_dim or float(m["token_rate"]) != float(config.token_rate):
+        raise ValueError(
+            f"{data.root} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz but the model expects "
+            f"{config.token_dim} at {config.token_rate:g} Hz (--set token_dim=... token_rate=...)"
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class TokTalkWindows:
+    """TokTalk's window recipe (see the module docstring).
+
+    Attributes:
+        config: the model config (token rate, style clip length).
+        window_frames: frames per window (a whole number of tokens, at least one chunk).
+        hop_frames: distance between window starts (default half a window); the last window of a
+            clip is flush with its end.
+        seed: seed of the style-clip choices.
+    """
+
+    config: TokTalkConfig
+    window_frames: int
+    hop_frames: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        per_token = self.config.fps / self.config.token_rate
+        if self.window_frames % per_token or self.window_frames < self.config.chunk_frames:
+            raise ValueError(
+                f"window_frames={self.window_frames} must span whole tokens ({per_token:g} frames each) "
+                f"and at least one chunk ({self.config.chunk_frames})"
+            )
+
+    @property
+    def per_token(self) -> int:
+        return int(self.config.fps / self.config.token_rate)
+
+    def table(self, data: PreparedData, split: str) -> np.ndarray:
+        """Rows ``(clip, start, style_clip, style_start)``."""
+        clips = [i for i in data.split(split) if data.clips[i]["tokens"]]
+        rng = np.random.default_rng(self.seed)
+        by_speaker: dict[str, list[int]] = {}
+        for i in clips:
+            by_speaker.setdefault(data.clips[i]["speaker"], []).append(i)
+        rows = []
+        s = self.config.style_frames
+        for i in clips:
+            others = [j for j in by_speaker[data.clips[i]["speaker"]] if j != i] or [i]
+            for st in window_starts(data.clips[i]["frames"], self.window_frames, self.hop_frames or self.window_frames // 2,
+                                    align=self.per_token):
+                ref = others[int(rng.integers(len(others)))]
+                r0 = int(rng.integers(max(data.clips[ref]["frames"] - s, 0) + 1))
+                rows.append((i, st, ref, r0))
+        return np.asarray(rows, np.int64).reshape(-1, 4)
+
+    def example(self, data: PreparedData, row: np.ndarray) -> dict[str, np.ndarray]:
+        i, st, ref, r0 = (int(v) for v in row)
+        rec = data.record(i, ("motion", "tokens"))
+        motion, tokens = rec["motion"], rec["tokens"]
+        w = self.window_frames
+        length = min(w, motion.shape[0] - st)
+        seg = np.zeros((w, motion.shape[1]), np.float32)
+        seg[:length] = motion[st:st + length]
+        style = data.record(ref, ("motion",))["motion"] if ref != i else motion
+        return {
+            "motion": seg,
+            "tokens": _fit_length(tokens[st // self.per_token:], w // self.per_token),
+            "style": _fit_length(style[r0:], self.config.style_frames).astype(np.float32),
+            "mask": np.arange(w) < length,
+        }
+
+
+def train(
+    config: TokTalkConfig,
+    data: PreparedData,
+    optim: OptimConfig,
+    *,
+    steps: int | None = None,
+    key: PRNGKeyArray,
+    batch_size: int = 16,
+    seed: int = 0,
+    window_frames: int | None = None,
+    params: PyTree | None = None,
+    ckpt_dir: Any = None,
+    mesh: Any = None,
+    eval_every: int | None = None,
+    **loop_kwargs: Any,
+) -> RecipeResult:
+    """Train the base model (decoder + style encoder) on ``data``'s training split with the CFM loss.
+
+    Args:
+        config: model settings (token width and rate must match the data's).
+        data: a prepared dataset with a token stream.
+        optim: optimiser settings (``total_steps`` is the length unless ``steps``).
+        steps: stop at this step (default ``optim.total_steps``).
+        key: PRNG key (initialisation, per-step keys).
+        batch_size: windows per batch on this process.
+        seed: data-order and style-choice seed.
+        window_frames: frames per window (default :func:`default_window`).
+        params: initial parameters (default: fresh, with the motion standardiser fitted on the
+            training split and the flow scale on its first windows).
+        ckpt_dir: checkpoint folder (exact resume), or None.
+        mesh: device mesh for data parallelism, or None.
+        eval_every: validation-loss period in steps (default: at the end); the loss is on up to
+            :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of the ``val`` split when it has any.
+        **loop_kwargs: passed to :func:`jaxtalk.train.train` (``progress``, ``save_every``, ...).
+
+    Returns:
+        :class:`~jaxtalk.train.recipes.RecipeResult` (``extra``: the window size).
+    """
+    from jaxtalk.models.toktalk.loss import cfm_loss
+    from jaxtalk.models.toktalk.model import fit_flow_scale, init_params
+    from jaxtalk.models.toktalk.train import base_trainable
+    from jaxtalk.train import train as train_loop
+
+    check_data(config, data)
+    recipe = TokTalkWindows(config, window_frames or default_window(config), seed=seed)
+    loader = make_loader(data, recipe, "train", batch_size, seed=seed)
+    k_init, k_train, k_eval = jax.random.split(key, 3)
+    if params is None:
+        params = init_params(config, k_init)
+        params["norm"] = {k: np.asarray(v) for k, v in data.motion_stats().items()}
+        table = recipe.table(data, "train")
+        first = [recipe.example(data, table[j]) for j in spread(len(table), 256)]
+        stacked = {k: np.stack([e[k] for e in first]) for k in ("motion", "mask", "style")}
+        params["norm"]["flow_scale"] = fit_flow_scale(params, config, stacked["motion"], stacked["mask"], stacked["style"])
+    loss = functools.partial(cfm_loss, config=config)
+    eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
+    result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, trainable=base_trainable,
+                        metadata={"model": "toktalk", "stage": 1}, ckpt_dir=ckpt_dir, mesh=mesh,
+                        eval_fn=eval_fn, eval_every=eval_every if eval_fn is not None else None, **loop_kwargs)
+    return RecipeResult(state=result.state, history=result.history, extra={"window_frames": recipe.window_frames},
+                        windows=loader.num_windows)
+

@@ -1,0 +1,106 @@
+"""What the four model recipes share: the result type, window starts, a validation-loss evaluator.
+
+A recipe (``jaxtalk.models.<model>.recipe``) is the one way a model is trained: it cuts windows from
+a prepared dataset (:mod:`jaxtalk.data.loader`), fits what the model needs from the training split
+(normalisers), and runs the shared loop. Every recipe's entry point has the same shape::
+
+    train(config, data, optim, *, steps, key, batch_size=16, ckpt_dir=None, mesh=None, ...) -> RecipeResult
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxtalk.train.loop import TrainResult
+
+__all__ = ["RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "VAL_WINDOWS"]
+
+# Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
+VAL_WINDOWS = 64
+
+
+@dataclasses.dataclass
+class RecipeResult(TrainResult):
+    """:class:`~jaxtalk.train.TrainResult` plus what sampling needs besides the parameters.
+
+    Attributes:
+        extra: JSON-serialisable settings fitted on the training split (normalisers, window sizes),
+            stored in the run's ``run.json``.
+        windows: training windows (this process's shard).
+    """
+
+    extra: dict[str, Any] = dataclasses.field(default_factory=dict)
+    windows: int = 0
+
+
+def window_starts(num_frames: int, window: int, hop: int, *, align: int = 1) -> list[int]:
+    """Starts of ``window``-frame windows every ``hop`` frames, the last one flush with the end.
+
+    Starts are multiples of ``align`` (a token period); a clip shorter than ``window`` gives one
+    window at 0 (the recipe pads it and masks the padding).
+    """
+    hop = int(np.ceil(hop / align) * align)
+    last = int(np.ceil(max(num_frames - window, 0) / align) * align)
+    return sorted(set(range(0, last + 1, hop)) | {last})
+
+
+def validation_eval(
+    loss_fn: Callable[[Any, dict, jax.Array], tuple[jax.Array, dict]],
+    batches: list[dict[str, np.ndarray]],
+    key: jax.Array,
+) -> Callable[[Any, Any, int], dict[str, float]]:
+    """An ``eval_fn`` for :func:`jaxtalk.train.train`: the model's own loss on fixed validation batches.
+
+    The same batches and keys at every evaluation, so the curve moves only with the parameters. The
+    evaluated parameters are the EMA when the run keeps one (what sampling uses).
+
+    Args:
+        loss_fn: the training loss ``(params, batch, key) -> (loss, metrics)``.
+        batches: validation batches (the same structure as training batches).
+        key: the evaluation key.
+
+    Returns:
+        ``eval_fn(params, ema_params, step) -> {"val_loss": float}``.
+    """
+    jitted = jax.jit(lambda p, b, k: loss_fn(p, b, k)[0])
+    keys = jax.random.split(key, max(len(batches), 1))
+
+    def eval_fn(params: Any, ema_params: Any, step: int) -> dict[str, float]:
+        use = ema_params if ema_params is not None else params
+        losses = [float(jitted(use, b, k)) for b, k in zip(batches, keys)]
+        return {"val_loss": float(np.mean(losses))}
+
+    return eval_fn
+
+
+def fixed_batches(examples: list[dict[str, np.ndarray]], batch_size: int) -> list[dict[str, np.ndarray]]:
+    """Stack ``examples`` into full batches of ``batch_size`` (a last partial batch is dropped)."""
+    out = []
+    for s in range(0, len(examples) - batch_size + 1, batch_size):
+        group = examples[s:s + batch_size]
+        out.append({k: np.stack([e[k] for e in group]) for k in group[0]})
+    return out
+
+
+def spread(n: int, k: int) -> np.ndarray:
+    """``min(n, k)`` indices spread evenly over ``range(n)`` (a deterministic subset)."""
+    return np.unique(np.linspace(0, n - 1, min(n, k)).round().astype(np.int64)) if n else np.zeros(0, np.int64)
+
+
+def split_validation(data: Any, recipe: Any, loss_fn: Any, batch_size: int, key: jax.Array,
+                     split: str = "val") -> Callable[[Any, Any, int], dict[str, float]] | None:
+    """:func:`validation_eval` on up to :data:`VAL_WINDOWS` evenly spread windows of ``split``.
+
+    Returns:
+        The ``eval_fn``, or None when the split has fewer windows than one batch.
+    """
+    table = recipe.table(data, split) if data.split(split) else np.zeros((0, 1), np.int64)
+    if len(table) < batch_size:
+        return None
+    examples = [recipe.example(data, table[j]) for j in spread(len(table), max(VAL_WINDOWS, batch_size))]
+    return validation_eval(loss_fn, fixed_batches(examples, batch_size), key)
