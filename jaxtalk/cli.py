@@ -67,6 +67,10 @@ def data(
     metadata: Annotated[
         Path | None, typer.Option(help="Write the corpus metadata (clips, speakers) as JSON here.")
     ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Also write the corpus as a dataset folder in the generic layout "
+                                       "(wav + npz + tokens + metadata.csv), ready for `jaxtalk prepare`.")
+    ] = None,
 ) -> None:
     """Generate (or load from cache) the built-in SynthTalk corpus and print a summary."""
     from jaxtalk.data import synthtalk
@@ -97,6 +101,11 @@ def data(
         metadata.parent.mkdir(parents=True, exist_ok=True)
         metadata.write_text(json.dumps(corpus.metadata(), indent=1, default=str))
         typer.echo(f"metadata written to {metadata}")
+    if out is not None:
+        from jaxtalk.data.sources import export_generic
+
+        export_generic(corpus, out, progress=True)
+        typer.echo(f"{len(corpus.clips)} clips written to {out} (generic layout)")
 
 
 @app.command()
@@ -144,36 +153,71 @@ def _echo_table(rows: list[dict[str, Any]], title: str) -> None:
 @_user_errors
 def train(
     model: Annotated[str, typer.Argument(help=_MODEL_HELP)],
+    data: Annotated[
+        str, typer.Option(help="Prepared dataset folder (`jaxtalk prepare`), or synthtalk:SIZE[:SEED].")
+    ] = "synthtalk:tiny",
     out: Annotated[Path | None, typer.Option(help="Run folder (run.json + checkpoint/); default runs/MODEL.")] = None,
     preset: Annotated[
         str | None, typer.Option(help="Config preset: small, paper (tiny for toktalk). Default small, or the run's own.")
     ] = None,
     set_: Annotated[
         list[str] | None,
-        typer.Option("--set", help="Override a config field, KEY=VALUE (repeatable), e.g. --set num_steps=5."),
+        typer.Option("--set", help="Override a config field or training setting, KEY=VALUE (repeatable), e.g. "
+                                   "--set num_steps=5 --set lr=5e-4 --set ema_decay=0.999 --set window_frames=50."),
     ] = None,
     steps: Annotated[int, typer.Option(help="Train until this many optimiser steps in total.")] = 1000,
-    size: Annotated[str, typer.Option(help="SynthTalk size: tiny, small or full.")] = "tiny",
-    seed: Annotated[int, typer.Option(help="Corpus, initialisation and data-order seed.")] = 0,
-    cache_dir: Annotated[Path, typer.Option(help="SynthTalk cache.")] = Path(".cache/synthtalk"),
-    batch_size: Annotated[int, typer.Option(help="Examples per step.")] = 16,
-    lr: Annotated[float, typer.Option(help="Peak learning rate (AdamW, warm-up + cosine).")] = 1e-3,
+    seed: Annotated[int, typer.Option(help="Initialisation and data-order seed.")] = 0,
+    cache_dir: Annotated[Path, typer.Option(help="Where synthtalk: data is prepared.")] = Path(".cache/prepared"),
     resume: Annotated[bool, typer.Option(help="Continue the run in --out if there is one.")] = True,
     progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
     data_parallel: Annotated[
         bool, typer.Option(help="Shard each batch over all local devices (jax.sharding); batch must divide.")
     ] = False,
+    distributed: Annotated[
+        bool, typer.Option(help="Several hosts: jax.distributed.initialize() (JAXTALK_COORDINATOR, "
+                                "JAXTALK_NUM_PROCESSES, JAXTALK_PROCESS_ID) and the global device mesh.")
+    ] = False,
 ) -> None:
-    """Train a model on SynthTalk with checkpoints; run again with more --steps to continue exactly."""
+    """Train a model on a prepared dataset with checkpoints; run again with more --steps to continue exactly."""
     from jaxtalk.commands.training import TrainOptions, train_run
 
-    opts = TrainOptions(model=model, out_dir=out or Path("runs") / model, preset=preset, overrides=tuple(set_ or ()),
-                        steps=steps, size=size, seed=seed, cache_dir=cache_dir, batch_size=batch_size, lr=lr,
-                        resume=resume, progress=progress, data_parallel=data_parallel)
+    opts = TrainOptions(model=model, out_dir=out or Path("runs") / model, data=data, preset=preset,
+                        overrides=tuple(set_ or ()), steps=steps, seed=seed, cache_dir=cache_dir, resume=resume,
+                        progress=progress, data_parallel=data_parallel, distributed=distributed)
     summary = train_run(opts, echo=typer.echo)
     loss = "-" if summary.final_loss is None else f"{summary.final_loss:.4f}"
-    typer.echo(f"{model}: step {summary.start_step} -> {summary.step} on {summary.examples} examples, "
-               f"final loss {loss}, {summary.wall_s:.1f} s; run in {summary.run_dir}")
+    val = "" if summary.val_loss is None else f", validation loss {summary.val_loss:.4f}"
+    typer.echo(f"{model}: step {summary.start_step} -> {summary.step} on {summary.examples} windows, "
+               f"final loss {loss}{val}, {summary.wall_s:.1f} s; run in {summary.run_dir}")
+
+
+@app.command()
+@_user_errors
+def prepare(
+    source: Annotated[str, typer.Argument(help="Dataset folder (DualTalk, VOCASET or generic layout) or "
+                                               "synthtalk:SIZE[:SEED].")],
+    out: Annotated[Path, typer.Option(help="Prepared dataset folder (shards + manifest.json + report.csv).")],
+    features: Annotated[
+        str, typer.Option(help="Audio features: logmel, or hubert:PATH / wav2vec2:PATH (a local Hugging Face folder).")
+    ] = "logmel",
+    tokens: Annotated[
+        str, typer.Option(help="TokTalk token stream: auto, clip (the clips' .tokens.npy), vq (fitted on the "
+                               "training split) or none.")
+    ] = "auto",
+    layout: Annotated[str | None, typer.Option(help="Force a layout: dualtalk, vocaset or generic.")] = None,
+    min_seconds: Annotated[float, typer.Option(help="Shortest usable clip in seconds.")] = 1.0,
+    split_seed: Annotated[int, typer.Option(help="Seed of the speaker-disjoint splits where the layout has none.")] = 0,
+    strict: Annotated[bool, typer.Option(help="Stop at the first bad clip (default: skip it and report).")] = False,
+    progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
+) -> None:
+    """Check every clip of a dataset and compute each model's inputs once; bad clips are skipped and reported."""
+    from jaxtalk.data.prepare import PrepareSettings
+    from jaxtalk.data.prepare import prepare as run_prepare
+    from jaxtalk.data.sources import open_source
+
+    settings = PrepareSettings(audio=features, tokens=tokens, min_frames=max(int(round(min_seconds * 25)), 1),
+                               split_seed=split_seed)
+    run_prepare(open_source(source, layout=layout), out, settings, strict=strict, progress=progress, echo=typer.echo)
 
 
 def _sample_options(run: Path, input_: Path, out: Path | None, style: Path | None, partner: Path | None,

@@ -1,9 +1,10 @@
 """``jaxtalk sample`` and ``jaxtalk stream``: a trained run + speech -> 56-d head parameters (.npz).
 
 Inputs: an audio file (WAV/FLAC, any rate, mono or stereo) or, for TokTalk, a ``.npy`` of token
-embeddings ``(tokens, token_dim)`` at the model's token rate (e.g. your own audio-LLM tokens). TokTalk
-turns audio into tokens with the tokenizer of the corpus it was trained on; TIMAR turns it into
-per-turn log-mel features and animates the agent (the partner is silent and still unless
+embeddings ``(tokens, token_dim)`` at the model's token rate (e.g. your own audio-LLM tokens). Every
+default comes from the run folder, never from a regenerated corpus: TokTalk turns audio into tokens
+with the tokenizer its data was prepared with and takes its default style clip from the run; TIMAR
+turns audio into per-turn speech features with the same front end as ``prepare`` and animates the agent (the partner is silent and still unless
 ``--partner`` names their audio). Outputs are written with :func:`jaxtalk.data.formats.save_npz`
 (``params (T, 56)``, ``fps``, and the audio), in raw FLAME units.
 """
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtalk.commands.runs import LoadedRun, load_run, open_corpus
+from jaxtalk.commands.runs import LoadedRun, RunRecord, load_run
 
 __all__ = ["SampleOptions", "SampleResult", "sample_run", "stream_run", "AUDIO_SUFFIXES"]
 
@@ -35,8 +36,8 @@ class SampleOptions:
         run_dir: a folder written by ``jaxtalk train``.
         input: audio file, or (TokTalk) ``.npy`` token embeddings.
         out: output ``.npz`` (default: beside the input, ``<stem>_params.npz``).
-        style: TokTalk reference motion (``.npz`` with ``params``, e.g. a previous output); default: a
-            training clip of the run's corpus.
+        style: TokTalk reference motion (``.npz`` with ``params``, e.g. a previous output); default: the
+            training clip saved with the run.
         partner: TIMAR: the partner's audio (default: silence).
         cfg_scale: guidance weight (default: the config's).
         num_steps: sampler steps (default: the config's).
@@ -86,8 +87,6 @@ def _check_input(opts: SampleOptions, model: str) -> str:
 
 
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
-    from jaxtalk.commands.runs import RunRecord
-
     record = RunRecord.load(opts.run_dir)
     if record.model not in _SPEECH_MODELS:
         raise ValueError(
@@ -105,11 +104,14 @@ def _toktalk_inputs(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
     from jaxtalk.audio import load_audio
 
     config = run.config
-    corpus = open_corpus(run.record.corpus)
     audio = None
     if kind == "audio":
+        tokenizer = run.tokenizer()
+        if tokenizer is None:
+            raise ValueError(f"{run.run_dir} was trained on the data's own token files and has no tokenizer for "
+                             f"audio: pass a .npy of token embeddings ({config.token_dim} wide at {config.token_rate:g} Hz)")
         audio = load_audio(opts.input)
-        tokens = np.asarray(corpus.tokenizer("A").encode(audio).embeddings, np.float32)
+        tokens = np.asarray(tokenizer.encode(audio).embeddings, np.float32)
     else:
         tokens = np.load(opts.input, allow_pickle=False)
         if tokens.ndim != 2 or tokens.shape[1] != config.token_dim or tokens.shape[0] < 1:
@@ -123,7 +125,7 @@ def _toktalk_inputs(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
 
         style = read_params(opts.style)
     else:
-        style = np.asarray(corpus.motion(corpus.split("train")[0]), np.float32)
+        style = np.asarray(run.default_style(), np.float32)
     s = 4 * config.style_frames
     if style.shape[0] < config.style_min_frames:
         raise ValueError(f"style clip {opts.style} has {style.shape[0]} frames, fewer than {config.style_min_frames}")
@@ -133,7 +135,8 @@ def _toktalk_inputs(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
 def _timar_inputs(run: LoadedRun, opts: SampleOptions) -> tuple[dict[str, np.ndarray], np.ndarray, int]:
     """Normalised ``(1, T, .)`` streams for ``stream_conversation``, the agent audio, and the turns."""
     from jaxtalk.audio import load_audio
-    from jaxtalk.models.timar.data import Normalizer, turn_speech_features
+    from jaxtalk.data.features import parse_audio_features
+    from jaxtalk.models.timar.data import Normalizer
     from jaxtalk.types import AUDIO_SAMPLE_RATE, PARAM_DIM
 
     config = run.config
@@ -150,9 +153,10 @@ def _timar_inputs(run: LoadedRun, opts: SampleOptions) -> tuple[dict[str, np.nda
     else:
         partner = np.zeros(turns * spt, np.float32)
     frames = turns * config.frames_per_turn
+    features = parse_audio_features(run.features()["audio"])
     streams = {
-        "user_speech": norm.speech(turn_speech_features(partner, turns, frames_per_turn=config.frames_per_turn)),
-        "agent_speech": norm.speech(turn_speech_features(audio, turns, frames_per_turn=config.frames_per_turn)),
+        "user_speech": norm.speech(features.turn_speech(partner, turns)),
+        "agent_speech": norm.speech(features.turn_speech(audio, turns)),
         # A still partner at the training mean pose is zero in the normalised space.
         "user_motion": np.zeros((frames, PARAM_DIM), np.float32),
     }

@@ -1,10 +1,11 @@
 """Training runs on disk: the model registry, ``--set key=value`` overrides, ``run.json``, loading.
 
 A run directory holds ``checkpoint/`` (orbax, written by :class:`jaxtalk.train.Checkpointer` through
-the shared loop) and ``run.json``: the model, preset, overrides, the full model and optimiser
-configs, the corpus it was trained on, and what sampling needs besides the parameters (TIMAR's
-normaliser, ATS's displacement statistics, STM's meshes). Loading rebuilds a train state of the same
-structure and restores the newest checkpoint into it.
+the shared loop), ``run.json`` (the model, preset, overrides, the full model, training and optimiser
+settings, the data it was trained on, and what the recipe fitted: TIMAR's normaliser, ATS's
+displacement statistics, STM's meshes) and the inference assets copied from the data
+(``features.json``, the VQ ``tokenizer.npz``, TokTalk's default ``style.npy``), so a run samples
+without its dataset. The CLI, the demo and the experiments all write and read this one format.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ __all__ = [
     "build_config",
     "checkpoint_dir",
     "load_run",
-    "open_corpus",
+    "save_run_assets",
 ]
 
 MODELS = ("toktalk", "ats", "stm", "timar")
@@ -136,29 +137,31 @@ def checkpoint_dir(run_dir: str | Path) -> Path:
 
 @dataclasses.dataclass
 class RunRecord:
-    """The ``run.json`` of a training run.
+    """The ``run.json`` of a training run: everything that sampling, evaluation and resuming need
+    besides the checkpoint.
 
     Attributes:
         model: ``toktalk``, ``ats``, ``stm`` or ``timar``.
         preset: config preset name.
-        overrides: the ``--set`` values, as parsed.
+        items: the ``--set KEY=VALUE`` items as given.
         config: every field of the model config (``dataclasses.asdict``).
+        train: every field of the :class:`jaxtalk.train.recipes.TrainSettings`.
         optim: every field of the :class:`jaxtalk.train.OptimConfig` (its structure, EMA and
             clipping, is what a restore needs).
-        corpus: ``{"size", "seed", "cache_dir"}`` of the SynthTalk corpus trained on.
+        data: ``{"spec", "path", "key"}``: the data as named, its prepared folder, and its identity
+            (source and feature settings).
         seed: training seed.
-        batch_size: examples per step.
-        extra: what sampling needs besides the parameters (normalisers, meshes, window sizes).
+        extra: what the recipe fitted on the training split (normalisers, meshes, window sizes).
     """
 
     model: str
     preset: str
-    overrides: dict[str, Any]
+    items: list[str]
     config: dict[str, Any]
+    train: dict[str, Any]
     optim: dict[str, Any]
-    corpus: dict[str, Any]
+    data: dict[str, Any]
     seed: int
-    batch_size: int
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def save(self, run_dir: str | Path) -> Path:
@@ -176,7 +179,7 @@ class RunRecord:
 
         Raises:
             FileNotFoundError: no run directory or no ``run.json`` in it.
-            ValueError: a ``run.json`` that is not a run record.
+            ValueError: a ``run.json`` that is not a run record (or one written by an older jaxtalk).
         """
         path = Path(run_dir) / RUN_FILE
         if not path.is_file():
@@ -185,7 +188,7 @@ class RunRecord:
             raw = json.loads(path.read_text())
             return cls(**raw)
         except (json.JSONDecodeError, TypeError) as err:
-            raise ValueError(f"{path} is not a jaxtalk run record: {err}") from None
+            raise ValueError(f"{path} is not a run record of this jaxtalk version ({err}); train it again") from None
 
     def model_config(self) -> Any:
         """The model config instance."""
@@ -198,6 +201,38 @@ class RunRecord:
         return OptimConfig(**self.optim)
 
 
+# Files a run keeps beside run.json so that sampling needs neither the dataset nor SynthTalk.
+TOKENIZER_FILE = "tokenizer.npz"
+STYLE_FILE = "style.npy"
+FEATURES_FILE = "features.json"
+
+
+def save_run_assets(run_dir: str | Path, model: str, data: Any, config: Any) -> None:
+    """Copy what inference needs from the prepared data into the run: the feature settings, the VQ
+    tokenizer (when the data has one) and, for TokTalk, a default style clip (a training clip)."""
+    import shutil
+
+    import numpy as np
+
+    run_dir = Path(run_dir)
+    m = data.manifest
+    features = {"audio": m["settings"]["audio"], "tokens": m["settings"]["tokens"], "token_rate": m.get("token_rate"),
+                "token_dim": m.get("token_dim"), "speech_dim": m.get("speech_dim"),
+                "turn_speech_dim": m.get("turn_speech_dim")}
+    (run_dir / FEATURES_FILE).write_text(json.dumps(features, indent=1))
+    if m.get("tokenizer"):
+        tmp = run_dir / f".{TOKENIZER_FILE}.tmp"
+        shutil.copyfile(data.root / m["tokenizer"], tmp)
+        tmp.replace(run_dir / TOKENIZER_FILE)
+    if model == "toktalk":
+        train = data.split("train")
+        clip = max(train, key=lambda i: data.clips[i]["frames"])
+        style = data.record(clip, ("motion",))["motion"][: 4 * config.style_frames]
+        with open(run_dir / f".{STYLE_FILE}.tmp", "wb") as handle:
+            np.save(handle, style.astype(np.float32))
+        (run_dir / f".{STYLE_FILE}.tmp").replace(run_dir / STYLE_FILE)
+
+
 @dataclasses.dataclass
 class LoadedRun:
     """A trained run ready to sample.
@@ -207,19 +242,43 @@ class LoadedRun:
         config: the model config.
         params: the evaluation parameters (the EMA when the run kept one).
         step: the checkpoint step they come from.
+        run_dir: the run folder.
     """
 
     record: RunRecord
     config: Any
     params: Any
     step: int
+    run_dir: Path
 
+    def tokenizer(self) -> Any:
+        """The VQ tokenizer the run's data was prepared with, or None (the data had its own tokens).
 
-def open_corpus(corpus: dict[str, Any]) -> Any:
-    """The SynthTalk corpus a run record names (loaded from its cache, regenerated if missing)."""
-    from jaxtalk.data import synthtalk
+        The tokenizer turns new audio into the token space the model was trained on.
+        """
+        path = self.run_dir / TOKENIZER_FILE
+        if not path.is_file():
+            return None
+        from jaxtalk.audio import VQTokenizer
 
-    return synthtalk.generate(size=corpus["size"], seed=int(corpus["seed"]), cache_dir=corpus.get("cache_dir"))
+        return VQTokenizer.load(path)
+
+    def default_style(self) -> Any:
+        """TokTalk's default reference motion ``(S, 56)``: a training clip saved with the run.
+
+        Raises:
+            FileNotFoundError: a run without one (not TokTalk).
+        """
+        import numpy as np
+
+        path = self.run_dir / STYLE_FILE
+        if not path.is_file():
+            raise FileNotFoundError(f"{self.run_dir} has no {STYLE_FILE}; pass --style")
+        return np.load(path)
+
+    def features(self) -> dict[str, Any]:
+        """The feature settings the run's data was prepared with."""
+        return json.loads((self.run_dir / FEATURES_FILE).read_text())
 
 
 def _restore_state(directory: Path, step: int | None) -> tuple[dict[str, Any], int]:
@@ -257,4 +316,4 @@ def load_run(run_dir: str | Path, *, step: int | None = None) -> LoadedRun:
     config = record.model_config()
     state, step = _restore_state(checkpoint_dir(run_dir).absolute(), step)
     params = state.get("ema_params") or state["params"]
-    return LoadedRun(record=record, config=config, params=params, step=step)
+    return LoadedRun(record=record, config=config, params=params, step=step, run_dir=Path(run_dir))

@@ -336,6 +336,10 @@ def prepare(
     names = {e.name for e in src.entries}
     done = _existing(shard_dir, digest)
     tokenizer = _fit_tokenizer(src.entries, splits, settings, names, out, digest) if tokens_mode == "vq" else None
+    if tokens_mode == "clip" and src.tokenizer is not None:
+        # The tokenizer that made the clips' tokens: kept so a trained model can tokenise new audio.
+        tmp = src.tokenizer().save(out / f".tokenizer.{os.getpid()}.tmp.npz")
+        os.replace(tmp, out / TOKENIZER)
 
     skipped: list[tuple[str, str]] = []
     buffer: list[tuple[dict, bytes]] = []
@@ -375,7 +379,8 @@ def prepare(
     bar.close()
     if buffer:
         _write_shard(shard_dir, number, buffer, digest)
-    manifest = _write_manifest(out, src, settings, tokens_mode, digest, splits, features, tokenizer)
+    kept_tokenizer = tokenizer is not None or (tokens_mode == "clip" and src.tokenizer is not None)
+    manifest = _write_manifest(out, src, settings, tokens_mode, digest, splits, features, kept_tokenizer)
     _write_report(out, skipped)
     n = len(manifest["clips"])
     if n == 0:
@@ -393,7 +398,7 @@ def prepare(
 
 
 def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mode: str, digest: str,
-                    splits: dict[str, str], features: AudioFeatures, tokenizer: Any) -> dict[str, Any]:
+                    splits: dict[str, str], features: AudioFeatures, tokenizer: bool) -> dict[str, Any]:
     by_name = {e.name: e for e in src.entries}
     shard_dir = out / SHARDS
     shard_names = sorted(p.with_suffix(".array_record").name for p in shard_dir.glob("[0-9]*.json"))
@@ -434,8 +439,8 @@ def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mo
         "speech_dim": int(sample["speech"].shape[1]) if "speech" in sample else None,
         "turn_speech_dim": int(sample["turn_speech"].shape[1]) if "turn_speech" in sample else None,
         "token_dim": int(sample["tokens"].shape[1]) if "tokens" in sample else None,
-        "token_rate": _token_rate(src, tokens_mode, settings, tokenizer),
-        "tokenizer": TOKENIZER if tokenizer is not None else None,
+        "token_rate": _token_rate(src, tokens_mode, settings),
+        "tokenizer": TOKENIZER if tokenizer else None,
         "shards": [s for s in shard_names if any(c["shard"] == s for c in clips)],
         "clips": [{k: v for k, v in c.items() if k not in ("sum", "sumsq")} for c in clips],
         "splits": {s: [c["name"] for c in clips if c["split"] == s] for s in SPLITS},
@@ -445,8 +450,8 @@ def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mo
     return manifest
 
 
-def _token_rate(src: Source, mode: str, settings: PrepareSettings, tokenizer: Any) -> float | None:
-    if tokenizer is not None:
+def _token_rate(src: Source, mode: str, settings: PrepareSettings) -> float | None:
+    if mode == "vq":
         return float(settings.vq_rate)
     if mode == "clip":
         if src.layout == "synthtalk":

@@ -18,10 +18,55 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "VAL_WINDOWS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainSettings:
+    """How a recipe trains, besides the model config: overridable like config fields (``--set``).
+
+    Attributes:
+        lr: peak learning rate (AdamW, linear warm-up then cosine decay).
+        weight_decay: decoupled weight decay.
+        warmup_steps: warm-up length (capped at a tenth of the run so short runs keep a decay phase).
+        final_lr_ratio: learning rate at the end as a fraction of ``lr``.
+        clip_norm: global gradient-norm clip.
+        ema_decay: decay of the (bias-corrected) EMA of the weights used for sampling; None: off.
+        batch_size: windows per step on each process.
+        window_frames: frames per training window (None: the model's default).
+        eval_every: validation period in steps (None: five evaluations per run).
+    """
+
+    lr: float = 1e-3
+    weight_decay: float = 1e-2
+    warmup_steps: int = 100
+    final_lr_ratio: float = 0.0
+    clip_norm: float = 1.0
+    ema_decay: float | None = None
+    batch_size: int = 16
+    window_frames: int | None = None
+    eval_every: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1 or self.warmup_steps < 0 or (self.window_frames is not None and self.window_frames < 1):
+            raise ValueError(f"batch_size and window_frames must be >= 1 and warmup_steps >= 0: {self}")
+        if self.eval_every is not None and self.eval_every < 1:
+            raise ValueError(f"eval_every must be >= 1 or None, got {self.eval_every}")
+
+    def optim(self, steps: int) -> Any:
+        """The :class:`~jaxtalk.train.OptimConfig` of a ``steps``-long run."""
+        from jaxtalk.train.optim import OptimConfig
+
+        return OptimConfig(lr=self.lr, weight_decay=self.weight_decay, warmup_steps=min(self.warmup_steps, steps // 10),
+                           total_steps=steps, clip_norm=self.clip_norm, ema_decay=self.ema_decay,
+                           final_lr_ratio=self.final_lr_ratio)
+
+    def period(self, steps: int) -> int:
+        """The validation period of a ``steps``-long run."""
+        return self.eval_every or max(steps // 5, 1)
 
 
 @dataclasses.dataclass

@@ -8,11 +8,14 @@ as :class:`ClipEntry` s that read into :class:`RawClip` s and pass :func:`check_
 from __future__ import annotations
 
 import dataclasses
+import functools
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from jaxtalk.data.sources.clip import MAX_SKEW_SECONDS, BadClip, ClipEntry, RawClip, check_clip
 from jaxtalk.data.sources.dualtalk import dualtalk_entries, is_dualtalk
-from jaxtalk.data.sources.generic import generic_entries, is_generic
+from jaxtalk.data.sources.generic import TOKENIZER_FILE, generic_entries, is_generic
 from jaxtalk.data.sources.synthtalk import export_generic, synthtalk_entries
 from jaxtalk.data.sources.vocaset import is_vocaset, vocaset_entries
 
@@ -39,11 +42,14 @@ class Source:
         spec: what the user named (a folder path or ``synthtalk:SIZE[:SEED]``).
         layout: one of :data:`LAYOUTS`.
         entries: every clip, in a deterministic order.
+        tokenizer: ``() -> VQTokenizer`` of the clips' own token files, when the source has it (so
+            that new audio can be turned into the same tokens), else None.
     """
 
     spec: str
     layout: str
     entries: tuple[ClipEntry, ...]
+    tokenizer: Callable[[], Any] | None = None
 
 
 def _synthtalk(spec: str, cache_dir: str | Path | None) -> Source:
@@ -59,7 +65,8 @@ def _synthtalk(spec: str, cache_dir: str | Path | None) -> Source:
         except ValueError:
             raise ValueError(f"{spec!r}: the seed must be an integer, got {parts[2]!r}") from None
     corpus = synthtalk.generate(parts[1], seed=seed, cache_dir=cache_dir)
-    return Source(spec=f"synthtalk:{parts[1]}:{seed}", layout="synthtalk", entries=tuple(synthtalk_entries(corpus)))
+    return Source(spec=f"synthtalk:{parts[1]}:{seed}", layout="synthtalk", entries=tuple(synthtalk_entries(corpus)),
+                  tokenizer=lambda: corpus.tokenizer("A"))
 
 
 def open_source(spec: str | Path, *, layout: str | None = None, cache_dir: str | Path | None = None) -> Source:
@@ -104,4 +111,9 @@ def open_source(spec: str | Path, *, layout: str | None = None, cache_dir: str |
         if e.name in seen:
             raise ValueError(f"{str(root)!r}: two clips are named {e.name!r} (clip names must be unique)")
         seen.add(e.name)
-    return Source(spec=str(root.absolute()), layout=layout, entries=tuple(entries))
+    tokenizer = None
+    if layout == "generic" and (root / TOKENIZER_FILE).is_file():
+        from jaxtalk.audio import VQTokenizer
+
+        tokenizer = functools.partial(VQTokenizer.load, root / TOKENIZER_FILE)
+    return Source(spec=str(root.absolute()), layout=layout, entries=tuple(entries), tokenizer=tokenizer)

@@ -8,6 +8,8 @@
                                optional oracle (T, 56): a known best prediction (SynthTalk)
     <clip>.tokens.npy          optional (Tt, D) audio-LLM token embeddings, rate in tokens.json
     tokens.json                {"rate": 12.5}: the token rate in Hz
+    tokenizer.npz              optional: the jaxtalk VQ tokenizer that made the token files (then a
+                               trained model turns new audio into the same tokens)
     metadata.csv               optional columns: clip, speaker, emotion, intensity, split, partner
 
 Without ``metadata.csv`` every clip is its own speaker and splits are drawn at random (seeded,
@@ -25,10 +27,11 @@ import numpy as np
 
 from jaxtalk.data.sources.clip import ClipEntry, RawClip
 
-__all__ = ["METADATA_FILE", "TOKENS_FILE", "is_generic", "generic_entries", "read_metadata"]
+__all__ = ["METADATA_FILE", "TOKENS_FILE", "TOKENIZER_FILE", "is_generic", "generic_entries", "read_metadata"]
 
 METADATA_FILE = "metadata.csv"
 TOKENS_FILE = "tokens.json"
+TOKENIZER_FILE = "tokenizer.npz"
 _COLUMNS = ("clip", "speaker", "emotion", "intensity", "split", "partner")
 
 

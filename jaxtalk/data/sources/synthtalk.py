@@ -2,7 +2,7 @@
 
 ``export_generic(corpus, out)`` writes every clip as ``<clip>.wav`` (float32, lossless), ``<clip>.npz``
 (``params56``, ``oracle``, ``fps``), ``<clip>.tokens.npy`` (the base token stream "A") plus
-``tokens.json`` and ``metadata.csv`` (speaker, emotion, intensity, split, partner): any tool that
+``tokens.json``, the stream's ``tokenizer.npz`` and ``metadata.csv`` (speaker, emotion, intensity, split, partner): any tool that
 reads the generic layout reads SynthTalk like a user's folder. ``synthtalk_entries(corpus)`` lists
 the same clips without files, for preparing a corpus straight from memory; both give identical
 prepared records (tested).
@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from jaxtalk.data.sources.clip import ClipEntry, RawClip
-from jaxtalk.data.sources.generic import METADATA_FILE, TOKENS_FILE
+from jaxtalk.data.sources.generic import METADATA_FILE, TOKENIZER_FILE, TOKENS_FILE
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
 __all__ = ["clip_name", "synthtalk_entries", "export_generic"]
@@ -89,6 +89,8 @@ def export_generic(corpus: Any, out: str | os.PathLike, *, progress: bool = Fals
         rows.append({"clip": entry.name, "speaker": entry.speaker, "emotion": entry.emotion,
                      "intensity": f"{entry.intensity:g}", "split": entry.split, "partner": entry.partner or ""})
     (out / TOKENS_FILE).write_text(json.dumps({"rate": float(corpus.tokens(0, BASE_STREAM).rate)}))
+    tmp = corpus.tokenizer(BASE_STREAM).save(out / f".{TOKENIZER_FILE}.tmp.npz")
+    os.replace(tmp, out / TOKENIZER_FILE)
     with open(out / METADATA_FILE, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=["clip", "speaker", "emotion", "intensity", "split", "partner"])
         writer.writeheader()

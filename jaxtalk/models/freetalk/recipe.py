@@ -22,13 +22,15 @@ from jaxtalk.data.loader import PreparedData, make_loader
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, split_validation, window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, split_validation, window_starts
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["ATSWindows", "STMWindows", "STM_MESHES", "fit_displacement_stats", "train_ats", "train_stm"]
+__all__ = ["DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "fit_displacement_stats", "train_ats", "train_stm"]
 
 # Three face identities on three mesh topologies (FreeTalk's seen meshes).
 STM_MESHES = ((0, "base"), (1, "decimated"), (2, "subdivided"))
+# ATS and STM on 2 CPU cores.
+DEFAULTS = TrainSettings(lr=1e-3, warmup_steps=100)
 
 
 def fit_displacement_stats(data: PreparedData) -> DisplacementStats:
@@ -79,7 +81,7 @@ def train_ats(
     key: PRNGKeyArray,
     batch_size: int = 16,
     seed: int = 0,
-    window: int | None = None,
+    window_frames: int | None = None,
     params: Any = None,
     ckpt_dir: Any = None,
     mesh: Any = None,
@@ -106,7 +108,7 @@ def train_ats(
         raise ValueError(f"{data.root} has {data.manifest['speech_dim']}-d speech features but the model expects "
                          f"audio_dim={config.audio_dim} (--set audio_dim=...)")
     stats = fit_displacement_stats(data)
-    recipe = ATSWindows(window or min(config.max_frames, 50), stats)
+    recipe = ATSWindows(window_frames or min(config.max_frames, 50), stats)
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = ats.init_ats(config, k_init) if params is None else params

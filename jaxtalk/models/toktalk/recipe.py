@@ -19,10 +19,13 @@ import numpy as np
 from jaxtalk.data.loader import PreparedData, make_loader
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, spread, split_validation, window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, spread, split_validation, window_starts
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["TokTalkWindows", "default_window", "check_data", "train"]
+__all__ = ["DEFAULTS", "TokTalkWindows", "default_window", "check_data", "train"]
+
+# The small model's training settings on 2 CPU cores (the demo's): a short EMA suits runs of ~1k steps.
+DEFAULTS = TrainSettings(lr=2e-3, ema_decay=0.99, warmup_steps=100)
 
 PyTree = Any
 
@@ -159,7 +162,8 @@ def train(
     from jaxtalk.train import train as train_loop
 
     check_data(config, data)
-    recipe = TokTalkWindows(config, window_frames or default_window(config), seed=seed)
+    window = window_frames or default_window(config)
+    recipe = TokTalkWindows(config, window, hop_frames=window // 4, seed=seed)
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     if params is None:
