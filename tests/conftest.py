@@ -66,3 +66,21 @@ def _release_compiled_programs():
     """
     yield
     jax.clear_caches()
+
+
+@pytest.fixture(scope="session")
+def prepared_tiny(tmp_path_factory, synthtalk_tiny):
+    """The tiny SynthTalk corpus prepared (``jaxtalk prepare``) once per test session.
+
+    It lies where ``--data synthtalk:tiny --cache-dir <prepared_tiny.root.parent>`` finds it, so CLI
+    tests train on it without preparing again.
+    """
+    from jaxtalk.data.loader import PreparedData
+    from jaxtalk.data.prepare import prepare
+    from jaxtalk.data.sources import Source, synthtalk_entries
+
+    cache = tmp_path_factory.mktemp("prepared")
+    source = Source("synthtalk:tiny:0", "synthtalk", tuple(synthtalk_entries(synthtalk_tiny)),
+                    tokenizer=lambda: synthtalk_tiny.tokenizer("A"))
+    prepare(source, cache / "synthtalk-tiny-seed0", progress=False, echo=lambda line: None)
+    return PreparedData(cache / "synthtalk-tiny-seed0")

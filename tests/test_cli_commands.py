@@ -1,4 +1,4 @@
-"""``jaxtalk train / sample / stream / eval`` end to end on a tiny TokTalk trained for a few steps.
+"""``jaxtalk train / sample / stream`` end to end on a tiny TokTalk trained for a few steps.
 
 One module-scoped run (2 steps, then resumed to 4) serves every test. The CLI's outputs are checked
 against the library called directly with the same inputs, so a wiring mistake (wrong style clip, wrong
@@ -19,7 +19,7 @@ from jaxtalk.cli import app
 
 runner = CliRunner()
 
-COMMANDS = ["data", "demo", "train", "sample", "stream", "eval", "bench", "render"]
+COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render"]
 
 
 def _ok(args: list[str]) -> str:
@@ -43,20 +43,19 @@ def test_every_command_has_help(command):
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, synthtalk_tiny):
+def run(tmp_path_factory, synthtalk_tiny, prepared_tiny):
     """A tiny TokTalk trained 2 steps, then resumed to 4 (the resume is a test of its own)."""
     previous = jax.config.read("jax_disable_most_optimizations")
     jax.config.update("jax_disable_most_optimizations", True)  # compile time dominates these tiny runs
     root = tmp_path_factory.mktemp("cli_run")
     out = root / "run"
-    cache = str(synthtalk_tiny._cache_dir)
+    cache = str(prepared_tiny.root.parent)
     # The tiny preset without middle stages: the smallest graph, hence the shortest compile.
-    args = ["train", "toktalk", "--preset", "tiny", "--set", "num_mid_blocks=0", "--batch-size", "4", "--no-progress",
-            "--cache-dir", cache,
-            "--out", str(out)]
+    args = ["train", "toktalk", "--data", "synthtalk:tiny", "--preset", "tiny", "--set", "num_mid_blocks=0",
+            "--set", "batch_size=4", "--no-progress", "--cache-dir", cache, "--out", str(out)]
     first = _ok(args + ["--steps", "2"])
     second = _ok(["train", "toktalk", "--steps", "4", "--no-progress", "--out", str(out)])
-    yield {"dir": out, "root": root, "first": first, "second": second, "corpus": synthtalk_tiny}
+    yield {"dir": out, "root": root, "first": first, "second": second, "corpus": synthtalk_tiny, "data": prepared_tiny}
     jax.config.update("jax_disable_most_optimizations", previous)
 
 
@@ -70,7 +69,8 @@ def test_train_writes_run_and_resume_continues_the_step_count(run):
     with Checkpointer(run["dir"] / "checkpoint", read_only=True) as ckpt:
         assert {2, 4} <= set(ckpt.all_steps())
     record = RunRecord.load(run["dir"])
-    assert record.model == "toktalk" and record.preset == "tiny" and record.batch_size == 4
+    assert record.model == "toktalk" and record.preset == "tiny" and record.train["batch_size"] == 4
+    assert record.data["spec"] == "synthtalk:tiny" and record.data["key"] == run["data"].key
     assert record.model_config().chunk_frames == 4  # the tiny preset, restored from run.json
     at2, at4 = load_run(run["dir"], step=2), load_run(run["dir"])
     assert (at2.step, at4.step) == (2, 4)
@@ -80,7 +80,7 @@ def test_train_writes_run_and_resume_continues_the_step_count(run):
 
 def test_train_user_errors_are_one_line(run, tmp_path):
     out = str(tmp_path / "fresh")
-    _user_error(["train", "toktalk", "--set", "nonsense=1", "--out", out], "has no field 'nonsense'")
+    _user_error(["train", "toktalk", "--set", "nonsense=1", "--out", out], "nonsense: neither a TokTalkConfig field")
     _user_error(["train", "toktalk", "--set", "num_steps=many", "--out", out], "expected int")
     _user_error(["train", "toktalk", "--set", "chunk_frames=5", "--out", out], "chunk_frames=5 must be even")
     _user_error(["train", "toktalk", "--set", "channels", "--out", out], "expects key=value")
@@ -89,6 +89,9 @@ def test_train_user_errors_are_one_line(run, tmp_path):
     _user_error(["train", "timar", "--out", str(run["dir"])], "holds a toktalk run")
     _user_error(["train", "toktalk", "--set", "num_steps=5", "--out", str(run["dir"]), "--steps", "5"],
                 "resume it with the same settings")
+    _user_error(["train", "toktalk", "--set", "lr=fast", "--out", out], "expected float")
+    _user_error(["train", "toktalk", "--set", "speed=3", "--out", out], "neither a TokTalkConfig field nor a training setting")
+    _user_error(["train", "toktalk", "--data", str(tmp_path / "nowhere"), "--out", out], "is not a prepared dataset")
     _user_error(["train", "toktalk", "--steps", "3", "--out", str(run["dir"])], "already at step 4 > --steps 3")
 
 
@@ -111,8 +114,13 @@ def _tokens(run, n: int = 20) -> tuple[np.ndarray, object]:
 
 
 def _default_style(loaded, corpus) -> np.ndarray:
-    # The CLI's documented default: a training clip's first 4 x style_frames frames.
-    return np.asarray(corpus.motion(corpus.split("train")[0]), np.float32)[None, : 4 * loaded.config.style_frames]
+    # The CLI's documented default: the longest training clip's first 4 x style_frames frames, saved
+    # with the run (so sampling needs no dataset).
+    train = corpus.split("train")
+    longest = max(train, key=lambda i: corpus.clips[i].num_frames)
+    want = np.asarray(corpus.motion(longest), np.float32)[: 4 * loaded.config.style_frames]
+    np.testing.assert_array_equal(loaded.default_style(), want)
+    return want[None]
 
 
 def test_sample_tokens_equals_the_library_call(run, tmp_path):
@@ -178,18 +186,3 @@ def test_sample_user_errors(run, tmp_path):
     np.save(tmp_path / "nan.npy", bad)
     _user_error(["stream", run_dir, str(tmp_path / "nan.npy")], "NaN")
     _user_error(["sample", str(tmp_path), str(tmp_path / "wide.npy")], "is not a training run")
-
-
-def test_eval_table_brackets_the_model_between_baselines(run, tmp_path):
-    out = tmp_path / "eval.json"
-    output = _ok(["eval", str(run["dir"]), "--max-clips", "1", "--json", str(out)])
-    rows = {r["method"]: r for r in json.loads(out.read_text())}
-    assert set(rows) == {"toktalk (streamed)", "mean pose", "oracle"}
-    assert all(r["clips"] == 1 for r in rows.values())
-    # The corpus's deterministic part beats the mean pose on every error measure.
-    for metric in ("MSE", "LVE_mm2", "MVE_mm"):
-        assert rows["oracle"][metric] < rows["mean pose"][metric]
-    assert rows["mean pose"]["jitter"] == 0.0  # a constant track has no second difference
-    assert np.isfinite(rows["toktalk (streamed)"]["MSE"]) and "mean pose" in output
-    _user_error(["eval", str(run["dir"]), "--split", "holdout"], "unknown split 'holdout'")
-    _user_error(["eval", str(run["dir"]), "--max-clips", "0"], "--max-clips must be >= 1")

@@ -22,7 +22,7 @@ from jaxtalk.data.sources.clip import ClipEntry, RawClip
 from jaxtalk.data.sources.generic import METADATA_FILE, TOKENIZER_FILE, TOKENS_FILE
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
-__all__ = ["clip_name", "synthtalk_entries", "export_generic"]
+__all__ = ["clip_name", "synthtalk_entries", "export_generic", "export_dualtalk"]
 
 BASE_STREAM = "A"
 
@@ -95,4 +95,35 @@ def export_generic(corpus: Any, out: str | os.PathLike, *, progress: bool = Fals
         writer = csv.DictWriter(handle, fieldnames=["clip", "speaker", "emotion", "intensity", "split", "partner"])
         writer.writeheader()
         writer.writerows(rows)
+    return out
+
+
+def export_dualtalk(corpus: Any, out: str | os.PathLike, *, progress: bool = False) -> Path:
+    """Write ``corpus``'s conversations in the DualTalk release layout (``train/``, ``val/``, ``test/``,
+    ``ood/``; ``<conv>_speaker1/2.npz`` with FLAME-style ``exp``/``pose`` and a float32 ``.wav`` each).
+
+    Monologues have no place in that layout and are left out. ``pose`` is ``neck | jaw`` as DualTalk
+    stores it, so reading the folder back gives the corpus's 56-d motion exactly.
+
+    Returns:
+        The folder.
+    """
+    from tqdm.auto import tqdm
+
+    from jaxtalk.audio.io import save_audio
+
+    out = Path(out)
+    for a, b in tqdm(corpus.conversations(), desc="export", unit="conversation", disable=not progress):
+        split = corpus.clips[a].split
+        folder = out / split
+        folder.mkdir(parents=True, exist_ok=True)
+        for side, clip in (("1", a), ("2", b)):
+            stem = folder / f"{clip_name(a)}_conv_speaker{side}"
+            motion = np.asarray(corpus.motion(clip), np.float32)
+            tmp = folder / f".{stem.name}.tmp.wav"
+            save_audio(tmp, np.asarray(corpus.audio(clip), np.float32), AUDIO_SAMPLE_RATE, subtype="FLOAT")
+            os.replace(tmp, stem.with_suffix(".wav"))
+            with open(folder / f".{stem.name}.tmp.npz", "wb") as handle:
+                np.savez(handle, exp=motion[:, :50], pose=np.concatenate([motion[:, 53:56], motion[:, 50:53]], axis=1))
+            os.replace(folder / f".{stem.name}.tmp.npz", stem.with_suffix(".npz"))
     return out
