@@ -1,7 +1,10 @@
 """The training loop end to end on tiny models: convergence, exact resume after interruption, eval
-callback, progress bar, frozen parameters, and every bad-input path."""
+callback, progress bar, frozen parameters, the best-validated checkpoint and history.jsonl, and every
+bad-input path."""
 
 from __future__ import annotations
+
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -9,7 +12,16 @@ import numpy as np
 import pytest
 
 from jaxtalk.data.batching import BatchIterator
-from jaxtalk.train import NonFiniteLossError, OptimConfig, make_schedule, train
+from jaxtalk.train import (
+    Checkpointer,
+    NonFiniteLossError,
+    OptimConfig,
+    best_checkpoint_dir,
+    make_schedule,
+    read_best,
+    read_history,
+    train,
+)
 
 # Compile time dominates these tiny programs; all runs compared within a test share the setting.
 pytestmark = pytest.mark.usefixtures("fast_compile")
@@ -165,6 +177,144 @@ def test_bucketed_variable_length_batches_train(key):
     cfg = OptimConfig(lr=0.05, warmup_steps=1, total_steps=6)
     result = train(loss_fn, {"w": jnp.zeros((3, 3))}, it, cfg, key=key, progress=False)  # T varies: 4 or 8
     assert result.history[-1]["loss"] < result.history[0]["loss"]
+
+
+# ---------------------------------------------------------------- best checkpoint and history.jsonl
+
+
+def _scripted(values):
+    """An eval_fn returning a scripted validation value per step (and one metric that never counts)."""
+
+    def eval_fn(params, ema_params, step):
+        return {"val": values[step], "ema_norm": jnp.sum(ema_params["l2"]["w"] ** 2)}
+
+    return eval_fn
+
+
+def _saved(directory, step=None):
+    with Checkpointer(directory, read_only=True) as ckpt:
+        return ckpt.restore_saved(step)
+
+
+def test_best_checkpoint_holds_the_lowest_eval_step_and_history_has_the_curve(tmp_path):
+    values = {2: 5.0, 4: 3.0, 6: 4.0, 8: 1.0, 10: 2.0, 12: 6.0}
+    result = _run(tmp_path, "run", eval_fn=_scripted(values), eval_every=2, save_every=2, keep_checkpoints=10,
+                  best_metric="val")
+    run = tmp_path / "run"
+    assert sorted(p.name for p in run.iterdir()) == ["10", "12", "2", "4", "6", "8", "best", "history.jsonl"]
+    assert [p.name for p in best_checkpoint_dir(run).iterdir()] == ["8"]
+    record = read_best(run)
+    assert (record["metric"], record["mode"], record["value"], record["step"]) == ("val", "min", 1.0, 8)
+    assert record["eval"]["val"] == 1.0 and result.best == record
+    # The best checkpoint is the step-8 state exactly (the regular step-8 checkpoint is the reference).
+    best_state, best_step = _saved(best_checkpoint_dir(run))
+    regular_state, _ = _saved(run, 8)
+    assert best_step == 8
+    _bitwise_equal(best_state, regular_state)
+    with Checkpointer(best_checkpoint_dir(run), read_only=True) as ckpt:
+        meta = ckpt.read_metadata()
+    assert meta["best"] == record and meta["step"] == 8 and meta["config"] == CFG.to_dict()
+    # history.jsonl: every evaluation (with whether it improved) and the train curve up to step 12.
+    rows = read_history(run)
+    evals = [r for r in rows if r["type"] == "eval"]
+    assert [(r["step"], r["eval"]["val"], r["best"]) for r in evals] == [
+        (2, 5.0, True), (4, 3.0, True), (6, 4.0, False), (8, 1.0, True), (10, 2.0, False), (12, 6.0, False)
+    ]
+    trains = [r for r in rows if r["type"] == "train"]
+    assert sum(r["window"] for r in trains) == 12 and trains[-1]["step"] == 12
+    assert [r["step"] for r in trains] == sorted({r["step"] for r in trains})
+    # Each train row's loss is the mean of its window of per-step losses.
+    losses = {h["step"]: h["loss"] for h in result.history if "loss" in h}
+    for r in trains:
+        window = [losses[s] for s in range(r["step"] - r["window"] + 1, r["step"] + 1)]
+        np.testing.assert_allclose(r["loss"], np.mean(window), rtol=1e-12)
+
+
+@pytest.mark.parametrize("mode, sign", [("min", 1.0), ("max", -1.0)])
+def test_best_checkpoint_survives_resume(tmp_path, mode, sign):
+    values = {k: sign * v for k, v in {2: 5.0, 4: 1.0, 6: 3.0, 7: 4.0, 8: 2.0, 10: 1.5, 12: 3.0}.items()}
+    opts = dict(eval_fn=_scripted(values), eval_every=2, best_metric="val", best_mode=mode)
+    first = _run(tmp_path, "run", max_steps=7, **opts)
+    assert first.best["step"] == 4
+    # The resumed run's evaluations (steps 8, 10, 12) are all worse than step 4's: a run that forgot
+    # the best-so-far would save step 8.
+    second = _run(tmp_path, "run", **opts)
+    assert [h["step"] for h in second.history if "eval" in h] == [8, 10, 12]
+    assert second.best["step"] == 4 and second.best["value"] == sign * 1.0
+    assert read_best(tmp_path / "run")["step"] == 4
+    assert [p.name for p in best_checkpoint_dir(tmp_path / "run").iterdir()] == ["4"]
+    rows = read_history(tmp_path / "run")
+    assert [(r["step"], r["best"]) for r in rows if r["type"] == "eval"] == [
+        (2, True), (4, True), (6, False), (7, False), (8, False), (10, False), (12, False)
+    ]
+    # A third run that improves replaces it.
+    values[12] = sign * 0.5
+    shutil.rmtree(tmp_path / "run" / "12")  # as if killed before its final checkpoint
+    third = _run(tmp_path, "run", **opts)
+    assert third.best["step"] == 12 and read_best(tmp_path / "run")["value"] == sign * 0.5
+    assert [p.name for p in best_checkpoint_dir(tmp_path / "run").iterdir()] == ["12"]
+
+
+def test_crash_after_a_best_save_resumes_without_duplicate_history(tmp_path):
+    data, _, _ = _regression_data()
+    values = {s: 10.0 - s if s <= 7 else 20.0 for s in range(1, 13)}  # improves at every step up to 7
+    opts = dict(eval_fn=_scripted(values), eval_every=1, save_every=3, best_metric="val")
+    with pytest.raises(KeyboardInterrupt):
+        _run(tmp_path, "run", data_iter=_Crashing(data, 8, seed=4, crash_at=8), **opts)
+    run = tmp_path / "run"
+    # Killed during step 8: regular checkpoints at 3 and 6, the best (and history rows) reach step 7.
+    assert read_best(run)["step"] == 7 and Checkpointer(run, read_only=True).all_steps() == [3, 6]
+    assert max(r["step"] for r in read_history(run)) == 7
+    with open(run / "history.jsonl", "a") as f:
+        f.write('{"type": "eval", "st')  # and a torn last line
+    # This time step 7 validates better than the best written after the step-6 checkpoint: it replaces it.
+    values[7] = 0.5
+    resumed = _run(tmp_path, "run", **opts)
+    assert resumed.history[0]["step"] == 7
+    record = read_best(run)
+    assert record["step"] == 7 and record["value"] == 0.5
+    assert [p.name for p in best_checkpoint_dir(run).iterdir()] == ["7"]
+    assert [r["step"] for r in read_history(run) if r["type"] == "eval"] == list(range(1, 13))
+    assert all(line.endswith("}") for line in (run / "history.jsonl").read_text().splitlines())
+    trains = [r for r in read_history(run) if r["type"] == "train"]
+    assert sum(r["window"] for r in trains) == 12
+
+
+def test_history_file_switch_and_no_best_without_best_metric(tmp_path):
+    _run(tmp_path, "plain", eval_fn=_scripted({12: float("nan")}))  # eval without best_metric: history, no best/
+    assert sorted(p.name for p in (tmp_path / "plain").iterdir()) == ["12", "history.jsonl"]
+    assert read_best(tmp_path / "plain") is None
+    last = read_history(tmp_path / "plain")[-1]
+    assert last["type"] == "eval" and "best" not in last
+    assert np.isnan(last["eval"]["val"]) and '"val": null' in (tmp_path / "plain" / "history.jsonl").read_text()
+    # A non-finite validation value is never the best.
+    diverged = _run(tmp_path, "nan", eval_fn=_scripted({12: float("nan")}), best_metric="val")
+    assert diverged.best is None and read_best(tmp_path / "nan") is None
+    _run(tmp_path, "off", eval_fn=_scripted({12: 1.0}), write_history=False)
+    assert sorted(p.name for p in (tmp_path / "off").iterdir()) == ["12"]
+    _run(tmp_path, "on", write_history=True)  # no eval_fn: train rows only
+    assert {r["type"] for r in read_history(tmp_path / "on")} == {"train"}
+
+
+def test_best_metric_errors(tmp_path, key):
+    with pytest.raises(ValueError, match="needs eval_fn and ckpt_dir"):
+        _run(tmp_path, "a", best_metric="val")
+    with pytest.raises(ValueError, match="needs eval_fn and ckpt_dir"):
+        _run(tmp_path, "a", ckpt_dir=None, eval_fn=_scripted({12: 1.0}), best_metric="val")
+    # (Under the suite's runtime type checking the Literal annotation rejects it first: a TypeError.)
+    with pytest.raises((ValueError, TypeError), match="best_mode"):
+        _run(tmp_path, "a", eval_fn=_scripted({12: 1.0}), best_metric="val", best_mode="lowest")
+    with pytest.raises(ValueError, match="write_history=True needs ckpt_dir"):
+        _run(tmp_path, "a", ckpt_dir=None, write_history=True)
+    missing = r"best_metric 'loss' is not among the eval metrics at step 12: \['ema_norm', 'val'\]"
+    with pytest.raises(ValueError, match=missing):
+        _run(tmp_path, "b", eval_fn=_scripted({12: 1.0}), best_metric="loss")
+    _run(tmp_path, "c", max_steps=4, eval_fn=_scripted({4: 1.0}), best_metric="val")
+    with pytest.raises(ValueError, match=r"chosen by 'val' \(min\), this run asks for 'val' \(max\)"):
+        _run(tmp_path, "c", eval_fn=_scripted({12: 1.0}), best_metric="val", best_mode="max")
+    shutil.rmtree(tmp_path / "c" / "4")  # only the best checkpoint is left: still not overwritten silently
+    with pytest.raises(ValueError, match="best.*already holds checkpoints"):
+        _run(tmp_path, "c", eval_fn=_scripted({12: 1.0}), best_metric="val", resume=False)
 
 
 # ---------------------------------------------------------------- bad input

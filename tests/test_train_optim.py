@@ -172,11 +172,13 @@ def test_train_step_metrics_ema_and_keys(key):
     # Step s draws from fold_in(key, s): fresh per step, reproducible from (key, step) alone.
     assert float(m1["u"]) == float(jax.random.uniform(jax.random.fold_in(key, 0)))
     assert float(m2["u"]) == float(jax.random.uniform(jax.random.fold_in(key, 1)))
-    # EMA recursion by hand: e1 = 0.9 p0 + 0.1 p1, e2 = 0.9 e1 + 0.1 p2.
-    e1 = jax.tree.map(lambda a, b: 0.9 * a + 0.1 * b, p0, s1.params)
-    e2 = jax.tree.map(lambda a, b: 0.9 * a + 0.1 * b, e1, s2.params)
+    # Bias-corrected EMA by hand: e1 = p1 (no weight on p0), e2 = (0.9 * 0.1 p1 + 0.1 p2) / (1 - 0.9^2).
+    for a, b in zip(jax.tree.leaves(s1.params), jax.tree.leaves(s1.ema_params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    e2 = jax.tree.map(lambda a, b: (0.09 * a + 0.1 * b) / 0.19, s1.params, s2.params)
     for a, b in zip(jax.tree.leaves(e2), jax.tree.leaves(s2.ema_params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
+    assert jax.tree.structure(p0) == jax.tree.structure(s2.ema_params)
     # The caller's params are copied, never donated.
     assert np.isfinite(np.asarray(params["adapter"]["w"])).all()
 

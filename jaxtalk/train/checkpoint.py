@@ -1,12 +1,28 @@
 """Orbax checkpoints of the train state, the data-iterator position and a JSON metadata record.
 
-Layout: ``<dir>/<step>/{state,data,meta}``. Orbax writes each step into
-``<dir>/<step>.orbax-checkpoint-tmp...`` and renames it when complete, and lists only finalised step
-directories, so a run killed mid-save leaves the previous checkpoint as the latest one (tested).
+Layout of a checkpoint directory written by :func:`jaxtalk.train.train`::
+
+    <dir>/<step>/{state,data,meta}        the latest ``keep_checkpoints`` steps (resume from the newest)
+    <dir>/best/<step>/{state,data,meta}   with ``best_metric``: the single best-validated step; its
+                                          ``meta`` has ``best = {metric, mode, value, step, eval}``
+    <dir>/history.jsonl                   with evaluation: one JSON object per line, ``type`` "train"
+                                          (window-mean loss/metrics at each log flush) or "eval"
+
+Orbax writes each step into ``<dir>/<step>.orbax-checkpoint-tmp...`` and renames it when complete,
+and lists only finalised step directories, so a run killed mid-save leaves the previous checkpoint
+as the latest one (tested). Orbax only lists all-digit names as steps, so ``best/`` and
+``history.jsonl`` never count as checkpoints of ``<dir>``.
+
+Readers choose "latest" or "best" by directory: ``Checkpointer(dir)`` or
+``Checkpointer(best_checkpoint_dir(dir))``; both support :meth:`Checkpointer.restore_saved` and
+:meth:`Checkpointer.read_metadata`. :func:`read_best` gives the best record, :func:`read_history` the
+curve.
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -21,7 +37,15 @@ __all__ = [
     "save_checkpoint",
     "restore_checkpoint",
     "latest_checkpoint_step",
+    "BEST_DIR",
+    "HISTORY_FILE",
+    "best_checkpoint_dir",
+    "read_best",
+    "read_history",
 ]
+
+BEST_DIR = "best"
+HISTORY_FILE = "history.jsonl"
 
 PyTree = Any
 
@@ -202,6 +226,40 @@ class Checkpointer:
             raise ValueError(f"checkpoint {path} cannot be read: {detail}") from err
         return dict(restored.state), step
 
+    def read_metadata(self, step: int | None = None) -> dict[str, Any]:
+        """The JSON metadata record saved with a checkpoint, without reading its arrays.
+
+        Args:
+            step: checkpoint step (default: the newest complete one).
+
+        Returns:
+            The record: ``step`` plus what :meth:`save` was given as ``metadata``.
+
+        Raises:
+            FileNotFoundError: the directory holds no complete checkpoint, or ``step`` is absent.
+            ValueError: the record cannot be read (names the path).
+        """
+        ocp = self._ocp
+        step = self._complete_step(step)
+        path = self.directory / str(step)
+        try:
+            restored = self._manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+        except Exception as err:  # orbax raises many types; name the path for the user
+            detail = str(err).splitlines()[0][:400] if str(err) else type(err).__name__
+            raise ValueError(f"checkpoint metadata of {path} cannot be read: {detail}") from err
+        return dict(restored.meta or {})
+
+    def delete(self, step: int) -> None:
+        """Delete the checkpoint of ``step`` (after finishing pending saves).
+
+        Raises:
+            FileNotFoundError: no complete checkpoint for ``step``.
+        """
+        self._manager.wait_until_finished()
+        if int(step) not in self.all_steps():
+            raise FileNotFoundError(f"no checkpoint for step {step} in {self.directory} (have {self.all_steps()})")
+        self._manager.delete(int(step))
+
     def wait(self) -> None:
         """Block until background saves are written."""
         self._manager.wait_until_finished()
@@ -271,3 +329,92 @@ def latest_checkpoint_step(directory: str | os.PathLike) -> int | None:
         return None
     with Checkpointer(directory, read_only=True) as ckpt:
         return ckpt.latest_step()
+
+
+def best_checkpoint_dir(directory: str | os.PathLike) -> Path:
+    """Where :func:`jaxtalk.train.train` keeps the best-validated checkpoint of run ``directory``.
+
+    Open it like any checkpoint directory, e.g.
+    ``Checkpointer(best_checkpoint_dir(d), read_only=True).restore_saved()``.
+
+    Args:
+        directory: the run's checkpoint directory (``ckpt_dir`` of ``train``).
+
+    Returns:
+        ``<directory>/best``.
+    """
+    return Path(directory) / BEST_DIR
+
+
+def read_best(directory: str | os.PathLike) -> dict[str, Any] | None:
+    """The best-checkpoint record of run ``directory``: which metric chose it and its value.
+
+    Args:
+        directory: the run's checkpoint directory (``ckpt_dir`` of ``train``).
+
+    Returns:
+        ``{"metric", "mode", "value", "step", "eval"}`` (``eval``: all evaluation metrics of that
+        step), or None when the run has no best checkpoint.
+
+    Raises:
+        ValueError: a best checkpoint whose metadata cannot be read or has no ``best`` record.
+    """
+    best = best_checkpoint_dir(directory)
+    if not best.is_dir():
+        return None
+    with Checkpointer(best, read_only=True) as ckpt:
+        if ckpt.latest_step() is None:
+            return None
+        meta = ckpt.read_metadata()
+    record = meta.get("best")
+    if not isinstance(record, dict) or not {"metric", "mode", "value", "step"} <= set(record):
+        raise ValueError(f"checkpoint {best} has no best-checkpoint record in its metadata (got keys {sorted(meta)})")
+    return record
+
+
+def read_history(directory: str | os.PathLike) -> list[dict[str, Any]]:
+    """The rows of ``<directory>/history.jsonl`` (empty when there is none).
+
+    A torn last line (a run killed while appending) is skipped; a bad line elsewhere is an error.
+    Non-finite values are stored as JSON ``null`` and read back as NaN.
+
+    Args:
+        directory: the run's checkpoint directory.
+
+    Returns:
+        One dict per row, in file order: ``{"type": "train", "step", "loss", "metrics", "window",
+        "time"}`` or ``{"type": "eval", "step", "eval", "time"}`` (plus ``"best": bool`` when the
+        run tracked a best metric).
+
+    Raises:
+        ValueError: a line other than the last is not a JSON object (names the file and line).
+    """
+    path = Path(directory) / HISTORY_FILE
+    if not path.is_file():
+        return []
+    lines = path.read_text().splitlines()
+    rows = []
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+            if not isinstance(row, dict):
+                raise ValueError("not a JSON object")
+        except ValueError as err:
+            if number == len(lines):
+                break  # torn final append
+            raise ValueError(f"{path}:{number} is not a history row: {err}") from None
+        rows.append(_nan_from_null(row))
+    return rows
+
+
+def _nan_from_null(row: dict[str, Any]) -> dict[str, Any]:
+    # Metric values written as null (JSON has no NaN) come back as NaN floats.
+    out = dict(row)
+    if "loss" in out and out["loss"] is None:
+        out["loss"] = math.nan
+    for key in ("metrics", "eval"):
+        if isinstance(out.get(key), dict):
+            out[key] = {k: math.nan if v is None else v for k, v in out[key].items()}
+    return out

@@ -4,6 +4,10 @@ The model supplies ``loss_fn(params, batch, key) -> (loss, metrics)``; the loop 
 EMA, frozen parameters, data-parallel sharding, progress bar, periodic evaluation, checkpoints and
 exact resumption (state, optimiser, EMA, RNG and data position).
 
+With ``best_metric`` the loop also keeps the best-validated state in ``<ckpt_dir>/best`` and, with
+evaluation, writes the training and validation curve to ``<ckpt_dir>/history.jsonl`` (layout:
+:mod:`jaxtalk.train.checkpoint`).
+
 Metrics stay on the device and are fetched every ``log_every`` steps (and before each checkpoint or
 evaluation) so the host does not wait for every step; the non-finite-loss check runs on those
 fetched values, so it never lets a NaN state reach a checkpoint.
@@ -13,19 +17,21 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import math
 import os
 import time
 import warnings
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from pathlib import Path
+from typing import Any, Literal
 
 import jax
 import numpy as np
 from jax.sharding import Mesh
 
 from jaxtalk.train.checks import BatchSpec, check_finite
-from jaxtalk.train.checkpoint import Checkpointer
+from jaxtalk.train.checkpoint import HISTORY_FILE, Checkpointer, best_checkpoint_dir, read_history
 from jaxtalk.train.optim import OptimConfig, Trainable, make_optimizer, trainable_mask
 from jaxtalk.train.sharding import replicate, shard_batch
 from jaxtalk.train.state import TrainState, create_train_state
@@ -64,10 +70,14 @@ class TrainResult:
         history: one dict per step: ``step`` (updates done), ``loss``, ``metrics`` (all step metrics
             incl. ``grad_norm`` and ``lr``), ``time`` (seconds since the call started, taken when
             the metrics were fetched) and, at evaluation steps, ``eval`` (the eval metrics).
+        best: with ``best_metric``: the record of the best checkpoint so far (``metric``, ``mode``,
+            ``value``, ``step``, ``eval``), including one kept from before a resume; None if no
+            evaluation has produced a finite value yet, or without ``best_metric``.
     """
 
     state: TrainState
     history: list[dict[str, Any]]
+    best: dict[str, Any] | None = None
 
 
 def train(
@@ -86,6 +96,9 @@ def train(
     metadata: dict[str, Any] | None = None,
     eval_fn: EvalFn | None = None,
     eval_every: int | None = None,
+    best_metric: str | None = None,
+    best_mode: Literal["min", "max"] = "min",
+    write_history: bool | None = None,
     trainable: Trainable = None,
     mesh: Mesh | None = None,
     progress: bool = True,
@@ -116,6 +129,17 @@ def train(
         eval_fn: ``(params, ema_params or None, step) -> metrics``, called every ``eval_every``
             steps and at the end; its metrics go into the history and the progress bar.
         eval_every: evaluation period in steps (default: only at the end).
+        best_metric: a key of ``eval_fn``'s metrics. Whenever an evaluation improves it (strictly;
+            a NaN/inf value never does), that state is saved to ``<ckpt_dir>/best`` (one
+            checkpoint, :func:`jaxtalk.train.best_checkpoint_dir`), its metadata recording
+            ``best = {metric, mode, value, step, eval}``. Resuming reads the best value back from
+            there, so a resumed run only replaces it with a better one. The regular checkpoints and
+            resumption are unaffected.
+        best_mode: ``"min"`` (lower is better, e.g. a loss) or ``"max"``.
+        write_history: append one JSON line per log flush (window-mean loss and metrics) and per
+            evaluation to ``<ckpt_dir>/history.jsonl`` (read with :func:`jaxtalk.train.read_history`).
+            Default: when ``ckpt_dir`` and ``eval_fn`` are both given. On resume, rows after the
+            restored step (from a run killed after its last checkpoint) are dropped first.
         trainable: which parameters train: None (all), a predicate ``(path, leaf) -> bool`` on
             ``"a/b/kernel"`` paths, or a pytree of bools. Frozen leaves stay bitwise unchanged.
         mesh: device mesh for data parallelism (batch sharded, state replicated).
@@ -126,10 +150,12 @@ def train(
             ``variable_axes`` attribute, else none). All other sizes must match the first batch.
 
     Returns:
-        :class:`TrainResult` with the final state and per-step history.
+        :class:`TrainResult` with the final state, per-step history and best record.
 
     Raises:
-        ValueError: bad settings; a batch with NaN/inf, a different structure/shape/dtype than the
+        ValueError: bad settings (incl. ``best_metric`` without ``eval_fn`` or ``ckpt_dir``, an
+            evaluation without the ``best_metric`` key, or a best checkpoint chosen by another
+            metric or mode on resume); a batch with NaN/inf, a different structure/shape/dtype than the
             first batch (naming the array and both shapes), or a batch size not divisible by the
             mesh's device count; a corrupt checkpoint (naming the path).
         NonFiniteLossError: the loss became NaN/inf (names the step; nothing after the last good
@@ -144,6 +170,14 @@ def train(
             raise ValueError(f"{name} must be >= 1 or None, got {value}")
     if eval_every is not None and eval_fn is None:
         raise ValueError("eval_every is set but eval_fn is None")
+    if best_mode not in ("min", "max"):
+        raise ValueError(f"best_mode must be 'min' or 'max', got {best_mode!r}")
+    if best_metric is not None and (eval_fn is None or ckpt_dir is None):
+        raise ValueError(f"best_metric={best_metric!r} needs eval_fn and ckpt_dir (it saves to <ckpt_dir>/best)")
+    if write_history and ckpt_dir is None:
+        raise ValueError("write_history=True needs ckpt_dir (the history goes to <ckpt_dir>/history.jsonl)")
+    if write_history is None:
+        write_history = ckpt_dir is not None and eval_fn is not None
     if variable_axes is None:
         variable_axes = tuple(getattr(data_iter, "variable_axes", ()))
 
@@ -155,16 +189,22 @@ def train(
 
     meta = {"config": config.to_dict(), **(metadata or {})}
     ckpt = None
+    best = None
     spec: BatchSpec | None = None
     has_position = hasattr(data_iter, "get_state") and hasattr(data_iter, "set_state")
     if ckpt_dir is not None:
         ckpt = Checkpointer(ckpt_dir, max_to_keep=keep_checkpoints, async_save=async_checkpoints)
     try:
-        if ckpt is not None and not resume and ckpt.latest_step() is not None:
-            raise ValueError(
-                f"checkpoint directory {ckpt.directory} already holds checkpoints (latest step "
-                f"{ckpt.latest_step()}); pass resume=True to continue it or choose an empty directory"
-            )
+        if best_metric is not None:
+            best = _BestKeeper(best_checkpoint_dir(ckpt_dir), best_metric, best_mode, async_checkpoints)
+        for existing in (ckpt, None if best is None else best.ckpt):
+            if existing is not None and not resume and existing.latest_step() is not None:
+                raise ValueError(
+                    f"checkpoint directory {existing.directory} already holds checkpoints (latest step "
+                    f"{existing.latest_step()}); pass resume=True to continue it or choose an empty directory"
+                )
+        if best is not None:
+            best.load_record()  # the best-so-far survives a resume (and a restart from step 0)
         if ckpt is not None and resume and ckpt.latest_step() is not None:
             state, data_state, saved_meta = ckpt.restore(state)
             if has_position and data_state:
@@ -182,6 +222,9 @@ def train(
                     f"optimiser config differs from the checkpoint's: {saved_meta.get('config')} -> {meta['config']}",
                     stacklevel=2,
                 )
+        history_file = None
+        if write_history and jax.process_index() == 0:  # one writer per run, as for orbax's files
+            history_file = _HistoryFile(Path(ckpt_dir) / HISTORY_FILE, start_step=int(state.step))
         loop = _Loop(
             state=state,
             step_fn=step_fn,
@@ -198,11 +241,15 @@ def train(
             save_every=save_every,
             log_every=log_every,
             progress=progress,
+            best=best,
+            history_file=history_file,
         )
         return loop.run(max_steps)
     finally:
         if ckpt is not None:
             ckpt.close()
+        if best is not None:
+            best.ckpt.close()
 
 
 @functools.lru_cache(maxsize=16)
@@ -238,6 +285,8 @@ class _Loop:
     save_every: int | None
     log_every: int
     progress: bool
+    best: _BestKeeper | None = None
+    history_file: _HistoryFile | None = None
 
     def run(self, max_steps: int) -> TrainResult:
         from tqdm.auto import tqdm  # deferred: keeps `import jaxtalk.train` light
@@ -266,17 +315,19 @@ class _Loop:
                 if step % self.log_every == 0:
                     self._flush()
                 if self.eval_every is not None and step % self.eval_every == 0:
-                    self._evaluate(step)
+                    self._evaluate(step, data_state)
                 if self.save_every is not None and step % self.save_every == 0:
                     self._save(step, data_state)
             self._flush()
             if self.eval_fn is not None and not (self.history and "eval" in self.history[-1]):
-                self._evaluate(step)
+                self._evaluate(step, data_state)
             if self.ckpt is not None and self.last_saved != step and step > 0:
                 self._save(step, data_state)
         finally:
             self.bar.close()
-        return TrainResult(state=self.state, history=self.history)
+        return TrainResult(
+            state=self.state, history=self.history, best=None if self.best is None else self.best.record
+        )
 
     def _prepare(self, batch: PyTree, step: int) -> PyTree:
         if self.spec is None:
@@ -297,10 +348,13 @@ class _Loop:
         fetched = jax.device_get([m for _, m in self.pending])
         now = time.perf_counter()
         elapsed = now - self.start
+        done = 0
         for (step, _), metrics in zip(self.pending, fetched):
             values = {k: float(np.asarray(v)) for k, v in metrics.items()}
             if not math.isfinite(values["loss"]):
                 self.pending = []
+                if self.history_file is not None and done:  # the file keeps the finite steps before it
+                    self.history_file.append_train(self.history[-done:], elapsed)
                 where = (
                     f"the last good checkpoint is step {self.last_saved} in {self.ckpt.directory}"
                     if self.ckpt is not None and self.last_saved is not None
@@ -314,7 +368,10 @@ class _Loop:
                     history=self.history,
                 )
             self.history.append({"step": step, "loss": values["loss"], "metrics": values, "time": elapsed})
+            done += 1
         last_step = self.pending[-1][0]
+        if self.history_file is not None:
+            self.history_file.append_train(self.history[-done:], elapsed)
         rate = (last_step - self.window[0]) / max(now - self.window[1], 1e-9)
         self.window = (last_step, now)
         self.pending = []
@@ -322,15 +379,22 @@ class _Loop:
         self.postfix.update(loss=f"{self.history[-1]['loss']:.4g}", steps_per_s=f"{rate:.3g}")
         self.bar.set_postfix(self.postfix, refresh=False)
 
-    def _evaluate(self, step: int) -> None:
+    def _evaluate(self, step: int, data_state: dict | None) -> None:
+        # Flush first: a NaN loss raises here, so a NaN state never reaches the best checkpoint.
         self._flush()
         state = self.state
         metrics = self.eval_fn(state.params, state.ema_params, step)
         values = {k: float(np.asarray(v)) for k, v in dict(metrics).items()}
+        elapsed = time.perf_counter() - self.start
         if self.history and self.history[-1]["step"] == step:
             self.history[-1]["eval"] = values
         else:
-            self.history.append({"step": step, "eval": values, "time": time.perf_counter() - self.start})
+            self.history.append({"step": step, "eval": values, "time": elapsed})
+        improved = None
+        if self.best is not None:
+            improved = self.best.offer(state, step, values, data_state=data_state, metadata=self.meta)
+        if self.history_file is not None:
+            self.history_file.append_eval(step, values, elapsed, best=improved)
         self.postfix.update({f"eval_{k}": f"{v:.4g}" for k, v in values.items()})
         self.bar.set_postfix(self.postfix, refresh=False)
 
@@ -339,3 +403,130 @@ class _Loop:
         self._flush()
         self.ckpt.save(self.state, data_state=data_state, metadata=self.meta)
         self.last_saved = step
+
+
+class _BestKeeper:
+    """The best-validated checkpoint of a run: ``<ckpt_dir>/best``, one step, chosen by one metric.
+
+    A second :class:`Checkpointer` rather than orbax's ``best_fn``: with ``best_fn`` orbax's
+    ``max_to_keep`` would keep the best N instead of the latest N, and the regular checkpoints (what
+    resume reads) must stay "the latest N".
+    """
+
+    def __init__(self, directory: Path, metric: str, mode: str, async_save: bool) -> None:
+        self.metric, self.mode = metric, mode
+        self.ckpt = Checkpointer(directory, max_to_keep=1, async_save=async_save)
+        self.record: dict[str, Any] | None = None
+
+    def load_record(self) -> None:
+        """Adopt the saved best record as the value to beat.
+
+        Raises:
+            ValueError: the saved best was chosen by another metric or mode (the values would not
+                compare), or its metadata has no best record.
+        """
+        if self.ckpt.latest_step() is None:
+            return
+        meta = self.ckpt.read_metadata()
+        record = meta.get("best")
+        if not isinstance(record, dict) or "value" not in record:
+            raise ValueError(f"checkpoint {self.ckpt.directory} has no best-checkpoint record in its metadata")
+        if (record.get("metric"), record.get("mode")) != (self.metric, self.mode):
+            raise ValueError(
+                f"the best checkpoint in {self.ckpt.directory} was chosen by {record.get('metric')!r} "
+                f"({record.get('mode')}), this run asks for {self.metric!r} ({self.mode}); use the same "
+                "best_metric/best_mode or another ckpt_dir"
+            )
+        self.record = record
+
+    def offer(
+        self, state: TrainState, step: int, values: dict[str, float], *, data_state: dict | None, metadata: dict
+    ) -> bool:
+        """Save ``state`` as the new best if ``values[metric]`` beats the record.
+
+        Returns:
+            Whether it did.
+
+        Raises:
+            ValueError: ``values`` has no entry for the metric (naming the ones it has).
+        """
+        if self.metric not in values:
+            raise ValueError(
+                f"best_metric {self.metric!r} is not among the eval metrics at step {step}: {sorted(values)}"
+            )
+        value = values[self.metric]
+        if not math.isfinite(value):
+            return False  # a diverged evaluation is never "best"
+        if self.record is not None:
+            previous = float(self.record["value"])
+            if not (value < previous if self.mode == "min" else value > previous):
+                return False  # ties keep the earlier state
+        # A best at or after this step exists only when the run went back in time (resumed from an
+        # older regular checkpoint, or restarted from step 0, and this time did better). Orbax
+        # refuses to overwrite a step and keeps the most recently written one, so remove it first.
+        for old in self.ckpt.all_steps():
+            if old >= step:
+                self.ckpt.delete(old)
+        record = {"metric": self.metric, "mode": self.mode, "value": value, "step": step, "eval": dict(values)}
+        self.ckpt.save(state, data_state=data_state, metadata={**metadata, "best": record})
+        self.record = record
+        return True
+
+
+class _HistoryFile:
+    """Appends JSON rows to ``<ckpt_dir>/history.jsonl`` (one ``write`` per row)."""
+
+    def __init__(self, path: Path, start_step: int) -> None:
+        self.path = path
+        rows = read_history(path.parent)
+        # Drop what a killed run logged after its last checkpoint: the resumed run re-does it.
+        kept = [r for r in rows if int(r.get("step", 0)) <= start_step]
+        self.eval_steps = {int(r["step"]) for r in kept if r.get("type") == "eval"}
+        if path.is_file():
+            lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+            if len(lines) != len(kept):  # rows dropped, or a torn last line
+                tmp = path.with_name(f".{path.name}.tmp")
+                tmp.write_text("".join(_json_line(r) for r in kept))
+                tmp.replace(path)  # atomic: a reader sees the old or the new file, never a mix
+
+    def append_train(self, rows: list[dict[str, Any]], elapsed: float) -> None:
+        """One row for a log flush: mean loss and metrics over its ``window`` of steps."""
+        keys = rows[-1]["metrics"].keys()
+        self._append(
+            {
+                "type": "train",
+                "step": rows[-1]["step"],
+                "window": len(rows),
+                "loss": float(np.mean([r["loss"] for r in rows])),
+                "metrics": {k: float(np.mean([r["metrics"][k] for r in rows if k in r["metrics"]])) for k in keys},
+                "time": elapsed,
+            }
+        )
+
+    def append_eval(self, step: int, values: dict[str, float], elapsed: float, *, best: bool | None) -> None:
+        """One row per evaluation; a step already in the file (re-evaluated by a resumed run that
+        had nothing left to train) is not repeated."""
+        if step in self.eval_steps:
+            return
+        self.eval_steps.add(step)
+        row: dict[str, Any] = {"type": "eval", "step": step, "eval": values, "time": elapsed}
+        if best is not None:
+            row["best"] = best
+        self._append(row)
+
+    def _append(self, row: dict[str, Any]) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "a", encoding="utf-8") as f:
+            f.write(_json_line(row))
+
+
+def _json_line(row: dict[str, Any]) -> str:
+    # Strict JSON (no NaN/Infinity tokens, which many readers reject): non-finite values become null.
+    def clean(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        return v
+
+    return json.dumps(clean(row), allow_nan=False) + "\n"

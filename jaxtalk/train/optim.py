@@ -31,6 +31,9 @@ class OptimConfig:
         clip_norm: clip the global gradient norm (of the trainable leaves) to this; None: no clip.
         b1, b2, eps: Adam moments' decay rates and epsilon.
         ema_decay: keep an exponential moving average of the parameters with this decay (None: off).
+            The average is bias-corrected (``jaxtalk.train.ema``): after ``t`` steps it is the mean
+            of the parameters after steps ``1..t`` weighted ``(1 - d) d**(t-i) / (1 - d**t)``, with
+            no weight left on the initialisation; ``1 / (1 - d)`` steps is its time scale.
         final_lr_ratio: learning rate at ``total_steps`` as a fraction of ``lr``.
     """
 

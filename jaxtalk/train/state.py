@@ -25,7 +25,10 @@ class TrainState:
         step: number of optimiser steps taken (int32 scalar).
         params: model parameters.
         opt_state: optax optimiser state.
-        ema_params: moving average of ``params`` (None when EMA is off).
+        ema_params: bias-corrected exponential moving average of ``params`` over the updates done
+            so far (the initial parameters have weight 0 once ``step >= 1``; equal to them at step
+            0); None when EMA is off. Stored debiased, so it is what evaluation and checkpoint
+            readers use as is.
         rng: base PRNG key; step ``s`` uses ``fold_in(rng, s)``, so resuming needs only ``step``.
     """
 
@@ -53,7 +56,9 @@ def create_train_state(
         params: initial parameters (pytree of float arrays).
         tx: optimiser from :func:`jaxtalk.train.make_optimizer`.
         key: base PRNG key for the per-step keys (a typed key, ``jax.random.key``).
-        ema: keep an EMA of the parameters (initialised to ``params``).
+        ema: keep an EMA of the parameters. Its buffer starts as a copy of ``params`` (what
+            ``eval_params`` gives before the first update); the first bias-corrected update
+            replaces it entirely.
 
     Returns:
         The state.

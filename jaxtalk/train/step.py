@@ -1,5 +1,5 @@
 """The jitted train step: value_and_grad of the model's loss, optax update, frozen leaves kept bitwise,
-EMA, optional data-parallel shardings; the state is donated."""
+bias-corrected EMA, optional data-parallel shardings; the state is donated."""
 
 from __future__ import annotations
 
@@ -43,7 +43,9 @@ def make_train_step(
         loss_fn: ``(params, batch, key) -> (loss, metrics)``; loss a scalar, metrics a dict of
             scalars whose names avoid ``RESERVED_METRICS``.
         tx: optimiser from :func:`jaxtalk.train.make_optimizer` (built with the same ``mask``).
-        config: optimiser settings (schedule for the ``lr`` metric, EMA decay).
+        config: optimiser settings (schedule for the ``lr`` metric, EMA decay). The EMA is the
+            bias-corrected average of the parameters after each update (weight 0 on the initial
+            ones; :mod:`jaxtalk.train.ema`).
         mask: pytree of Python bools, True for trainable leaves (None: all trainable).
         mesh: data mesh: the batch is sharded on its leading axis, the state replicated.
         donate: donate the input state's buffers to the output state.
@@ -74,7 +76,10 @@ def make_train_step(
         params = jax.tree.map(lambda new, old, m: new if m else old, stepped, state.params, leaf_mask)
         ema = state.ema_params
         if ema is not None:
-            ema = ema_update(ema, params, config.ema_decay, leaf_mask)
+            # Bias-corrected: this is update number step + 1, and the weight on the initial
+            # parameters is 0 (see jaxtalk.train.ema); the count is the state's own step, so a
+            # resumed run continues the same average bitwise.
+            ema = ema_update(ema, params, config.ema_decay, leaf_mask, step=state.step + 1)
         trainable_grads = [g for g, m in zip(jax.tree.leaves(grads), jax.tree.leaves(leaf_mask)) if m]
         metrics = {
             **model_metrics,
