@@ -221,11 +221,11 @@ def prepare(
 
 
 def _sample_options(run: Path, input_: Path, out: Path | None, style: Path | None, partner: Path | None,
-                    cfg_scale: float | None, steps: int | None, seed: int) -> Any:
+                    cfg_scale: float | None, steps: int | None, seed: int, best: bool) -> Any:
     from jaxtalk.commands.inference import SampleOptions
 
     return SampleOptions(run_dir=run, input=input_, out=out, style=style, partner=partner, cfg_scale=cfg_scale,
-                         num_steps=steps, seed=seed)
+                         num_steps=steps, seed=seed, best=best)
 
 
 _RUN = Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk or timar).")]
@@ -237,47 +237,65 @@ _PARTNER = Annotated[Path | None, typer.Option(help="TIMAR: the partner's audio 
 _CFG = Annotated[float | None, typer.Option(help="Guidance scale (default: the model's).")]
 _STEPS = Annotated[int | None, typer.Option(help="Sampler steps (default: the model's).")]
 _SEED = Annotated[int, typer.Option(help="Noise seed.")]
+_BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest validation loss).")]
 
 
 @app.command()
 @_user_errors
 def sample(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0) -> None:
+           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False) -> None:
     """Animate a speech file with a trained model; writes head parameters (.npz, 25 fps)."""
     from jaxtalk.commands.inference import sample_run
 
-    result = sample_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed))
+    result = sample_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best))
     typer.echo(f"{result.params.shape[0]} frames ({result.params.shape[0] / 25:.1f} s) written to {result.path}")
 
 
 @app.command()
 @_user_errors
 def stream(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0) -> None:
+           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False) -> None:
     """Animate a speech file chunk by chunk as a live stream would, printing each chunk's latency."""
     from jaxtalk.commands.inference import stream_run
 
-    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed), echo=typer.echo)
+    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best),
+                        echo=typer.echo)
     typer.echo(f"{result.params.shape[0]} frames written to {result.path}")
 
 
 @app.command(name="eval")
 @_user_errors
 def eval_(
-    run: _RUN,
-    split: Annotated[str, typer.Option(help="SynthTalk split: train, val, test or ood.")] = "test",
-    max_clips: Annotated[int, typer.Option(help="At most this many clips / conversation sides.")] = 8,
+    run: Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk, timar, ats or stm).")],
+    data: Annotated[
+        str | None, typer.Option(help="Prepared dataset folder or synthtalk:SIZE (default: the run's own data); its "
+                                      "features must be the run's.")
+    ] = None,
+    split: Annotated[str, typer.Option(help="Split of the data: train, val, test or ood.")] = "test",
+    max_clips: Annotated[int, typer.Option(help="At most this many clips (TIMAR: conversation sides).")] = 8,
     seed: _SEED = 0,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the rows as JSON here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the report as JSON here.")] = None,
+    flame: Annotated[
+        Path | None, typer.Option(help="TokTalk: FLAME 2020 model file to pose on instead of the built-in face "
+                                       "(FLAME_masks.pkl beside it gives the lip and upper-face regions).")
+    ] = None,
+    cache_dir: Annotated[Path, typer.Option(help="Where synthtalk: data is prepared.")] = Path(".cache/prepared"),
 ) -> None:
-    """Quality table (MSE, LVE, MVE, jitter) of a trained run on a SynthTalk split, with baselines."""
+    """Score a trained run on a split of prepared data, next to the mean pose (and the oracle where known).
+
+    TokTalk: LVE, MVE, FDD, MOD, jitter of vertices. TIMAR: FD, P-FD, MSE, SID, rPCC per group (exp,
+    jaw, pose) in the published scaling. ATS: landmark LVE, mean error, jitter. STM: vertex errors on
+    the run's meshes from the true landmarks.
+    """
     from jaxtalk.commands.evaluation import EvalOptions, evaluate_run
 
-    rows = evaluate_run(EvalOptions(run_dir=run, split=split, max_clips=max_clips, seed=seed), echo=typer.echo)
-    _echo_table(rows, f"{run} on SynthTalk {split}")
+    report = evaluate_run(EvalOptions(run_dir=run, data=data, split=split, max_clips=max_clips, seed=seed,
+                                      flame=flame, cache_dir=cache_dir), echo=typer.echo)
+    for table in report.tables:
+        _echo_table(table.rows, table.title)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(rows, indent=1))
+        json_out.write_text(json.dumps(report.to_dict(), indent=1))
 
 
 @app.command()

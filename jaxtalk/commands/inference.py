@@ -42,6 +42,7 @@ class SampleOptions:
         cfg_scale: guidance weight (default: the config's).
         num_steps: sampler steps (default: the config's).
         seed: noise seed.
+        best: use the run's best-validated checkpoint instead of its newest.
     """
 
     run_dir: Path
@@ -52,6 +53,7 @@ class SampleOptions:
     cfg_scale: float | None = None
     num_steps: int | None = None
     seed: int = 0
+    best: bool = False
 
 
 @dataclasses.dataclass
@@ -96,7 +98,7 @@ def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
     kind = _check_input(opts, record.model)
     if opts.num_steps is not None and opts.num_steps < 1:
         raise ValueError(f"--steps must be >= 1, got {opts.num_steps}")
-    return load_run(opts.run_dir), kind
+    return load_run(opts.run_dir, best=opts.best), kind
 
 
 def _toktalk_inputs(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

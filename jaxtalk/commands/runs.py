@@ -287,8 +287,15 @@ def _restore_state(directory: Path, step: int | None) -> tuple[dict[str, Any], i
     A template would have to repeat each model's training-time structure (TokTalk's data-dependent
     normalisation entry, the optimiser's frozen-parameter mask); the checkpoint already knows it.
     """
+    import logging
+
     from jaxtalk.train import Checkpointer
 
+    # Orbax logs a warning for every read-only open ("Given directory is read only"): expected here,
+    # and noise before every line a user reads, so absl's logger is quiet while the run is read.
+    absl_logger = logging.getLogger("absl")
+    level = absl_logger.level
+    absl_logger.setLevel(logging.ERROR)
     try:
         with Checkpointer(directory, read_only=True) as ckpt:
             return ckpt.restore_saved(step)
@@ -296,24 +303,38 @@ def _restore_state(directory: Path, step: int | None) -> tuple[dict[str, Any], i
         if "no complete checkpoint" in str(err):  # nothing trained yet: tell the user what to do
             raise FileNotFoundError(f"{err} (train first: `jaxtalk train`)") from err
         raise
+    finally:
+        absl_logger.setLevel(level)
 
 
-def load_run(run_dir: str | Path, *, step: int | None = None) -> LoadedRun:
-    """Restore a run's newest (or a given) checkpoint.
+def load_run(run_dir: str | Path, *, step: int | None = None, best: bool = False) -> LoadedRun:
+    """Restore a run's newest (or a given, or its best-validated) checkpoint.
 
     Args:
         run_dir: the folder ``jaxtalk train`` wrote.
         step: checkpoint step (default: the newest).
+        best: the checkpoint with the lowest validation loss instead (kept when the data has a
+            validation split).
 
     Returns:
         :class:`LoadedRun` with the EMA parameters when the run kept an EMA.
 
     Raises:
-        FileNotFoundError: not a run, or no complete checkpoint in it.
-        ValueError: a corrupt checkpoint.
+        FileNotFoundError: not a run, no complete checkpoint in it, or ``best`` for a run without a
+            validated checkpoint.
+        ValueError: a corrupt checkpoint, or ``best`` together with ``step``.
     """
+    from jaxtalk.train import best_checkpoint_dir
+
     record = RunRecord.load(run_dir)
     config = record.model_config()
-    state, step = _restore_state(checkpoint_dir(run_dir).absolute(), step)
+    directory = checkpoint_dir(run_dir).absolute()
+    if best:
+        if step is not None:
+            raise ValueError("choose a checkpoint by step or the best one, not both")
+        directory = best_checkpoint_dir(directory)
+        if not directory.is_dir():
+            raise FileNotFoundError(f"{run_dir} has no best checkpoint (its data had no validation split)")
+    state, step = _restore_state(directory, step)
     params = state.get("ema_params") or state["params"]
     return LoadedRun(record=record, config=config, params=params, step=step, run_dir=Path(run_dir))

@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "VAL_WINDOWS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
@@ -149,3 +149,13 @@ def split_validation(data: Any, recipe: Any, loss_fn: Any, batch_size: int, key:
         return None
     examples = [recipe.example(data, table[j]) for j in spread(len(table), max(VAL_WINDOWS, batch_size))]
     return validation_eval(loss_fn, fixed_batches(examples, batch_size), key)
+
+
+def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any) -> dict[str, Any]:
+    """The loop's evaluation arguments: validate every ``eval_every`` steps and, with checkpoints, keep
+    the state of the lowest validation loss in ``<ckpt_dir>/best`` (nothing when there is no
+    validation split)."""
+    if eval_fn is None:
+        return {}
+    return {"eval_fn": eval_fn, "eval_every": eval_every,
+            "best_metric": "val_loss" if ckpt_dir is not None else None}

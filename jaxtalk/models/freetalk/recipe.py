@@ -22,7 +22,7 @@ from jaxtalk.data.loader import PreparedData, make_loader
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, split_validation, window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, evaluation, split_validation, window_starts
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "fit_displacement_stats", "train_ats", "train_stm"]
@@ -68,8 +68,8 @@ class ATSWindows:
         sl = slice(s, s + self.window)
         return {"displacements": np.asarray(self.stats.normalize(rec["landmarks"][sl]), np.float32),
                 "audio": rec["speech"][sl].astype(np.float32),
-                "emotion": np.int32(emotion_ids(clip["emotion"] or NEUTRAL)[0]),
-                "intensity": np.float32(clip["intensity"] if clip["intensity"] is not None else 1.0)}
+                "emotion": np.asarray(emotion_ids(clip["emotion"] or NEUTRAL)[0], np.int32),
+                "intensity": np.asarray(clip["intensity"] if clip["intensity"] is not None else 1.0, np.float32)}
 
 
 def train_ats(
@@ -115,8 +115,7 @@ def train_ats(
     loss = ats.make_ats_loss(config)
     eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
     result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, metadata={"model": "ats"},
-                        ckpt_dir=ckpt_dir, mesh=mesh, eval_fn=eval_fn,
-                        eval_every=eval_every if eval_fn is not None else None, **loop_kwargs)
+                        ckpt_dir=ckpt_dir, mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}
     return RecipeResult(state=result.state, history=result.history, extra=extra, windows=loader.num_windows)
 
@@ -148,7 +147,7 @@ class STMWindows:
         k, i, s = (int(v) for v in row)
         motion = data.record(i, ("motion",))["motion"][s:s + self.window]
         lms, verts = self.meshes[k].motion(without_head_pose(motion))
-        return {"mesh": np.int32(k), "landmarks": lms.astype(np.float32),
+        return {"mesh": np.asarray(k, np.int32), "landmarks": lms.astype(np.float32),
                 "vertices": np.pad(verts, ((0, 0), (0, self.num_vertices - verts.shape[1]), (0, 0))).astype(np.float32)}
 
 
@@ -187,7 +186,6 @@ def train_stm(
     loss = stm.make_stm_loss(config, stm.stack_meshes(prepared))
     eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
     result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, metadata={"model": "stm"},
-                        ckpt_dir=ckpt_dir, mesh=mesh, eval_fn=eval_fn,
-                        eval_every=eval_every if eval_fn is not None else None, **loop_kwargs)
+                        ckpt_dir=ckpt_dir, mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     extra = {"meshes": [list(m) for m in meshes], "resolution": resolution, "window": recipe.window}
     return RecipeResult(state=result.state, history=result.history, extra=extra, windows=loader.num_windows)

@@ -21,7 +21,7 @@ from jaxtalk.data.standardize import fit_standardizer
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.data import Normalizer
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, split_validation
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, evaluation, split_validation
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TimarWindows", "agent_sides", "fit_data_normalizer", "window_turns", "train"]
@@ -149,7 +149,6 @@ def train(
     loss = make_loss_fn(config)
     eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
     result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, metadata={"model": "timar"},
-                        ckpt_dir=ckpt_dir, mesh=mesh, eval_fn=eval_fn,
-                        eval_every=eval_every if eval_fn is not None else None, **loop_kwargs)
+                        ckpt_dir=ckpt_dir, mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     extra = {"normalizer": recipe.normalizer.to_dict(), "num_turns": recipe.num_turns, "still": list(recipe.still)}
     return RecipeResult(state=result.state, history=result.history, extra=extra, windows=loader.num_windows)

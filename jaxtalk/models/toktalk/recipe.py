@@ -19,7 +19,7 @@ import numpy as np
 from jaxtalk.data.loader import PreparedData, make_loader
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, spread, split_validation, window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, evaluation, spread, split_validation, window_starts
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TokTalkWindows", "default_window", "check_data", "train"]
@@ -177,7 +177,7 @@ def train(
     eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
     result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, trainable=base_trainable,
                         metadata={"model": "toktalk", "stage": 1}, ckpt_dir=ckpt_dir, mesh=mesh,
-                        eval_fn=eval_fn, eval_every=eval_every if eval_fn is not None else None, **loop_kwargs)
+                        **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     return RecipeResult(state=result.state, history=result.history, extra={"window_frames": recipe.window_frames},
                         windows=loader.num_windows)
 
