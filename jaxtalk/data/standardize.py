@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxtalk.types import Array, Bool, Float
 
-__all__ = ["fit_standardizer", "identity_standardizer", "standardize", "unstandardize"]
+__all__ = ["fit_standardizer", "floor_std", "identity_standardizer", "standardize", "unstandardize"]
 
 Stats = dict[str, Any]
 
@@ -59,10 +59,18 @@ def fit_standardizer(
         raise ValueError("x contains NaN or inf values among its real entries")
     if not floor > 0:
         raise ValueError(f"floor must be positive, got {floor}")
-    std = rows.std(axis=0)
+    return {"mean": rows.mean(axis=0).astype(np.float32), "std": floor_std(rows.std(axis=0), floor)}
+
+
+def floor_std(std: Float[np.ndarray, " channels"], floor: float) -> Float[np.ndarray, " channels"]:
+    """Each std raised to at least ``floor`` x the mean std over channels (1 when all are 0), float32.
+
+    The floor of :func:`fit_standardizer`, for statistics accumulated elsewhere (e.g. a prepared
+    dataset's manifest).
+    """
+    std = np.asarray(std, np.float64)
     scale = std.mean()
-    std = np.maximum(std, floor * scale if scale > 0 else 1.0)
-    return {"mean": rows.mean(axis=0).astype(np.float32), "std": std.astype(np.float32)}
+    return np.maximum(std, floor * scale if scale > 0 else 1.0).astype(np.float32)
 
 
 def identity_standardizer(channels: int, dtype: Any = np.float32) -> dict[str, Float[np.ndarray, " channels"]]:
