@@ -29,7 +29,9 @@ import hashlib
 import io
 import json
 import os
+import re
 import time
+import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -127,10 +129,35 @@ def encode_record(arrays: dict[str, np.ndarray]) -> bytes:
     return buf.getvalue()
 
 
+# The header ``np.save`` writes for a plain array: {'descr': '<f4', 'fortran_order': False, 'shape': (50, 56), }
+_NPY_HEADER = re.compile(r"\{'descr': '([<>|=][a-zA-Z][0-9]*)', 'fortran_order': (False|True), 'shape': \(([0-9, ]*)\), \}\s*")
+
+
+def _read_npy(buf: bytes) -> np.ndarray:
+    """One ``.npy`` of a record, parsed without ``ast``.
+
+    NumPy parses the header with ``ast.literal_eval``, and CPython before 3.11.8 / 3.12.1 keeps the
+    AST converter's recursion depth per interpreter, not per thread (gh-106905): grain's prefetch
+    threads decoding records while another thread parses Python (an import, ``literal_eval``) fail
+    with "SystemError: AST constructor recursion depth mismatch". Records only hold plain arrays, so
+    their headers are read with a regular expression (anything else falls back to NumPy).
+    """
+    if buf[:6] == b"\x93NUMPY" and buf[6] in (1, 2, 3):
+        size, start = (int.from_bytes(buf[8:10], "little"), 10) if buf[6] == 1 else (int.from_bytes(buf[8:12], "little"), 12)
+        m = _NPY_HEADER.fullmatch(buf[start:start + size].decode("latin1"))
+        if m is not None:
+            dtype = np.dtype(m[1])
+            shape = tuple(int(v) for v in m[3].replace(" ", "").split(",") if v)
+            flat = np.frombuffer(buf, dtype, count=int(np.prod(shape, dtype=np.int64)), offset=start + size)
+            return flat.reshape(shape, order="F" if m[2] == "True" else "C").copy()
+    return np.lib.format.read_array(io.BytesIO(buf), allow_pickle=False)
+
+
 def decode_record(data: bytes, keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     """The arrays of a record (only ``keys`` when given: the others are not decoded)."""
-    with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        return {k: z[k] for k in (z.files if keys is None else keys) if k in z.files}
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        names = [n[: -len(".npy")] for n in z.namelist() if n.endswith(".npy")]
+        return {k: _read_npy(z.read(f"{k}.npy")) for k in (names if keys is None else keys) if k in names}
 
 
 def _to_motion_rate(x: np.ndarray, fps: float) -> np.ndarray:
@@ -345,10 +372,13 @@ def prepare(
     buffer: list[tuple[dict, bytes]] = []
     number = max((int(p.stem) for p in shard_dir.glob("[0-9]*.json")), default=-1) + 1
     new = 0
+    good: dict[str, str] = {}  # content hash of every clip that is usable in this run
+    fresh: set[str] = set()  # the clips prepared by this run
     bar = tqdm(src.entries, desc="prepare", unit="clip", disable=not progress)
     for entry in bar:
         chash = entry.content_hash()
         if entry.name in done and done[entry.name]["hash"] == chash:
+            good[entry.name] = chash
             continue
         where = str(entry.files[0]) if entry.files else entry.name
         try:
@@ -372,6 +402,8 @@ def prepare(
         }
         buffer.append((meta, encode_record(arrays)))
         new += 1
+        good[entry.name] = chash
+        fresh.add(entry.name)
         if len(buffer) >= shard_clips:
             _write_shard(shard_dir, number, buffer, digest)
             number, buffer = number + 1, []
@@ -379,8 +411,9 @@ def prepare(
     bar.close()
     if buffer:
         _write_shard(shard_dir, number, buffer, digest)
+    new -= _drop_partnerless(src.entries, good, skipped, fresh)
     kept_tokenizer = tokenizer is not None or (tokens_mode == "clip" and src.tokenizer is not None)
-    manifest = _write_manifest(out, src, settings, tokens_mode, digest, splits, features, kept_tokenizer)
+    manifest = _write_manifest(out, src, settings, tokens_mode, digest, splits, features, kept_tokenizer, good)
     _write_report(out, skipped)
     n = len(manifest["clips"])
     if n == 0:
@@ -397,8 +430,39 @@ def prepare(
     return result
 
 
+def _drop_partnerless(entries: Sequence[ClipEntry], good: dict[str, str], skipped: list[tuple[str, str]],
+                      fresh: set[str]) -> int:
+    """Leave out every conversation side (``requires_partner``) whose partner was skipped as a bad clip.
+
+    Its partner is listed but unusable (e.g. a DualTalk side with motion whose partner has no wav): the
+    side is reported as a missing partner, like one whose partner is absent. Repeated until stable
+    (a dropped side may be another clip's partner); ``good`` and ``skipped`` are updated in place, and
+    ``skipped`` is put back in source order.
+
+    Returns:
+        How many of the dropped clips were prepared by this run (``fresh``).
+    """
+    order = {e.name: k for k, e in enumerate(entries)}
+    reasons = {}
+    changed = True
+    while changed:
+        changed = False
+        for e in entries:
+            if e.requires_partner and e.name in good and e.partner not in good:
+                del good[e.name]
+                where = str(e.files[0]) if e.files else e.name
+                reasons[e.name] = (where, f"missing partner: conversation side {e.partner!r} was skipped as a bad clip")
+                changed = True
+    if reasons:
+        skipped.extend(reasons.values())
+        name_of = {(str(e.files[0]) if e.files else e.name): e.name for e in entries}
+        skipped.sort(key=lambda row: order.get(name_of.get(row[0]), len(order)))
+    return len(fresh & set(reasons))
+
+
 def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mode: str, digest: str,
-                    splits: dict[str, str], features: AudioFeatures, tokenizer: bool) -> dict[str, Any]:
+                    splits: dict[str, str], features: AudioFeatures, tokenizer: bool,
+                    good: dict[str, str]) -> dict[str, Any]:
     by_name = {e.name: e for e in src.entries}
     shard_dir = out / SHARDS
     shard_names = sorted(p.with_suffix(".array_record").name for p in shard_dir.glob("[0-9]*.json"))
@@ -407,7 +471,9 @@ def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mo
     clips = []
     for name, meta in sorted(current.items()):
         entry = by_name.get(name)
-        if entry is None:
+        # Only a record of the clip's current content: a clip removed from the source, or edited into
+        # a bad clip this run (its older record is still on disk), is left out.
+        if entry is None or good.get(name) != meta["hash"]:
             continue
         clips.append({
             "name": name, "speaker": entry.speaker, "split": splits[name], "frames": meta["frames"],

@@ -35,9 +35,14 @@ TOKENIZER_FILE = "tokenizer.npz"
 _COLUMNS = ("clip", "speaker", "emotion", "intensity", "split", "partner")
 
 
+def _clip_stems(root: Path) -> set[str]:
+    """Stems of the clip ``.npz`` files: not ``tokenizer.npz``, nor hidden (temporary) files."""
+    return {p.stem for p in root.glob("*.npz") if p.name != TOKENIZER_FILE and not p.name.startswith(".")}
+
+
 def is_generic(root: Path) -> bool:
     """A folder with ``<clip>.npz`` files (and no DualTalk/VOCASET structure)."""
-    return any(root.glob("*.npz")) or (root / METADATA_FILE).is_file()
+    return bool(_clip_stems(root)) or (root / METADATA_FILE).is_file()
 
 
 def read_metadata(root: Path) -> dict[str, dict[str, str]]:
@@ -119,7 +124,7 @@ def generic_entries(root: Path) -> list[ClipEntry]:
     """One entry per ``<clip>.npz`` (and per clip named in ``metadata.csv``), sorted by name."""
     meta = read_metadata(root)
     token_rate = _token_rate(root)
-    names = sorted({p.stem for p in root.glob("*.npz")} | set(meta))
+    names = sorted(_clip_stems(root) | set(meta))
     entries = []
     for name in names:
         row = meta.get(name, {})
