@@ -1,0 +1,362 @@
+"""``jaxtalk eval`` on prepared data: every model's table, its baselines checked by hand, and user errors.
+
+Tiny TokTalk, TIMAR and ATS runs are trained through the CLI for two steps on SynthTalk tiny (prepared
+once per session); STM, whose training renders several meshes (minutes), is evaluated from its
+initial parameters saved as a step-0 checkpoint. Scores of two-step models mean nothing, so the
+checks are on the wiring: the tables' shape, finite numbers, the mean-pose rows recomputed by hand from
+the data, and the oracle beating the mean pose on SynthTalk. The real DualTalk demo clips (no oracle,
+audio-only partners) run through prepare, train and eval when ``../shared`` is present.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pickle
+import shutil
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from jaxtalk.cli import app
+
+runner = CliRunner()
+
+DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
+
+TIMAR = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
+         "--set", "head_blocks=1", "--set", "max_turns=2"]
+SMALL = {
+    "toktalk": ["--preset", "tiny", "--set", "num_mid_blocks=0", "--set", "batch_size=4"],
+    "timar": [*TIMAR, "--set", "batch_size=2"],
+    "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
+            "--set", "num_sampling_steps=4", "--set", "batch_size=2"],
+}
+
+
+def _ok(args: list[str]) -> str:
+    result = runner.invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def _user_error(args: list[str], message: str) -> None:
+    result = runner.invoke(app, [str(a) for a in args])
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message in errors[0], result.output
+    assert "Traceback" not in result.output
+
+
+def _table(output: str, title: str) -> tuple[list[str], dict[str, list[str]]]:
+    """``(columns, {method: cells})`` of the printed table whose title starts with ``title``."""
+    lines = output.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(title))
+    columns = [c.strip() for c in lines[start + 1].split("|")]
+    rows = {}
+    for line in lines[start + 3:]:
+        cells = [c.strip() for c in line.split("|")]
+        if len(cells) != len(columns):
+            break
+        rows[cells[columns.index("method")]] = cells
+    return columns, rows
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compile():
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)  # compile time dominates these tiny runs
+    yield
+    jax.config.update("jax_disable_most_optimizations", previous)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, prepared_tiny):
+    """Two-step TokTalk, TIMAR and ATS runs on SynthTalk tiny, trained through the CLI."""
+    root = tmp_path_factory.mktemp("eval_runs")
+    cache = prepared_tiny.root.parent
+    out = {}
+    for model, args in SMALL.items():
+        out[model] = root / model
+        _ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", cache, "--steps", "2", *args,
+             "--no-progress", "--out", out[model]])
+    return out
+
+
+def _report(path: Path) -> dict:
+    report = json.loads(path.read_text())
+    for table in report["tables"]:
+        for row in table["rows"]:
+            assert all(v is None or isinstance(v, str) or np.isfinite(v) for v in row.values()), row
+    return report
+
+
+def _rows(table: dict) -> dict[str, dict]:
+    return {row["method"]: row for row in table["rows"]}
+
+
+# ------------------------------------------------------------------------------------------ TokTalk
+
+
+def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
+    from jaxtalk.face import builtin_face
+
+    output = _ok(["eval", runs["toktalk"], "--max-clips", "2", "--json", tmp_path / "r.json"])
+    columns, printed = _table(output, "TokTalk on test")
+    assert columns == ["method", "clips", "frames", "MSE", "LVE_mm2", "MVE_mm", "FDD_mm2", "MOD_mm", "jitter_mm"]
+    assert list(printed) == ["toktalk (streamed)", "mean pose", "oracle", "ground truth"]
+    report = _report(tmp_path / "r.json")
+    assert (report["model"], report["step"], report["split"], report["items"]) == ("toktalk", 2, "test", 2)
+    assert report["data"] == str(prepared_tiny.root)
+    rows = _rows(report["tables"][0])
+    assert all(rows[m][k] is not None for m in ("toktalk (streamed)", "mean pose", "oracle") for k in columns[3:])
+
+    # The mean-pose row from the data: the training mean repeated over the frames the tokens cover.
+    data, face = prepared_tiny, builtin_face(0)
+    mean = data.motion_stats()["mean"]
+    lips = np.asarray(face.regions["lips"])
+    mse, mve, lve, frames = [], [], [], []
+    for i in [i for i in data.split("test") if data.clips[i]["tokens"]][:2]:
+        t = min(2 * data.clips[i]["tokens"], data.clips[i]["frames"])  # 12.5-Hz tokens, 25 fps
+        gt = data.record(i, ("motion",))["motion"][:t]
+        dist = np.linalg.norm(np.asarray(face.vertices_seq(gt)) - np.asarray(face.vertices(mean))[None], axis=-1)
+        mse.append(np.mean((gt - mean) ** 2))
+        mve.append(dist.mean() * 1e3)
+        lve.append((dist[:, lips] ** 2).max(axis=1).mean() * 1e6)
+        frames.append(t)
+    assert rows["mean pose"]["frames"] == sum(frames)
+    for key, values in (("MSE", mse), ("MVE_mm", mve), ("LVE_mm2", lve)):
+        assert rows["mean pose"][key] == pytest.approx(np.average(values, weights=frames), rel=1e-4), key
+    assert rows["mean pose"]["jitter_mm"] == 0.0
+    # SynthTalk's oracle (the deterministic part of the motion) is far closer than the mean pose.
+    for key in ("MSE", "LVE_mm2", "MVE_mm", "MOD_mm"):
+        assert rows["oracle"][key] < rows["mean pose"][key], key
+    assert rows["ground truth"]["MSE"] is None and rows["ground truth"]["jitter_mm"] > 0
+
+
+def _fake_flame(folder: Path, num_verts: int = 120) -> Path:
+    """A small random FLAME-format model file and FLAME_masks.pkl (plain NumPy, no chumpy)."""
+    import scipy.sparse
+
+    rng = np.random.default_rng(0)
+    regressor = np.abs(rng.normal(size=(5, num_verts))) + 1e-3
+    weights = rng.random((num_verts, 5)) ** 3
+    model = {
+        "v_template": rng.normal(scale=0.05, size=(num_verts, 3)),
+        "f": rng.integers(0, num_verts, size=(200, 3)).astype(np.uint32),
+        "shapedirs": 0.01 * rng.normal(size=(num_verts, 3, 400)),
+        "posedirs": 0.01 * rng.normal(size=(num_verts, 3, 36)),
+        "J_regressor": scipy.sparse.csc_matrix(regressor / regressor.sum(axis=1, keepdims=True)),
+        "weights": weights / weights.sum(axis=1, keepdims=True),
+        "kintree_table": np.array([[4294967295, 0, 1, 1, 1], [0, 1, 2, 3, 4]], np.int64),
+    }
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "generic_model.pkl").write_bytes(pickle.dumps(model, protocol=2))
+    masks = {"lips": np.arange(20), "forehead": np.arange(60, 90), "eye_region": np.arange(90, 110)}
+    (folder / "FLAME_masks.pkl").write_bytes(pickle.dumps(masks, protocol=2))
+    return folder / "generic_model.pkl"
+
+
+def test_toktalk_eval_on_flame_with_its_masks(runs, tmp_path):
+    flame = _fake_flame(tmp_path / "flame")
+    output = _ok(["eval", runs["toktalk"], "--max-clips", "1", "--flame", flame, "--json", tmp_path / "r.json"])
+    assert "vertices on FLAME" in output and "MOD left out" in output
+    rows = _rows(_report(tmp_path / "r.json")["tables"][0])
+    assert rows["toktalk (streamed)"]["MOD_mm"] is None
+    assert rows["toktalk (streamed)"]["LVE_mm2"] > 0 and rows["mean pose"]["FDD_mm2"] is not None
+    (tmp_path / "flame" / "FLAME_masks.pkl").unlink()
+    output = _ok(["eval", runs["toktalk"], "--max-clips", "1", "--flame", flame, "--json", tmp_path / "r.json"])
+    assert "LVE and FDD (lip and upper-face regions) left out" in output
+    rows = _rows(_report(tmp_path / "r.json")["tables"][0])
+    assert rows["toktalk (streamed)"]["LVE_mm2"] is None and rows["toktalk (streamed)"]["MVE_mm"] > 0
+
+
+# -------------------------------------------------------------------------------------------- TIMAR
+
+
+def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
+    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.models.timar.data import Normalizer
+    from jaxtalk.models.timar.recipe import agent_sides
+
+    output = _ok(["eval", runs["timar"], "--max-clips", "2", "--json", tmp_path / "r.json"])
+    for group in ("exp", "jaw", "pose"):
+        columns, printed = _table(output, f"TIMAR on test (synthtalk-tiny-seed0), {group}")
+        assert columns == ["method", "sides", "frames", "FD", "P-FD", "MSE", "SID", "rPCC"]
+        assert list(printed) == ["timar (streamed)", "mean pose", "oracle"]
+    assert "jaw (FD x1000, P-FD x1000, MSE x1000, rPCC x10)" in output  # the published scaling
+    report = _report(tmp_path / "r.json")
+    assert [t["title"].split(", ")[1].split(" ")[0] for t in report["tables"]] == ["exp", "jaw", "pose"]
+    tables = {t["title"].split(", ")[1].split(" ")[0]: _rows(t) for t in report["tables"]}
+    assert all(v is not None for rows in tables.values() for row in rows.values() for v in row.values())
+
+    # The mean pose is the run's normaliser mean; MSE per side over its whole turns, then averaged.
+    data = prepared_tiny
+    norm = Normalizer.from_dict(RunRecord.load(runs["timar"]).extra["normalizer"])
+    per_side = {"exp": [], "jaw": [], "pose": []}
+    for i, j in agent_sides(data, "test")[:2]:
+        agent, user = data.record(i, ("turn_speech", "motion")), data.record(j, ("turn_speech",))
+        usable = min(agent["turn_speech"].shape[0], user["turn_speech"].shape[0]) // 25 * 25
+        err = (agent["motion"][:usable] - norm.motion_mean) ** 2
+        for group, sl in (("exp", slice(0, 50)), ("jaw", slice(50, 53)), ("pose", slice(53, 56))):
+            per_side[group].append(err[:, sl].mean())
+    for group, scale in (("exp", 10.0), ("jaw", 1e3), ("pose", 1e2)):
+        assert tables[group]["mean pose"]["MSE"] == pytest.approx(scale * np.mean(per_side[group]), rel=1e-4)
+        assert tables[group]["oracle"]["MSE"] < tables[group]["mean pose"]["MSE"]
+        assert tables[group]["mean pose"]["SID"] == pytest.approx(0.0, abs=1e-5)  # one pose, one cluster
+
+
+# ---------------------------------------------------------------------------------------------- ATS
+
+
+def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_path):
+    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.models.freetalk.data import window_starts
+
+    output = _ok(["eval", runs["ats"], "--max-clips", "1", "--json", tmp_path / "r.json"])
+    columns, printed = _table(output, "ATS on test")
+    assert columns == ["method", "windows", "frames", "LVE_mm2", "LE_mm", "jitter_mm"]
+    assert list(printed) == ["ats (sampled)", "mean pose", "neutral", "oracle", "ground truth"]
+    rows = _rows(_report(tmp_path / "r.json")["tables"][0])
+
+    data = prepared_tiny
+    extra = RunRecord.load(runs["ats"]).extra
+    window, mean = extra["window"], np.asarray(extra["stats"]["mean"], np.float32)
+    clip = data.split("test")[0]
+    lms = data.record(clip, ("landmarks",))["landmarks"]
+    starts = window_starts(lms.shape[0], window, window)
+    assert rows["neutral"]["windows"] == len(starts) and rows["neutral"]["frames"] == len(starts) * window
+    for name, base in (("neutral", np.zeros_like(mean)), ("mean pose", mean)):
+        dist = [np.linalg.norm(lms[s:s + window] - base, axis=-1) for s in starts]
+        assert rows[name]["LE_mm"] == pytest.approx(1e3 * np.mean([d.mean() for d in dist]), rel=1e-4)
+        lve = [(d[:, 48:68] ** 2).max(axis=1).mean() for d in dist]
+        assert rows[name]["LVE_mm2"] == pytest.approx(1e6 * np.mean(lve), rel=1e-4)
+    assert rows["oracle"]["LE_mm"] < rows["mean pose"]["LE_mm"] < rows["neutral"]["LE_mm"]
+    assert rows["ats (sampled)"]["jitter_mm"] > 0
+
+
+# ---------------------------------------------------------------------------------------------- STM
+
+
+@pytest.fixture(scope="module")
+def stm_run(tmp_path_factory, prepared_tiny):
+    """An STM run at its initial parameters (a step-0 checkpoint) on one small mesh."""
+    import optax
+
+    from jaxtalk.commands.runs import RunRecord, checkpoint_dir, save_run_assets
+    from jaxtalk.models.freetalk import stm
+    from jaxtalk.models.freetalk.config import STMConfig
+    from jaxtalk.models.freetalk.data import face_mesh
+    from jaxtalk.train import create_train_state, save_checkpoint
+
+    out = tmp_path_factory.mktemp("stm_run")
+    config = STMConfig.small(encoder_blocks=1, decoder_blocks=1, num_eigenpairs=16)
+    fm = face_mesh(1, "decimated")
+    params = stm.init_stm(config, jax.random.key(0), stm.prepare_mesh(fm.vertices, fm.faces, config))
+    save_checkpoint(checkpoint_dir(out), create_train_state(params, optax.identity(), jax.random.key(0)))
+    data = prepared_tiny
+    RunRecord(model="stm", preset="small", items=[], config=dataclasses.asdict(config), train={}, optim={},
+              data={"spec": "synthtalk:tiny", "path": str(data.root), "key": data.key}, seed=0,
+              extra={"meshes": [[1, "decimated"]], "resolution": "low", "window": 16}).save(out)
+    save_run_assets(out, "stm", data, config)
+    return out
+
+
+def test_stm_eval_maps_true_landmarks_on_the_run_meshes(stm_run, prepared_tiny, tmp_path):
+    from jaxtalk.models.freetalk.data import face_mesh, without_head_pose
+
+    output = _ok(["eval", stm_run, "--max-clips", "1", "--json", tmp_path / "r.json"])
+    columns, printed = _table(output, "STM on test")
+    assert columns == ["mesh", "method", "clips", "frames", "MVE_mm", "LVE_mm2", "jitter_mm"]
+    assert list(printed) == ["stm", "neutral", "ground truth"]
+    rows = _rows(_report(tmp_path / "r.json")["tables"][0])
+    assert rows["stm"]["mesh"] == "id1/decimated (451 v)"
+    fm = face_mesh(1, "decimated")
+    motion = prepared_tiny.record(prepared_tiny.split("test")[0], ("motion",))["motion"]
+    _, verts = fm.motion(without_head_pose(motion))
+    dist = np.linalg.norm(verts, axis=-1)  # the neutral mesh is zero displacement
+    assert rows["neutral"]["frames"] == motion.shape[0]
+    assert rows["neutral"]["MVE_mm"] == pytest.approx(1e3 * dist.mean(), rel=1e-4)
+    assert rows["neutral"]["LVE_mm2"] == pytest.approx(1e6 * (dist[:, fm.region("lips")] ** 2).max(axis=1).mean(), rel=1e-4)
+    assert rows["stm"]["MVE_mm"] > 0 and rows["ground truth"]["jitter_mm"] > 0
+
+
+# ------------------------------------------------------------------------------------------- errors
+
+
+def _copy_prepared(data, out: Path, edit) -> Path:
+    """A prepared folder sharing ``data``'s shards with an edited manifest."""
+    out.mkdir(parents=True)
+    (out / "shards").symlink_to(data.root / "shards", target_is_directory=True)
+    manifest = json.loads((data.root / "manifest.json").read_text())
+    edit(manifest)
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    return out
+
+
+def test_eval_user_errors_are_one_line(runs, prepared_tiny, tmp_path):
+    tok, timar = runs["toktalk"], runs["timar"]
+    _user_error(["eval", tmp_path], "is not a training run")
+    untrained = tmp_path / "untrained"
+    untrained.mkdir()
+    for name in ("run.json", "features.json"):
+        shutil.copy(timar / name, untrained / name)
+    _user_error(["eval", untrained], "is not trained yet")
+    _user_error(["eval", timar, "--split", "dev"], "unknown split 'dev'; known: train, val, test, ood")
+    _user_error(["eval", timar, "--max-clips", "0"], "--max-clips must be >= 1")
+    _user_error(["eval", timar, "--flame", tmp_path / "model.pkl"], "--flame poses TokTalk's parameters")
+    _user_error(["eval", tok, "--flame", tmp_path / "model.pkl"], "FLAME model file not found")
+    _user_error(["eval", tok, "--data", tmp_path / "nowhere"], "is not a prepared dataset")
+
+    def empty_test(m):
+        for c in m["clips"]:
+            c["split"] = "train" if c["split"] == "test" else c["split"]
+        m["splits"]["test"] = []
+
+    def narrow_tokens(m):
+        m["token_dim"] = 32
+
+    def hubert(m):
+        m["settings"]["audio"], m["turn_speech_dim"] = "hubert:/models/hubert", 768
+
+    empty = _copy_prepared(prepared_tiny, tmp_path / "empty", empty_test)
+    _user_error(["eval", tok, "--data", empty], "has no clip with motion and tokens")
+    _user_error(["eval", timar, "--data", empty], "has no conversation side")
+    _user_error(["eval", tok, "--data", _copy_prepared(prepared_tiny, tmp_path / "narrow", narrow_tokens)],
+                "has tokens of width 32 at 12.5 Hz, the run was trained on width 64 at 12.5 Hz")
+    _user_error(["eval", timar, "--data", _copy_prepared(prepared_tiny, tmp_path / "hubert", hubert)],
+                "has 768-d 'hubert:/models/hubert' speech features, the run was trained on 80-d 'logmel'")
+
+
+# ---------------------------------------------------------------------------------------- real data
+
+
+@pytest.mark.skipif(not DEMO.is_dir(), reason="shared DualTalk demo data not available")
+def test_real_dualtalk_demo_timar_eval(tmp_path):
+    from jaxtalk.data.loader import PreparedData
+
+    root = tmp_path / "dualtalk"
+    for split, conv in (("train", "UbjUDM1MiGE_sub_video_72"), ("test", "xkHwlcDSOjc_sub_video_109_000")):
+        (root / split).mkdir(parents=True)
+        for f in DEMO.glob(f"{conv}_speaker*"):
+            shutil.copy(f, root / split / f.name)
+    prepared, run = tmp_path / "prepared", tmp_path / "run"
+    _ok(["prepare", root, "--out", prepared, "--no-progress"])
+    _ok(["train", "timar", "--data", prepared, "--steps", "2", *SMALL["timar"], "--no-progress", "--out", run])
+    output = _ok(["eval", run, "--split", "test", "--json", tmp_path / "r.json"])
+    assert "1 of 1 partners have no tracked motion" in output
+    report = _report(tmp_path / "r.json")
+    assert report["items"] == 1 and len(report["tables"]) == 3
+    data = PreparedData(prepared)
+    agent, partner = (data.index(f"xkHwlcDSOjc_sub_video_109_000_speaker{k}") for k in (1, 2))
+    turns = min(data.clips[agent]["frames"], data.clips[partner]["frames"]) // 25  # the partner's 29.95 s: 29
+    for group, table in zip(("exp", "jaw", "pose"), report["tables"]):
+        assert f", {group}" in table["title"]
+        columns, printed = _table(output, table["title"])
+        assert columns == ["method", "sides", "frames", "FD", "P-FD", "MSE", "SID", "rPCC"]
+        assert list(printed) == ["timar (streamed)", "mean pose"]  # real data: no oracle
+        assert all(row["frames"] == 25 * turns and all(row[k] is not None for k in columns[3:]) for row in table["rows"])
+    _user_error(["eval", run, "--split", "ood"], "has no conversation side")
