@@ -26,6 +26,9 @@ __all__ = ["AudioFeatures", "parse_audio_features", "SAMPLES_PER_FRAME", "TURN_F
 
 SAMPLES_PER_FRAME = AUDIO_SAMPLE_RATE // MOTION_FPS  # 640
 TURN_FRAMES = MOTION_FPS  # one 1-s turn
+# Turns are featurised in blocks of this many (the last one padded with silent turns and cropped):
+# one compiled program serves clips of every length, and each turn is still computed on its own.
+TURN_BLOCK = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,7 +63,13 @@ class AudioFeatures:
         if self.kind == "logmel":
             from jaxtalk.models.timar.data import turn_speech_features
 
-            return turn_speech_features(audio, num_turns)
+            spt = TURN_FRAMES * SAMPLES_PER_FRAME
+            blocks = -(-num_turns // TURN_BLOCK)
+            padded = np.zeros(blocks * TURN_BLOCK * spt, np.float32)
+            padded[: num_turns * spt] = audio[: num_turns * spt]
+            feats = [turn_speech_features(padded[b * TURN_BLOCK * spt:(b + 1) * TURN_BLOCK * spt], TURN_BLOCK)
+                     for b in range(blocks)]
+            return np.concatenate(feats)[: num_turns * TURN_FRAMES]
         spt = TURN_FRAMES * SAMPLES_PER_FRAME
         turns = [_fit(np.asarray(self._encoder.features_at(audio[k * spt:(k + 1) * spt], MOTION_FPS)), TURN_FRAMES)
                  for k in range(num_turns)]

@@ -91,8 +91,9 @@ class PrepareSettings:
         parse_audio_features(self.audio)
 
     def digest(self) -> str:
-        """Hash of the settings that shape a record (splits are not part of a record)."""
-        keys = ("audio", "tokens", "vq_rate", "vq_width", "vq_codes", "landmarks")
+        """Hash of the settings that decide a record or whether a clip is kept (splits are not part of
+        a record: they are redrawn on every run)."""
+        keys = ("audio", "tokens", "vq_rate", "vq_width", "vq_codes", "landmarks", "min_frames")
         return hashlib.sha1(json.dumps({k: getattr(self, k) for k in keys}, sort_keys=True).encode()).hexdigest()[:16]
 
 
