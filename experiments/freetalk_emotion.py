@@ -1,6 +1,7 @@
 """FreeTalk ATS emotion control on SynthTalk: upper-face deviation from neutral per emotion and intensity.
 
-ATS (``small``) is trained on SynthTalk train clips (identity 0 landmarks, head pose removed), then
+ATS (``small``) is trained on SynthTalk train clips (identity 0 landmarks, head pose removed) with its
+recipe, as ``jaxtalk train ats --data synthtalk:SIZE --set max_frames=W window_frames=W`` does, then
 the same test audio windows are sampled with every emotion at intensities 1, 2 and 3 (same noise).
 For each (emotion, intensity) and the upper face (brows 17-26, eyes 36-47), in millimetres:
 
@@ -24,11 +25,12 @@ variation at intensity 3, and its correlation with ``true``). Accuracy: lip-land
 ATS samples with the true labels against the mean-pose baseline and the generator's oracle motion,
 on the same windows.
 
-The trained model is checkpointed in ``--ckpt-dir`` (default under ``experiments/results``); a
-second run with the same arguments loads it instead of training again.
+The trained model is a run folder (``run.json`` + ``checkpoint/``, the format ``jaxtalk train``
+writes and ``jaxtalk sample`` reads) in ``--ckpt-dir`` (default under ``experiments/results``); a
+second run with the same arguments loads it instead of training again, an interrupted one resumes.
 
 Usage: python experiments/freetalk_emotion.py [--size small|tiny] [--steps N] [--ddim-steps N]
-       [--seeds N] [--ckpt-dir DIR] [--out PATH]
+       [--seeds N] [--ckpt-dir DIR] [--cache DIR] [--out PATH]
 """
 
 from __future__ import annotations
@@ -43,11 +45,12 @@ import numpy as np
 from jaxtalk import benchmarking as bm
 from jaxtalk.data import synthtalk
 from jaxtalk.data.synthtalk.emotions import face_offset
+from jaxtalk.commands.runs import RUN_FILE, checkpoint_dir, load_run
+from jaxtalk.commands.training import TrainOptions, train_run
 from jaxtalk.models.freetalk import data
-from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.models.freetalk.emotions import EMOTIONS
-from jaxtalk.models.freetalk.fit import fit_ats, sample_displacements
-from jaxtalk.train import OptimConfig
+from jaxtalk.models.freetalk.fit import FittedATS, sample_displacements
+from jaxtalk.train import latest_checkpoint_step
 
 UPPER = np.r_[17:27, 36:48]
 LIPS = np.r_[48:68]
@@ -59,23 +62,22 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--window", type=int, default=32)
     parser.add_argument("--ddim-steps", type=int, default=20)
-    parser.add_argument("--cache", default=None)
+    parser.add_argument("--cache", type=Path, default=Path(".cache/prepared"),
+                        help="SynthTalk and its prepared copy (the default is jaxtalk train's)")
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--ckpt-dir", type=Path, default=None,
-                        help="default: experiments/results/freetalk_emotion_ckpt/<size>-<steps>")
+                        help="run folder; default: experiments/results/freetalk_emotion_run/<size>-<steps>-w<window>")
     parser.add_argument("--out", type=Path, default=Path("experiments/results/freetalk_emotion.json"))
     args = parser.parse_args()
     t0 = time.time()
-    corpus = synthtalk.generate(args.size, seed=0, cache_dir=args.cache)
-    train_w = data.ats_windows(corpus, corpus.split("train"), window=args.window, hop=args.window // 4)
+    # The corpus cache that open_data prepares the training data from (one generation for both).
+    corpus = synthtalk.generate(args.size, seed=0, cache_dir=args.cache / "synthtalk")
     test_clips = corpus.split("val") + corpus.split("test")
     test_w = data.ats_windows(corpus, test_clips, window=args.window, hop=args.window)
-    cfg = ATSConfig.small(max_frames=args.window, displacement_scale=1.0)
-    optim = OptimConfig(lr=1e-3, warmup_steps=min(100, args.steps // 10), total_steps=args.steps)
-    ckpt = args.ckpt_dir or Path("experiments/results/freetalk_emotion_ckpt") / f"{args.size}-{args.steps}"
-    fitted = fit_ats(cfg, train_w, optim, jax.random.key(0), progress=True, ckpt_dir=ckpt.resolve())
+    run_dir = args.ckpt_dir or Path("experiments/results/freetalk_emotion_run") / f"{args.size}-{args.steps}-w{args.window}"
+    fitted = trained_ats(run_dir, args)
     train_s = time.time() - t0
-    print(f"trained {args.steps} steps in {train_s:.0f} s", flush=True)
+    print(f"ATS at step {args.steps} ready (trained or loaded) in {train_s:.0f} s", flush=True)
 
     key = jax.random.key(1)
     gt = test_w["displacements"]
@@ -143,6 +145,26 @@ def main() -> None:
     payload = {"args": {k: str(v) for k, v in vars(args).items()}, "train_s": train_s,
                "accuracy": accuracy, "emotion": rows, "verdict": verdict}
     print(f"wrote {bm.write_json(args.out, payload)}")
+
+
+def trained_ats(run_dir: Path, args: argparse.Namespace) -> FittedATS:
+    """ATS ``small`` trained by its recipe through :func:`jaxtalk.commands.training.train_run` (the
+    recipe's defaults: AdamW 1e-3, 100 warm-up steps, batch 16; ``window``-frame windows every quarter
+    window, displacements standardised with the training split's statistics), or loaded from a
+    finished run in ``run_dir``."""
+    done = latest_checkpoint_step(checkpoint_dir(run_dir)) if checkpoint_dir(run_dir).exists() else None
+    if done != args.steps or not (run_dir / RUN_FILE).is_file():
+        opts = TrainOptions(model="ats", out_dir=run_dir, data=f"synthtalk:{args.size}", preset="small",
+                            overrides=(f"max_frames={args.window}", f"window_frames={args.window}"),
+                            steps=args.steps, seed=0, cache_dir=args.cache)
+        train_run(opts)
+    else:
+        print(f"found the finished run {run_dir} (step {done}): not training again", flush=True)
+    run = load_run(run_dir)
+    stats = run.record.extra["stats"]
+    return FittedATS(run.config, jax.tree.map(jax.numpy.asarray, run.params),
+                     data.DisplacementStats(np.asarray(stats["mean"], np.float32), np.asarray(stats["std"], np.float32)),
+                     [])
 
 
 def generator_offsets(face) -> dict[str, dict[str, list]]:

@@ -1,7 +1,8 @@
 """Gradients through the samplers, with and without ``jax.checkpoint``, and inversion with optimistix.
 
-Two samplers of briefly trained ``small`` models on SynthTalk (or parameters loaded with
-``--toktalk-params`` / ``--ats-params``):
+Two samplers of ``small`` models briefly trained on SynthTalk with their recipes
+(``jaxtalk.models.<model>.recipe``, the training ``jaxtalk train`` runs) on 2-s windows, or parameters
+loaded with ``--toktalk-params`` / ``--ats-params``:
 
 * Euler + CFG (TokTalk): the loss is ``jaxtalk.fit.style_loss`` (MSE of the sample against a real
   clip) as a function of the style vector, at the encoder's estimate;
@@ -46,10 +47,12 @@ from jaxtalk.fit import intensity_loss, invert_intensity, invert_style, sample_a
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.freetalk import ats, data
 from jaxtalk.models.freetalk.config import ATSConfig
-from jaxtalk.models.freetalk.fit import FittedATS, fit_ats
-from jaxtalk.models.toktalk.train import make_windows, train_base
+from jaxtalk.data.loader import open_data
+from jaxtalk.models.freetalk import recipe as freetalk_recipe
+from jaxtalk.models.freetalk.fit import FittedATS
+from jaxtalk.models.toktalk import recipe as toktalk_recipe
 from jaxtalk.train import OptimConfig
-from toktalk_common import _load, _save, load_corpus
+from toktalk_common import DATA, _load, _save, load_corpus
 
 Array = jax.Array
 
@@ -61,39 +64,46 @@ MIB = 2.0**20
 # ---- models -----------------------------------------------------------------------------------------
 
 
-def toktalk_model(corpus, steps: int, path: str | None, seed: int = 0):
-    """TokTalk ``small`` after ``steps`` stage-1 steps (or loaded from ``path``)."""
+def _last_loss(history: list[dict]) -> float:
+    """The last training loss of a loop history (evaluation-only rows have none)."""
+    return float([h["loss"] for h in history if "loss" in h][-1])
+
+
+def toktalk_model(prepared, steps: int, path: str | None, seed: int = 0):
+    """TokTalk ``small`` after ``steps`` stage-1 steps of its recipe on the prepared corpus ``prepared``
+    (2-s windows, no EMA), or loaded from ``path``."""
     cfg = tt.TokTalkConfig.small()
     like = jax.eval_shape(lambda k: tt.init_params(cfg, k), jax.random.key(0))
     if path and Path(path).is_file():
         return cfg, _load(Path(path), like), {"loaded": path}
     t0 = time.perf_counter()
-    windows = make_windows(corpus, corpus.split("train"), cfg, window_frames=WINDOW, hop_frames=10, seed=seed)
-    result = train_base(cfg, windows, OptimConfig(lr=5e-4, warmup_steps=min(50, steps // 5), total_steps=steps,
-                                                  weight_decay=0.0),
-                        key=jax.random.key(seed), batch_size=16, progress=False, log_every=max(1, steps // 5))
-    params = result.state.params
+    optim = OptimConfig(lr=5e-4, warmup_steps=min(50, steps // 5), total_steps=steps, weight_decay=0.0)
+    result = toktalk_recipe.train(cfg, prepared, optim, steps=steps, key=jax.random.key(seed), batch_size=16, seed=seed,
+                                  window_frames=WINDOW, progress=False, log_every=max(1, steps // 5))
+    params = result.state.eval_params
     if path:
         _save(Path(path), params)
     return cfg, params, {"train_steps": steps, "train_s": time.perf_counter() - t0,
-                         "final_loss": float(result.history[-1]["loss"])}
+                         "final_loss": _last_loss(result.history)}
 
 
-def ats_model(corpus, steps: int, path: str | None, seed: int = 0) -> tuple[FittedATS, dict]:
-    """ATS ``small`` (standardised displacements) after ``steps`` steps (or loaded from ``path``)."""
+def ats_model(prepared, steps: int, path: str | None, seed: int = 0) -> tuple[FittedATS, dict]:
+    """ATS ``small`` (standardised displacements) after ``steps`` steps of its recipe on the prepared
+    corpus (2-s windows), or loaded from ``path``; the standardisation is the recipe's (training split)."""
     cfg = ATSConfig.small(max_frames=WINDOW, displacement_scale=1.0)
-    train_w = data.ats_windows(corpus, corpus.split("train"), window=WINDOW, hop=WINDOW // 4)
-    stats = data.DisplacementStats.fit(train_w["displacements"])
+    stats = freetalk_recipe.fit_displacement_stats(prepared)
     if path and Path(path).is_file():
         like = jax.eval_shape(lambda k: ats.init_ats(cfg, k), jax.random.key(0))
         return FittedATS(cfg, _load(Path(path), like), stats, []), {"loaded": path}
     t0 = time.perf_counter()
     optim = OptimConfig(lr=1e-3, warmup_steps=min(100, steps // 10), total_steps=steps)
-    fitted = fit_ats(cfg, train_w, optim, jax.random.key(seed))
+    result = freetalk_recipe.train_ats(cfg, prepared, optim, steps=steps, key=jax.random.key(seed), batch_size=16,
+                                       seed=seed, window_frames=WINDOW, log_every=max(1, steps // 20))
+    fitted = FittedATS(cfg, result.state.eval_params, stats, result.history)
     if path:
         _save(Path(path), fitted.params)
     return fitted, {"train_steps": steps, "train_s": time.perf_counter() - t0,
-                    "final_loss": float(fitted.history[-1]["loss"])}
+                    "final_loss": _last_loss(fitted.history)}
 
 
 # ---- problems ---------------------------------------------------------------------------------------
@@ -283,15 +293,19 @@ def main() -> None:
     t_start = time.perf_counter()
 
     corpus = load_corpus(args.size)
+    # The same corpus prepared for the recipes (features once; the in-memory corpus above gives the
+    # held-out problems).
+    prepared = open_data(f"synthtalk:{args.size}", cache_dir=DATA)
     cache = RESULTS / "sampler_gradients_cache"
-    # The presets' fingerprint is part of the cache name: a changed preset must not load old weights.
-    tag = hashlib.sha1(repr((tt.TokTalkConfig.small(), ATSConfig.small())).encode()).hexdigest()[:8]
+    # The presets' fingerprint is part of the cache name: a changed preset must not load old weights
+    # ("recipe": weights of the recipes' training, not of the earlier in-memory windows).
+    tag = hashlib.sha1(repr((tt.TokTalkConfig.small(), ATSConfig.small(), "recipe")).encode()).hexdigest()[:8]
     args.toktalk_params = args.toktalk_params or str(
         cache / f"toktalk-small-{args.size}-s{args.toktalk_train_steps}-{tag}.npz")
     args.ats_params = args.ats_params or str(cache / f"ats-small-{args.size}-s{args.ats_train_steps}-{tag}.npz")
     print("training / loading models ...", flush=True)
-    tcfg, tparams, tinfo = toktalk_model(corpus, args.toktalk_train_steps, args.toktalk_params)
-    fitted, ainfo = ats_model(corpus, args.ats_train_steps, args.ats_params)
+    tcfg, tparams, tinfo = toktalk_model(prepared, args.toktalk_train_steps, args.toktalk_params)
+    fitted, ainfo = ats_model(prepared, args.ats_train_steps, args.ats_params)
     print(f"  TokTalk {tinfo}\n  ATS {ainfo}", flush=True)
     rng = np.random.default_rng(0)
 

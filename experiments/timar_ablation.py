@@ -2,7 +2,8 @@
 and a CFG-scale sweep (FD and P-FD vs omega; omega is traced, so every scale reuses one compiled
 streaming step).
 
-Variants (``--variants``) are each trained with the same data, steps and seed (the default model is
+Variants (``--variants``) are each trained with TIMAR's recipe (``timar_common.train_model``) with the
+same data, steps and seed (the default model is
 retrained with them, so the rows compare equal budgets), then streamed with n = 7 turns of context on
 the test split. The bidirectional variant is evaluated by recomputing the window every turn (it cannot
 be cached), which is what the paper's "w/ Bi-Attention" row measures. The CFG sweep runs on
@@ -22,11 +23,11 @@ import time
 from pathlib import Path
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
-from jaxtalk.data.synthtalk import generate
 from jaxtalk.models.timar.data import conversations
-from jaxtalk.models.timar.train import train_timar
 
-from timar_common import KEYS, add_training_args, load_model, metrics, predict, training_setup  # noqa: E402  (sibling script)
+from timar_common import (  # noqa: E402  (sibling script)
+    KEYS, add_training_args, load_corpus, load_model, metrics, model_config, predict, train_model,
+)
 
 VARIANTS = {
     "default": ("diffusion head + TLCA (default)", {}),
@@ -52,7 +53,7 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
 
-    corpus = generate(args.size, 0, cache_dir=args.cache_dir)
+    corpus = load_corpus(args)
     test_convs = conversations(corpus, "test")[: args.eval_convs]
     out = Path(args.out)
     record = json.loads(out.read_text()) if out.is_file() else {}
@@ -60,18 +61,17 @@ def main() -> None:
     record.setdefault("runs", [])
     trained = {}
     if names:
-        config, norm, data = training_setup(args, corpus)
+        config = model_config(args)
         for name in names:
             label, overrides = VARIANTS[name]
             cfg = dataclasses.replace(config, **overrides)
             t0 = time.perf_counter()
-            res = train_timar(cfg, data, steps=args.steps, batch_size=args.batch, lr=args.lr, warmup_steps=args.warmup,
-                              progress=True)
+            res, norm, _ = train_model(args, corpus, cfg)
             train_s = time.perf_counter() - t0
             trained[name] = (cfg, res.state.eval_params, norm)
             m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=1.5,
                                 sampler=args.sampler), test_convs, corpus)
-            record["variants"][label] = {**m, "steps": args.steps, "train_s": train_s, "final_loss": res.history[-1]["loss"],
+            record["variants"][label] = {**m, "steps": args.steps, "train_s": train_s, "final_loss": [h["loss"] for h in res.history if "loss" in h][-1],
                                          "sampler": args.sampler}
     rows = [{"variant": k, "steps": v.get("steps"), **{key: v.get(key) for key in KEYS}} for k, v in record["variants"].items()]
     if rows:

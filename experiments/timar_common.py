@@ -1,6 +1,12 @@
 """Shared pieces of the TIMAR experiments (``timar_context``, ``timar_ablation``, ``timar_dualtalk``):
-command-line training knobs, the training setup on SynthTalk, streaming predictions, metrics and the
-pickled model format.
+command-line training knobs, training on SynthTalk, streaming predictions, metrics and the pickled
+model format.
+
+Training goes through TIMAR's recipe (:func:`jaxtalk.models.timar.recipe.train`, what ``jaxtalk train
+timar`` runs) on the prepared corpus (``open_data("synthtalk:SIZE")``): 8-turn windows every turn of
+both role assignments of every training conversation, standardised with the recipe's normaliser.
+Evaluation streams the in-memory corpus's conversations (the same per-turn speech features, checked by
+the data tests) with that normaliser.
 """
 
 from __future__ import annotations
@@ -9,6 +15,8 @@ import argparse
 import dataclasses
 import pickle
 from pathlib import Path
+
+from typing import Any
 
 import jax
 import numpy as np
@@ -26,7 +34,8 @@ def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None
     Defaults: the ``small`` corpus and the ``small`` preset's sizes.
     """
     ap.add_argument("--size", default="small", help="SynthTalk size (full: 120 train speakers, 12 test conversations)")
-    ap.add_argument("--cache-dir", default=None, help="SynthTalk cache directory")
+    ap.add_argument("--cache-dir", default=".cache/prepared",
+                    help="SynthTalk and its prepared copy (the default is jaxtalk train's)")
     ap.add_argument("--steps", type=int, default=steps)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--lr", type=float, default=1e-3)
@@ -35,8 +44,59 @@ def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None
     ap.add_argument("--head-width", type=int, default=128)
     ap.add_argument("--warmup", type=int, default=20, help="learning-rate warm-up steps")
     ap.add_argument("--batch-mul", type=int, default=1, help="diffusion (t, noise) draws per frame (MAR: 4)")
-    ap.add_argument("--monologues", action="store_true", help="also train on the train split's monologues")
-    ap.add_argument("--stride", type=int, default=1, help="hop between 8-turn training windows, in turns")
+    ap.add_argument("--monologues", action="store_true",
+                    help="also train on the train split's monologues (in-memory windows: not the recipe's)")
+    ap.add_argument("--stride", type=int, default=1,
+                    help="hop between 8-turn training windows, in turns (not 1: in-memory windows, not the recipe's)")
+
+
+def load_corpus(args):
+    """The SynthTalk corpus of ``--size`` from the cache the prepared copy is made from (one generation)."""
+    from jaxtalk.data.synthtalk import generate
+
+    return generate(args.size, 0, cache_dir=Path(args.cache_dir) / "synthtalk")
+
+
+def model_config(args, **overrides) -> TimarConfig:
+    """The ``small`` preset at the command line's sizes, 8-turn windows."""
+    return TimarConfig.small(max_turns=8, width=args.width, num_layers=args.layers, head_width=args.head_width,
+                             num_heads=max(1, args.width // 32), diffusion_batch_mul=args.batch_mul, **overrides)
+
+
+def uses_recipe(args) -> bool:
+    """Whether the recipe expresses the requested training data (no monologues, a one-turn hop)."""
+    return not args.monologues and getattr(args, "stride", 1) == 1
+
+
+def train_model(args, corpus, config: TimarConfig, *, ckpt_dir=None, max_steps: int | None = None,
+                seed: int = 0) -> tuple[Any, Normalizer, int]:
+    """Train ``config`` for ``--steps`` (AdamW ``--lr``, ``--warmup`` warm-up, cosine to 0.1 x, batch
+    ``--batch``; stop early at ``max_steps``, checkpointed in ``ckpt_dir``).
+
+    With the default data the model trains through TIMAR's recipe on the prepared corpus. ``--monologues``
+    (monologue sides against a silent user) and ``--stride`` > 1 are data the recipe does not cut, so
+    those runs keep the in-memory windows of :func:`training_setup` and
+    :func:`jaxtalk.models.timar.train.train_timar` (the same optimiser).
+
+    Returns:
+        ``(loop result, normaliser, training windows)``.
+    """
+    if uses_recipe(args):
+        from jaxtalk.data.loader import open_data
+        from jaxtalk.models.timar import recipe
+        from jaxtalk.train.recipes import TrainSettings
+
+        data = open_data(f"synthtalk:{args.size}", cache_dir=args.cache_dir)
+        optim = TrainSettings(lr=args.lr, warmup_steps=args.warmup, final_lr_ratio=0.1).optim(args.steps)
+        result = recipe.train(config, data, optim, steps=max_steps or args.steps, key=jax.random.key(seed),
+                              batch_size=args.batch, seed=seed, ckpt_dir=ckpt_dir, progress=True)
+        return result, Normalizer.from_dict(result.extra["normalizer"]), result.windows
+    from jaxtalk.models.timar.train import train_timar
+
+    norm, windows_ = training_setup(args, corpus)
+    result = train_timar(config, windows_, steps=args.steps, batch_size=args.batch, lr=args.lr,
+                         warmup_steps=args.warmup, seed=seed, progress=True, ckpt_dir=ckpt_dir, max_steps=max_steps)
+    return result, norm, int(windows_["agent_motion"].shape[0])
 
 
 KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_exp", "MSE_exp", "MSE_jaw", "MSE_pose", "MSE_mouth_spk", "MSE_jaw_spk",
@@ -96,16 +156,15 @@ def load_model(path):
     return TimarConfig(**d["config"]), d["params"], Normalizer.from_dict(d["normalizer"])
 
 
-def training_setup(args, corpus, **overrides):
-    """Config (8-turn window), normaliser and 8-turn training windows from the train split."""
+def training_setup(args, corpus):
+    """Normaliser and 8-turn training windows of the in-memory train split, for the data the recipe does
+    not cut (``--monologues``, ``--stride`` > 1; see :func:`train_model`)."""
     train_convs = conversations(corpus, "train")
     if args.monologues:
         train_convs = train_convs + monologues(corpus, "train")
     norm = fit_normalizer(train_convs)
-    config = TimarConfig.small(max_turns=8, width=args.width, num_layers=args.layers, head_width=args.head_width,
-                               num_heads=max(1, args.width // 32), diffusion_batch_mul=args.batch_mul, **overrides)
     data = windows(train_convs, norm, num_turns=8, stride_turns=getattr(args, "stride", 1))
-    return config, norm, data
+    return norm, data
 
 
 def context_sensitivity(config, params, normalizer, convs, *, cfg_scale, windows_per_conv=4, seed=0):

@@ -1,7 +1,7 @@
 """TIMAR Table 1 on SynthTalk: conversational metrics vs context history n in {0, 1, 3, 7}.
 
-Trains a TIMAR model on the SynthTalk conversations (both role assignments of every train
-conversation, 8-turn windows), then streams every test and out-of-distribution conversation turn by
+Trains a TIMAR model on the SynthTalk conversations with TIMAR's recipe (``timar_common.train_model``:
+both role assignments of every train conversation, 8-turn windows, on the prepared corpus), then streams every test and out-of-distribution conversation turn by
 turn with n previous turns of context (past agent motion masked, window sliding once full) and
 reports FD, P-FD, MSE, SID, rPCC per group (exp / jaw / pose) next to a mean-pose baseline (the
 training mean, every frame) and the oracle (the generator's deterministic part), for samples (5-step
@@ -10,8 +10,8 @@ DDIM, the paper's sampling) and the model's point estimate (the guided posterior
 improves FD and MSE. ``--load-model`` recomputes the table from a saved model without training.
 
 Usage: ``python experiments/timar_context.py [--size small] [--steps 2000] [--out ...]``
-(``--size tiny --steps 100`` for a smoke run; ``--load-model experiments/results/timar_context_model.pkl``
-to re-evaluate).
+(``--size tiny --steps 100 --batch 4`` for a smoke run: the tiny corpus has 6 training windows;
+``--load-model experiments/results/timar_context_model.pkl`` to re-evaluate).
 """
 
 from __future__ import annotations
@@ -25,12 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
-from jaxtalk.data.synthtalk import generate
 from jaxtalk.models.timar.data import conversations
-from jaxtalk.models.timar.train import train_timar
 
 from timar_common import (  # noqa: E402
-    KEYS, add_training_args, context_sensitivity, load_model, metrics, predict, save_model, training_setup,
+    KEYS, add_training_args, context_sensitivity, load_corpus, load_model, metrics, model_config, predict, save_model,
+    train_model,
 )
 
 def main() -> None:
@@ -52,21 +51,22 @@ def main() -> None:
                     help="stop (checkpointed, no evaluation) at this step of the --steps schedule; rerun to resume")
     args = ap.parse_args()
 
-    corpus = generate(args.size, 0, cache_dir=args.cache_dir)
+    corpus = load_corpus(args)
     train_s, final_loss, history = None, None, []
     if args.load_model:
         config, params, norm = load_model(args.load_model)
     else:
-        config, norm, data = training_setup(args, corpus)
-        print(f"training on {data['agent_motion'].shape[0]} windows of 8 turns: {config}")
+        config = model_config(args)
+        print(f"training on 8-turn windows: {config}")
         t0 = time.perf_counter()
-        result = train_timar(config, data, steps=args.steps, batch_size=args.batch, lr=args.lr,
-                             warmup_steps=args.warmup, progress=True, ckpt_dir=args.ckpt_dir, max_steps=args.max_steps)
+        ckpt_dir = Path(args.ckpt_dir).resolve() if args.ckpt_dir else None
+        result, norm, num_windows = train_model(args, corpus, config, ckpt_dir=ckpt_dir, max_steps=args.max_steps)
         train_s = time.perf_counter() - t0
+        print(f"trained on {num_windows} windows of 8 turns")
         # This run's steps only (a resumed run starts its history at the checkpoint).
-        history = [{"step": int(h["step"]), "loss": float(h["loss"])}
-                   for h in result.history[:: max(1, len(result.history) // 50)]]
-        final_loss = float(result.history[-1]["loss"]) if result.history else None
+        logged = [h for h in result.history if "loss" in h]
+        history = [{"step": int(h["step"]), "loss": float(h["loss"])} for h in logged[:: max(1, len(logged) // 50)]]
+        final_loss = float(logged[-1]["loss"]) if logged else None
         if int(result.state.step) < args.steps:
             print(f"stopped at step {int(result.state.step)} of {args.steps} after {train_s:.0f} s "
                   f"(last loss {final_loss}); rerun with the same --ckpt-dir to resume")

@@ -1,8 +1,11 @@
 """Shared pieces of the TokTalk experiments: corpus, trained ``small`` model (cached), evaluation.
 
-The base model is trained with the demo's recipe (:func:`jaxtalk.demo.train_or_load`) into a
-checkpoint under ``experiments/results/toktalk_cache/`` keyed by corpus, steps and seed; the stage-2
-adapter is cached beside it, so the sweep and the quality table reuse one training run.
+The base model is the demo's (:func:`jaxtalk.demo.train_or_load`: TokTalk's recipe through
+:func:`jaxtalk.commands.training.train_run`, as ``jaxtalk train toktalk``), trained into a run folder
+under ``experiments/results/toktalk_cache/`` keyed by corpus, steps and seed (``jaxtalk sample`` /
+``jaxtalk stream`` take it as RUN); the stage-2 adapter is cached beside it, so the sweep and the
+quality table reuse one training run. Stage 2 has no recipe yet: the adapter is still trained here
+on in-memory windows of stream B (:func:`jaxtalk.models.toktalk.train.train_adapter`).
 """
 
 from __future__ import annotations
@@ -24,10 +27,12 @@ from jaxtalk.train import OptimConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CACHE = RESULTS / "toktalk_cache"
+# Prepared SynthTalk (open_data's cache); its "synthtalk/" folder is also the in-memory corpus's cache.
+DATA = CACHE / "data"
 
 
 def load_corpus(size: str, seed: int = 0):
-    return synthtalk.generate(size, seed, cache_dir=os.environ.get("JAXTALK_CACHE", CACHE / "corpus"))
+    return synthtalk.generate(size, seed, cache_dir=os.environ.get("JAXTALK_CACHE", DATA / "synthtalk"))
 
 
 def _save(path: Path, params) -> None:
@@ -45,25 +50,31 @@ def _load(path: Path, like):
 def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0):
     """The demo's base model (same recipe, :func:`jaxtalk.demo.train_or_load`) then stage 2 on stream B.
 
-    Both stages are cached under ``toktalk_cache/`` (the base as a resumable checkpoint, the adapter as
-    ``.npz``). Returns ``(config, params, info)``.
+    Both stages are cached under ``toktalk_cache/`` (the base as a resumable run folder, the adapter
+    as ``.npz``). Returns ``(config, params, info)``.
     """
+    if seed != corpus.seed:
+        raise ValueError(f"the demo's run trains on SynthTalk of its own seed: seed={seed} but corpus.seed={corpus.seed}")
     cfg = model_config()
-    options = DemoOptions(out_dir=CACHE / f"{corpus.key}-demo-s{steps}-seed{seed}", size=corpus.size,
-                          seed=seed, train_steps=steps, progress=True)
+    # "-run-": a run folder of the recipe (run.json + checkpoint); older "-demo-" folders held the
+    # previous training code's checkpoints, which the recipe's loader cannot resume.
+    options = DemoOptions(out_dir=CACHE / f"{corpus.key}-run-s{steps}-seed{seed}", size=corpus.size,
+                          seed=seed, train_steps=steps, progress=True, cache_dir=DATA)
     t0 = time.perf_counter()
-    base, history, _ = train_or_load(corpus, options)
+    base, history, _ = train_or_load(options)
+    base = jax.tree.map(jnp.asarray, base)
     t1 = time.perf_counter()
     path = options.out_dir / f"adapter-a{adapter_steps}.npz"
     like = jax.eval_shape(lambda k: tt.init_params(cfg, k, adapter_src_dim=48), jax.random.key(0))
-    info = {"base_checkpoint": str(options.out_dir / "checkpoint"), "stage1_s": t1 - t0,
+    info = {"base_run": str(options.out_dir), "stage1_s": t1 - t0,
             "stage1_final_loss": history[-1]["loss"] if history else None}
     if path.is_file():
         return cfg, _load(path, like), {**info, "adapter_cached": str(path)}
     windows = make_windows(corpus, corpus.split("train"), cfg, window_frames=options.window_frames,
                            hop_frames=options.window_frames // 4, src_stream="B", seed=seed)
     adapted = train_adapter(cfg, base, windows,
-                            OptimConfig(lr=5e-4, warmup_steps=20, total_steps=adapter_steps, weight_decay=0.0),
+                            OptimConfig(lr=5e-4, warmup_steps=min(20, adapter_steps // 10), total_steps=adapter_steps,
+                                      weight_decay=0.0),
                             key=jax.random.key(seed + 1), src_rate=25.0, batch_size=16, progress=True,
                             log_every=50)
     params = adapted.state.params

@@ -1,10 +1,13 @@
 """``jaxtalk demo``: the whole TokTalk pipeline on the built-in SynthTalk corpus, end to end.
 
-Generate the corpus -> train the ``small`` TokTalk (checkpointed, resumable) -> stream a held-out clip
-chunk by chunk (per-chunk latency measured, compile excluded) -> compare with the mean-pose baseline
-and the generator's oracle -> sweep chunk size x Euler steps (the paper's Table 5) -> write parameters,
-an mp4 with audio (ground truth beside prediction), a GIF, the sweep plot, the training curve and a
-Markdown report. A second run finds the checkpoint and the cached sweep and finishes in seconds.
+Generate the corpus -> train the ``small`` TokTalk with its recipe on the prepared corpus, exactly as
+``jaxtalk train toktalk --data synthtalk:SIZE:SEED`` does (checkpointed, resumable; the output folder
+is the training run, so ``jaxtalk stream OUT speech.wav`` animates new speech with it) -> stream a
+held-out clip chunk by chunk (per-chunk latency measured, compile excluded) -> compare with the
+mean-pose baseline and the generator's oracle -> sweep chunk size x Euler steps (the paper's Table 5)
+-> write parameters, an mp4 with audio (ground truth beside prediction), a GIF, the sweep plot, the
+training curve and a Markdown report. A second run finds the finished run and the cached sweep and
+finishes in seconds.
 
 ``--audio FILE`` animates the user's own speech (any rate, mono or stereo) with the trained model.
 """
@@ -34,14 +37,16 @@ class DemoOptions:
     """Settings of :func:`run_demo` (the CLI's options).
 
     Attributes:
-        out_dir: output folder (created); the checkpoint lives in ``out_dir/checkpoint``.
+        out_dir: output folder (created). It is also the model's training run (``run.json``,
+            ``checkpoint/`` and the inference assets, as ``jaxtalk train`` writes them), so
+            ``jaxtalk sample`` / ``jaxtalk stream`` take it as their RUN.
         size: SynthTalk size ("tiny" for a quick look, "small" for the real demo).
         seed: corpus and training seed.
         train_steps: optimiser steps of the base model.
         batch_size: training windows per step.
         window_frames: frames per training window.
         learning_rate: peak AdamW learning rate.
-        retrain: ignore an existing checkpoint and cached results.
+        retrain: delete an existing run (checkpoint and ``run.json``) and cached results first.
         audio: the user's own audio file to animate (skips nothing else).
         sample_steps: Euler steps of the streamed clip and of ``audio``. One step from pure noise is
             the model's posterior mean (smooth, lowest error); more steps add sampled detail that a
@@ -50,6 +55,8 @@ class DemoOptions:
         render: write the mp4 and GIF.
         render_size: panel size in pixels.
         progress: show the training progress bar.
+        cache_dir: where the SynthTalk corpus and its prepared copy (``synthtalk-SIZE-seedSEED``) are
+            kept (default ``out_dir/cache``).
     """
 
     out_dir: Path = Path("jaxtalk-demo")
@@ -66,6 +73,7 @@ class DemoOptions:
     render: bool = True
     render_size: int = 256
     progress: bool = True
+    cache_dir: Path | None = None
 
 
 @dataclasses.dataclass
@@ -120,54 +128,122 @@ def _pick_clips(corpus: Any) -> tuple[int, int]:
     return clip, (same[0] if same else clip)
 
 
-def train_or_load(corpus: Any, options: DemoOptions, echo: Callable[[str], None] = print) -> tuple[Any, list[dict], bool]:
-    """The demo's TokTalk ``small`` training recipe, resumed or loaded from ``options.out_dir/checkpoint``.
+DEMO_MODEL = "toktalk"
+DEMO_PRESET = "small"
 
-    Shared by the demo and the TokTalk experiments, so the tables describe the model the demo ships.
+
+def data_spec(options: DemoOptions) -> str:
+    """The demo's training data: SynthTalk at the demo's size and seed (prepared once under the cache)."""
+    return f"synthtalk:{options.size}:{options.seed}"
+
+
+def cache_dir(options: DemoOptions) -> Path:
+    """Where the demo's SynthTalk corpus and its prepared copy live."""
+    return Path(options.cache_dir) if options.cache_dir is not None else Path(options.out_dir) / "cache"
+
+
+def train_overrides(options: DemoOptions) -> tuple[str, ...]:
+    """``--set`` items that turn the ``small`` preset and TokTalk's recipe defaults into the demo's
+    model (:func:`model_config`) and training settings: only what differs from them."""
+    from jaxtalk.models.toktalk import TokTalkConfig
+    from jaxtalk.models.toktalk.recipe import DEFAULTS, default_window
+
+    want, base = model_config(), TokTalkConfig.small()
+    items = [f"{f.name}={getattr(want, f.name)}" for f in dataclasses.fields(want)
+             if getattr(want, f.name) != getattr(base, f.name)]
+    if options.learning_rate != DEFAULTS.lr:
+        items.append(f"lr={options.learning_rate!r}")
+    if options.batch_size != DEFAULTS.batch_size:
+        items.append(f"batch_size={options.batch_size}")
+    if options.window_frames != default_window(want):
+        items.append(f"window_frames={options.window_frames}")
+    return tuple(items)
+
+
+def _history(run_dir: Path) -> list[dict]:
+    """The loss curve the training loop wrote beside the run's checkpoints (empty when there is none)."""
+    from jaxtalk.commands.runs import checkpoint_dir
+    from jaxtalk.train import read_history
+
+    return [{"step": r["step"], "loss": r["loss"]} for r in read_history(checkpoint_dir(run_dir))
+            if r.get("type") == "train" and r.get("loss") is not None]
+
+
+def train_or_load(options: DemoOptions, echo: Callable[[str], None] = print) -> tuple[Any, list[dict], bool]:
+    """The demo's TokTalk ``small``, trained with TokTalk's recipe (:func:`jaxtalk.commands.training.train_run`,
+    as ``jaxtalk train toktalk``) into the run folder ``options.out_dir`` and loaded from it.
+
+    The folder is an ordinary training run (``run.json``, ``checkpoint/``, ``features.json``,
+    ``tokenizer.npz``, ``style.npy``), so ``jaxtalk sample`` / ``jaxtalk stream`` work on it. A run
+    already at ``train_steps`` is loaded without training; a shorter one is resumed (a killed run
+    continues from its last checkpoint); ``retrain`` deletes the run first. Shared by the demo and
+    the TokTalk experiments, so the tables describe the model the demo ships.
 
     Args:
-        corpus: a SynthTalk corpus (its ``train`` split is used).
-        options: ``out_dir``, ``train_steps``, ``batch_size``, ``window_frames``, ``learning_rate``,
-            ``seed``, ``retrain``, ``progress`` are used.
+        options: ``out_dir``, ``size``, ``seed``, ``train_steps``, ``batch_size``, ``window_frames``,
+            ``learning_rate``, ``retrain``, ``progress`` and ``cache_dir`` are used.
         echo: where progress lines go.
 
     Returns:
-        ``(params, history, trained)``: the EMA parameters, the loss history (empty when loaded) and
-        whether any training ran.
+        ``(params, history, trained)``: the EMA parameters, the training-loss curve (``step``,
+        ``loss`` rows, from the run's ``history.jsonl``; empty when the loop wrote none) and whether
+        any training ran.
+
+    Raises:
+        ValueError: ``out_dir`` holds a run of other settings or a checkpoint of an older jaxtalk
+            (both say to use ``--retrain``), or a run already past ``train_steps``.
     """
-    import jax
+    import shutil
 
-    from jaxtalk.models.toktalk.train import make_windows, train_base
-    from jaxtalk.train import CheckpointMismatchError, OptimConfig, latest_checkpoint_step
+    from jaxtalk.commands.runs import RUN_FILE, RunRecord, checkpoint_dir, load_run
+    from jaxtalk.commands.training import TrainOptions, train_run
+    from jaxtalk.train import CheckpointMismatchError, latest_checkpoint_step
 
-    config = model_config()
-    ckpt = options.out_dir / "checkpoint"
+    out = Path(options.out_dir)
+    ckpt = checkpoint_dir(out)
+    if options.retrain:
+        for path in (ckpt, out / RUN_FILE):
+            if path.is_dir():
+                shutil.rmtree(path)
+            elif path.exists():
+                path.unlink()
+    items, data = train_overrides(options), data_spec(options)
+    record = RunRecord.load(out) if (out / RUN_FILE).is_file() else None
+    if record is not None and (record.model, record.preset, tuple(record.items), record.data.get("spec")) != (
+            DEMO_MODEL, DEMO_PRESET, items, data):
+        raise ValueError(f"{out} holds a {record.model} ({record.preset}) run on {record.data.get('spec')} with "
+                         f"--set {list(record.items)}, not this demo's ({DEMO_PRESET} on {data} with --set {list(items)}); "
+                         "run again with --retrain (or another --out folder)")
     done = latest_checkpoint_step(ckpt) if ckpt.exists() else None
-    trained = options.retrain or done != options.train_steps
-    if options.retrain and ckpt.exists():
-        import shutil
-
-        shutil.rmtree(ckpt)
+    if done is not None and done > options.train_steps:
+        raise ValueError(f"{ckpt} is already at step {done} > --steps {options.train_steps}; "
+                         f"run again with --steps {done} or --retrain")
+    trained = record is None or done != options.train_steps
     if trained:
-        what = "resuming" if (done and not options.retrain) else "training"
-        echo(f"{what} TokTalk small for {options.train_steps} steps (checkpoint: {ckpt})")
+        what = "resuming" if done else "training"
+        echo(f"{what} TokTalk small for {options.train_steps} steps on {data} (run folder: {out})")
+        train_opts = TrainOptions(model=DEMO_MODEL, out_dir=out, data=data, preset=DEMO_PRESET, overrides=items,
+                                  steps=options.train_steps, seed=options.seed, cache_dir=cache_dir(options),
+                                  progress=options.progress)
+        try:
+            summary = train_run(train_opts, echo=echo)
+        except CheckpointMismatchError as err:
+            # A checkpoint of another model version or of the old demo format: say what to do.
+            raise ValueError(f"{err}\nThe checkpoint in {ckpt} was written by a different model "
+                             "configuration; run again with --retrain (or another --out folder).") from err
+        except ValueError as err:
+            if record is None and done and "loader state" in str(err):
+                # A checkpoint without run.json whose data position is not the recipe's loader's:
+                # the old demo's own training code wrote it.
+                raise ValueError(f"{ckpt} was written by an older jaxtalk demo (no {RUN_FILE}; {err}); "
+                                 "run again with --retrain (or another --out folder)") from err
+            raise
+        echo(f"trained to step {summary.step} in {summary.wall_s:.0f} s (last loss {summary.final_loss:.4g})"
+             if summary.final_loss is not None else f"trained to step {summary.step}")
     else:
         echo(f"found a finished checkpoint at step {done} in {ckpt}: no retraining (use --retrain)")
-    windows = make_windows(corpus, corpus.split("train"), config, window_frames=options.window_frames,
-                           hop_frames=options.window_frames // 4, seed=options.seed)
-    optim = OptimConfig(lr=options.learning_rate, weight_decay=1e-2, warmup_steps=min(100, options.train_steps // 10),
-                        total_steps=options.train_steps, clip_norm=1.0, ema_decay=0.99)
-    try:
-        result = train_base(
-            config, windows, optim, key=jax.random.key(options.seed), batch_size=options.batch_size,
-            seed=options.seed, ckpt_dir=ckpt, save_every=max(options.train_steps // 5, 1),
-            progress=options.progress and trained,
-        )
-    except CheckpointMismatchError as err:
-        # A checkpoint from another version of the model (e.g. before the style anchor): say what to do.
-        raise ValueError(f"{err}\nThe checkpoint in {ckpt} was written by a different model "
-                         "configuration; run again with --retrain (or another --out folder).") from err
-    return result.state.eval_params, result.history, trained
+    run = load_run(out)
+    return run.params, _history(out), trained
 
 
 def _stream_timed(params: Any, config: Any, tokens: np.ndarray, style_vec: Any, key: Any,
@@ -309,9 +385,12 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
 
-    echo(f"SynthTalk {options.size}: generating or loading from {out / 'cache'}")
-    corpus = synthtalk.generate(size=options.size, seed=options.seed, cache_dir=out / "cache")
-    params, history, trained = train_or_load(corpus, options, echo)
+    # The same corpus cache the prepared training data is made from (jaxtalk.data.loader.open_data).
+    corpus_cache = cache_dir(options) / "synthtalk"
+    echo(f"SynthTalk {options.size}: generating or loading from {corpus_cache}")
+    corpus = synthtalk.generate(size=options.size, seed=options.seed, cache_dir=corpus_cache)
+    params, history, trained = train_or_load(options, echo)
+    files["run"] = out / "run.json"
     files["checkpoint"] = out / "checkpoint"
 
     config = model_config(num_steps=options.sample_steps)
@@ -366,8 +445,9 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     if history:
         from jaxtalk.render import plot_training_curves
 
+        # history.jsonl rows are already means over the loop's log period (10 steps): 3 rows ~ 30 steps.
         files["training_curve"] = plot_training_curves(out / "training.png", history, metrics=("loss",),
-                                                       smooth=25, title="TokTalk small: training loss")
+                                                       smooth=3, title="TokTalk small: training loss")
 
     if options.render:
         from jaxtalk.render import render_clip
