@@ -9,14 +9,18 @@
   every epoch, the recipe's map, and batching. Its position (``get_state``/``set_state``) is saved in
   the orbax checkpoint by the training loop, so an interrupted run resumes on the same batch.
 
-Memory stays bounded by the batch, not the dataset: windows are read from disk when they are needed.
+Memory stays bounded by the batch, not the dataset: windows are read from disk when they are needed,
+and each loader keeps at most ``cache_bytes`` (:data:`CACHE_BYTES`, 256 MiB) of decoded clips.
 """
 
 from __future__ import annotations
 
+import collections
+import copy
 import dataclasses
 import functools
 import json
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -32,6 +36,56 @@ __all__ = ["PreparedData", "WindowRecipe", "WindowLoader", "make_loader", "open_
 # busy long after the training step stopped asking.
 PREFETCH_BATCHES = 8
 READ_THREADS = 4
+# Decoded arrays a loader keeps, per process (LRU, by bytes). Neighbouring windows overlap (TokTalk and
+# ATS hop a quarter window, STM reads each clip once per mesh) and TokTalk reads a second clip per
+# window for its style, so without it every window reads and decompresses whole records again.
+CACHE_BYTES = 256 * 2**20
+
+
+class _ClipCache:
+    """Least-recently-used decoded arrays of clips, at most ``budget`` bytes of them (thread-safe).
+
+    Per clip, the arrays of the keys asked for so far (None: the record has no such key). Cached
+    arrays are read-only, so a caller that writes into one fails instead of changing later windows.
+    A copy (e.g. pickled into a grain worker process) starts empty.
+    """
+
+    def __init__(self, budget: int) -> None:
+        self.budget = int(budget)
+        self._clips: collections.OrderedDict[int, dict[str, np.ndarray | None]] = collections.OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict:
+        return {"budget": self.budget}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["budget"])
+
+    def get(self, i: int, keys: Sequence[str]) -> dict[str, np.ndarray] | None:
+        with self._lock:
+            arrays = self._clips.get(i)
+            if arrays is None or any(k not in arrays for k in keys):
+                return None
+            self._clips.move_to_end(i)
+            return {k: arrays[k] for k in keys if arrays[k] is not None}
+
+    def put(self, i: int, arrays: dict[str, np.ndarray | None]) -> None:
+        for a in arrays.values():
+            if a is not None:
+                a.flags.writeable = False
+        with self._lock:
+            old = self._clips.pop(i, {})
+            merged = {**old, **arrays}
+            size = sum(a.nbytes for a in merged.values() if a is not None)
+            self._bytes -= sum(a.nbytes for a in old.values() if a is not None)
+            if size > self.budget:
+                return
+            self._clips[i] = merged
+            self._bytes += size
+            while self._bytes > self.budget:
+                _, dropped = self._clips.popitem(last=False)
+                self._bytes -= sum(a.nbytes for a in dropped.values() if a is not None)
 
 
 class PreparedData:
@@ -112,11 +166,29 @@ class PreparedData:
 
         return {s: ArrayRecordReader(str(self.root / SHARDS / s)) for s in self.manifest["shards"]}
 
+    _cache: _ClipCache | None = None
+
+    def cached(self, budget: int = CACHE_BYTES) -> PreparedData:
+        """This dataset with a cache of up to ``budget`` bytes of decoded arrays (LRU, per process).
+
+        Its :meth:`record` returns READ-ONLY arrays for ``keys`` (copy before writing); what it
+        returns is bitwise what the uncached one does. ``budget <= 0``: no cache.
+        """
+        other = copy.copy(self)  # shares the manifest; opens its own readers
+        other._cache = _ClipCache(budget) if budget > 0 else None
+        return other
+
     def record(self, i: int, keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """The arrays of clip ``i`` (only ``keys`` when given; absent keys are left out)."""
+        cache = self._cache if keys is not None else None
+        if cache is not None and (hit := cache.get(i, keys)) is not None:
+            return hit
         c = self.clips[i]
         data = self._readers[c["shard"]].read([c["index"]])[0]
-        return decode_record(data, keys)
+        arrays = decode_record(data, keys)
+        if cache is not None:
+            cache.put(i, {k: arrays.get(k) for k in keys})
+        return arrays
 
     def motion_stats(self) -> dict[str, np.ndarray]:
         """Mean and std of the training split's 56-d motion (per channel).
@@ -230,6 +302,7 @@ def make_loader(
     shuffle: bool = True,
     num_epochs: int | None = None,
     shard: tuple[int, int] | None = None,
+    cache_bytes: int = CACHE_BYTES,
 ) -> WindowLoader:
     """Batches of ``recipe`` windows of ``split``, through grain.
 
@@ -243,6 +316,9 @@ def make_loader(
         num_epochs: stop after this many passes (None: endless).
         shard: ``(index, count)`` of this process (default ``jax.process_index()``,
             ``jax.process_count()``): process ``i`` reads windows ``i, i + count, ...``.
+        cache_bytes: decoded arrays the loader keeps (:meth:`PreparedData.cached`; 0: none). The
+            batches are the same either way; the cache saves reading and decompressing a clip's
+            whole record again for each window of it.
 
     Returns:
         :class:`WindowLoader`.
@@ -265,7 +341,7 @@ def make_loader(
         raise ValueError(f"split {split!r} has {n} windows on this process, fewer than batch_size={batch_size}")
     if shuffle:
         ds = ds.shuffle(seed=seed)
-    ds = ds.repeat(num_epochs).map(_Example(data, recipe)).batch(batch_size, drop_remainder=True)
+    ds = ds.repeat(num_epochs).map(_Example(data.cached(cache_bytes), recipe)).batch(batch_size, drop_remainder=True)
     fingerprint = {"data": data.key, "split": split, "windows": int(len(table)), "seed": seed,
                    "batch_size": batch_size, "shard": list(shard), "recipe": type(recipe).__name__}
     return WindowLoader(ds.to_iter_dataset(grain.ReadOptions(num_threads=READ_THREADS, prefetch_buffer_size=PREFETCH_BATCHES)),
