@@ -56,7 +56,10 @@ class TrainOptions:
         save_every: checkpoint period in steps (default: 5 checkpoints per run; the last step always).
         data_parallel: shard every batch over all devices (``jaxtalk.train.make_mesh``).
         distributed: call ``jax.distributed.initialize()`` first (several hosts; settings from the
-            environment) and train on the global mesh.
+            environment) and train on the global mesh. Every process runs the same command; the
+            ``batch_size`` setting is per process (the global batch is ``batch_size`` x processes,
+            the same batches as one process with the global batch size), all processes write the
+            checkpoints together and process 0 alone writes ``run.json`` and the run's assets.
     """
 
     model: str
@@ -167,7 +170,6 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     """
     import jax
 
-    from jaxtalk.data.loader import open_data
     from jaxtalk.train import latest_checkpoint_step
 
     start = time.perf_counter()
@@ -175,6 +177,12 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         raise ValueError(f"unknown model {opts.model!r}; expected one of {', '.join(MODELS)}")
     if opts.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {opts.steps}")
+    if opts.distributed:
+        from jaxtalk.train.distributed import initialize
+
+        # First: reading the checkpoint directory below (orbax) starts the JAX backend, and only a
+        # backend started after initialize() sees the other processes.
+        initialize()
     out = Path(opts.out_dir)
     existing = RunRecord.load(out) if (out / "run.json").is_file() else None
     done = latest_checkpoint_step(checkpoint_dir(out)) or 0
@@ -184,10 +192,6 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         raise ValueError(f"{out} holds a {existing.model} run, not {opts.model}; choose another --out")
     if done > opts.steps:
         raise ValueError(f"{out} is already at step {done} > --steps {opts.steps}")
-    if opts.distributed:
-        from jaxtalk.train.distributed import initialize
-
-        initialize()
     train_fn, defaults = recipe_for(opts.model)
     if existing is not None:
         if opts.preset not in (None, existing.preset) or (opts.overrides and tuple(opts.overrides) != tuple(existing.items)):
@@ -199,7 +203,7 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
                                    data=existing.data["spec"], seed=existing.seed)
     preset = opts.preset or "small"
     model_items, train_kw = split_overrides(opts.model, opts.overrides)
-    data = open_data(opts.data, cache_dir=opts.cache_dir, progress=opts.progress)
+    data = _open_data_once(opts)
     explicit = parse_overrides(config_class(opts.model), model_items)
     config = build_config(opts.model, preset, [*_data_fields(opts.model, data, explicit), *model_items])
     if opts.model == "ats" and "displacement_scale" not in explicit:
@@ -236,6 +240,29 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     return TrainSummary(run_dir=out, start_step=done, step=int(result.state.step),
                         final_loss=float(np.mean(losses)) if losses else None, val_loss=evals[-1] if evals else None,
                         examples=result.windows, wall_s=time.perf_counter() - start)
+
+
+def _open_data_once(opts: TrainOptions) -> Any:
+    """``open_data`` for this run; with several processes, process 0 first.
+
+    ``synthtalk:`` data is prepared on first use: processes sharing a file system must not prepare
+    it at the same time, so the others wait for process 0 and then find it prepared (on a host with
+    its own file system a process still prepares its own copy).
+    """
+    import jax
+
+    from jaxtalk.data.loader import open_data
+
+    def one() -> Any:
+        return open_data(opts.data, cache_dir=opts.cache_dir, progress=opts.progress and jax.process_index() == 0)
+
+    if jax.process_count() == 1:
+        return one()
+    from jax.experimental import multihost_utils
+
+    data = one() if jax.process_index() == 0 else None
+    multihost_utils.sync_global_devices("jaxtalk train: data prepared")
+    return data if data is not None else one()
 
 
 def describe_presets(models: Sequence[str] = MODELS) -> str:

@@ -4,10 +4,11 @@
   clip's record in the ArrayRecord shards (only the arrays asked for are decoded).
 * A model's recipe says how windows are cut: ``recipe.table(data, split)`` lists every window as a
   row of integers (clip, start, ...) from the manifest alone, and ``recipe.example(data, row)`` reads
-  one window. :func:`make_loader` turns that into batches with grain: per-process sharding of the
-  window table (``jax.process_index()`` of ``jax.process_count()``), a seeded shuffle that differs
-  every epoch, the recipe's map, and batching. Its position (``get_state``/``set_state``) is saved in
-  the orbax checkpoint by the training loop, so an interrupted run resumes on the same batch.
+  one window. :func:`make_loader` turns that into batches with grain: a seeded shuffle that differs
+  every epoch, the recipe's map, batching, and per-process sharding of the batches (each of
+  ``jax.process_count()`` processes reads its own part of every global batch). Its position
+  (``get_state``/``set_state``) is saved in the orbax checkpoint by the training loop, so an
+  interrupted run resumes on the same batch.
 
 Memory stays bounded by the batch, not the dataset: windows are read from disk when they are needed,
 and each loader keeps at most ``cache_bytes`` (:data:`CACHE_BYTES`, 256 MiB) of decoded clips.
@@ -259,7 +260,7 @@ class WindowLoader(Iterator[dict[str, np.ndarray]]):
     """Endless, deterministic batches of windows with a checkpointable position (see :func:`make_loader`).
 
     Attributes:
-        num_windows: windows of this process's shard.
+        num_windows: this process's share of the windows (all of them over the number of processes).
         batch_size: windows per batch (this process's part of a global batch).
         variable_axes: ``()``: every batch has the same shape.
     """
@@ -283,12 +284,22 @@ class WindowLoader(Iterator[dict[str, np.ndarray]]):
     def set_state(self, state: Mapping[str, Any]) -> None:
         """Continue from a :meth:`get_state` position.
 
+        A position counts global batches, the same on every process (see :func:`make_loader`), so
+        any process's position continues every process of a run with as many processes (a
+        multi-process checkpoint holds process 0's).
+
         Raises:
-            ValueError: a position saved for other data, windows, seed, batch size or process shard.
+            ValueError: a position saved for other data, windows, seed, batch size or process count.
         """
         for k, v in self._fingerprint.items():
-            if state.get(k) != v:
-                raise ValueError(f"loader state was saved with {k}={state.get(k)!r}, this loader has {v!r}")
+            saved = state.get(k)
+            if k == "shard" and isinstance(saved, list) and len(saved) == 2:
+                saved, v = saved[1], v[1]  # the process count; the index does not matter
+                if saved != v:
+                    raise ValueError(f"loader state was saved with shard={state.get(k)!r} (of {saved} processes), "
+                                     f"this loader has {self._fingerprint[k]!r}")
+            elif saved != v:
+                raise ValueError(f"loader state was saved with {k}={saved!r}, this loader has {v!r}")
         self._it.set_state(state["grain"])
 
 
@@ -315,7 +326,18 @@ def make_loader(
         shuffle: shuffle the windows (False: table order).
         num_epochs: stop after this many passes (None: endless).
         shard: ``(index, count)`` of this process (default ``jax.process_index()``,
-            ``jax.process_count()``): process ``i`` reads windows ``i, i + count, ...``.
+            ``jax.process_count()``). The stream is the single-process stream of global batches of
+            ``batch_size * count`` windows (the same shuffled table on every process), and process
+            ``i`` yields rows ``[i * batch_size, (i + 1) * batch_size)`` of each: the part of the
+            global batch :func:`jaxtalk.train.make_mesh` puts on its devices. So a run on ``count``
+            processes sees the same global batches, row for row, as one process with
+            ``batch_size * count`` (same seed), and resumes the same way; sharding the table instead
+            (process ``i`` shuffling windows ``i::count``) would give other batches for every
+            process count. Each process decodes only its own rows (grain is lazy). With
+            ``num_epochs``, the processes together still read every window of each pass, so a
+            last partial global batch leaves some processes one batch short: train multi-process
+            on an endless loader (``num_epochs=None``, as the recipes do), or a collective step
+            would wait forever for them.
         cache_bytes: decoded arrays the loader keeps (:meth:`PreparedData.cached`; 0: none). The
             batches are the same either way; the cache saves reading and decompressing a clip's
             whole record again for each window of it.
@@ -324,7 +346,7 @@ def make_loader(
         :class:`WindowLoader`.
 
     Raises:
-        ValueError: no window in the split, or fewer windows on this process than one batch.
+        ValueError: no window in the split, or fewer windows than one global batch.
     """
     import grain
 
@@ -335,13 +357,17 @@ def make_loader(
     table = np.asarray(recipe.table(data, split), np.int64)
     if table.size == 0:
         raise ValueError(f"split {split!r} of {data.root} has no {type(recipe).__name__} window")
-    ds = grain.MapDataset.source(table)[shard[0]::shard[1]]
-    n = len(ds)
-    if n < batch_size:
-        raise ValueError(f"split {split!r} has {n} windows on this process, fewer than batch_size={batch_size}")
+    index, count = shard
+    ds = grain.MapDataset.source(table)
+    if len(table) < batch_size * count:
+        raise ValueError(f"split {split!r} has {len(table)} windows, fewer than batch_size={batch_size} x {count} "
+                         "process(es) (one global batch)")
     if shuffle:
         ds = ds.shuffle(seed=seed)
     ds = ds.repeat(num_epochs).map(_Example(data.cached(cache_bytes), recipe)).batch(batch_size, drop_remainder=True)
+    if count > 1:  # batch k is block k % count of global batch k // count (see ``shard``)
+        ds = ds[index::count]
+    n = len(range(index, len(table), count))
     fingerprint = {"data": data.key, "split": split, "windows": int(len(table)), "seed": seed,
                    "batch_size": batch_size, "shard": list(shard), "recipe": type(recipe).__name__}
     return WindowLoader(ds.to_iter_dataset(grain.ReadOptions(num_threads=READ_THREADS, prefetch_buffer_size=PREFETCH_BATCHES)),

@@ -83,6 +83,11 @@ class Checkpointer:
         async_save: write in a background thread after copying the arrays off the device (the
             train loop continues meanwhile); :meth:`close` waits for pending writes.
         read_only: open for restoring only (the directory must exist).
+        barrier_prefix: in a multi-process run (where every process saves, and orbax synchronises
+            them with barriers named after the step), a name that sets this checkpointer's barriers
+            apart from those of another one saving at the same time, e.g. the same step into
+            another directory (the training loop's best checkpoint: ``"best"``). The same on
+            every process.
 
     Raises:
         ValueError: ``max_to_keep < 1``, or ``directory`` exists and is not a directory.
@@ -90,7 +95,13 @@ class Checkpointer:
     """
 
     def __init__(
-        self, directory: str | os.PathLike, *, max_to_keep: int = 3, async_save: bool = True, read_only: bool = False
+        self,
+        directory: str | os.PathLike,
+        *,
+        max_to_keep: int = 3,
+        async_save: bool = True,
+        read_only: bool = False,
+        barrier_prefix: str | None = None,
     ) -> None:
         import orbax.checkpoint as ocp  # heavy import, deferred to first use
 
@@ -108,6 +119,9 @@ class Checkpointer:
             read_only=read_only,
             enable_async_checkpointing=async_save,
             cleanup_tmp_directories=not read_only,  # leftovers of a killed save are removed
+            # Two checkpointers saving the same step at once would otherwise meet at one barrier
+            # ("Barrier _async_write_complete.<step> is already ongoing") and fail.
+            multiprocessing_options=ocp.options.MultiprocessingOptions(barrier_sync_key_prefix=barrier_prefix),
         )
         self._manager = ocp.CheckpointManager(self.directory, options=options, item_names=("state", "data", "meta"))
 
@@ -208,6 +222,10 @@ class Checkpointer:
         Args:
             step: checkpoint step (default: the newest complete one).
 
+        Arrays come back with their saved sharding when this process has those devices; otherwise
+        (saved by a run on more devices or processes, e.g. ``jaxtalk train --distributed``, read by
+        one process) on this process's first device.
+
         Returns:
             ``(state, step)``: ``state`` has ``step``, ``params``, ``opt_state``, ``ema_params`` and
             ``rng`` (raw key data).
@@ -220,7 +238,12 @@ class Checkpointer:
         step = self._complete_step(step)
         path = self.directory / str(step)
         try:
-            restored = self._manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+            # Without a fallback, orbax refuses a checkpoint whose saved shardings name devices this
+            # process does not have ("Topology mismatch").
+            fallback = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+            restored = self._manager.restore(
+                step, args=ocp.args.Composite(state=ocp.args.StandardRestore(fallback_sharding=fallback))
+            )
         except Exception as err:  # orbax/tensorstore raise many types; name the path for the user
             detail = str(err).splitlines()[0][:400] if str(err) else type(err).__name__
             raise ValueError(f"checkpoint {path} cannot be read: {detail}") from err

@@ -31,7 +31,7 @@ import numpy as np
 from jax.sharding import Mesh
 
 from jaxtalk.train.checks import BatchSpec, check_finite
-from jaxtalk.train.checkpoint import HISTORY_FILE, Checkpointer, best_checkpoint_dir, read_history
+from jaxtalk.train.checkpoint import BEST_DIR, HISTORY_FILE, Checkpointer, best_checkpoint_dir, read_history
 from jaxtalk.train.optim import OptimConfig, Trainable, make_optimizer, trainable_mask
 from jaxtalk.train.sharding import replicate, shard_batch
 from jaxtalk.train.state import TrainState, create_train_state
@@ -143,7 +143,7 @@ def train(
         trainable: which parameters train: None (all), a predicate ``(path, leaf) -> bool`` on
             ``"a/b/kernel"`` paths, or a pytree of bools. Frozen leaves stay bitwise unchanged.
         mesh: device mesh for data parallelism (batch sharded, state replicated).
-        progress: show a tqdm bar with loss and steps/s.
+        progress: show a tqdm bar with loss and steps/s (on process 0 of a multi-process run).
         log_every: fetch metrics from the device every this many steps.
         check_batches: scan every batch for NaN/inf before its step (costs a host pass).
         variable_axes: batch axes allowed to change size between batches (default: the iterator's
@@ -299,7 +299,9 @@ class _Loop:
         self.last_saved = self.ckpt.latest_step() if self.ckpt is not None else None
         step = int(self.state.step)
         data_state = self.position.get_state() if self.position is not None else None
-        self.bar = tqdm(total=max_steps, initial=step, disable=not self.progress, desc="train", unit="step")
+        # One bar per run: in a multi-process run only process 0 draws it.
+        self.bar = tqdm(total=max_steps, initial=step, disable=not self.progress or jax.process_index() != 0,
+                        desc="train", unit="step")
         try:
             while step < max_steps:
                 try:
@@ -410,12 +412,14 @@ class _BestKeeper:
 
     A second :class:`Checkpointer` rather than orbax's ``best_fn``: with ``best_fn`` orbax's
     ``max_to_keep`` would keep the best N instead of the latest N, and the regular checkpoints (what
-    resume reads) must stay "the latest N".
+    resume reads) must stay "the latest N". It often saves the same step as the regular one, while
+    that save is still being written: its own barrier names keep a multi-process run's processes
+    from confusing the two saves.
     """
 
     def __init__(self, directory: Path, metric: str, mode: str, async_save: bool) -> None:
         self.metric, self.mode = metric, mode
-        self.ckpt = Checkpointer(directory, max_to_keep=1, async_save=async_save)
+        self.ckpt = Checkpointer(directory, max_to_keep=1, async_save=async_save, barrier_prefix=BEST_DIR)
         self.record: dict[str, Any] | None = None
 
     def load_record(self) -> None:

@@ -104,6 +104,10 @@ def validation_eval(
     The same batches and keys at every evaluation, so the curve moves only with the parameters. The
     evaluated parameters are the EMA when the run keeps one (what sampling uses).
 
+    In a multi-process run every process calls ``eval_fn`` with the same batches and its part of the
+    replicated parameters (arrays over every process's devices): the jitted loss takes each batch as
+    replicated too, so every process computes, and returns, the same value.
+
     Args:
         loss_fn: the training loss ``(params, batch, key) -> (loss, metrics)``.
         batches: validation batches (the same structure as training batches).
@@ -141,9 +145,14 @@ def split_validation(data: Any, recipe: Any, loss_fn: Any, batch_size: int, key:
                      split: str = "val") -> Callable[[Any, Any, int], dict[str, float]] | None:
     """:func:`validation_eval` on up to :data:`VAL_WINDOWS` evenly spread windows of ``split``.
 
+    ``batch_size`` is the per-process training batch; validation batches hold the global batch
+    (``batch_size`` x ``jax.process_count()``), so a run on several processes scores the same batches
+    with the same keys, and reports the same loss, as one process with the global batch size.
+
     Returns:
         The ``eval_fn``, or None when the split has fewer windows than one batch.
     """
+    batch_size *= jax.process_count()
     table = recipe.table(data, split) if data.split(split) else np.zeros((0, 1), np.int64)
     if len(table) < batch_size:
         return None
