@@ -50,20 +50,20 @@ def head_latency(steps: int, repeats: int, precompute: bool | None = None):
     cfg = TimarConfig.paper(num_layers=1)  # only the head is used
     params = init_params(cfg, jax.random.key(0))
     z = jax.random.normal(jax.random.key(1), (1, 25, cfg.width))
-    fn = lambda p, zc, zu, k: sample_frames(cfg, p, zc, zu, k, cfg_scale=1.5, num_steps=steps,  # noqa: E731
+    fn = lambda p, zc, zu, k: sample_frames(p, cfg, zc, zu, k, cfg_scale=1.5, num_steps=steps,  # noqa: E731
                                             precompute=precompute)
     timing = time_jitted(fn, params, z, z * 0.5, jax.random.key(2), repeats=repeats, warmup=1)
     zz = jnp.concatenate([z, z * 0.5])
     times = jnp.asarray(respaced_schedule(cfg.schedule, cfg.num_timesteps, steps).timesteps, jnp.float32)
 
     def before_loop(p, zz):
-        cz = head_condition(cfg, p["head"], zz)
-        c = cz[None] + time_embedding(cfg, p["head"], times)[:, None, None]
-        return head_modulations(cfg, p["head"], c)
+        cz = head_condition(p["head"], cfg, zz)
+        c = cz[None] + time_embedding(p["head"], cfg, times)[:, None, None]
+        return head_modulations(p["head"], cfg, c)
 
     mods = tuple(m[0] for m in before_loop(params, zz))
     x = jnp.zeros((2, 25, cfg.param_dim))
-    step = lambda p, x, m: apply_head_modulated(cfg, p["head"], x, m)  # noqa: E731
+    step = lambda p, x, m: apply_head_modulated(p["head"], cfg, x, m)  # noqa: E731
     f_step, f_pre = xla_flops(step, params, x, mods), xla_flops(before_loop, params, zz)
     flops = None if f_step is None or f_pre is None else steps * f_step + f_pre
     return timing, flops
@@ -80,8 +80,8 @@ def paper_turn(repeats: int, peak: float):
         state = stream_init(cfg, 1, 7)._replace(turn=jnp.asarray(turn, jnp.int32))
 
         def step(p, s, a, b, c, k, mode=mode):
-            s2, z = _condition(cfg, p, s, a, b, c, True, mode)
-            return sample_frames(cfg, p, z[:1], z[1:], k, cfg_scale=1.5, num_steps=5)
+            s2, z = _condition(p, cfg, s, a, b, c, True, mode)
+            return sample_frames(p, cfg, z[:1], z[1:], k, cfg_scale=1.5, num_steps=5)
 
         args = (params, state, us, um, as_, jax.random.key(0))
         timing = time_jitted(step, *args, repeats=repeats, warmup=1)

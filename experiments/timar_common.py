@@ -112,7 +112,7 @@ def predict(config, params, normalizer, convs, *, context, cfg_scale, temperatur
     out = []
     for i, c in enumerate(convs):
         x = stream_conversation(
-            config, params, normalizer.speech(c.user_speech)[None], normalizer.motion(c.user_motion)[None],
+            params, config, normalizer.speech(c.user_speech)[None], normalizer.motion(c.user_motion)[None],
             normalizer.speech(c.agent_speech)[None], jax.random.key(seed + i), context=context, cfg_scale=cfg_scale,
             temperature=temperature, sampler=sampler,
         )
@@ -195,7 +195,7 @@ def context_sensitivity(config, params, normalizer, convs, *, cfg_scale, windows
     past, cur = slice(0, length - f), slice(length - f, length)
 
     def last_turn(us, um, as_):
-        x = sample(config, params, us, um, as_, jax.random.key(seed), cfg_scale=cfg_scale, sampler="mean")
+        x = sample(params, config, us, um, as_, jax.random.key(seed), cfg_scale=cfg_scale, sampler="mean")
         return np.asarray(x)[:, -f:]
 
     def swap(name, part):

@@ -44,7 +44,7 @@ KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_jaw", "MSE_exp", "MSE_jaw", "MSE_po
 
 def _stream(config, params, norm, user_speech, user_motion, agent_speech, context, cfg_scale, seed):
     x = stream_conversation(
-        config, params, norm.speech(user_speech)[None], norm.motion(user_motion)[None], norm.speech(agent_speech)[None],
+        params, config, norm.speech(user_speech)[None], norm.motion(user_motion)[None], norm.speech(agent_speech)[None],
         jax.random.key(seed), context=context, cfg_scale=cfg_scale,
     )
     return norm.unmotion(np.asarray(x)[0])

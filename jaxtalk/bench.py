@@ -219,7 +219,7 @@ def timar_stream(config: Any, *, context: int = 7, turns: int = 12, repeats: int
         for i in range(turns):
             sl = slice(i * f, (i + 1) * f)
             t0 = time.perf_counter()
-            state, x = stream_step(config, params, state, us[:, sl], um[:, sl], as_[:, sl],
+            state, x = stream_step(params, config, state, us[:, sl], um[:, sl], as_[:, sl],
                                    jax.random.fold_in(jax.random.key(r), i), cfg_scale=cfg_scale)
             jax.block_until_ready(x)
             dt = time.perf_counter() - t0
@@ -257,11 +257,11 @@ def timar_turn(config: Any, name: str, *, context: int = 7, turn: int = 0, repea
     state = stream_init(config, 1, context)._replace(turn=jnp.asarray(turn, jnp.int32))
 
     def condition(p: Any, s: Any, a: Any, b: Any, c: Any) -> Any:
-        return _condition(config, p, s, a, b, c, True)[1]  # traceable (the public one checks values)
+        return _condition(p, config, s, a, b, c, True)[1]  # traceable (the public one checks values)
 
     def step(p: Any, s: Any, a: Any, b: Any, c: Any, k: Any) -> Any:
         z = condition(p, s, a, b, c)
-        return sample_frames(config, p, z[:1], z[1:], k, cfg_scale=1.5, num_steps=steps)
+        return sample_frames(p, config, z[:1], z[1:], k, cfg_scale=1.5, num_steps=steps)
 
     args = (params, state, us, um, as_, jax.random.key(0))
     timing = time_jitted(step, *args, repeats=repeats, warmup=1)
@@ -271,7 +271,7 @@ def timar_turn(config: Any, name: str, *, context: int = 7, turn: int = 0, repea
         z = jnp.zeros((2, config.frames_per_turn, config.width))
         x = jnp.zeros((2, config.frames_per_turn, config.param_dim))
         t = jnp.zeros((2, config.frames_per_turn))
-        head_flops = xla_flops(lambda p, z, x, t: apply_head(config, p["head"], z, x, t), params, z, x, t)
+        head_flops = xla_flops(lambda p, z, x, t: apply_head(p["head"], config, z, x, t), params, z, x, t)
         flops = None if cond_flops is None or head_flops is None else cond_flops + steps * head_flops
     duration = config.frames_per_turn / 25
     return {
@@ -299,7 +299,7 @@ def timar_head(steps: int, repeats: int = 3, config: Any = None) -> dict[str, An
     z = jax.random.normal(jax.random.key(1), (1, cfg.frames_per_turn, cfg.width))
 
     def fn(p: Any, zc: Any, zu: Any, k: Any) -> Any:
-        return sample_frames(cfg, p, zc, zu, k, cfg_scale=1.5, num_steps=steps)
+        return sample_frames(p, cfg, zc, zu, k, cfg_scale=1.5, num_steps=steps)
 
     t = time_jitted(fn, params, z, z * 0.5, jax.random.key(2), repeats=repeats, warmup=1)
     return {"model": "TIMAR head", "steps": steps, "compile_s": t.compile_s, "latency_s": t.run_median_s}

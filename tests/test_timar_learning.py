@@ -42,8 +42,8 @@ def test_posterior_mean_beats_the_mean_pose_on_the_jaw_of_held_out_speakers(synt
         args = (per_turn(norm.speech(c.user_speech)), per_turn(norm.motion(c.user_motion)),
                 per_turn(norm.speech(c.agent_speech)))
         preds = {
-            "posterior mean": posterior_mean(cfg, params, *args, jax.random.key(i)),
-            "sample": sample(cfg, params, *args, jax.random.key(i), cfg_scale=1.0),
+            "posterior mean": posterior_mean(params, cfg, *args, jax.random.key(i)),
+            "sample": sample(params, cfg, *args, jax.random.key(i), cfg_scale=1.0),
         }
         speaking = corpus.voice_activity(c.agent_clip)[: c.num_frames]
         for name, x in preds.items():

@@ -92,7 +92,7 @@ def test_loss_only_counts_masked_frames(params):
     mask = jnp.asarray(mask)
     drop = jnp.zeros((B,), bool)
     key = jax.random.key(5)
-    fn = jax.jit(lambda tg: masked_loss(CFG, params, turns, tg, mask, drop, key))
+    fn = jax.jit(lambda tg: masked_loss(params, CFG, turns, tg, mask, drop, key))
     target = turns[3]
     base, metrics = fn(target)
     assert float(metrics["masked_frames"]) == 3 + 3

@@ -54,24 +54,24 @@ def _streams(seed=0, n=N):
     }
 
 
-_encode = jax.jit(encode_window, static_argnums=0)
+_encode = jax.jit(encode_window, static_argnums=1)
 
 
 def _z(config, params, s, user_drop=None):
     turns = {k: to_turns(jnp.asarray(v), F) for k, v in s.items()}
-    return np.asarray(_encode(config, params, turns["user_speech"], turns["user_motion"], turns["agent_speech"],
+    return np.asarray(_encode(params, config, turns["user_speech"], turns["user_motion"], turns["agent_speech"],
                               None, None, user_drop))
 
 
 def test_changing_turn_t_plus_1_leaves_turns_up_to_t_exactly_unchanged(params):
     s = _streams()
     z0 = _z(CFG, params, s)
-    x0 = np.asarray(sample(CFG, params, s["user_speech"], s["user_motion"], s["agent_speech"], jax.random.key(1)))
+    x0 = np.asarray(sample(params, CFG, s["user_speech"], s["user_motion"], s["agent_speech"], jax.random.key(1)))
     for stream in ("user_speech", "user_motion", "agent_speech"):
         s2 = {k: v.copy() for k, v in s.items()}
         s2[stream][:, 2 * F :] += 5.0  # change only turn 2 (0-based)
         z1 = _z(CFG, params, s2)
-        x1 = np.asarray(sample(CFG, params, s2["user_speech"], s2["user_motion"], s2["agent_speech"], jax.random.key(1)))
+        x1 = np.asarray(sample(params, CFG, s2["user_speech"], s2["user_motion"], s2["agent_speech"], jax.random.key(1)))
         np.testing.assert_array_equal(z0[:, :2], z1[:, :2])
         np.testing.assert_array_equal(x0[:, : 2 * F], x1[:, : 2 * F])
         assert np.abs(z0[:, 2] - z1[:, 2]).max() > 1e-3  # the changed turn itself does see it
@@ -86,18 +86,18 @@ def test_agent_motion_only_enters_where_unmasked(params):
     mask = np.ones((B, N, F), bool)
     mask[:, 1, 2] = False  # one visible agent frame
     args = (turns["user_speech"], turns["user_motion"], turns["agent_speech"])
-    z0 = np.asarray(_encode(CFG, params, *args, turns["agent_motion"], jnp.asarray(mask)))
+    z0 = np.asarray(_encode(params, CFG, *args, turns["agent_motion"], jnp.asarray(mask)))
     am = np.asarray(turns["agent_motion"]).copy()
     am[:, 1, 3] += 3.0  # a masked frame: invisible
-    z1 = np.asarray(_encode(CFG, params, *args, jnp.asarray(am), jnp.asarray(mask)))
+    z1 = np.asarray(_encode(params, CFG, *args, jnp.asarray(am), jnp.asarray(mask)))
     np.testing.assert_array_equal(z0, z1)
     am[:, 1, 2] += 3.0  # the visible frame: seen by its turn and later ones, not earlier ones
-    z2 = np.asarray(_encode(CFG, params, *args, jnp.asarray(am), jnp.asarray(mask)))
+    z2 = np.asarray(_encode(params, CFG, *args, jnp.asarray(am), jnp.asarray(mask)))
     np.testing.assert_array_equal(z0[:, 0], z2[:, 0])
     assert np.abs(z0[:, 1:] - z2[:, 1:]).max() > 1e-3
     # All-masked input equals passing no agent motion at all (what the samplers do).
-    z_none = np.asarray(_encode(CFG, params, *args, None, None))
-    z_all = np.asarray(_encode(CFG, params, *args, turns["agent_motion"], jnp.ones((B, N, F), bool)))
+    z_none = np.asarray(_encode(params, CFG, *args, None, None))
+    z_all = np.asarray(_encode(params, CFG, *args, turns["agent_motion"], jnp.ones((B, N, F), bool)))
     np.testing.assert_allclose(z_none, z_all, atol=1e-6)
 
 
@@ -117,8 +117,8 @@ def test_head_vmapped_over_frames_equals_python_loop(params):
     z = jnp.asarray(rng.normal(size=(2, 5, CFG.width)), jnp.float32)
     x = jnp.asarray(rng.normal(size=(2, 5, 56)), jnp.float32)
     t = jnp.asarray(rng.integers(0, 1000, size=(2, 5)), jnp.float32)
-    out = np.asarray(jax.jit(lambda p, z, x, t: apply_head(CFG, p, z, x, t))(params["head"], z, x, t))
-    one_frame = jax.jit(lambda p, z, x, t: apply_head(CFG, p, z, x, t))  # no leading axes: one frame
+    out = np.asarray(jax.jit(lambda p, z, x, t: apply_head(p, CFG, z, x, t))(params["head"], z, x, t))
+    one_frame = jax.jit(lambda p, z, x, t: apply_head(p, CFG, z, x, t))  # no leading axes: one frame
     loop = np.stack([
         np.stack([np.asarray(one_frame(params["head"], z[i, j], x[i, j], t[i, j])) for j in range(5)])
         for i in range(2)
@@ -133,43 +133,43 @@ def test_hoisted_head_equals_the_per_frame_head(params):
     z = jnp.asarray(rng.normal(size=(3, 2, 5, CFG.width)), jnp.float32)
     x = jnp.asarray(rng.normal(size=(3, 2, 5, 56)), jnp.float32)
     t = jnp.asarray([0.0, 417.0, 999.0])
-    plain = jax.jit(lambda p: apply_head(CFG, p, z, x, jnp.broadcast_to(t[:, None, None], (3, 2, 5))))
-    hoisted = jax.jit(lambda p: apply_head_hoisted(CFG, p, head_condition(CFG, p, z), x, t))
+    plain = jax.jit(lambda p: apply_head(p, CFG, z, x, jnp.broadcast_to(t[:, None, None], (3, 2, 5))))
+    hoisted = jax.jit(lambda p: apply_head_hoisted(p, CFG, head_condition(p, CFG, z), x, t))
     ref, got = np.asarray(plain(params["head"])), np.asarray(hoisted(params["head"]))
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
     assert np.abs(ref[0] - ref[1]).max() > 1e-3  # the timestep matters
     # The precomputed-modulation path (every adaLN modulation from c = TimestepEmbedding(t) + Dense(z)).
 
     def modulated(p):
-        c = head_condition(CFG, p, z) + time_embedding(CFG, p, t)[:, None, None]
-        return apply_head_modulated(CFG, p, x, head_modulations(CFG, p, c))
+        c = head_condition(p, CFG, z) + time_embedding(p, CFG, t)[:, None, None]
+        return apply_head_modulated(p, CFG, x, head_modulations(p, CFG, c))
 
     np.testing.assert_allclose(np.asarray(jax.jit(modulated)(params["head"])), ref, rtol=1e-5, atol=1e-5)
-    mods = head_modulations(CFG, params["head"], z[0, 0])
+    mods = head_modulations(params["head"], CFG, z[0, 0])
     assert [m.shape for m in mods] == [(5, 3 * CFG.head_width)] * CFG.head_blocks + [(5, 2 * CFG.head_width)]
     with pytest.raises(ValueError, match="expected 4 modulations"):
-        apply_head_modulated(CFG, params["head"], x[0, 0], mods[:-1])
+        apply_head_modulated(params["head"], CFG, x[0, 0], mods[:-1])
 
 
 def test_fresh_diffusion_head_predicts_zero_and_has_a_gradient():
     head = init_head(CFG, jax.random.key(0))
     z, x = jnp.ones((4, CFG.width)), jnp.ones((4, 56))
     t = jnp.full((4,), 10.0)
-    np.testing.assert_array_equal(np.asarray(apply_head(CFG, head, z, x, t)), 0.0)
-    g = jax.jit(jax.grad(lambda p: jnp.sum(apply_head(CFG, p, z, x, t) * jnp.arange(56.0)[None])))(head)
+    np.testing.assert_array_equal(np.asarray(apply_head(head, CFG, z, x, t)), 0.0)
+    g = jax.jit(jax.grad(lambda p: jnp.sum(apply_head(p, CFG, z, x, t) * jnp.arange(56.0)[None])))(head)
     assert float(jnp.abs(g["final"]["out"]["kernel"]).sum()) > 0
     with pytest.raises(ValueError, match="noisy frames"):
-        apply_head(CFG, head, z)
+        apply_head(head, CFG, z)
 
 
 def test_learned_sigma_head_doubles_output_and_mlp_head_works():
     cfg = TimarConfig.small(**{**CFG.__dict__, "learn_sigma": True})
     p = _perturbed(init_params(cfg, jax.random.key(0)))
-    out = apply_head(cfg, p["head"], jnp.ones((3, cfg.width)), jnp.ones((3, 56)), jnp.zeros((3,)))
+    out = apply_head(p["head"], cfg, jnp.ones((3, cfg.width)), jnp.ones((3, 56)), jnp.zeros((3,)))
     assert out.shape == (3, 112)
     mlp = TimarConfig.small(**{**CFG.__dict__, "head": "mlp"})
     pm = init_params(mlp, jax.random.key(0))
-    assert apply_head(mlp, pm["head"], jnp.ones((3, mlp.width))).shape == (3, 56)
+    assert apply_head(pm["head"], mlp, jnp.ones((3, mlp.width))).shape == (3, 56)
 
 
 def test_positional_table_starts_frame_aligned_across_spans():

@@ -16,8 +16,8 @@ from jaxtalk.models.timar.sample import respaced_schedule
 from jaxtalk.models.timar.sample import conditions as _conditions_eager
 from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
 
-conditions = jax.jit(_conditions_eager, static_argnums=0, static_argnames="guidance")
-sample_frames = jax.jit(_sample_frames_eager, static_argnums=0, static_argnames=("num_steps", "sampler", "precompute"))
+conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
+sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("num_steps", "sampler", "precompute"))
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -53,28 +53,28 @@ def _streams(seed=0, n=N):
 def test_guidance_scale_one_is_conditional_and_zero_is_unconditional(params):
     us, um, as_ = _streams()
     key = jax.random.key(3)
-    cond_only = np.asarray(sample(CFG, params, us, um, as_, key, guidance=False))
-    np.testing.assert_allclose(np.asarray(sample(CFG, params, us, um, as_, key, cfg_scale=1.0)), cond_only, atol=1e-5)
+    cond_only = np.asarray(sample(params, CFG, us, um, as_, key, guidance=False))
+    np.testing.assert_allclose(np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=1.0)), cond_only, atol=1e-5)
     # omega = 0: the sample ignores the user entirely.
     us2, um2 = us + 1.0, um * 2.0
-    u0 = np.asarray(sample(CFG, params, us, um, as_, key, cfg_scale=0.0))
-    u1 = np.asarray(sample(CFG, params, us2, um2, as_, key, cfg_scale=0.0))
+    u0 = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=0.0))
+    u1 = np.asarray(sample(params, CFG, us2, um2, as_, key, cfg_scale=0.0))
     np.testing.assert_allclose(u0, u1, atol=1e-5)
-    assert np.abs(np.asarray(sample(CFG, params, us2, um2, as_, key, cfg_scale=1.0)) - cond_only).max() > 1e-3
+    assert np.abs(np.asarray(sample(params, CFG, us2, um2, as_, key, cfg_scale=1.0)) - cond_only).max() > 1e-3
 
 
 def test_cfg_sweep_is_a_vmap_and_never_recompiles(params):
     us, um, as_ = _streams()
     key = jax.random.key(4)
     scales = jnp.asarray([0.0, 1.0, 2.5])
-    sweep = jax.vmap(lambda s: sample(CFG, params, us, um, as_, key, cfg_scale=s))(scales)
+    sweep = jax.vmap(lambda s: sample(params, CFG, us, um, as_, key, cfg_scale=s))(scales)
     assert sweep.shape == (3, B, N * F, 56)
     for i, s in enumerate([0.0, 1.0, 2.5]):
-        np.testing.assert_allclose(np.asarray(sweep[i]), np.asarray(sample(CFG, params, us, um, as_, key, cfg_scale=s)),
+        np.testing.assert_allclose(np.asarray(sweep[i]), np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=s)),
                                    atol=2e-5)
     before = sample_mod._sample._cache_size()
     for s in (0.3, 1.7, 4.0):
-        sample(CFG, params, us, um, as_, key, cfg_scale=s, eta=s / 10)
+        sample(params, CFG, us, um, as_, key, cfg_scale=s, eta=s / 10)
     assert sample_mod._sample._cache_size() == before
 
 
@@ -84,13 +84,13 @@ def test_guided_sample_equals_eq9_applied_to_head_outputs_with_one_step(params):
     us, um, as_ = _streams()
     key = jax.random.key(5)
     omega = 1.7
-    got = np.asarray(sample(CFG, params, us, um, as_, key, cfg_scale=omega, num_steps=1))
-    zc, zu = conditions(CFG, params, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    got = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=omega, num_steps=1))
+    zc, zu = conditions(params, CFG, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     k_noise, _ = jax.random.split(key)
     noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
 
     t = jnp.zeros(zc.shape[:-1])
-    oc, ou = apply_head(CFG, params["head"], zc, noise, t), apply_head(CFG, params["head"], zu, noise, t)
+    oc, ou = apply_head(params["head"], CFG, zc, noise, t), apply_head(params["head"], CFG, zu, noise, t)
     np.testing.assert_allclose(got, np.asarray(ou + omega * (oc - ou)).reshape(B, N * F, 56), atol=1e-5)
 
 
@@ -104,7 +104,7 @@ def test_sampler_equals_a_python_loop_ddim_reference(params, learn_sigma):
     # Only the head changes with a learned variance (112 outputs): re-initialise it alone.
     p = params if not learn_sigma else {**params, "head": _perturb(init_head(cfg, jax.random.key(0)), jax.random.key(8))}
     us, um, as_ = _streams()
-    zc, zu = conditions(cfg, p, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    zc, zu = conditions(p, cfg, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     key, omega, steps = jax.random.key(9), 1.6, 4
     sched = respaced_schedule(cfg.schedule, cfg.num_timesteps, steps)
     k_noise, _ = jax.random.split(key)
@@ -112,14 +112,14 @@ def test_sampler_equals_a_python_loop_ddim_reference(params, learn_sigma):
     for i in reversed(range(steps)):  # noisiest first
         t = jnp.full(zc.shape[:-1], float(sched.timesteps[i]))
         xf = jnp.asarray(x, jnp.float32)
-        oc = np.asarray(apply_head(cfg, p["head"], zc, xf, t), np.float64)[..., :56]
-        ou = np.asarray(apply_head(cfg, p["head"], zu, xf, t), np.float64)[..., :56]
+        oc = np.asarray(apply_head(p["head"], cfg, zc, xf, t), np.float64)[..., :56]
+        ou = np.asarray(apply_head(p["head"], cfg, zu, xf, t), np.float64)[..., :56]
         x0 = ou + omega * (oc - ou)
         abar, abar_prev = sched.alphas_cumprod[i], sched.alphas_cumprod_prev[i]
         eps = (x - np.sqrt(abar) * x0) / np.sqrt(1 - abar)
         x = np.sqrt(abar_prev) * x0 + np.sqrt(1 - abar_prev) * eps
     assert np.abs(x).max() > 0.1
-    got = {pc: np.asarray(sample_frames(cfg, p, zc, zu, key, cfg_scale=omega, num_steps=steps, precompute=pc))
+    got = {pc: np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega, num_steps=steps, precompute=pc))
            for pc in (True, False)}
     # float32 sampler vs the float64 reference: a few float32 ulps of the O(1) values.
     for pc in (True, False):
@@ -130,13 +130,13 @@ def test_sampler_equals_a_python_loop_ddim_reference(params, learn_sigma):
 
 def test_ddpm_and_step_counts_and_mlp_head(params):
     us, um, as_ = _streams()
-    x = sample(CFG, params, us, um, as_, jax.random.key(1), sampler="ddpm", num_steps=3)
+    x = sample(params, CFG, us, um, as_, jax.random.key(1), sampler="ddpm", num_steps=3)
     assert x.shape == (B, N * F, 56) and np.all(np.isfinite(np.asarray(x)))
     mlp = TimarConfig.small(**{**CFG.__dict__, "head": "mlp"})
     pm = init_params(mlp, jax.random.key(0))
-    y = sample(mlp, pm, us, um, as_, jax.random.key(1), cfg_scale=1.0)
-    zc, _ = conditions(mlp, pm, *(to_turns(jnp.asarray(a), F) for a in (us, um, as_)), guidance=False)
-    ref = sample_frames(mlp, pm, zc, None, jax.random.key(0), cfg_scale=1.0, num_steps=1)
+    y = sample(pm, mlp, us, um, as_, jax.random.key(1), cfg_scale=1.0)
+    zc, _ = conditions(pm, mlp, *(to_turns(jnp.asarray(a), F) for a in (us, um, as_)), guidance=False)
+    ref = sample_frames(pm, mlp, zc, None, jax.random.key(0), cfg_scale=1.0, num_steps=1)
     np.testing.assert_allclose(np.asarray(y), np.asarray(ref).reshape(B, N * F, 56), atol=1e-5)
 
 
@@ -144,58 +144,58 @@ def test_sample_rejects_bad_input(params):
     us, um, as_ = _streams()
     key = jax.random.key(0)
     with pytest.raises(ValueError, match="multiple of frames_per_turn"):
-        sample(CFG, params, us[:, :7], um[:, :7], as_[:, :7], key)
+        sample(params, CFG, us[:, :7], um[:, :7], as_[:, :7], key)
     with pytest.raises(ValueError, match="aligned"):
-        sample(CFG, params, us, um[:, :5], as_, key)
+        sample(params, CFG, us, um[:, :5], as_, key)
     with pytest.raises(ValueError, match="NaN"):
-        sample(CFG, params, us, np.full_like(um, np.nan), as_, key)
+        sample(params, CFG, us, np.full_like(um, np.nan), as_, key)
     with pytest.raises(ValueError, match="channels"):
-        sample(CFG, params, us[..., :5], um, as_, key)
+        sample(params, CFG, us[..., :5], um, as_, key)
     long = _streams(n=5)
     with pytest.raises(ValueError, match="max_turns"):
-        sample(CFG, params, *long, key)
+        sample(params, CFG, *long, key)
     with pytest.raises(ValueError, match="sampler"):
-        sample(CFG, params, us, um, as_, key, sampler="euler")
+        sample(params, CFG, us, um, as_, key, sampler="euler")
     with pytest.raises(ValueError, match="num_steps"):
-        sample(CFG, params, us, um, as_, key, num_steps=0)
+        sample(params, CFG, us, um, as_, key, num_steps=0)
     with pytest.raises(ValueError, match="scalar"):
-        sample(CFG, params, us, um, as_, key, cfg_scale=jnp.ones(2))
+        sample(params, CFG, us, um, as_, key, cfg_scale=jnp.ones(2))
 
 
 def test_temperature_scales_the_initial_noise(params):
     us, um, as_ = _streams()
-    zc, zu = conditions(CFG, params, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    zc, zu = conditions(params, CFG, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     k1, k2 = jax.random.key(1), jax.random.key(2)
     run = lambda k, tau, steps=4: np.asarray(  # noqa: E731
-        sample_frames(CFG, params, zc, zu, k, cfg_scale=1.5, num_steps=steps, temperature=tau))
+        sample_frames(params, CFG, zc, zu, k, cfg_scale=1.5, num_steps=steps, temperature=tau))
     # 1 is the plain sampler; 0 is deterministic (DDIM, eta = 0: the initial noise is the only randomness).
-    np.testing.assert_array_equal(run(k1, 1.0), np.asarray(sample_frames(CFG, params, zc, zu, k1, cfg_scale=1.5, num_steps=4)))
+    np.testing.assert_array_equal(run(k1, 1.0), np.asarray(sample_frames(params, CFG, zc, zu, k1, cfg_scale=1.5, num_steps=4)))
     np.testing.assert_array_equal(run(k1, 0.0), run(k2, 0.0))
     assert np.abs(run(k1, 1.0) - run(k2, 1.0)).max() > 1e-3
     # One step from x_T = 0 at t = 0 is the guided head output at x = 0 (sample(temperature=...) too).
     t = jnp.zeros(zc.shape[:-1])
     zero = jnp.zeros(zc.shape[:-1] + (56,))
-    oc, ou = apply_head(CFG, params["head"], zc, zero, t), apply_head(CFG, params["head"], zu, zero, t)
+    oc, ou = apply_head(params["head"], CFG, zc, zero, t), apply_head(params["head"], CFG, zu, zero, t)
     np.testing.assert_allclose(run(k1, 0.0, steps=1), np.asarray(ou + 1.5 * (oc - ou)), atol=1e-5)
-    got = sample(CFG, params, us, um, as_, k2, cfg_scale=1.5, num_steps=1, temperature=0.0)
+    got = sample(params, CFG, us, um, as_, k2, cfg_scale=1.5, num_steps=1, temperature=0.0)
     np.testing.assert_allclose(np.asarray(got), np.asarray(ou + 1.5 * (oc - ou)).reshape(B, N * F, 56), atol=1e-5)
     with pytest.raises(ValueError, match="temperature"):
-        sample(CFG, params, us, um, as_, k1, temperature=-1.0)
+        sample(params, CFG, us, um, as_, k1, temperature=-1.0)
     with pytest.raises(ValueError, match="temperature"):
-        sample(CFG, params, us, um, as_, k1, temperature=jnp.ones(2))
+        sample(params, CFG, us, um, as_, k1, temperature=jnp.ones(2))
 
 
 def test_mean_sampler_is_the_guided_head_output_at_the_last_timestep(params):
     # sampler="mean": one head call at t = T - 1 on the initial noise, guided (Eq. 9); without
     # guidance it is posterior_mean's estimate given the same noise.
     us, um, as_ = _streams()
-    zc, zu = conditions(CFG, params, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    zc, zu = conditions(params, CFG, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     key, omega = jax.random.key(4), 1.3
     k_noise, _ = jax.random.split(key)
     noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
     t = jnp.full(zc.shape[:-1], CFG.num_timesteps - 1.0)
-    oc, ou = apply_head(CFG, params["head"], zc, noise, t), apply_head(CFG, params["head"], zu, noise, t)
-    got = sample_frames(CFG, params, zc, zu, key, cfg_scale=omega, num_steps=5, sampler="mean")
+    oc, ou = apply_head(params["head"], CFG, zc, noise, t), apply_head(params["head"], CFG, zu, noise, t)
+    got = sample_frames(params, CFG, zc, zu, key, cfg_scale=omega, num_steps=5, sampler="mean")
     np.testing.assert_allclose(np.asarray(got), np.asarray(ou + omega * (oc - ou)), atol=1e-5)
-    cond = sample(CFG, params, us, um, as_, key, sampler="mean", guidance=False)
+    cond = sample(params, CFG, us, um, as_, key, sampler="mean", guidance=False)
     np.testing.assert_allclose(np.asarray(cond), np.asarray(oc).reshape(B, N * F, 56), atol=1e-5)

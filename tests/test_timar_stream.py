@@ -14,8 +14,8 @@ from jaxtalk.models.timar.sample import conditions as _conditions_eager
 from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
 from jaxtalk.models.timar.stream import stream_condition, stream_conversation, stream_init, stream_step
 
-conditions = jax.jit(_conditions_eager, static_argnums=0, static_argnames="guidance")
-sample_frames = jax.jit(_sample_frames_eager, static_argnums=0, static_argnames=("num_steps", "sampler"))
+conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
+sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("num_steps", "sampler"))
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -48,7 +48,7 @@ def _streams(turns, seed=0):
 def _window_reference(config, params, s, lo, hi):
     # Full recomputation: the window's turns lo..hi at slots 0..hi-lo, last turn's conditions.
     win = [to_turns(jnp.asarray(x[:, lo * F : (hi + 1) * F]), F) for x in s]
-    zc, zu = conditions(config, params, *win)
+    zc, zu = conditions(params, config, *win)
     return np.asarray(jnp.concatenate([zc[:, -1], zu[:, -1]]))
 
 
@@ -58,7 +58,7 @@ def test_cached_stream_equals_recomputed_window(params, context):
     state = stream_init(CFG, B, context)
     for t in range(6):
         sl = slice(t * F, (t + 1) * F)
-        state, z = stream_condition(CFG, params, state, s[0][:, sl], s[1][:, sl], s[2][:, sl])
+        state, z = stream_condition(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl])
         ref = _window_reference(CFG, params, s, max(0, t - context), t)
         np.testing.assert_allclose(np.asarray(z), ref, atol=1e-5, rtol=1e-5)
     assert int(state.turn) == 6
@@ -70,7 +70,7 @@ def test_bidirectional_stream_recomputes_the_window(params):
     state = stream_init(bi, B, 2)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
-        state, z = stream_condition(bi, params, state, s[0][:, sl], s[1][:, sl], s[2][:, sl])
+        state, z = stream_condition(params, bi, state, s[0][:, sl], s[1][:, sl], s[2][:, sl])
         np.testing.assert_allclose(np.asarray(z), _window_reference(bi, params, s, max(0, t - 2), t), atol=1e-5)
 
 
@@ -82,9 +82,9 @@ def test_stream_step_samples_with_the_window_conditions_and_compiles_once(params
     for t in range(5):
         sl = slice(t * F, (t + 1) * F)
         key = jax.random.fold_in(jax.random.key(0), t)
-        state, x = stream_step(CFG, params, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], key, cfg_scale=1.0 + 0.3 * t)
+        state, x = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], key, cfg_scale=1.0 + 0.3 * t)
         z = _window_reference(CFG, params, s, max(0, t - context), t)
-        ref = sample_frames(CFG, params, jnp.asarray(z[:B]), jnp.asarray(z[B:]), key, cfg_scale=1.0 + 0.3 * t,
+        ref = sample_frames(params, CFG, jnp.asarray(z[:B]), jnp.asarray(z[B:]), key, cfg_scale=1.0 + 0.3 * t,
                             num_steps=CFG.sample_steps)
         np.testing.assert_allclose(np.asarray(x), np.asarray(ref), atol=1e-4)
     # Two programs (filling, sliding) serve every turn and every scale: a second stream with new
@@ -94,7 +94,7 @@ def test_stream_step_samples_with_the_window_conditions_and_compiles_once(params
     state = stream_init(CFG, B, context)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
-        state, _ = stream_step(CFG, params, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], jax.random.key(t),
+        state, _ = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], jax.random.key(t),
                                cfg_scale=2.0 - 0.1 * t)
     assert stream_mod._step._cache_size() == compiled
 
@@ -103,12 +103,12 @@ def test_stream_under_an_outer_jit_uses_one_program_with_the_same_outputs(params
     # Under an outer trace the turn counter is abstract: the lax.cond program must agree with the
     # host-dispatched filling/sliding programs on both kinds of turn.
     s = _streams(4)
-    cond = jax.jit(lambda st, a, b, c: stream_mod._condition(CFG, params, st, a, b, c, True, "auto"))
+    cond = jax.jit(lambda st, a, b, c: stream_mod._condition(params, CFG, st, a, b, c, True, "auto"))
     state_h, state_j = stream_init(CFG, B, 1), stream_init(CFG, B, 1)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
         turn = tuple(jnp.asarray(x[:, sl]) for x in s)
-        state_h, z_h = stream_condition(CFG, params, state_h, *turn)
+        state_h, z_h = stream_condition(params, CFG, state_h, *turn)
         state_j, z_j = cond(state_j, *turn)
         np.testing.assert_allclose(np.asarray(z_j), np.asarray(z_h), atol=1e-5)
 
@@ -118,13 +118,13 @@ def test_stream_causality_future_turn_does_not_change_past_outputs(params):
     s2 = tuple(x.copy() for x in s)
     s2[0][:, 3 * F :] += 4.0
     s2[1][:, 3 * F :] -= 2.0
-    a = np.asarray(stream_conversation(CFG, params, *s, jax.random.key(2), context=1))
-    b = np.asarray(stream_conversation(CFG, params, *s2, jax.random.key(2), context=1))
+    a = np.asarray(stream_conversation(params, CFG, *s, jax.random.key(2), context=1))
+    b = np.asarray(stream_conversation(params, CFG, *s2, jax.random.key(2), context=1))
     np.testing.assert_array_equal(a[:, : 3 * F], b[:, : 3 * F])
     assert np.abs(a[:, 3 * F :] - b[:, 3 * F :]).max() > 1e-4
     # The temperature reaches every turn's sampler: at 0 the stream no longer depends on the key.
-    c0 = np.asarray(stream_conversation(CFG, params, *s, jax.random.key(2), context=1, temperature=0.0))
-    c1 = np.asarray(stream_conversation(CFG, params, *s, jax.random.key(3), context=1, temperature=0.0))
+    c0 = np.asarray(stream_conversation(params, CFG, *s, jax.random.key(2), context=1, temperature=0.0))
+    c1 = np.asarray(stream_conversation(params, CFG, *s, jax.random.key(3), context=1, temperature=0.0))
     np.testing.assert_array_equal(c0, c1)
     assert np.abs(c0 - a).max() > 1e-3
 
@@ -137,10 +137,10 @@ def test_stream_rejects_bad_input(params):
         stream_init(CFG, B, -1)
     state = stream_init(CFG, B, 1)
     with pytest.raises(ValueError, match="one turn"):
-        stream_step(CFG, params, state, s[0][:, :3], s[1][:, :3], s[2][:, :3], jax.random.key(0))
+        stream_step(params, CFG, state, s[0][:, :3], s[1][:, :3], s[2][:, :3], jax.random.key(0))
     with pytest.raises(ValueError, match="aligned|one turn"):
-        stream_step(CFG, params, state, s[0], s[1][:1], s[2], jax.random.key(0))
+        stream_step(params, CFG, state, s[0], s[1][:1], s[2], jax.random.key(0))
     with pytest.raises(ValueError, match="NaN"):
-        stream_step(CFG, params, state, s[0], np.full_like(s[1], np.nan), s[2], jax.random.key(0))
+        stream_step(params, CFG, state, s[0], np.full_like(s[1], np.nan), s[2], jax.random.key(0))
     with pytest.raises(ValueError, match="stream state"):
-        stream_step(CFG, params, state, s[0], s[1], s[2], jax.random.key(0), guidance=False)
+        stream_step(params, CFG, state, s[0], s[1], s[2], jax.random.key(0), guidance=False)

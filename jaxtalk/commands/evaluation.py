@@ -400,7 +400,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
             user_motion = np.asarray(user["motion"], np.float32)[:usable]
         else:
             user_motion, still_partners = np.broadcast_to(still, (usable, still.shape[0])).copy(), still_partners + 1
-        out = stream_conversation(config, run.params, norm.speech(user["turn_speech"][:usable])[None],
+        out = stream_conversation(run.params, config, norm.speech(user["turn_speech"][:usable])[None],
                                   norm.motion(user_motion)[None], norm.speech(agent["turn_speech"][:usable])[None],
                                   jax.random.fold_in(key, n), context=context)
         preds.append(norm.unmotion(np.asarray(out)[0]))

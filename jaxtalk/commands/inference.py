@@ -205,7 +205,7 @@ def sample_run(opts: SampleOptions) -> SampleResult:
 
         streams, audio, turns = _timar_inputs(run, opts)
         context = max(run.record.extra.get("num_turns", run.config.max_turns) - 1, 0)
-        motion = stream_conversation(run.config, run.params, streams["user_speech"], streams["user_motion"],
+        motion = stream_conversation(run.params, run.config, streams["user_speech"], streams["user_motion"],
                                      streams["agent_speech"], key, context=context, cfg_scale=opts.cfg_scale,
                                      num_steps=opts.num_steps)
         motion = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(motion)
@@ -272,7 +272,7 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
         for i in range(turns):
             sl = slice(i * f, (i + 1) * f)
             t0 = time.perf_counter()
-            state, out = stream_step(config, run.params, state, streams["user_speech"][:, sl],
+            state, out = stream_step(run.params, config, state, streams["user_speech"][:, sl],
                                      streams["user_motion"][:, sl], streams["agent_speech"][:, sl],
                                      jax.random.fold_in(key, i), cfg_scale=opts.cfg_scale, num_steps=opts.num_steps)
             outs.append(np.asarray(jax.block_until_ready(out))[0])

@@ -146,8 +146,8 @@ def init_head(config: TimarConfig, key: PRNGKeyArray) -> dict[str, Any]:
 
 
 def apply_head(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     z: Float[Array, "*frames cond_dim"],
     x: Float[Array, "*frames param_dim"] | None = None,
     t: Float[Array, "*frames"] | None = None,
@@ -155,8 +155,8 @@ def apply_head(
     """Apply the one-frame head to every frame: ``jax.vmap`` nested over all leading axes.
 
     Args:
-        config: model config.
         params: head parameters (:func:`init_head`).
+        config: model config.
         z: ``(*F, cond_dim)`` conditioning features.
         x: ``(*F, param_dim)`` noisy frames (diffusion head only).
         t: ``(*F,)`` timesteps (diffusion head only).
@@ -199,13 +199,13 @@ def _nest_vmap(fn: Any, depth: int) -> Any:
 
 
 def head_condition(
-    config: TimarConfig, params: dict[str, Any], z: Float[Array, "*frames cond_dim"]
+    params: dict[str, Any], config: TimarConfig, z: Float[Array, "*frames cond_dim"]
 ) -> Float[Array, "*frames head_width"]:
     """``Dense(z)`` of every frame: the diffusion head's step-independent condition (hoisted).
 
     Args:
-        config: model config (diffusion head).
         params: head parameters.
+        config: model config (diffusion head).
         z: ``(*F, cond_dim)`` conditioning features.
 
     Returns:
@@ -217,8 +217,8 @@ def head_condition(
 
 
 def apply_head_hoisted(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     cz: Float[Array, "batch *frames head_width"],
     x: Float[Array, "batch *frames param_dim"],
     t: Float[Array, " batch"],
@@ -230,8 +230,8 @@ def apply_head_hoisted(
     every step with the same ``cz``).
 
     Args:
-        config: model config (diffusion head).
         params: head parameters.
+        config: model config (diffusion head).
         cz: ``(B, *F, head_width)`` from :func:`head_condition`.
         x: ``(B, *F, param_dim)`` noisy frames.
         t: ``(B,)`` timesteps.
@@ -247,13 +247,13 @@ def apply_head_hoisted(
 
 
 def time_embedding(
-    config: TimarConfig, params: dict[str, Any], t: Float[Array, "*steps"]
+    params: dict[str, Any], config: TimarConfig, t: Float[Array, "*steps"]
 ) -> Float[Array, "*steps head_width"]:
     """The diffusion head's timestep embedding of any array of timesteps.
 
     Args:
-        config: model config (diffusion head).
         params: head parameters.
+        config: model config (diffusion head).
         t: ``(*S,)`` training timesteps (as floats).
 
     Returns:
@@ -265,7 +265,7 @@ def time_embedding(
 
 
 def head_modulations(
-    config: TimarConfig, params: dict[str, Any], c: Float[Array, "*rows head_width"]
+    params: dict[str, Any], config: TimarConfig, c: Float[Array, "*rows head_width"]
 ) -> tuple[Float[Array, "*rows _mod"], ...]:
     """Every adaLN modulation of the head for conditions ``c = TimestepEmbedding(t) + Dense(z)``.
 
@@ -275,8 +275,8 @@ def head_modulations(
     matmuls of ``steps x frames`` rows instead of ``steps x (K + 1)`` small ones inside its loop.
 
     Args:
-        config: model config (diffusion head).
         params: head parameters.
+        config: model config (diffusion head).
         c: ``(*R, head_width)`` conditions (any leading axes, e.g. ``(steps, batch, frames)``).
 
     Returns:
@@ -289,8 +289,8 @@ def head_modulations(
 
 
 def apply_head_modulated(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     x: Float[Array, "*frames param_dim"],
     modulations: tuple[Float[Array, "*frames _mod"], ...],
 ) -> Float[Array, "*frames out_dim"]:
@@ -300,8 +300,8 @@ def apply_head_modulated(
     ``c = TimestepEmbedding(t) + Dense(z)`` of the same frames.
 
     Args:
-        config: model config (diffusion head).
         params: head parameters.
+        config: model config (diffusion head).
         x: ``(*F, param_dim)`` noisy frames.
         modulations: :func:`head_modulations` of the frames' conditions, each ``(*F, ...)``.
 

@@ -179,14 +179,14 @@ def timar_loss(
     ratio = sample_mask_ratio(config, k_ratio)
     mask = random_agent_mask(k_mask, ratio, b, n * f).reshape(b, n, f)
     user_drop = jax.random.bernoulli(k_drop, config.cfg_prob, (b,))
-    loss, metrics = masked_loss(config, params, (us, um, as_, am), am, mask, user_drop, k_rest)
+    loss, metrics = masked_loss(params, config, (us, um, as_, am), am, mask, user_drop, k_rest)
     metrics["mask_ratio"] = ratio
     return loss, metrics
 
 
 def masked_loss(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     turns: tuple[Float[Array, "batch turns frames speech_dim"], Float[Array, "batch turns frames param_dim"],
                  Float[Array, "batch turns frames speech_dim"], Float[Array, "batch turns frames param_dim"]],
     targets: Float[Array, "batch turns frames param_dim"],
@@ -197,8 +197,8 @@ def masked_loss(
     """The loss for a given agent mask and CFG dropout (the deterministic core of :func:`timar_loss`).
 
     Args:
-        config: model config.
         params: model parameters.
+        config: model config.
         turns: ``(user_speech, user_motion, agent_speech, agent_motion)`` split into turns; the
             agent motion is the INPUT (visible where ``mask`` is False).
         targets: ``(B, N, F, 56)`` the clean frames to reconstruct (the agent motion in training).
@@ -212,7 +212,7 @@ def masked_loss(
     us, um, as_, am = turns
     k_t, k_noise, k_dropout = jax.random.split(key, 3)
     z = encode_window(
-        config, params, us, um, as_, am, mask, user_drop,
+        params, config, us, um, as_, am, mask, user_drop,
         dropout_key=k_dropout if config.dropout_rate > 0 else None,
     )
     metrics: dict[str, Array] = {}
@@ -227,7 +227,7 @@ def masked_loss(
         eps = jax.random.normal(k_noise, (m, *targets.shape), targets.dtype)
         x0 = jnp.broadcast_to(targets, eps.shape)
         xt = jnp.sqrt(abar) * x0 + jnp.sqrt(1.0 - abar) * eps
-        out = apply_head(config, params["head"], jnp.broadcast_to(z, (m, *z.shape)), xt, t.astype(jnp.float32))
+        out = apply_head(params["head"], config, jnp.broadcast_to(z, (m, *z.shape)), xt, t.astype(jnp.float32))
         x0_hat = out[..., : config.param_dim]
         per_frame, groups = grouped_mse(x0_hat, x0)
         if config.learn_sigma:
@@ -238,7 +238,7 @@ def masked_loss(
         per_frame = jnp.mean(per_frame, axis=0)
         groups = {name: jnp.mean(value, axis=0) for name, value in groups.items()}
     else:
-        per_frame, groups = grouped_mse(apply_head(config, params["head"], z), targets)
+        per_frame, groups = grouped_mse(apply_head(params["head"], config, z), targets)
     denom = jnp.maximum(jnp.sum(weight), 1.0)
     loss = jnp.sum(per_frame * weight) / denom
     for name, value in groups.items():

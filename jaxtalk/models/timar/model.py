@@ -31,8 +31,8 @@ def init_params(config: TimarConfig, key: PRNGKeyArray) -> dict[str, Any]:
 
 
 def encode_window(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     user_speech: Float[Array, "batch turns frames speech_dim"],
     user_motion: Float[Array, "batch turns frames param_dim"],
     agent_speech: Float[Array, "batch turns frames speech_dim"],
@@ -45,8 +45,8 @@ def encode_window(
     """Head conditions of every agent frame of a window of N turns (slots 0..N-1).
 
     Args:
-        config: model config.
         params: :func:`init_params` output.
+        config: model config.
         user_speech, user_motion, agent_speech: ``(B, N, F, ...)`` turn-split streams.
         agent_motion: ``(B, N, F, 56)`` or None (all agent frames masked, as in sampling).
         agent_mask: ``(B, N, F)`` True = agent frame replaced by the mask token.

@@ -79,7 +79,7 @@ def _head_fn(config: TimarConfig) -> Any:
     # One function object per config, so the samplers' jit cache is hit on every call.
     def head_fn(head_params: Any, x: Array, t: Array, cond: dict[str, Array]) -> Array:
         # cond["cz"] = Dense(z) was computed once before the loop (it does not depend on the step).
-        return apply_head_hoisted(config, head_params, cond["cz"], x, t)
+        return apply_head_hoisted(head_params, config, cond["cz"], x, t)
 
     return head_fn
 
@@ -93,21 +93,21 @@ def _modulated_head_fn(config: TimarConfig) -> Any:
         # are ordered as guided_apply stacks its batch (conditional rows, then unconditional), so
         # ``cond`` itself is not needed here.
         j = jnp.argmin(jnp.abs(step_times - t[0]))
-        return apply_head_modulated(config, head_params, x, tuple(m[j] for m in table))
+        return apply_head_modulated(head_params, config, x, tuple(m[j] for m in table))
 
     return head_fn
 
 
 def _modulation_table(config, head_params, cz, step_times):
     """Modulations ``(N, R, *F, ...)`` of every step (timestep embedding + Dense(z), then each layer)."""
-    temb = time_embedding(config, head_params, step_times)  # (N, W)
+    temb = time_embedding(head_params, config, step_times)  # (N, W)
     c = cz[None] + temb.reshape(temb.shape[:1] + (1,) * (cz.ndim - 1) + temb.shape[1:])
-    return head_modulations(config, head_params, c)
+    return head_modulations(head_params, config, c)
 
 
 def conditions(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     user_speech: Float[Array, "batch turns frames speech_dim"],
     user_motion: Float[Array, "batch turns frames param_dim"],
     agent_speech: Float[Array, "batch turns frames speech_dim"],
@@ -117,8 +117,8 @@ def conditions(
     """Conditional (and unconditional) head conditions of a window, all agent frames masked.
 
     Args:
-        config: model config.
         params: model parameters.
+        config: model config.
         user_speech, user_motion, agent_speech: ``(B, N, F, ...)`` turn-split streams.
         guidance: also compute the unconditional features (user tokens -> fake token).
 
@@ -127,16 +127,16 @@ def conditions(
     """
     b = user_speech.shape[0]
     if not guidance:
-        return encode_window(config, params, user_speech, user_motion, agent_speech), None
+        return encode_window(params, config, user_speech, user_motion, agent_speech), None
     two = lambda x: jnp.concatenate([x, x], axis=0)  # noqa: E731
     drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
-    z = encode_window(config, params, two(user_speech), two(user_motion), two(agent_speech), None, None, drop)
+    z = encode_window(params, config, two(user_speech), two(user_motion), two(agent_speech), None, None, drop)
     return z[:b], z[b:]
 
 
 def sample_frames(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     z_cond: Float[Array, "batch *frames width"],
     z_uncond: Float[Array, "batch *frames width"] | None,
     key: PRNGKeyArray,
@@ -151,8 +151,8 @@ def sample_frames(
     """Sample every frame's head parameters from its condition (jit-able building block).
 
     Args:
-        config: model config.
         params: model parameters.
+        config: model config.
         z_cond: ``(B, *F, width)`` head conditions.
         z_uncond: unconditional conditions of the same shape, or None (no guidance).
         key: PRNG key (initial noise and, for DDPM / eta > 0, the step noise).
@@ -179,7 +179,7 @@ def sample_frames(
     omega = jnp.asarray(cfg_scale, jnp.float32)
     hp = params["head"]
     if config.head == "mlp":
-        return _guided(lambda z: apply_head(config, hp, z), z_cond, z_uncond, omega)
+        return _guided(lambda z: apply_head(hp, config, z), z_cond, z_uncond, omega)
     k_noise, k_steps = jax.random.split(key)
     noise = jax.random.normal(k_noise, z_cond.shape[:-1] + (config.param_dim,), jnp.float32)
     noise = noise * jnp.asarray(temperature, jnp.float32)
@@ -187,8 +187,8 @@ def sample_frames(
         return _guided(lambda z: _head_at_last_timestep(config, hp, z, noise), z_cond, z_uncond, omega)
     schedule = respaced_schedule(config.schedule, config.num_timesteps, num_steps)
     # Hoisted out of the step loop: the head's projection of the condition (both CFG branches).
-    cz = head_condition(config, hp, z_cond)
-    cz_u = None if z_uncond is None else head_condition(config, hp, z_uncond)
+    cz = head_condition(hp, config, z_cond)
+    cz_u = None if z_uncond is None else head_condition(hp, config, z_uncond)
     rows = cz if cz_u is None else jnp.concatenate([cz, cz_u], axis=0)  # guided_apply's batch order
     table_bytes = num_steps * rows.size * (3 * config.head_blocks + 2) * rows.dtype.itemsize
     if precompute is None:
@@ -224,7 +224,7 @@ def _head_at_last_timestep(config: TimarConfig, head_params: Any, z: Array, nois
     """The head's x0 estimate at the last training timestep, where ``noise`` carries no information
     about x0: the posterior mean ``E[x0 | z]`` of an x0-predicting head."""
     t_last = jnp.full(noise.shape[:-1], config.num_timesteps - 1.0)
-    return apply_head(config, head_params, z, noise, t_last)[..., : config.param_dim]
+    return apply_head(head_params, config, z, noise, t_last)[..., : config.param_dim]
 
 
 def check_temperature(temperature: Any) -> Array:
@@ -248,17 +248,17 @@ def check_temperature(temperature: Any) -> Array:
 
 
 @functools.partial(jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance"))
-def _sample(config, params, us, um, as_, key, cfg_scale, eta, temperature, num_steps, sampler, guidance):
+def _sample(params, config, us, um, as_, key, cfg_scale, eta, temperature, num_steps, sampler, guidance):
     f = config.frames_per_turn
-    z_c, z_u = conditions(config, params, to_turns(us, f), to_turns(um, f), to_turns(as_, f), guidance=guidance)
-    x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta,
+    z_c, z_u = conditions(params, config, to_turns(us, f), to_turns(um, f), to_turns(as_, f), guidance=guidance)
+    x = sample_frames(params, config, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta,
                       temperature=temperature)
     return from_turns(x)
 
 
 def sample(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     user_speech: StreamLike,
     user_motion: StreamLike,
     agent_speech: StreamLike,
@@ -277,8 +277,8 @@ def sample(
     turns <= t: this equals streaming with a context of at least N - 1 turns (no sliding).
 
     Args:
-        config: model config.
         params: model parameters.
+        config: model config.
         user_speech, agent_speech: ``(B, N F, speech_dim)`` per-frame speech features.
         user_motion: ``(B, N F, 56)`` the user's (normalised) head motion.
         key: PRNG key.
@@ -310,7 +310,7 @@ def sample(
     if cfg.ndim:
         raise ValueError(f"cfg_scale must be a scalar (vmap over it for a sweep), got shape {cfg.shape}")
     return _sample(
-        config, params,
+        params, config,
         jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32),
         check_temperature(temperature), num_steps, sampler, bool(guidance),
@@ -318,18 +318,18 @@ def sample(
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _posterior_mean(config, params, us, um, as_, key):
+def _posterior_mean(params, config, us, um, as_, key):
     f = config.frames_per_turn
-    z, _ = conditions(config, params, to_turns(us, f), to_turns(um, f), to_turns(as_, f), guidance=False)
+    z, _ = conditions(params, config, to_turns(us, f), to_turns(um, f), to_turns(as_, f), guidance=False)
     if config.head == "mlp":
-        return from_turns(apply_head(config, params["head"], z))
+        return from_turns(apply_head(params["head"], config, z))
     noise = jax.random.normal(key, z.shape[:-1] + (config.param_dim,), jnp.float32)
     return from_turns(_head_at_last_timestep(config, params["head"], z, noise))
 
 
 def posterior_mean(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     user_speech: StreamLike,
     user_motion: StreamLike,
     agent_speech: StreamLike,
@@ -345,8 +345,8 @@ def posterior_mean(
     the posterior mean does not. The MLP-head ablation returns its prediction.
 
     Args:
-        config: model config.
         params: model parameters.
+        config: model config.
         user_speech, agent_speech: ``(B, N F, speech_dim)``.
         user_motion: ``(B, N F, 56)``.
         key: PRNG key of the (irrelevant) noise input.
@@ -363,6 +363,6 @@ def posterior_mean(
         max_turns=config.max_turns,
     )
     return _posterior_mean(
-        config, params, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
+        params, config, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key,
     )

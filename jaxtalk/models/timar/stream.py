@@ -99,7 +99,7 @@ def stream_init(config: TimarConfig, batch: int, context: int, *, guidance: bool
     )
 
 
-def _encoder_call(config: TimarConfig, params: Any, method: str, *args: Any, **kwargs: Any) -> Any:
+def _encoder_call(params: Any, config: TimarConfig, method: str, *args: Any, **kwargs: Any) -> Any:
     return TimarEncoder(config).apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
 
 
@@ -116,7 +116,7 @@ def _mode(config: TimarConfig, state: StreamState) -> str:
     return "cached" if int(state.turn) <= n else "sliding"
 
 
-def _condition(config, params, state, us, um, as_, guidance, mode="auto"):
+def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
     n = state.tokens.shape[1] - 1
     tpt = config.tokens_per_turn
     b = us.shape[0]
@@ -127,7 +127,7 @@ def _condition(config, params, state, us, um, as_, guidance, mode="auto"):
         two = lambda x: jnp.concatenate([x, x], axis=0)  # noqa: E731
         us, um, as_ = two(us), two(um), two(as_)
         drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
-    tok = _encoder_call(config, params, "embed", us, um, as_, None, None, drop)  # (S, 1, tpt, w)
+    tok = _encoder_call(params, config, "embed", us, um, as_, None, None, drop)  # (S, 1, tpt, w)
     t = state.turn
     slot = jnp.minimum(t, n)
     written = jax.lax.dynamic_update_slice_in_dim(state.tokens, tok, slot, axis=1)
@@ -142,8 +142,8 @@ def _condition(config, params, state, us, um, as_, guidance, mode="auto"):
         static_mask = jnp.asarray(layout.attention_mask(n + 1, causal=causal))
         key_slot = jnp.asarray(np.repeat(np.arange(n + 1), tpt))
         visible = static_mask & (key_slot <= slot)[None, :]
-        feats = _encoder_call(config, params, "encode", tokens, 0, bias_from_mask(visible))
-        z = _encoder_call(config, params, "head_condition", feats, 0)
+        feats = _encoder_call(params, config, "encode", tokens, 0, bias_from_mask(visible))
+        z = _encoder_call(params, config, "head_condition", feats, 0)
         z = jax.lax.dynamic_index_in_dim(z, slot, axis=1, keepdims=False)
         return StreamState(tokens, state.keys, state.values, t + 1), z
 
@@ -154,7 +154,7 @@ def _condition(config, params, state, us, um, as_, guidance, mode="auto"):
         # through the last layer (a full-window pass would also push the n past turns' queries
         # through it, for outputs nobody reads).
         past_mask = jnp.asarray(layout.attention_mask(n, causal=True))
-        _, kvs = _encoder_call(config, params, "encode", shifted[:, :n], 0, bias_from_mask(past_mask), None, True)
+        _, kvs = _encoder_call(params, config, "encode", shifted[:, :n], 0, bias_from_mask(past_mask), None, True)
         return tuple(k for k, _ in kvs), tuple(v for _, v in kvs)
 
     def keep(_: Any) -> tuple[Any, Any]:
@@ -171,9 +171,9 @@ def _condition(config, params, state, us, um, as_, guidance, mode="auto"):
     cache_slot = jnp.asarray(np.repeat(np.arange(n), tpt))
     visible = jnp.concatenate([cache_slot < slot, jnp.ones((tpt,), bool)])
     feats, kvs = _encoder_call(
-        config, params, "encode", tok, slot, bias_from_mask(visible)[None, :], tuple(zip(keys, values)), True
+        params, config, "encode", tok, slot, bias_from_mask(visible)[None, :], tuple(zip(keys, values)), True
     )
-    z = _encoder_call(config, params, "head_condition", feats, slot)[:, 0]
+    z = _encoder_call(params, config, "head_condition", feats, slot)[:, 0]
     # While filling (t < n) the newest turn's keys/values go to its slot. From t == n on, the cache is
     # never read again (later turns rebuild it from the slid window), so it is left as is.
     fill = t < n
@@ -189,8 +189,8 @@ def _condition(config, params, state, us, um, as_, guidance, mode="auto"):
 
 
 @functools.partial(jax.jit, static_argnames=("config", "guidance", "mode"))
-def _condition_jit(config, params, state, us, um, as_, guidance, mode):
-    return _condition(config, params, state, us, um, as_, guidance, mode)
+def _condition_jit(params, config, state, us, um, as_, guidance, mode):
+    return _condition(params, config, state, us, um, as_, guidance, mode)
 
 
 def _check_turn(config: TimarConfig, state: StreamState, us: Any, um: Any, as_: Any, guidance: bool) -> None:
@@ -209,8 +209,8 @@ def _check_turn(config: TimarConfig, state: StreamState, us: Any, um: Any, as_: 
 
 
 def stream_condition(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     state: StreamState,
     user_speech: StreamLike,
     user_motion: StreamLike,
@@ -221,8 +221,8 @@ def stream_condition(
     """Push one turn into the stream and return its head conditions (no sampling).
 
     Args:
-        config: model config.
         params: model parameters.
+        config: model config.
         state: current :class:`StreamState`.
         user_speech, agent_speech: ``(B, F, speech_dim)`` this turn's speech features.
         user_motion: ``(B, F, 56)`` this turn's user motion.
@@ -238,7 +238,7 @@ def stream_condition(
     """
     _check_turn(config, state, user_speech, user_motion, agent_speech, guidance)
     return _condition_jit(
-        config, params, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
+        params, config, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), bool(guidance), _mode(config, state),
     )
 
@@ -246,18 +246,18 @@ def stream_condition(
 @functools.partial(
     jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance", "mode"), donate_argnums=(2,)
 )
-def _step(config, params, state, us, um, as_, key, cfg_scale, eta, temperature, num_steps, sampler, guidance, mode):
-    state, z = _condition(config, params, state, us, um, as_, guidance, mode)
+def _step(params, config, state, us, um, as_, key, cfg_scale, eta, temperature, num_steps, sampler, guidance, mode):
+    state, z = _condition(params, config, state, us, um, as_, guidance, mode)
     b = us.shape[0]
     z_c, z_u = (z[:b], z[b:]) if guidance else (z, None)
-    x = sample_frames(config, params, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta,
+    x = sample_frames(params, config, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta,
                       temperature=temperature)
     return state, x
 
 
 def stream_step(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     state: StreamState,
     user_speech: StreamLike,
     user_motion: StreamLike,
@@ -276,8 +276,8 @@ def stream_step(
     The state is donated (its buffers are reused): do not use ``state`` after the call.
 
     Args:
-        config: model config.
         params: model parameters.
+        config: model config.
         state: current :class:`StreamState`.
         user_speech, agent_speech: ``(B, F, speech_dim)`` this turn's speech features.
         user_motion: ``(B, F, 56)`` this turn's user motion.
@@ -305,7 +305,7 @@ def stream_step(
     if cfg.ndim:
         raise ValueError(f"cfg_scale must be a scalar, got shape {cfg.shape}")
     return _step(
-        config, params, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
+        params, config, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature),
         num_steps, sampler,
         bool(guidance), _mode(config, state),
@@ -313,8 +313,8 @@ def stream_step(
 
 
 def stream_conversation(
-    config: TimarConfig,
     params: dict[str, Any],
+    config: TimarConfig,
     user_speech: StreamLike,
     user_motion: StreamLike,
     agent_speech: StreamLike,
@@ -333,8 +333,8 @@ def stream_conversation(
     :func:`stream_step` (one dispatch per turn, as a live stream would be).
 
     Args:
-        config: model config.
         params: model parameters.
+        config: model config.
         user_speech, agent_speech: ``(B, N F, speech_dim)``.
         user_motion: ``(B, N F, 56)``.
         key: PRNG key.
@@ -354,7 +354,7 @@ def stream_conversation(
     for i in range(turns):  # host loop: one turn arrives at a time in a stream
         sl = slice(i * f, (i + 1) * f)
         state, x = stream_step(
-            config, params, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl],
+            params, config, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl],
             jax.random.fold_in(key, i), cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler,
             temperature=temperature, guidance=guidance,
         )
