@@ -191,16 +191,23 @@ class PreparedData:
             cache.put(i, {k: arrays.get(k) for k in keys})
         return arrays
 
-    def motion_stats(self) -> dict[str, np.ndarray]:
-        """Mean and std of the training split's 56-d motion (per channel).
+    def motion_stats(self, floor: float = 0.05) -> dict[str, np.ndarray]:
+        """Mean and std of the training split's 56-d motion (per channel), a standardizer.
+
+        Args:
+            floor: each std is at least ``floor`` x the mean std (see
+                :func:`jaxtalk.data.standardize.fit_standardizer`), so a channel that barely moves in
+                the training data is not blown up into noise.
 
         Raises:
             ValueError: a dataset whose training split has no motion.
         """
+        from jaxtalk.data.standardize import floor_std
+
         stats = self.manifest["stats"]
         if stats is None:
             raise ValueError(f"{self.root}: the training split has no motion clips (no statistics)")
-        return {"mean": np.asarray(stats["motion_mean"], np.float32), "std": np.asarray(stats["motion_std"], np.float32)}
+        return {"mean": np.asarray(stats["motion_mean"], np.float32), "std": floor_std(np.asarray(stats["motion_std"], np.float64), floor)}
 
     def tokenizer(self) -> Any:
         """The VQ tokenizer fitted by ``prepare`` (``--tokens vq``), or None."""

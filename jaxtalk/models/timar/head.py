@@ -296,7 +296,7 @@ def apply_head_modulated(
 ) -> Float[Array, "*frames out_dim"]:
     """The diffusion head on noisy frames whose adaLN modulations are precomputed.
 
-    Equal to :func:`apply_head` when ``modulations = head_modulations(config, params, c)`` with
+    Equal to :func:`apply_head` when ``modulations = head_modulations(params, config, c)`` with
     ``c = TimestepEmbedding(t) + Dense(z)`` of the same frames.
 
     Args:
