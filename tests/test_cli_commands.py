@@ -7,7 +7,6 @@ key, dropped frames, normalisation applied twice) fails here.
 
 from __future__ import annotations
 
-import json
 
 import jax
 import numpy as np

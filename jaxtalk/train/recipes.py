@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "fit_recipe", "VAL_WINDOWS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
@@ -168,3 +168,51 @@ def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any) -> dict[str,
         return {}
     return {"eval_fn": eval_fn, "eval_every": eval_every,
             "best_metric": "val_loss" if ckpt_dir is not None else None}
+
+
+def fit_recipe(
+    recipe: Any,
+    data: Any,
+    loss_fn: Any,
+    params: Any,
+    optim: Any,
+    *,
+    key: jax.Array,
+    eval_key: jax.Array,
+    steps: int | None,
+    batch_size: int,
+    seed: int,
+    ckpt_dir: Any,
+    mesh: Any,
+    eval_every: int | None,
+    metadata: dict[str, Any],
+    extra: dict[str, Any],
+    **loop_kwargs: Any,
+) -> RecipeResult:
+    """What every recipe does once its windows, loss and initial parameters are set: the grain loader
+    over the training split, the validation loss on ``val`` (and the best checkpoint), the shared loop.
+
+    Args:
+        recipe: the window recipe.
+        data: the prepared dataset.
+        loss_fn: ``(params, batch, key) -> (loss, metrics)``.
+        params: initial parameters.
+        optim: optimiser settings.
+        key: the loop's base key; eval_key: the validation key.
+        steps, batch_size, seed, ckpt_dir, mesh, eval_every: as every recipe's ``train``.
+        metadata: saved with each checkpoint.
+        extra: what the recipe fitted on the training split (goes into ``run.json``).
+        **loop_kwargs: passed to :func:`jaxtalk.train.train`.
+
+    Returns:
+        :class:`RecipeResult`.
+    """
+    from jaxtalk.data.loader import make_loader
+    from jaxtalk.train.loop import train
+
+    loader = make_loader(data, recipe, "train", batch_size, seed=seed)
+    eval_fn = split_validation(data, recipe, loss_fn, batch_size, eval_key)
+    result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
+                   mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
+    return RecipeResult(state=result.state, history=result.history, best=result.best, extra=extra,
+                        windows=loader.num_windows)

@@ -18,11 +18,11 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxtalk.data.loader import PreparedData, make_loader
+from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, evaluation, split_validation, window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, window_starts
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "fit_displacement_stats", "train_ats", "train_stm"]
@@ -99,7 +99,6 @@ def train_ats(
         ValueError: ``displacement_scale != 1``, or speech features of another width than ``audio_dim``.
     """
     from jaxtalk.models.freetalk import ats
-    from jaxtalk.train import train as train_loop
 
     if config.displacement_scale != 1.0:
         raise ValueError(f"ATS trains on standardised displacements: displacement_scale must be 1.0, "
@@ -109,15 +108,11 @@ def train_ats(
                          f"audio_dim={config.audio_dim} (--set audio_dim=...)")
     stats = fit_displacement_stats(data)
     recipe = ATSWindows(window_frames or min(config.max_frames, 50), stats)
-    loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = ats.init_ats(config, k_init) if params is None else params
-    loss = ats.make_ats_loss(config)
-    eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
-    result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, metadata={"model": "ats"},
-                        ckpt_dir=ckpt_dir, mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}
-    return RecipeResult(state=result.state, history=result.history, extra=extra, windows=loader.num_windows)
+    return fit_recipe(recipe, data, ats.make_ats_loss(config), params, optim, key=k_train, eval_key=k_eval,
+                      steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra, **loop_kwargs)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -175,17 +170,13 @@ def train_stm(
     """
     from jaxtalk.models.freetalk import stm
     from jaxtalk.models.freetalk.data import face_mesh
-    from jaxtalk.train import train as train_loop
 
     faces = tuple(face_mesh(i, kind, resolution=resolution) for i, kind in meshes)
     prepared = stm.prepare_meshes([(m.vertices, m.faces) for m in faces], config)
     recipe = STMWindows(faces, max(p.num_vertices for p in prepared))
-    loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = stm.init_stm(config, k_init, prepared[0]) if params is None else params
-    loss = stm.make_stm_loss(config, stm.stack_meshes(prepared))
-    eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
-    result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, metadata={"model": "stm"},
-                        ckpt_dir=ckpt_dir, mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     extra = {"meshes": [list(m) for m in meshes], "resolution": resolution, "window": recipe.window}
-    return RecipeResult(state=result.state, history=result.history, extra=extra, windows=loader.num_windows)
+    return fit_recipe(recipe, data, stm.make_stm_loss(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
+                      eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
+                      **loop_kwargs)

@@ -16,12 +16,12 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxtalk.data.loader import PreparedData, make_loader
+from jaxtalk.data.loader import PreparedData
 from jaxtalk.data.standardize import fit_standardizer
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.data import Normalizer
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, evaluation, split_validation
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TimarWindows", "agent_sides", "fit_data_normalizer", "window_turns", "train"]
@@ -139,16 +139,10 @@ def train(
     """
     from jaxtalk.models.timar.loss import make_loss_fn
     from jaxtalk.models.timar.model import init_params
-    from jaxtalk.train import train as train_loop
-
     recipe = make_windows(config, data)
-    loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     if params is None:
         params = init_params(config, k_init)
-    loss = make_loss_fn(config)
-    eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
-    result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, metadata={"model": "timar"},
-                        ckpt_dir=ckpt_dir, mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     extra = {"normalizer": recipe.normalizer.to_dict(), "num_turns": recipe.num_turns, "still": list(recipe.still)}
-    return RecipeResult(state=result.state, history=result.history, extra=extra, windows=loader.num_windows)
+    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
+                      metadata={"model": "timar"}, extra=extra, **loop_kwargs)

@@ -16,10 +16,10 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxtalk.data.loader import PreparedData, make_loader
+from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, evaluation, spread, split_validation, window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, spread, window_starts
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TokTalkWindows", "default_window", "check_data", "train"]
@@ -159,12 +159,9 @@ def train(
     from jaxtalk.models.toktalk.loss import cfm_loss
     from jaxtalk.models.toktalk.model import fit_flow_scale, init_params
     from jaxtalk.models.toktalk.train import base_trainable
-    from jaxtalk.train import train as train_loop
-
     check_data(config, data)
     window = window_frames or default_window(config)
     recipe = TokTalkWindows(config, window, hop_frames=window // 4, seed=seed)
-    loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     if params is None:
         params = init_params(config, k_init)
@@ -174,10 +171,7 @@ def train(
         stacked = {k: np.stack([e[k] for e in first]) for k in ("motion", "mask", "style")}
         params["norm"]["flow_scale"] = fit_flow_scale(params, config, stacked["motion"], stacked["mask"], stacked["style"])
     loss = functools.partial(cfm_loss, config=config)
-    eval_fn = split_validation(data, recipe, loss, batch_size, k_eval)
-    result = train_loop(loss, params, loader, optim, key=k_train, max_steps=steps, trainable=base_trainable,
-                        metadata={"model": "toktalk", "stage": 1}, ckpt_dir=ckpt_dir, mesh=mesh,
-                        **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
-    return RecipeResult(state=result.state, history=result.history, extra={"window_frames": recipe.window_frames},
-                        windows=loader.num_windows)
+    return fit_recipe(recipe, data, loss, params, optim, key=k_train, eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
+                      metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
+                      trainable=base_trainable, **loop_kwargs)
 
