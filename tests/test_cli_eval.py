@@ -335,7 +335,7 @@ def test_eval_user_errors_are_one_line(runs, prepared_tiny, tmp_path):
 
 
 @pytest.mark.skipif(not DEMO.is_dir(), reason="shared DualTalk demo data not available")
-def test_real_dualtalk_demo_timar_eval(tmp_path):
+def test_real_dualtalk_demo_timar_and_toktalk_eval(tmp_path):
     from jaxtalk.data.loader import PreparedData
 
     root = tmp_path / "dualtalk"
@@ -360,3 +360,15 @@ def test_real_dualtalk_demo_timar_eval(tmp_path):
         assert list(printed) == ["timar (streamed)", "mean pose"]  # real data: no oracle
         assert all(row["frames"] == 25 * turns and all(row[k] is not None for k in columns[3:]) for row in table["rows"])
     _user_error(["eval", run, "--split", "ood"], "has no conversation side")
+    # TokTalk on the same folder: DualTalk has no audio-LLM tokens, so prepare fitted a VQ tokenizer
+    # on the training split, which the run keeps for new audio.
+    tok = tmp_path / "tok"
+    _ok(["train", "toktalk", "--data", prepared, "--steps", "2", *SMALL["toktalk"],
+         "--no-progress", "--out", tok])
+    assert (tok / "tokenizer.npz").is_file()
+    output = _ok(["eval", tok, "--split", "test", "--json", tmp_path / "t.json"])
+    (table,) = _report(tmp_path / "t.json")["tables"]
+    columns, printed = _table(output, table["title"])
+    assert {"LVE_mm2", "MVE_mm", "FDD_mm2", "MOD_mm", "jitter_mm"} <= set(columns)
+    assert list(printed)[:2] == ["toktalk (streamed)", "mean pose"] and "oracle" not in printed
+    assert all(np.isfinite(row["MVE_mm"]) for row in table["rows"] if row.get("MVE_mm") is not None)

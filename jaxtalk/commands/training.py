@@ -203,7 +203,12 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
                                    data=existing.data["spec"], seed=existing.seed)
     preset = opts.preset or "small"
     model_items, train_kw = split_overrides(opts.model, opts.overrides)
-    data = _open_data_once(opts)
+    # A resumed run reads the prepared folder it started on (a synthtalk: spec would otherwise be looked
+    # up again under this call's --cache-dir), and only if it still holds the same data.
+    data = _open_data_once(opts, existing.data["path"] if existing is not None else None)
+    if existing is not None and data.key != existing.data["key"]:
+        raise ValueError(f"{out} was trained on prepared data {existing.data['key']!r}, but {data.root} now holds "
+                         f"{data.key!r}; resume it on the same data or choose another --out")
     explicit = parse_overrides(config_class(opts.model), model_items)
     config = build_config(opts.model, preset, [*_data_fields(opts.model, data, explicit), *model_items])
     if opts.model == "ats" and "displacement_scale" not in explicit:
@@ -242,8 +247,9 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
                         examples=result.windows, wall_s=time.perf_counter() - start)
 
 
-def _open_data_once(opts: TrainOptions) -> Any:
-    """``open_data`` for this run; with several processes, process 0 first.
+def _open_data_once(opts: TrainOptions, prepared: str | None = None) -> Any:
+    """``open_data`` for this run (the folder ``prepared`` when it is still there); with several
+    processes, process 0 first.
 
     ``synthtalk:`` data is prepared on first use: processes sharing a file system must not prepare
     it at the same time, so the others wait for process 0 and then find it prepared (on a host with
@@ -251,9 +257,12 @@ def _open_data_once(opts: TrainOptions) -> Any:
     """
     import jax
 
-    from jaxtalk.data.loader import open_data
+    from jaxtalk.data.loader import PreparedData, open_data
+    from jaxtalk.data.prepare import MANIFEST
 
     def one() -> Any:
+        if prepared is not None and (Path(prepared) / MANIFEST).is_file():
+            return PreparedData(prepared)
         return open_data(opts.data, cache_dir=opts.cache_dir, progress=opts.progress and jax.process_index() == 0)
 
     if jax.process_count() == 1:
