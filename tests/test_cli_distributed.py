@@ -21,11 +21,8 @@ are fixed when JAX starts, and are killed if they outlive a deadline.
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
-import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -33,8 +30,8 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from multiprocess_helpers import free_port, gloo_available, run_all, worker_env
 
-ROOT = Path(__file__).resolve().parents[1]
 # Per phase, all its processes together. Measured on the 2 shared cores: 170-200 s and 85-135 s
 # while other jobs kept them busy (load 5-9); the whole test uses about 3.5 CPU-minutes.
 DEADLINE_S = 420
@@ -53,71 +50,19 @@ COMMON = ["train", "toktalk", "--data", "synthtalk:tiny", "--preset", "tiny", "-
           "--steps", str(STEPS), "--seed", "0", "--no-progress"]
 
 
-def _gloo_available() -> bool:
-    try:
-        from jax._src.lib import _jax  # private, but the only place jaxlib exposes it
-    except ImportError:
-        return False
-    return hasattr(_jax, "make_gloo_tcp_collectives")
-
-
-def _free_port() -> int:
-    """A currently unused loopback TCP port (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _env(device_count: int, cache: Path, extra: dict[str, str] | None = None) -> dict[str, str]:
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        # No inherited cluster settings (they would redirect initialize) and no proxies (gRPC to
-        # the coordinator could be routed through one and hang).
-        if not k.startswith(("JAXTALK_", "JAX_COORDINATOR", "JAX_PROCESS", "JAX_NUM_PROCESSES"))
-        and "proxy" not in k.lower()
-    }
-    env.update({
-        "XLA_FLAGS": f"--xla_force_host_platform_device_count={device_count}",
-        "JAX_PLATFORMS": "cpu",
+    return worker_env(device_count, {
         "JAX_DISABLE_MOST_OPTIMIZATIONS": "1",  # compile time dominates; the same in every process
         # The resumed run compiles what the first one did: a persistent cache saves most of it.
         "JAX_COMPILATION_CACHE_DIR": str(cache),
         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
         "TF_CPP_MIN_LOG_LEVEL": "2",
+        **(extra or {}),
     })
-    env.update(extra or {})
-    return env
 
 
 def _run_all(jobs: list[tuple[list[str], dict[str, str], Path]]) -> None:
-    """Start every CLI at once; wait for all under one deadline; kill the rest on the first failure."""
-    procs = []
-    try:
-        for args, env, log in jobs:
-            with open(log, "w") as f:  # to files, not pipes: a full pipe would block the process
-                procs.append(subprocess.Popen([sys.executable, "-m", "jaxtalk", *args], cwd=ROOT, env=env,
-                                              stdout=f, stderr=subprocess.STDOUT))
-        deadline = time.monotonic() + DEADLINE_S
-        logs = [log for _, _, log in jobs]
-        pending = set(range(len(procs)))
-        while pending:
-            for i in sorted(pending):
-                rc = procs[i].poll()
-                if rc is None:
-                    continue
-                pending.discard(i)
-                if rc != 0:
-                    pytest.fail(f"{logs[i].name} exited with {rc}:\n{logs[i].read_text()[-4000:]}")
-            if pending and time.monotonic() > deadline:
-                pytest.fail(f"still running after {DEADLINE_S} s: "
-                            + "; ".join(f"{logs[i].name}: {logs[i].read_text()[-1500:]}" for i in sorted(pending)))
-            time.sleep(0.2)
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(timeout=30)
+    run_all([([sys.executable, "-m", "jaxtalk", *args], env, log) for args, env, log in jobs], DEADLINE_S)
 
 
 def _summary(log: Path) -> dict[str, float]:
@@ -157,7 +102,7 @@ def _assert_trees_close(a, b, what: str, *, rtol: float = 1e-5, atol: float = 0.
 
 
 @pytest.mark.slow  # 3 + 2 JAX processes compiling TokTalk on 2 shared cores: 2-5 min (see DEADLINE_S)
-@pytest.mark.skipif(not _gloo_available(), reason="this jaxlib has no gloo CPU collectives")
+@pytest.mark.skipif(not gloo_available(), reason="this jaxlib has no gloo CPU collectives")
 def test_cli_train_distributed_two_processes_match_one_process(prepared_tiny, tmp_path):
     from jaxtalk.commands.runs import RunRecord, checkpoint_dir, load_run
     from jaxtalk.train import read_best, read_history
@@ -167,7 +112,7 @@ def test_cli_train_distributed_two_processes_match_one_process(prepared_tiny, tm
     multi, single = tmp_path / "multi", tmp_path / "single"
 
     def distributed_jobs() -> list[tuple[list[str], dict[str, str], Path]]:
-        coordinator = f"127.0.0.1:{_free_port()}"
+        coordinator = f"127.0.0.1:{free_port()}"
         # The coordinator service listens on loopback only (JAX's default: every interface).
         cluster = {"JAXTALK_COORDINATOR": coordinator, "JAXTALK_NUM_PROCESSES": "2",
                    "JAX_COORDINATOR_BIND_ADDRESS": coordinator}

@@ -15,106 +15,42 @@ raises before touching JAX.
 from __future__ import annotations
 
 import json
-import os
-import socket
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from jaxtalk.train import distributed
+from multiprocess_helpers import ROOT, free_port, gloo_available, run_all, worker_env
 
-ROOT = Path(__file__).resolve().parents[1]
 WORKER = ROOT / "tests" / "distributed_worker.py"
 DEADLINE_S = 240  # all three processes together; a healthy run takes 10-20 s
 
 
-def _gloo_available() -> bool:
-    try:
-        from jax._src.lib import _jax  # private, but the only place jaxlib exposes it
-    except ImportError:
-        return False
-    return hasattr(_jax, "make_gloo_tcp_collectives")
-
-
-def _free_port() -> int:
-    """A currently unused loopback TCP port (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _worker_env(device_count: int, extra: dict[str, str] | None = None) -> dict[str, str]:
-    env = {
-        k: v
-        for k, v in os.environ.items()
-        # No inherited cluster settings (they would redirect initialize) and no proxies (gRPC to
-        # the coordinator could be routed through one and hang).
-        if not k.startswith(("JAXTALK_", "JAX_COORDINATOR", "JAX_PROCESS", "JAX_NUM_PROCESSES"))
-        and "proxy" not in k.lower()
-    }
-    env.update({"XLA_FLAGS": f"--xla_force_host_platform_device_count={device_count}", "JAX_PLATFORMS": "cpu"})
-    env.update(extra or {})
-    return env
-
-
 def _run_all(jobs: list[tuple[list[str], dict[str, str], Path]]) -> None:
-    """Start every job at once; wait for all under one deadline; kill the rest on the first failure."""
-    procs = []
-    try:
-        for args, env, log in jobs:
-            with open(log, "w") as f:  # to files, not pipes: a full pipe would block the worker
-                procs.append(
-                    subprocess.Popen(
-                        [sys.executable, str(WORKER), *args], cwd=ROOT, env=env, stdout=f, stderr=subprocess.STDOUT
-                    )
-                )
-        deadline = time.monotonic() + DEADLINE_S
-        logs = [log for _, _, log in jobs]
-        pending = set(range(len(procs)))
-        while pending:
-            for i in sorted(pending):
-                rc = procs[i].poll()
-                if rc is None:
-                    continue
-                pending.discard(i)
-                if rc != 0:
-                    pytest.fail(f"worker {logs[i].name} exited with {rc}:\n{logs[i].read_text()[-4000:]}")
-            if pending and time.monotonic() > deadline:
-                pytest.fail(
-                    f"workers still running after {DEADLINE_S} s: "
-                    + "; ".join(f"{logs[i].name}: {logs[i].read_text()[-1500:]}" for i in sorted(pending))
-                )
-            time.sleep(0.1)
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(timeout=30)
+    run_all([([sys.executable, str(WORKER), *args], env, log) for args, env, log in jobs], DEADLINE_S)
 
 
 @pytest.mark.slow  # three JAX processes on a shared 2-core machine: 13-22 s
-@pytest.mark.skipif(not _gloo_available(), reason="this jaxlib has no gloo CPU collectives")
+@pytest.mark.skipif(not gloo_available(), reason="this jaxlib has no gloo CPU collectives")
 def test_two_processes_match_one_process(tmp_path):
     multi, single = tmp_path / "multi", tmp_path / "single"
     multi.mkdir()
     single.mkdir()
-    port = _free_port()
+    port = free_port()
     coordinator = f"127.0.0.1:{port}"
     # Bind the coordinator service to loopback only (JAX's default is every interface).
     loopback = {"JAX_COORDINATOR_BIND_ADDRESS": coordinator}
     jobs = [
         (
             ["--out", str(multi), "--num-processes", "2", "--process-id", str(p), "--coordinator", coordinator],
-            _worker_env(2, loopback),
+            worker_env(2, loopback),
             tmp_path / f"process{p}.log",
         )
         for p in range(2)
     ]
-    jobs.append((["--out", str(single)], _worker_env(4), tmp_path / "single.log"))
+    jobs.append((["--out", str(single)], worker_env(4), tmp_path / "single.log"))
     _run_all(jobs)
 
     checks = [json.loads((multi / f"checks_p{p}.json").read_text()) for p in range(2)]
