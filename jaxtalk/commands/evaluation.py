@@ -50,7 +50,7 @@ import numpy as np
 from jaxtalk.commands.runs import LoadedRun, RunRecord, checkpoint_dir, load_run
 
 __all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
-           "quality_metrics", "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS"]
+           "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS"]
 
 # The 20 mouth landmarks of the 68-point scheme (outer lip 48-59, inner lip 60-67).
 MOUTH_LANDMARKS = np.arange(48, 68)
@@ -118,33 +118,6 @@ class EvalReport:
 
 
 # ------------------------------------------------------------------------------------------- metrics
-
-
-def quality_metrics(pred: np.ndarray, gt: np.ndarray, face: Any) -> dict[str, float]:
-    """MSE, LVE (mm^2), MVE (mm) and jitter of one predicted ``(T, 56)`` track against the truth.
-
-    Args:
-        pred: ``(T, 56)`` prediction.
-        gt: ``(T, 56)`` ground truth.
-        face: the :class:`jaxtalk.face.LinearFaceModel` to pose them on (its ``lips`` region).
-
-    Returns:
-        ``{"MSE", "LVE_mm2", "MVE_mm", "jitter"}`` (jitter of the parameters).
-
-    Raises:
-        ValueError: shapes differ.
-    """
-    from jaxtalk.metrics import jitter, lve, mve
-
-    if pred.shape != gt.shape:
-        raise ValueError(f"prediction {pred.shape} and ground truth {gt.shape} differ in shape")
-    vp, vg = np.asarray(face.vertices_seq(pred)), np.asarray(face.vertices_seq(gt))
-    return {
-        "MSE": float(np.mean((pred - gt) ** 2)),
-        "LVE_mm2": float(lve(vp, vg, face.regions["lips"])) * 1e6,
-        "MVE_mm": float(mve(vp, vg)) * 1e3,
-        "jitter": float(jitter(pred)),
-    }
 
 
 def vertex_metrics(pred: np.ndarray, gt: np.ndarray, face: Any, *, gt_vertices: np.ndarray | None = None,
