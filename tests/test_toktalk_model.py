@@ -11,8 +11,8 @@ import pytest
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.model import check_tokens
 
-CFG = tt.TokTalkConfig.tiny()
-CAUSAL = tt.TokTalkConfig.tiny(causal=True)
+CFG = tt.TokTalkConfig.tiny()  # the causal (streaming) model, the default
+OFFLINE = tt.TokTalkConfig.tiny(causal=False)
 B, T = 2, 16
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -76,25 +76,41 @@ def test_attention_bias_matches_hand_built_masks():
 
 
 # ------------------------------------------------------------------------------------ decoder
-def test_decoder_block_causal_under_chunk_mask_only():
-    p = tt.init_params(CAUSAL, jax.random.key(1))["decoder"]
+def _perturb_from(x, cond, start):
+    later = (jnp.arange(x.shape[1]) >= start)[None, :, None]
+    return jnp.where(later, x + 1.0, x), cond._replace(tokens=jnp.where(later, cond.tokens * -2.0, cond.tokens))
+
+
+def test_causal_decoder_under_chunk_mask_ignores_later_chunks_bitwise():
+    p = tt.init_params(CFG, jax.random.key(1))["decoder"]
     rng = np.random.default_rng(0)
     x = jnp.asarray(rng.normal(size=(B, T, 56)), jnp.float32)
     t = jnp.asarray([0.3, 0.8], jnp.float32)
-    c_chunk, c_full = _cond(rng, chunked=True), None
-    c_full = c_chunk._replace(chunked=jnp.zeros((B,), bool))
-    # Perturb everything from frame 8 on (chunks of 4: chunks 2 and 3).
-    later = (jnp.arange(T) >= 8)[None, :, None]
-    x2 = jnp.where(later, x + 1.0, x)
-    c2 = c_chunk._replace(tokens=jnp.where(later, c_chunk.tokens * -2.0, c_chunk.tokens))
-    y1 = _decoder_apply(CAUSAL, p, x, t, c_chunk)
-    y2 = _decoder_apply(CAUSAL, p, x2, t, c2)
-    np.testing.assert_allclose(y1[:, :8], y2[:, :8], atol=1e-5)
-    assert float(jnp.max(jnp.abs(y1[:, 8:] - y2[:, 8:]))) > 1e-3
+    c_chunk = _cond(rng, chunked=True)
+    y1 = np.asarray(_decoder_apply(CFG, p, x, t, c_chunk))
+    # Perturb every input from frame 8 on (chunks of 4: chunks 2 and 3): chunks 0 and 1 stay bitwise.
+    for start in (8, 12):
+        x2, c2 = _perturb_from(x, c_chunk, start)
+        y2 = np.asarray(_decoder_apply(CFG, p, x2, t, c2))
+        np.testing.assert_array_equal(y1[:, :start], y2[:, :start])
+        assert np.abs(y1[:, start:] - y2[:, start:]).min(axis=-1).max() > 1e-4  # the change is seen
     # With full attention the future leaks into the past.
-    f1 = _decoder_apply(CAUSAL, p, x, t, c_full)
-    f2 = _decoder_apply(CAUSAL, p, x2, t, c2._replace(chunked=c_full.chunked))
+    x2, c2 = _perturb_from(x, c_chunk, 8)
+    f1 = _decoder_apply(CFG, p, x, t, c_chunk._replace(chunked=jnp.zeros((B,), bool)))
+    f2 = _decoder_apply(CFG, p, x2, t, c2._replace(chunked=jnp.zeros((B,), bool)))
     assert float(jnp.max(jnp.abs(f1[:, :8] - f2[:, :8]))) > 1e-4
+
+
+def test_offline_decoder_sees_the_next_chunk_through_its_convolutions():
+    p = tt.init_params(OFFLINE, jax.random.key(1))["decoder"]
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.normal(size=(B, T, 56)), jnp.float32)
+    t = jnp.asarray([0.3, 0.8], jnp.float32)
+    c_chunk = _cond(rng, chunked=True)
+    x2, c2 = _perturb_from(x, c_chunk, 8)
+    y1 = _decoder_apply(OFFLINE, p, x, t, c_chunk)
+    y2 = _decoder_apply(OFFLINE, p, x2, t, c2)
+    assert float(jnp.max(jnp.abs(y1[:, :8] - y2[:, :8]))) > 1e-4
 
 
 def test_decoder_padding_invariance_and_masked_output(params):
@@ -156,15 +172,56 @@ def test_adapter_maps_rate_and_width(params):
         tt.adapt_tokens({k: params[k] for k in ("decoder", "style")}, CFG, src, 25.0)
 
 
-def test_interpolate_tokens_matches_numpy_reference():
+def test_interpolate_tokens_matches_numpy_reference_in_both_alignments():
     rng = np.random.default_rng(5)
     tok = rng.normal(size=(2, 5, 3)).astype(np.float32)
-    out = np.asarray(tt.interpolate_tokens(jnp.asarray(tok), 12.5, 25, 10))
+    linear = np.asarray(tt.interpolate_tokens(jnp.asarray(tok), 12.5, 25, 10, "linear"))
+    previous = np.asarray(tt.interpolate_tokens(jnp.asarray(tok), 12.5, 25, 10, "previous"))
     for j in range(10):
         p = j / 2
         lo, hi = int(np.floor(p)), min(int(np.floor(p)) + 1, 4)
         w = 0.0 if lo >= 4 else p - lo
-        np.testing.assert_allclose(out[:, j], (1 - w) * tok[:, lo] + w * tok[:, hi], atol=1e-6)
+        np.testing.assert_allclose(linear[:, j], (1 - w) * tok[:, lo] + w * tok[:, hi], atol=1e-6)
+        np.testing.assert_array_equal(previous[:, j], tok[:, j // 2])  # frame j: token j // 2, never j // 2 + 1
+    assert CFG.token_alignment == "previous" and OFFLINE.token_alignment == "linear"
+
+
+def test_source_resampling_averages_every_source_token():
+    rng = np.random.default_rng(6)
+    src = rng.normal(size=(2, 9, 4)).astype(np.float32)  # 25 Hz -> 12.5 Hz: round(4.5) = 5 tokens
+    out = np.asarray(tt.source_to_base_rate(jnp.asarray(src), 25.0, CFG))
+    assert out.shape == (2, 5, 4)
+    for j in range(4):
+        np.testing.assert_allclose(out[:, j], 0.5 * (src[:, 2 * j] + src[:, 2 * j + 1]), atol=1e-6)
+    np.testing.assert_allclose(out[:, 4], src[:, 8], atol=1e-6)  # the last span holds one source token
+    # 6.25 Hz -> 12.5 Hz repeats each source token.
+    up = np.asarray(tt.source_to_base_rate(jnp.asarray(src[:, :3]), 6.25, CFG))
+    np.testing.assert_allclose(up, np.repeat(src[:, :3], 2, axis=1), atol=1e-6)
+
+
+def test_causal_adapter_output_ignores_later_source_tokens_bitwise(params):
+    rng = np.random.default_rng(7)
+    src = rng.normal(size=(B, 24, 48)).astype(np.float32)  # 25 Hz -> 12 base tokens
+    out = np.asarray(tt.adapt_tokens(params, CFG, src, 25.0))
+    for cut in (6, 13):  # source token index: base tokens < cut // 2 only read source tokens < cut
+        changed = src.copy()
+        changed[:, cut:] += rng.normal(size=changed[:, cut:].shape)
+        out2 = np.asarray(tt.adapt_tokens(params, CFG, changed, 25.0))
+        np.testing.assert_array_equal(out[:, : cut // 2], out2[:, : cut // 2])
+        assert np.abs(out[:, cut // 2 :] - out2[:, cut // 2 :]).min(axis=-1).max() > 1e-4
+
+
+def test_causal_adapter_attends_to_a_bounded_past(params):
+    cfg = CFG
+    k = tt.adapter.receptive_field(cfg)
+    assert k == cfg.adapter_layers * (cfg.adapter_context - 1) + cfg.adapter_kernel - 1
+    rng = np.random.default_rng(8)
+    base = jnp.asarray(rng.normal(size=(1, k + 6, 48)), jnp.float32)
+    out = np.asarray(tt.adapter_apply(params, cfg, base))
+    changed = base.at[:, 0].add(1.0)  # the first token is just out of reach of the last 5 outputs
+    out2 = np.asarray(tt.adapter_apply(params, cfg, changed))
+    np.testing.assert_array_equal(out[:, k + 1 :], out2[:, k + 1 :])
+    assert np.abs(out[:, k] - out2[:, k]).max() > 1e-5  # ... and within reach of output k
 
 
 # ------------------------------------------------------------------------------------- errors

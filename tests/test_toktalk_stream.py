@@ -96,3 +96,82 @@ def test_stream_whole_sequence_and_errors(params):
         tt.init_stream(CFG, jax.random.key(0), buffer_frames=4)
     with pytest.raises(ValueError, match="not a whole number of tokens"):
         tt.init_stream(tt.TokTalkConfig.tiny(token_rate=10.0), jax.random.key(0))
+
+
+# ------------------------------------------------------------------------------ causality
+def _change_after(x, start, rng):
+    changed = np.array(x, copy=True)
+    changed[:, start:] += rng.normal(size=changed[:, start:].shape).astype(changed.dtype)
+    return changed
+
+
+def _assert_causal(run, inputs, cut_input, cut_frame, rng):
+    """Changing every input from ``cut_input`` on leaves the frames before ``cut_frame`` bitwise
+    unchanged and changes the frames after it (so the check is not vacuous)."""
+    before = np.asarray(run(inputs))
+    after = np.asarray(run(_change_after(inputs, cut_input, rng)))
+    np.testing.assert_array_equal(before[:, :cut_frame], after[:, :cut_frame])
+    assert np.abs(before[:, cut_frame:] - after[:, cut_frame:]).max(axis=-1).min() > 1e-6
+
+
+def test_stream_with_base_tokens_is_causal(params):
+    rng = np.random.default_rng(3)
+    tokens = rng.normal(size=(B, 8, CFG.token_dim)).astype(np.float32)  # 4 chunks of 2 tokens
+    style = np.zeros((B, CFG.style_vector_dim), np.float32)
+    run = lambda tok: tt.stream(params, CFG, tok, style, jax.random.key(0), buffer_frames=32)  # noqa: E731
+    for chunk in (1, 2):
+        _assert_causal(run, tokens, chunk * 2, chunk * CFG.chunk_frames, rng)
+
+
+def test_stream_with_source_tokens_is_causal_and_equals_offline_adaptation(params):
+    rng = np.random.default_rng(4)
+    src = rng.normal(size=(B, 16, 48)).astype(np.float32)  # 25 Hz: 4 chunks of 4 source tokens
+    assert tt.source_tokens_per_chunk(CFG, 25.0) == 4
+    style = rng.normal(size=(B, CFG.style_vector_dim)).astype(np.float32)
+    run = lambda s: tt.stream(params, CFG, s, style, jax.random.key(0), buffer_frames=32, src_rate=25.0)  # noqa: E731
+    for chunk in (1, 3):
+        _assert_causal(run, src, chunk * 4, chunk * CFG.chunk_frames, rng)
+    # The streaming adapter (carried buffer, continuing positions) computes the offline adapter.
+    streamed = run(src)
+    offline = tt.stream(params, CFG, tt.adapt_tokens(params, CFG, src, 25.0), style, jax.random.key(0),
+                        buffer_frames=32)
+    np.testing.assert_allclose(np.asarray(streamed), np.asarray(offline), atol=1e-5)
+    # A long stream keeps its adapter state fixed and reproduces the offline adapter past the buffer.
+    long_src = rng.normal(size=(1, 4 * 12, 48)).astype(np.float32)
+    state = tt.init_stream(CFG, jax.random.key(1), batch=1, buffer_frames=32, source_dim=48)
+    adapted = []
+    for i in range(12):
+        state, _ = tt.stream_step(params, CFG, state, long_src[:, 4 * i : 4 * i + 4], style[:1], src_rate=25.0)
+        adapted.append(np.asarray(state.tokens[:, -2:]))
+    np.testing.assert_allclose(np.concatenate(adapted, axis=1),
+                               np.asarray(tt.adapt_tokens(params, CFG, long_src, 25.0)), atol=1e-5)
+    assert int(state.adapter.position) == 24
+
+
+def test_offline_sample_with_chunk_mask_is_causal(params):
+    rng = np.random.default_rng(5)
+    tokens = rng.normal(size=(B, 8, CFG.token_dim)).astype(np.float32)
+    style = np.zeros((B, CFG.style_vector_dim), np.float32)
+    run = lambda tok: tt.sample(params, CFG, tok, style, jax.random.key(0), chunked=True)  # noqa: E731
+    for chunk in (1, 3):
+        _assert_causal(run, tokens, chunk * 2, chunk * CFG.chunk_frames, rng)
+
+
+def test_stream_equals_offline_chunked_sample_when_the_window_holds_the_whole_past():
+    # No overlap inpainting and a left context as long as the utterance: every chunk's window is the
+    # whole past with the same noise, which is exactly the offline chunk-masked computation.
+    cfg = tt.TokTalkConfig.tiny(overlap_frames=0, context_frames=12)
+    p = tt.init_params(cfg, jax.random.key(3))
+    rng = np.random.default_rng(6)
+    tokens = rng.normal(size=(B, 8, cfg.token_dim)).astype(np.float32)  # 16 frames
+    style = rng.normal(size=(B, cfg.style_vector_dim)).astype(np.float32)
+    streamed = tt.stream(p, cfg, tokens, style, jax.random.key(4), buffer_frames=16)
+    buffer = tt.init_stream(cfg, jax.random.key(4), batch=B, buffer_frames=16).noise
+    offline = tt.sample(p, cfg, tokens, style, noise=buffer, chunked=True)
+    np.testing.assert_allclose(np.asarray(streamed), np.asarray(offline), atol=2e-5)
+
+
+def test_offline_model_refuses_to_stream():
+    cfg = tt.TokTalkConfig.tiny(causal=False)
+    with pytest.raises(ValueError, match="offline model"):
+        tt.init_stream(cfg, jax.random.key(0))

@@ -18,7 +18,7 @@ from jaxtyping import Float, Int
 
 from jaxtalk.types import Array
 
-__all__ = ["resample_features", "default_num_frames", "interpolation_plan"]
+__all__ = ["resample_features", "default_num_frames", "interpolation_plan", "area_weights"]
 
 _MODES = ("linear", "previous")
 # Rates are turned into exact fractions; 1e-6 resolution covers 29.97 fps, 12.5 Hz, 44.1 kHz exactly.
@@ -98,6 +98,45 @@ def interpolation_plan(
     hi = np.minimum(floor + 1, last)
     weight = np.where(floor >= last, 0.0, frac)
     return lo.astype(np.int32), hi.astype(np.int32), weight
+
+
+def area_weights(
+    num_input: int, src_rate: float | int, dst_rate: float | int, num_frames: int
+) -> Float[np.ndarray, "out inp"]:
+    """Time-overlap (box-filter) resampling weights: ``out = W @ x`` with ``W`` ``(num_frames, num_input)``.
+
+    Output frame ``j`` spans ``[j / dst, (j + 1) / dst)`` and input frame ``i`` spans
+    ``[i / src, (i + 1) / src)``; ``W[j, i]`` is their overlap as a fraction of the part of output
+    frame ``j`` that the input covers (rows sum to 1). Downsampling 25 -> 12.5 Hz averages each pair
+    of inputs (none is dropped); upsampling repeats each input. Output frame ``j`` only reads inputs
+    that overlap its own span, so a stream cut at a common boundary resamples piece by piece exactly
+    as a whole. Output frames past the end of the input hold the last input. Exact rational
+    arithmetic on the host.
+
+    Raises:
+        ValueError: for a bad rate or a non-positive length.
+    """
+    if num_input < 1 or isinstance(num_frames, bool) or not isinstance(num_frames, (int, np.integer)) or num_frames < 1:
+        raise ValueError(f"need positive lengths, got num_input={num_input!r}, num_frames={num_frames!r}")
+    src, dst = _as_fraction(src_rate, "src_rate"), _as_fraction(dst_rate, "dst_rate")
+    w = np.zeros((int(num_frames), int(num_input)))
+    for j in range(int(num_frames)):
+        start, end = Fraction(j) / dst, Fraction(j + 1) / dst
+        first = min(int(start * src), num_input - 1)  # floor: the input frame that holds `start`
+        last = min(-(-int((end * src).numerator) // (end * src).denominator), num_input)  # ceil, exclusive
+        total = Fraction(0)
+        row = {}
+        for i in range(first, max(last, first + 1)):
+            overlap = min(end, Fraction(i + 1) / src) - max(start, Fraction(i) / src)
+            if overlap > 0:
+                row[i] = overlap
+                total += overlap
+        if not row:  # past the end of the input: hold the last frame
+            w[j, num_input - 1] = 1.0
+            continue
+        for i, overlap in row.items():
+            w[j, i] = float(overlap / total)
+    return w
 
 
 @jax.jit

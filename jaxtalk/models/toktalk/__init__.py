@@ -8,6 +8,7 @@
 * Training: :mod:`jaxtalk.models.toktalk.train` (two stages with the shared loop).
 """
 
+from jaxtalk.models.toktalk import adapter
 from jaxtalk.models.toktalk.adapter import Adapter
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.decoder import Decoder, attention_bias
@@ -15,16 +16,26 @@ from jaxtalk.models.toktalk.loss import adapter_loss, cfm_loss, flow_matching_te
 from jaxtalk.models.toktalk.model import (
     Condition,
     adapt_tokens,
+    adapter_apply,
     encode_style,
     from_flow_space,
     init_adapter,
     init_params,
     interpolate_tokens,
+    source_to_base_rate,
     to_flow_space,
     velocity,
 )
 from jaxtalk.models.toktalk.sample import sample
-from jaxtalk.models.toktalk.stream import StreamState, init_stream, stream, stream_step, tokens_per_chunk
+from jaxtalk.models.toktalk.stream import (
+    AdapterState,
+    StreamState,
+    init_stream,
+    source_tokens_per_chunk,
+    stream,
+    stream_step,
+    tokens_per_chunk,
+)
 from jaxtalk.models.toktalk.style import StyleEncoder, kl_divergence
 
 __all__ = [
@@ -42,6 +53,8 @@ __all__ = [
     "to_flow_space",
     "from_flow_space",
     "adapt_tokens",
+    "adapter_apply",
+    "source_to_base_rate",
     "kl_divergence",
     "flow_matching_terms",
     "random_known_mask",
@@ -50,6 +63,8 @@ __all__ = [
     "sample",
     "StreamState",
     "init_stream",
+    "AdapterState",
+    "source_tokens_per_chunk",
     "stream_step",
     "stream",
     "tokens_per_chunk",

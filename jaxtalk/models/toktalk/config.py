@@ -40,8 +40,15 @@ class TokTalkConfig:
         time_frequency_dim: sinusoidal time features (320) fed to the time MLP.
         time_embed_dim: time embedding width (1024).
         num_groups: group-norm groups in the ResNet blocks (8).
-        causal: causal convolutions and per-frame LayerNorm (CosyVoice2's streaming decoder) instead
-            of centred convolutions and masked GroupNorm (CosyVoice's offline decoder).
+        causal: the streaming model (default). The decoder has causal convolutions, causal stride-2
+            down/upsampling and a per-frame LayerNorm (CosyVoice2's streaming decoder), so under the
+            chunk mask a frame's receptive field ends at the last frame of its own chunk; tokens are
+            aligned to frames without looking ahead (frame ``f`` takes the latest token that starts
+            at or before it); the adaptation layer has a causal convolution and attends only to the
+            last ``adapter_context`` tokens. False is the OFFLINE model: centred convolutions,
+            masked GroupNorm over time (CosyVoice's offline decoder), linear token interpolation
+            (odd frames blend the next token) and a bidirectional adapter. It sees the future even
+            with the chunk mask, so it is for whole-utterance sampling only; streaming it is refused.
         style_dim: width of the style encoder's latent (MSMD: 256).
         style_anchor: append the reference clip's mean pose (standardised) to the style vector and run
             the flow in coordinates centred on it, so the decoder generates motion RELATIVE to the
@@ -57,6 +64,9 @@ class TokTalkConfig:
         kl_weight: weight of the style encoder's KL term (MSMD: 1e-7).
         adapter_width, adapter_layers, adapter_heads: adaptation layer transformer sizes.
         adapter_kernel: taps of the adapter's input convolution.
+        adapter_context: with ``causal``, the tokens each adapter attention query sees (itself and the
+            ``adapter_context - 1`` before it, at the base rate): a bounded past, so the streaming
+            adapter carries a fixed-size state.
         chunk_frames: streaming chunk (even: one stride-2 down/up pair halves it).
         overlap_frames: frames of previous output re-used as known frames for the next chunk.
         context_frames: bounded left context of the streaming window (a multiple of chunk_frames).
@@ -89,7 +99,7 @@ class TokTalkConfig:
     time_frequency_dim: int = 320
     time_embed_dim: int = 1024
     num_groups: int = 8
-    causal: bool = False
+    causal: bool = True
     style_dim: int = 256
     style_anchor: bool = True
     style_hidden: int = 512
@@ -101,6 +111,7 @@ class TokTalkConfig:
     adapter_layers: int = 2
     adapter_heads: int = 4
     adapter_kernel: int = 3
+    adapter_context: int = 16
     chunk_frames: int = 10
     overlap_frames: int = 5
     context_frames: int = 40
@@ -120,7 +131,7 @@ class TokTalkConfig:
             "param_dim", "fps", "token_dim", "channels", "transformer_blocks", "num_heads", "head_dim",
             "time_frequency_dim", "time_embed_dim", "num_groups", "style_dim", "style_hidden",
             "style_heads", "style_frames", "style_min_frames", "adapter_width", "adapter_layers",
-            "adapter_heads", "adapter_kernel", "chunk_frames", "num_steps",
+            "adapter_heads", "adapter_kernel", "adapter_context", "chunk_frames", "num_steps",
         )
         for name in positive:
             value = getattr(self, name)
@@ -213,6 +224,11 @@ class TokTalkConfig:
     def frames_per_token(self) -> float:
         """Motion frames per base token (2 for 12.5 Hz tokens at 25 fps)."""
         return self.fps / self.token_rate
+
+    @property
+    def token_alignment(self) -> str:
+        """How base tokens map onto motion frames: ``"previous"`` (causal) or ``"linear"`` (offline)."""
+        return "previous" if self.causal else "linear"
 
     @property
     def style_vector_dim(self) -> int:

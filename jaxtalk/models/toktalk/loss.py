@@ -136,7 +136,7 @@ def _flow_loss(
     keep = jax.random.bernoulli(k_drop, 1.0 - config.cond_dropout, (b,)).astype(x1.dtype)
     chunked = jnp.broadcast_to(jax.random.bernoulli(k_chunk, config.chunk_mask_prob), (b,))
     cond = Condition(
-        tokens=interpolate_tokens(tokens, config.token_rate, config.fps, t),
+        tokens=interpolate_tokens(tokens, config.token_rate, config.fps, t, config.token_alignment),
         style=style,
         known=x1,
         known_mask=known_mask,

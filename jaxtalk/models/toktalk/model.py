@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.audio.framerate import default_num_frames, interpolation_plan
+from jaxtalk.audio.framerate import area_weights, default_num_frames, interpolation_plan
 from jaxtalk.data.standardize import identity_standardizer, standardize, unstandardize
 from jaxtalk.models.toktalk.adapter import Adapter
 from jaxtalk.models.toktalk.config import TokTalkConfig
@@ -30,6 +30,9 @@ __all__ = [
     "velocity",
     "encode_style",
     "adapt_tokens",
+    "adapter_apply",
+    "adapter_source_dim",
+    "source_to_base_rate",
     "check_tokens",
     "check_finite",
     "preconditioning",
@@ -132,20 +135,29 @@ def check_tokens(
 
 
 def interpolate_tokens(
-    tokens: Float[Array, "batch tokens width"], src_rate: float | int, dst_rate: float | int, num_frames: int
+    tokens: Float[Array, "batch tokens width"],
+    src_rate: float | int,
+    dst_rate: float | int,
+    num_frames: int,
+    mode: str = "previous",
 ) -> Float[Array, "batch frames width"]:
-    """Linear time interpolation of a batched stream to another rate (exact rational positions).
+    """Token embeddings at another rate (exact rational positions).
 
     Args:
         tokens: ``(B, Tt, W)``.
         src_rate: its rate (Hz).
         dst_rate: wanted rate (Hz).
         num_frames: output length (static).
+        mode: ``"previous"`` (each frame takes the latest token starting at or before it: no future
+            token, the streaming model's alignment) or ``"linear"`` (blends the next token: offline);
+            see :attr:`TokTalkConfig.token_alignment`.
 
     Returns:
         ``(B, num_frames, W)``; frames past the last token hold it.
     """
-    lo, hi, w = interpolation_plan(tokens.shape[1], src_rate, dst_rate, num_frames, "linear")
+    lo, hi, w = interpolation_plan(tokens.shape[1], src_rate, dst_rate, num_frames, mode)
+    if mode == "previous":
+        return tokens[:, lo]
     w = jnp.asarray(w, tokens.dtype)[None, :, None]
     return tokens[:, lo] * (1 - w) + tokens[:, hi] * w
 
@@ -452,6 +464,37 @@ def _encode_style(params: PyTree, clip: Array, mask: Array | None, config: TokTa
     return style_vector(params, config, clip, mask)
 
 
+def source_to_base_rate(
+    src: Float[Array, "batch src_tokens src"], src_rate: float | int, config: TokTalkConfig
+) -> Float[Array, "batch tokens src"]:
+    """Resamples a source token stream to the base token rate by time overlap (no token dropped).
+
+    Base token ``j`` is the overlap-weighted mean of the source tokens inside its span (25 -> 12.5 Hz:
+    the mean of each pair); see :func:`jaxtalk.audio.framerate.area_weights`. A base token reads no
+    source token from a later span, so streaming chunk by chunk gives the same result.
+    """
+    num = default_num_frames(src.shape[1], src_rate, config.token_rate)
+    w = area_weights(src.shape[1], src_rate, config.token_rate, num)
+    return jnp.einsum("ji,bid->bjd", jnp.asarray(w, src.dtype), src)
+
+
+def adapter_apply(
+    params: dict[str, PyTree],
+    config: TokTalkConfig,
+    at_base: Float[Array, "batch tokens src"],
+    *,
+    mask: Bool[Array, "batch tokens"] | None = None,
+    positions: Array | None = None,
+    dropout_key: PRNGKeyArray | None = None,
+) -> Float[Array, "batch tokens token"]:
+    """The adapter network on source tokens already at the base rate (no validation; jit-friendly)."""
+    rngs = None if dropout_key is None else {"dropout": dropout_key}
+    return Adapter(config).apply(
+        {"params": params["adapter"]}, at_base, mask, deterministic=dropout_key is None, positions=positions,
+        rngs=rngs,
+    )
+
+
 def adapter_forward(
     params: dict[str, PyTree],
     config: TokTalkConfig,
@@ -461,12 +504,18 @@ def adapter_forward(
     dropout_key: PRNGKeyArray | None = None,
 ) -> Float[Array, "batch tokens token"]:
     """Source tokens -> base-space tokens at the base rate (no validation; jit-friendly)."""
-    num = default_num_frames(src.shape[1], src_rate, config.token_rate)
-    at_base = interpolate_tokens(src, src_rate, config.token_rate, num)
-    rngs = None if dropout_key is None else {"dropout": dropout_key}
-    return Adapter(config).apply(
-        {"params": params["adapter"]}, at_base, deterministic=dropout_key is None, rngs=rngs
-    )
+    return adapter_apply(params, config, source_to_base_rate(src, src_rate, config), dropout_key=dropout_key)
+
+
+def adapter_source_dim(params: dict[str, PyTree]) -> int:
+    """Width of the source token space ``params["adapter"]`` was built for.
+
+    Raises:
+        ValueError: no adapter in ``params``.
+    """
+    if "adapter" not in params:
+        raise ValueError("params has no 'adapter' entry: train stage 2 (train_adapter) first")
+    return int(params["adapter"]["conv"]["conv"]["kernel"].shape[1])
 
 
 def adapt_tokens(
@@ -475,7 +524,7 @@ def adapt_tokens(
     src: Float[Array, "batch src_tokens src"] | Float[np.ndarray, "batch src_tokens src"],
     src_rate: float | int,
 ) -> Float[Array, "batch tokens token"]:
-    """Maps another token space onto the base one (time-interpolated to the base rate first).
+    """Maps another token space onto the base one (resampled to the base rate by time overlap first).
 
     Args:
         params: model parameters with an ``"adapter"`` entry (stage 2).
@@ -492,7 +541,7 @@ def adapt_tokens(
     """
     if "adapter" not in params:
         raise ValueError("params has no 'adapter' entry: train stage 2 (train_adapter) first")
-    src_dim = int(params["adapter"]["conv"]["conv"]["kernel"].shape[1])
+    src_dim = adapter_source_dim(params)
     check_tokens(src, width=src_dim, rate=src_rate, fps=config.fps, name="source tokens")
     return _adapt(params, jnp.asarray(src), float(src_rate), config)
 

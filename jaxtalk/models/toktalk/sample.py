@@ -209,7 +209,7 @@ def generate_frames(
     known_raw = known
     if known is not None:
         known = to_flow_space(params, config, known, style_vec)
-    frames_tokens = interpolate_tokens(tokens, config.token_rate, config.fps, t)
+    frames_tokens = interpolate_tokens(tokens, config.token_rate, config.fps, t, config.token_alignment)
     mask = jnp.ones((b, t), bool) if mask is None else mask
     chunked = jnp.zeros((), bool) if chunked is None else chunked
     has_known = known is not None

@@ -11,6 +11,14 @@ as left context sees the same noise as when it was first generated.
 Because the window never grows, every chunk after the first reuses one compiled program and the
 per-chunk cost does not depend on how long the utterance already is (the reference recomputes the
 whole prefix for every chunk).
+
+Only the causal model streams (``config.causal``): its decoder's receptive field ends at the last frame
+of the current chunk and its token alignment reads no later token, so a chunk generated live is the
+computation it was trained on. Source-space tokens (another audio LLM) stream through the causal
+adaptation layer first: each chunk's source tokens are resampled to the base rate by time overlap and
+adapted against a carried buffer of the last :func:`~jaxtalk.models.toktalk.adapter.receptive_field`
+base-rate inputs, with positions continuing across chunks, which gives exactly the offline adapter's
+output (:func:`~jaxtalk.models.toktalk.model.adapt_tokens`).
 """
 
 from __future__ import annotations
@@ -23,14 +31,46 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.audio.framerate import default_num_frames
 from jaxtalk.models.toktalk.config import TokTalkConfig
-from jaxtalk.models.toktalk.model import check_finite, check_tokens
+from jaxtalk.models.toktalk.adapter import receptive_field
+from jaxtalk.models.toktalk.model import (
+    adapter_apply,
+    adapter_source_dim,
+    check_finite,
+    check_tokens,
+    frames_for_tokens,
+    source_to_base_rate,
+)
 from jaxtalk.models.toktalk.sample import default_grid, generate_frames, resolve_style
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 
-__all__ = ["StreamState", "init_stream", "stream_step", "stream", "tokens_per_chunk"]
+__all__ = [
+    "StreamState",
+    "AdapterState",
+    "init_stream",
+    "stream_step",
+    "stream",
+    "tokens_per_chunk",
+    "source_tokens_per_chunk",
+]
 
 PyTree = Any
+
+
+class AdapterState(NamedTuple):
+    """Carried state of the streaming adaptation layer.
+
+    Attributes:
+        inputs: ``(B, R, src_dim)`` the last ``R = receptive_field(config)`` source tokens at the base
+            rate (zeros before the utterance).
+        valid: ``(B, R)`` True on buffer rows that exist.
+        position: ``()`` absolute base-token index of the next chunk's first token.
+    """
+
+    inputs: Float[Array, "batch past src"]
+    valid: Bool[Array, "batch past"]
+    position: Int[Array, ""]
 
 
 class StreamState(NamedTuple):
@@ -43,6 +83,7 @@ class StreamState(NamedTuple):
         noise: ``(B, N, param_dim)`` the fixed noise buffer; frame ``f`` uses row ``f mod N``.
         position: ``()`` absolute index of the first frame of the next chunk.
         step: ``()`` chunks generated so far.
+        adapter: the adaptation layer's state when the stream takes source-space tokens, else None.
     """
 
     tokens: Float[Array, "batch window_tokens token"]
@@ -51,6 +92,7 @@ class StreamState(NamedTuple):
     noise: Float[Array, "batch buffer param"]
     position: Int[Array, ""]
     step: Int[Array, ""]
+    adapter: AdapterState | None = None
 
 
 def _whole(value: Fraction, what: str) -> int:
@@ -70,6 +112,26 @@ def tokens_per_chunk(config: TokTalkConfig, frames: int | None = None) -> int:
     return _whole(frames * rate, f"{frames} frames at {config.token_rate} Hz tokens and {config.fps} fps")
 
 
+def source_tokens_per_chunk(config: TokTalkConfig, src_rate: float | int) -> int:
+    """Source tokens at ``src_rate`` that cover one chunk (25 Hz, 10-frame chunks: 10).
+
+    Raises:
+        ValueError: when a chunk does not span a whole number of source tokens.
+    """
+    rate = Fraction(str(float(src_rate))) / config.fps
+    return _whole(config.chunk_frames * rate, f"{config.chunk_frames} frames at {src_rate} Hz source tokens")
+
+
+def _require_causal(config: TokTalkConfig) -> None:
+    if not config.causal:
+        raise ValueError(
+            "this TokTalk config is the offline model (causal=False): its decoder's convolutions and "
+            "group norm and its token interpolation read frames after the current chunk, which a live "
+            "stream does not have yet. Stream a causal model (TokTalkConfig(causal=True), the default) "
+            "or use sample() for whole utterances."
+        )
+
+
 def init_stream(
     config: TokTalkConfig,
     key: PRNGKeyArray,
@@ -77,6 +139,7 @@ def init_stream(
     batch: int = 1,
     buffer_frames: int = 1000,
     dtype: Any = jnp.float32,
+    source_dim: int | None = None,
 ) -> StreamState:
     """Empty state before the first chunk, with the noise buffer drawn from ``key``.
 
@@ -86,14 +149,19 @@ def init_stream(
         batch: number of parallel streams.
         buffer_frames: rows of the noise buffer (reused cyclically; >= the window).
         dtype: floating dtype of the state.
+        source_dim: width of source-space tokens to stream through the adaptation layer (None: the
+            stream takes base-space tokens).
 
     Returns:
         :class:`StreamState`.
 
     Raises:
-        ValueError: chunk or context frames that do not span whole tokens, a buffer shorter than
-            the window, a non-positive batch.
+        ValueError: the offline (non-causal) model, chunk or context frames that do not span whole
+            tokens, a buffer shorter than the window, a non-positive batch or source width.
     """
+    _require_causal(config)
+    if source_dim is not None and (isinstance(source_dim, bool) or int(source_dim) < 1):
+        raise ValueError(f"source_dim must be a positive integer, got {source_dim!r}")
     if batch < 1:
         raise ValueError(f"batch must be >= 1, got {batch}")
     w = config.window_frames
@@ -108,6 +176,11 @@ def init_stream(
         noise=jax.random.normal(key, (batch, buffer_frames, config.param_dim), dtype),
         position=jnp.zeros((), jnp.int32),
         step=jnp.zeros((), jnp.int32),
+        adapter=None if source_dim is None else AdapterState(
+            inputs=jnp.zeros((batch, receptive_field(config), int(source_dim)), dtype),
+            valid=jnp.zeros((batch, receptive_field(config)), bool),
+            position=jnp.zeros((), jnp.int32),
+        ),
     )
     # Commit the state to a device like the step's outputs are: an uncommitted first state gives the
     # jitted step a different cache key from every later one, so chunk 2 would compile again.
@@ -123,6 +196,7 @@ def stream_step(
     *,
     cfg_scale: Float[Array, ""] | float | None = None,
     ts: Any = None,
+    src_rate: float | int | None = None,
 ) -> tuple[StreamState, Float[Array, "batch chunk param"]]:
     """Generates the next chunk of motion from its tokens.
 
@@ -130,37 +204,69 @@ def stream_step(
         params: model parameters.
         config: model settings.
         state: the carried :class:`StreamState`.
-        chunk_tokens: ``(B, tokens_per_chunk, token_dim)`` base-space tokens of the new chunk.
+        chunk_tokens: ``(B, tokens_per_chunk, token_dim)`` base-space tokens of the new chunk, or, for a
+            state made with ``source_dim``, ``(B, source_tokens_per_chunk, source_dim)`` source-space
+            tokens at ``src_rate`` (adapted on the way in).
         style: ``(B, style_vector_dim)`` style vector or a ``(B, S, param_dim)`` reference clip (encoding a
             clip every chunk costs time: pass the vector).
         cfg_scale: guidance weight (traced; default ``config.cfg_scale``).
         ts: time grid (traced values; its length sets the step count; default the cosine grid).
+        src_rate: the source tokens' rate in Hz (required with a source-token state, static).
 
     Returns:
         ``(new_state, motion)`` with ``motion`` ``(B, chunk_frames, param_dim)``.
 
     Raises:
-        ValueError: tokens of the wrong width, count or batch; NaN/inf; bad style.
+        ValueError: the offline model; tokens of the wrong width, count or batch; NaN/inf; bad style;
+            a source-token state without ``src_rate`` or without an adapter in ``params``.
     """
+    _require_causal(config)
     batch = state.motion.shape[0]
-    ct = tokens_per_chunk(config)
+    if state.adapter is None:
+        if src_rate is not None:
+            raise ValueError("src_rate given but the stream takes base tokens: init_stream(..., source_dim=...)")
+        ct, width, rate, name = tokens_per_chunk(config), config.token_dim, config.token_rate, "chunk tokens"
+    else:
+        if src_rate is None:
+            raise ValueError("this stream takes source-space tokens: pass their rate, src_rate=...")
+        width = int(state.adapter.inputs.shape[2])
+        if adapter_source_dim(params) != width:
+            raise ValueError(f"the stream was made for {width}-d source tokens but the adapter in params "
+                             f"takes {adapter_source_dim(params)}-d ones")
+        ct, rate, name = source_tokens_per_chunk(config, src_rate), src_rate, "source chunk tokens"
+        src_rate = float(src_rate)
     shape = tuple(np.shape(chunk_tokens))
     if len(shape) != 3 or shape[0] != batch or shape[1] != ct:
         raise ValueError(
-            f"chunk_tokens must have shape ({batch}, {ct}, {config.token_dim}) (one chunk of "
+            f"{name} must have shape ({batch}, {ct}, {width}) (one chunk of "
             f"{config.chunk_frames} frames), got {shape}"
         )
-    check_tokens(chunk_tokens, width=config.token_dim, rate=config.token_rate, fps=config.fps,
-                 num_frames=config.chunk_frames, name="chunk tokens")
+    check_tokens(chunk_tokens, width=width, rate=rate, fps=config.fps, num_frames=config.chunk_frames, name=name)
     style_vec = resolve_style(params, config, style, batch)
     ts = jnp.asarray(default_grid(config) if ts is None else ts, state.motion.dtype)
     check_finite("ts", ts)
     w = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, state.motion.dtype)
-    return _stream_step(params, state, jnp.asarray(chunk_tokens, state.tokens.dtype), style_vec, w, ts, config)
+    return _stream_step(params, state, jnp.asarray(chunk_tokens, state.tokens.dtype), style_vec, w, ts, config,
+                        src_rate)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
-def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, ts, config):
+def _adapter_step(params, config, state: AdapterState, chunk_src, src_rate):
+    """One chunk through the causal adapter against the carried buffer (see the module docstring)."""
+    base = source_to_base_rate(chunk_src, src_rate, config)
+    r, ct = state.inputs.shape[1], base.shape[1]
+    window = jnp.concatenate([state.inputs, base], axis=1)
+    valid = jnp.concatenate([state.valid, jnp.ones(base.shape[:2], bool)], axis=1)
+    positions = state.position - r + jnp.arange(r + ct)
+    out = adapter_apply(params, config, window, mask=valid, positions=positions)[:, r:]
+    keep = window.shape[1] - r
+    return AdapterState(window[:, keep:], valid[:, keep:], state.position + ct), out
+
+
+@functools.partial(jax.jit, static_argnames=("config", "src_rate"))
+def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, ts, config, src_rate):
+    adapter = state.adapter
+    if adapter is not None:
+        adapter, chunk_tokens = _adapter_step(params, config, adapter, chunk_tokens, src_rate)
     c, ctx = config.chunk_frames, config.context_frames
     w = config.window_frames
     batch = state.motion.shape[0]
@@ -182,7 +288,7 @@ def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, ts, config):
     motion = jnp.concatenate([motion[:, :ctx], out], axis=1)
     new_state = StreamState(
         tokens=tokens, motion=motion, valid=valid, noise=state.noise,
-        position=state.position + c, step=state.step + 1,
+        position=state.position + c, step=state.step + 1, adapter=adapter,
     )
     return new_state, out
 
@@ -197,6 +303,7 @@ def stream(
     cfg_scale: Float[Array, ""] | float | None = None,
     ts: Any = None,
     buffer_frames: int = 1000,
+    src_rate: float | int | None = None,
 ) -> Float[Array, "batch frames param"]:
     """Runs the streaming engine over a whole token sequence, chunk by chunk (as a live stream would).
 
@@ -204,31 +311,44 @@ def stream(
 
     Args:
         params, config: the model.
-        tokens: ``(B, Tt, token_dim)`` base-space tokens.
+        tokens: ``(B, Tt, token_dim)`` base-space tokens, or with ``src_rate`` ``(B, Ts, src_dim)``
+            source-space tokens, adapted chunk by chunk by the streaming adaptation layer.
         style: style vector or reference clip (encoded once).
         key: PRNG key of the noise buffer.
         cfg_scale, ts: see :func:`stream_step`.
         buffer_frames: noise buffer rows.
+        src_rate: the rate of source-space ``tokens`` (None: base-space tokens).
 
     Returns:
-        ``(B, T, param_dim)`` with ``T`` the frames the tokens cover.
+        ``(B, T, param_dim)`` with ``T`` the frames the tokens cover (for source tokens, the frames
+        their base-rate resampling covers, as offline ``sample(adapt_tokens(...))``).
 
     Raises:
         ValueError: see :func:`stream_step`.
     """
-    frames = check_tokens(tokens, width=config.token_dim, rate=config.token_rate, fps=config.fps)
+    _require_causal(config)
+    source_dim = None
+    if src_rate is None:
+        frames = check_tokens(tokens, width=config.token_dim, rate=config.token_rate, fps=config.fps)
+        ct = tokens_per_chunk(config)
+    else:
+        source_dim = adapter_source_dim(params)
+        check_tokens(tokens, width=source_dim, rate=src_rate, fps=config.fps, name="source tokens")
+        base = default_num_frames(int(np.shape(tokens)[1]), src_rate, config.token_rate)
+        frames = frames_for_tokens(base, config.token_rate, config.fps)
+        ct = source_tokens_per_chunk(config, src_rate)
     tokens = jnp.asarray(tokens)
     batch = tokens.shape[0]
     style_vec = resolve_style(params, config, style, batch)
-    ct = tokens_per_chunk(config)
     num_chunks = -(-tokens.shape[1] // ct)
     pad = num_chunks * ct - tokens.shape[1]
     if pad:
         tokens = jnp.concatenate([tokens, jnp.repeat(tokens[:, -1:], pad, axis=1)], axis=1)
-    state = init_stream(config, key, batch=batch, buffer_frames=buffer_frames, dtype=tokens.dtype)
+    state = init_stream(config, key, batch=batch, buffer_frames=buffer_frames, dtype=tokens.dtype,
+                        source_dim=source_dim)
     outs = []
     for i in range(num_chunks):  # one host call per chunk, exactly as chunks would arrive live
         state, out = stream_step(params, config, state, tokens[:, i * ct : (i + 1) * ct], style_vec,
-                                 cfg_scale=cfg_scale, ts=ts)
+                                 cfg_scale=cfg_scale, ts=ts, src_rate=src_rate)
         outs.append(out)
     return jnp.concatenate(outs, axis=1)[:, :frames]
