@@ -280,6 +280,12 @@ def eval_(
                                        "(FLAME_masks.pkl beside it gives the lip and upper-face regions).")
     ] = None,
     cache_dir: Annotated[Path, typer.Option(help="Where synthtalk: data is prepared.")] = Path(".cache/prepared"),
+    best: Annotated[bool, typer.Option(help="Evaluate the best-validated checkpoint (checkpoint/best).")] = False,
+    sample_steps: Annotated[
+        str | None, typer.Option(help="TokTalk: Euler step counts, comma separated (one row each; default the "
+                                      "run's num_steps), e.g. 1,10.")
+    ] = None,
+    offline: Annotated[bool, typer.Option(help="TokTalk: also sample whole clips offline (full attention).")] = False,
 ) -> None:
     """Score a trained run on a split of prepared data, next to the mean pose (and the oracle where known).
 
@@ -289,8 +295,13 @@ def eval_(
     """
     from jaxtalk.commands.evaluation import EvalOptions, evaluate_run
 
+    try:
+        steps = tuple(int(s) for s in sample_steps.split(",")) if sample_steps else ()
+    except ValueError:
+        raise ValueError(f"--sample-steps must be comma-separated integers, got {sample_steps!r}") from None
     report = evaluate_run(EvalOptions(run_dir=run, data=data, split=split, max_clips=max_clips, seed=seed,
-                                      flame=flame, cache_dir=cache_dir), echo=typer.echo)
+                                      flame=flame, cache_dir=cache_dir, best=best, sample_steps=steps,
+                                      offline=offline), echo=typer.echo)
     for table in report.tables:
         _echo_table(table.rows, table.title)
     if json_out is not None:

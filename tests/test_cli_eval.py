@@ -107,12 +107,12 @@ def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path)
     output = _ok(["eval", runs["toktalk"], "--max-clips", "2", "--json", tmp_path / "r.json"])
     columns, printed = _table(output, "TokTalk on test")
     assert columns == ["method", "clips", "frames", "MSE", "LVE_mm2", "MVE_mm", "FDD_mm2", "MOD_mm", "jitter_mm"]
-    assert list(printed) == ["toktalk (streamed)", "mean pose", "oracle", "ground truth"]
+    assert list(printed) == ["toktalk (streamed, 3 steps)", "mean pose", "oracle", "ground truth"]  # tiny: 3 steps
     report = _report(tmp_path / "r.json")
     assert (report["model"], report["step"], report["split"], report["items"]) == ("toktalk", 2, "test", 2)
     assert report["data"] == str(prepared_tiny.root)
     rows = _rows(report["tables"][0])
-    assert all(rows[m][k] is not None for m in ("toktalk (streamed)", "mean pose", "oracle") for k in columns[3:])
+    assert all(rows[m][k] is not None for m in ("toktalk (streamed, 3 steps)", "mean pose", "oracle") for k in columns[3:])
 
     # The mean-pose row from the data: the training mean repeated over the frames the tokens cover.
     data, face = prepared_tiny, builtin_face(0)
@@ -135,6 +135,23 @@ def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path)
     for key in ("MSE", "LVE_mm2", "MVE_mm", "MOD_mm"):
         assert rows["oracle"][key] < rows["mean pose"][key], key
     assert rows["ground truth"]["MSE"] is None and rows["ground truth"]["jitter_mm"] > 0
+
+
+
+def test_toktalk_eval_rows_per_step_count_streamed_and_offline(runs, tmp_path):
+    from jaxtalk.commands.runs import load_run
+    from jaxtalk.models import toktalk
+
+    _ok(["eval", runs["toktalk"], "--max-clips", "1", "--sample-steps", "1,2", "--offline", "--best",
+         "--json", tmp_path / "r.json"])
+    rows = _rows(_report(tmp_path / "r.json")["tables"][0])
+    names = ["toktalk (streamed, 1 step)", "toktalk (streamed, 2 steps)", "toktalk (offline, 1 step)",
+             "toktalk (offline, 2 steps)"]
+    assert list(rows)[:4] == names
+    # The step count reaches the sampler, and offline (full attention) is another computation.
+    assert len({rows[n]["LVE_mm2"] for n in names}) == 4
+    assert load_run(runs["toktalk"], best=True).step <= load_run(runs["toktalk"]).step
+    _user_error(["eval", runs["toktalk"], "--sample-steps", "1,x"], "comma-separated integers")
 
 
 def _fake_flame(folder: Path, num_verts: int = 120) -> Path:
@@ -165,13 +182,13 @@ def test_toktalk_eval_on_flame_with_its_masks(runs, tmp_path):
     output = _ok(["eval", runs["toktalk"], "--max-clips", "1", "--flame", flame, "--json", tmp_path / "r.json"])
     assert "vertices on FLAME" in output and "MOD left out" in output
     rows = _rows(_report(tmp_path / "r.json")["tables"][0])
-    assert rows["toktalk (streamed)"]["MOD_mm"] is None
-    assert rows["toktalk (streamed)"]["LVE_mm2"] > 0 and rows["mean pose"]["FDD_mm2"] is not None
+    assert rows["toktalk (streamed, 3 steps)"]["MOD_mm"] is None
+    assert rows["toktalk (streamed, 3 steps)"]["LVE_mm2"] > 0 and rows["mean pose"]["FDD_mm2"] is not None
     (tmp_path / "flame" / "FLAME_masks.pkl").unlink()
     output = _ok(["eval", runs["toktalk"], "--max-clips", "1", "--flame", flame, "--json", tmp_path / "r.json"])
     assert "LVE and FDD (lip and upper-face regions) left out" in output
     rows = _rows(_report(tmp_path / "r.json")["tables"][0])
-    assert rows["toktalk (streamed)"]["LVE_mm2"] is None and rows["toktalk (streamed)"]["MVE_mm"] > 0
+    assert rows["toktalk (streamed, 3 steps)"]["LVE_mm2"] is None and rows["toktalk (streamed, 3 steps)"]["MVE_mm"] > 0
 
 
 # -------------------------------------------------------------------------------------------- TIMAR
@@ -370,5 +387,5 @@ def test_real_dualtalk_demo_timar_and_toktalk_eval(tmp_path):
     (table,) = _report(tmp_path / "t.json")["tables"]
     columns, printed = _table(output, table["title"])
     assert {"LVE_mm2", "MVE_mm", "FDD_mm2", "MOD_mm", "jitter_mm"} <= set(columns)
-    assert list(printed)[:2] == ["toktalk (streamed)", "mean pose"] and "oracle" not in printed
+    assert list(printed)[:2] == ["toktalk (streamed, 3 steps)", "mean pose"] and "oracle" not in printed
     assert all(np.isfinite(row["MVE_mm"]) for row in table["rows"] if row.get("MVE_mm") is not None)

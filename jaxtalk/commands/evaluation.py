@@ -72,6 +72,9 @@ class EvalOptions:
         seed: noise seed.
         flame: TokTalk: a FLAME 2020 model file to pose the parameters on instead of the built-in face.
         cache_dir: where ``synthtalk:`` data is prepared.
+        best: evaluate the best-validated checkpoint (``checkpoint/best``) instead of the latest.
+        sample_steps: TokTalk: Euler step counts, one streamed row each (empty: the config's).
+        offline: TokTalk: also sample each clip offline in one pass (full attention), per step count.
     """
 
     run_dir: Path
@@ -81,6 +84,9 @@ class EvalOptions:
     seed: int = 0
     flame: Path | None = None
     cache_dir: Path = Path(".cache/prepared")
+    best: bool = False
+    sample_steps: tuple[int, ...] = ()
+    offline: bool = False
 
 
 @dataclasses.dataclass
@@ -286,6 +292,8 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
     from jaxtalk.face import builtin_face
     from jaxtalk.metrics import jitter
     from jaxtalk.models import toktalk
+    from jaxtalk.models.toktalk.model import frames_for_tokens
+    from jaxtalk.models.toktalk.sample import default_grid
 
     config = run.config
     clips = [i for i in data.split(split) if data.clips[i]["tokens"]]
@@ -308,8 +316,15 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
     mean_pose = np.asarray(norm["mean"] if "mean" in norm else data.motion_stats()["mean"], np.float32)
     key = jax.random.key(opts.seed)
     echo(f"streaming {len(chosen)} {split} clips of {data.root} with TokTalk (step {run.step})")
-    per: dict[str, list[dict[str, float | None]]] = {"toktalk (streamed)": [], "mean pose": [], "oracle": [],
-                                                     "ground truth": []}
+    step_counts = tuple(opts.sample_steps) or (config.num_steps,)
+    if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in step_counts):
+        raise ValueError(f"sample steps must be positive integers, got {step_counts}")
+    plural = lambda n: f"{n} step{'s' * (n > 1)}"  # noqa: E731
+    variants = [(f"toktalk (streamed, {plural(n)})", "stream", n) for n in step_counts]
+    if opts.offline:
+        variants += [(f"toktalk (offline, {plural(n)})", "offline", n) for n in step_counts]
+    per: dict[str, list[dict[str, float | None]]] = {name: [] for name, _, _ in variants}
+    per.update({"mean pose": [], "oracle": [], "ground truth": []})
     frames = []
     for n, i in enumerate(chosen):
         rec = data.record(i, ("motion", "tokens", "oracle"))
@@ -318,14 +333,20 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
         if others:
             ref = np.asarray(data.record(others[0], ("motion",))["motion"], np.float32)[:s]
             style = ref if ref.shape[0] >= config.style_min_frames else default_style
-        out = toktalk.stream(run.params, config, np.asarray(rec["tokens"], np.float32)[None], style[None],
-                             jax.random.fold_in(key, n))
-        pred = np.asarray(out, np.float32)[0]
-        t = min(pred.shape[0], rec["motion"].shape[0])
-        pred, gt = pred[:t], np.asarray(rec["motion"], np.float32)[:t]
+        tokens = np.asarray(rec["tokens"], np.float32)[None]
+        style_vec = toktalk.encode_style(run.params, config, style[None])
+        t = min(frames_for_tokens(tokens.shape[1], config.token_rate, config.fps), rec["motion"].shape[0])
+        gt = np.asarray(rec["motion"], np.float32)[:t]
         vg = np.asarray(face.vertices_seq(gt))
-        scored = vertex_metrics(pred, gt, face, gt_vertices=vg, template=template)
-        per["toktalk (streamed)"].append(scored)
+        for name, mode, steps in variants:
+            grid = default_grid(config, steps)
+            if mode == "stream":
+                out = toktalk.stream(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid)
+            else:
+                out = toktalk.sample(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid)
+            pred = np.asarray(out, np.float32)[0][:t]
+            scored = vertex_metrics(pred, gt, face, gt_vertices=vg, template=template)
+            per[name].append(scored)
         per["mean pose"].append(vertex_metrics(np.broadcast_to(mean_pose, gt.shape).copy(), gt, face, gt_vertices=vg,
                                                template=template))
         if "oracle" in rec:
@@ -541,7 +562,7 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
     if latest_checkpoint_step(checkpoint_dir(opts.run_dir)) is None:
         raise FileNotFoundError(f"{opts.run_dir} is not trained yet (no checkpoint in {checkpoint_dir(opts.run_dir)}); "
                                 "train it with `jaxtalk train`")
-    run = load_run(opts.run_dir)
+    run = load_run(opts.run_dir, best=opts.best)
     check_eval_data(record, run.features(), data)
     items, tables = _EVALUATORS[record.model](run, data, opts.split, opts, echo)
     return EvalReport(model=record.model, run_dir=str(opts.run_dir), step=run.step, data=str(data.root),
