@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxtalk.data import synthtalk
 from jaxtalk.demo import DemoOptions, model_config, train_or_load
-from jaxtalk.metrics import jitter, lve
+from jaxtalk.metrics import fdd, jitter, lve, mod
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.train import make_windows, train_adapter
 from jaxtalk.train import OptimConfig
@@ -47,19 +47,19 @@ def _load(path: Path, like):
     return jax.tree.unflatten(jax.tree.structure(like), leaves)
 
 
-def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0):
-    """The demo's base model (same recipe, :func:`jaxtalk.demo.train_or_load`) then stage 2 on stream B.
+def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0, chunk_frames: int = 10):
+    """The demo's base model (same recipe, :func:`jaxtalk.demo.train_or_load`) then stage 2 on stream B,
+    trained at a streaming chunk of ``chunk_frames`` (a training setting: the chunk mask and window).
 
     Both stages are cached under ``toktalk_cache/`` (the base as a resumable run folder, the adapter
     as ``.npz``). Returns ``(config, params, info)``.
     """
     if seed != corpus.seed:
         raise ValueError(f"the demo's run trains on SynthTalk of its own seed: seed={seed} but corpus.seed={corpus.seed}")
-    cfg = model_config()
-    # "-run-": a run folder of the recipe (run.json + checkpoint); older "-demo-" folders held the
-    # previous training code's checkpoints, which the recipe's loader cannot resume.
-    options = DemoOptions(out_dir=CACHE / f"{corpus.key}-run-s{steps}-seed{seed}", size=corpus.size,
-                          seed=seed, train_steps=steps, progress=True, cache_dir=DATA)
+    cfg = model_config(chunk_frames)
+    # "-causal-": the causal (streaming) model; folders of the older offline model are not reused.
+    options = DemoOptions(out_dir=CACHE / f"{corpus.key}-causal-s{steps}-c{chunk_frames}-seed{seed}", size=corpus.size,
+                          seed=seed, train_steps=steps, progress=True, cache_dir=DATA, chunk_frames=chunk_frames)
     t0 = time.perf_counter()
     base, history, _ = train_or_load(options)
     base = jax.tree.map(jnp.asarray, base)
@@ -94,17 +94,22 @@ def style_clip_for(corpus, clip: int, frames: int, rng: np.random.Generator) -> 
 
 
 def evaluate(corpus, pred: np.ndarray, clip: int, chunk: int | None = None) -> dict:
-    """MSE (params), LVE (lip vertices, mm^2) and jitter (all frames / near chunk boundaries)."""
+    """MSE (params), LVE (lip vertices, mm^2), FDD (upper face, mm^2), MOD (mm) and jitter (all frames /
+    near chunk boundaries)."""
     gt = np.asarray(corpus.motion(clip))
     n = min(len(gt), len(pred))
     gt, pred = gt[:n], pred[:n]
     face = corpus.face(0)
     lips = np.asarray(face.regions["lips"])
     v_gt, v_pred = np.asarray(face.vertices_seq(gt)), np.asarray(face.vertices_seq(pred))
+    template = np.asarray(face.vertices(np.zeros(gt.shape[1], np.float32)))
     out = {
         "frames": n,
         "mse": float(np.mean(np.square(pred - gt))),
         "lve_mm2": float(lve(v_pred, v_gt, lips)) * 1e6,
+        "fdd_mm2": float(fdd(v_pred, v_gt, template, np.asarray(face.regions["upper_face"]))) * 1e6,
+        "mod_mm": float(mod(v_pred, v_gt, np.asarray(face.regions["mouth_upper"]),
+                            np.asarray(face.regions["mouth_lower"]))) * 1e3,
         "jitter": float(jitter(pred)),
     }
     if chunk is not None and n > chunk + 1:

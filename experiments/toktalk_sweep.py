@@ -1,9 +1,11 @@
 """TokTalk Table 5 on SynthTalk test: chunk {0.4, 0.8, 1.2} s x Euler steps {1, 5, 10, 20}.
 
-Streaming engine with the trained ``small`` model (the same weights for every cell: chunk size and step
-count are inference settings). Per cell: parameter MSE, LVE (mm^2, built-in face), jitter near chunk
-boundaries (mean |second difference| within 2 frames of a boundary) and over all frames, median
-per-chunk latency (compile excluded) and the compile time of the cell's program.
+Streaming engine with the demo's ``small`` model. The chunk is a TRAINING setting too: by default one
+model is trained per chunk size (its chunk attention mask and streaming window) and streamed at that
+chunk; ``--train-chunks 10 --infer-chunks 10,20,30`` instead streams one model at every chunk. Step
+count is an inference setting. Per cell: parameter MSE, LVE (mm^2, built-in face), FDD and MOD, jitter
+near chunk boundaries (mean |second difference| within 2 frames of a boundary) and over all frames,
+median per-chunk latency (compile excluded) and the compile time of the cell's program.
 
 The paper's claim to check: quality and smoothness improve with more steps and larger chunks.
 
@@ -33,52 +35,62 @@ CHUNKS = (10, 20, 30)
 STEPS = (1, 5, 10, 20)
 
 
+def _cell(cfg, params, corpus, clips, styles, chunk, n) -> dict:
+    ts = default_grid(cfg, n)
+    # Compile time of this cell's program (fresh shapes: the grid length is static).
+    state = tt.init_stream(cfg, jax.random.key(0))
+    ct = tt.tokens_per_chunk(cfg)
+    probe = jnp.zeros((1, ct, cfg.token_dim))
+    t0 = time.perf_counter()
+    jax.block_until_ready(tt.stream_step(params, cfg, state, probe, styles[clips[0]], ts=ts)[1])
+    compile_s = time.perf_counter() - t0
+    step = functools.partial(stream_mod._stream_step, config=cfg, src_rate=None)
+    lat = []
+    for _ in range(5):
+        t1 = time.perf_counter()
+        jax.block_until_ready(step(params, state, probe, styles[clips[0]], jnp.float32(cfg.cfg_scale),
+                                   jnp.asarray(ts, jnp.float32))[1])
+        lat.append(time.perf_counter() - t1)
+    rows = []
+    for i, c in enumerate(clips):
+        tok = np.asarray(corpus.tokens(c, "A").embeddings)[None]
+        pred = np.asarray(tt.stream(params, cfg, tok, styles[c], jax.random.key(7 + i), ts=ts))[0]
+        rows.append(evaluate(corpus, pred, c, chunk))
+    return {"chunk_s": chunk / cfg.fps, "steps": n, "mse": weighted_mean(rows, "mse"),
+            "lve_mm2": weighted_mean(rows, "lve_mm2"), "fdd_mm2": weighted_mean(rows, "fdd_mm2"),
+            "mod_mm": weighted_mean(rows, "mod_mm"), "jitter_boundary": weighted_mean(rows, "jitter_boundary"),
+            "jitter_all": weighted_mean(rows, "jitter"), "latency_ms": 1e3 * float(np.median(lat)),
+            "compile_s": compile_s}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="small")
     parser.add_argument("--steps", type=int, default=1200, help="base training steps (the demo's: 1200)")
     parser.add_argument("--adapter-steps", type=int, default=400)
     parser.add_argument("--clips", type=int, default=4)
+    parser.add_argument("--train-chunks", default="10,20,30", help="chunk sizes (frames) to train a model at")
+    parser.add_argument("--infer-chunks", default="", help="chunk sizes to stream each model at (default: its own)")
     parser.add_argument("--out", default=str(RESULTS / "toktalk_sweep.json"))
     args = parser.parse_args()
     corpus = load_corpus(args.size)
-    base_cfg, params, _ = trained_small(corpus, args.steps, args.adapter_steps)
     clips = corpus.split("test")[: args.clips]
-    rng = np.random.default_rng(0)
-    styles = {c: tt.encode_style(params, base_cfg, style_clip_for(corpus, c, 8 * base_cfg.fps, rng)) for c in clips}
     table = []
-    for chunk in CHUNKS:
-        cfg = dataclasses.replace(base_cfg, chunk_frames=chunk, context_frames=max(20, chunk))
-        for n in STEPS:
-            ts = default_grid(cfg, n)
-            # Compile time of this cell's program (fresh shapes: the grid length is static).
-            state = tt.init_stream(cfg, jax.random.key(0))
-            ct = tt.tokens_per_chunk(cfg)
-            probe = jnp.zeros((1, ct, cfg.token_dim))
-            t0 = time.perf_counter()
-            jax.block_until_ready(tt.stream_step(params, cfg, state, probe, styles[clips[0]], ts=ts)[1])
-            compile_s = time.perf_counter() - t0
-            step = functools.partial(stream_mod._stream_step, config=cfg)
-            lat = []
-            for _ in range(5):
-                t1 = time.perf_counter()
-                jax.block_until_ready(step(params, state, probe, styles[clips[0]], jnp.float32(cfg.cfg_scale),
-                                           jnp.asarray(ts, jnp.float32))[1])
-                lat.append(time.perf_counter() - t1)
-            rows = []
-            for i, c in enumerate(clips):
-                tok = np.asarray(corpus.tokens(c, "A").embeddings)[None]
-                pred = np.asarray(tt.stream(params, cfg, tok, styles[c], jax.random.key(7 + i), ts=ts))[0]
-                rows.append(evaluate(corpus, pred, c, chunk))
-            table.append({
-                "chunk_s": chunk / cfg.fps, "steps": n, "mse": weighted_mean(rows, "mse"),
-                "lve_mm2": weighted_mean(rows, "lve_mm2"), "jitter_boundary": weighted_mean(rows, "jitter_boundary"),
-                "jitter_all": weighted_mean(rows, "jitter"), "latency_ms": 1e3 * float(np.median(lat)),
-                "compile_s": compile_s,
-            })
-            print(table[-1], flush=True)
+    for train_chunk in [int(c) for c in args.train_chunks.split(",")]:
+        base_cfg, params, _ = trained_small(corpus, args.steps, args.adapter_steps, chunk_frames=train_chunk)
+        rng = np.random.default_rng(0)
+        styles = {c: tt.encode_style(params, base_cfg, style_clip_for(corpus, c, 8 * base_cfg.fps, rng)) for c in clips}
+        for chunk in [int(c) for c in args.infer_chunks.split(",") if c] or [train_chunk]:
+            cfg = dataclasses.replace(base_cfg, chunk_frames=chunk, context_frames=max(20, 2 * chunk))
+            for n in STEPS:
+                table.append({"train_chunk_s": train_chunk / cfg.fps,
+                              **_cell(cfg, params, corpus, clips, styles, chunk, n)})
+                print(table[-1], flush=True)
     print_table(table, f"TokTalk Table 5 on SynthTalk {args.size} test ({len(clips)} clips, streaming)")
     grid = {(r["chunk_s"], r["steps"]): r for r in table}
+    if len({r["chunk_s"] for r in table}) < len(CHUNKS):
+        write_json(args.out, {"machine": machine_info(), "args": vars(args), "table": table})
+        return
     more_steps = all(grid[(c / 25, 20)]["jitter_boundary"] < grid[(c / 25, 1)]["jitter_boundary"] for c in CHUNKS)
     bigger_chunk = all(grid[(CHUNKS[-1] / 25, n)]["jitter_boundary"] < grid[(CHUNKS[0] / 25, n)]["jitter_boundary"]
                        for n in STEPS)

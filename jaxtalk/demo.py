@@ -48,6 +48,8 @@ class DemoOptions:
         learning_rate: peak AdamW learning rate.
         retrain: delete an existing run (checkpoint and ``run.json``) and cached results first.
         audio: the user's own audio file to animate (skips nothing else).
+        chunk_frames: the model's streaming chunk in frames, a training setting too (the chunk
+            attention mask and the streaming window are trained at this size).
         sample_steps: Euler steps of the streamed clip and of ``audio``. One step from pure noise is
             the model's posterior mean (smooth, lowest error); more steps add sampled detail that a
             model trained for minutes on 2 CPU cores has not learned well (the sweep shows both).
@@ -64,6 +66,7 @@ class DemoOptions:
     seed: int = 0
     train_steps: int = 1200
     sample_steps: int = 1
+    chunk_frames: int = 10
     batch_size: int = 16
     window_frames: int = 100
     learning_rate: float = 2e-3
@@ -148,7 +151,7 @@ def train_overrides(options: DemoOptions) -> tuple[str, ...]:
     from jaxtalk.models.toktalk import TokTalkConfig
     from jaxtalk.models.toktalk.recipe import DEFAULTS, default_window
 
-    want, base = model_config(), TokTalkConfig.small()
+    want, base = model_config(options.chunk_frames), TokTalkConfig.small()
     items = [f"{f.name}={getattr(want, f.name)}" for f in dataclasses.fields(want)
              if getattr(want, f.name) != getattr(base, f.name)]
     if options.learning_rate != DEFAULTS.lr:
@@ -338,7 +341,7 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
     stream = corpus.tokenizer("A").encode(audio)
     tokens = np.asarray(stream.embeddings, np.float32)
     frames = int(round(audio.shape[0] / 16000 * 25))
-    config = model_config(num_steps=options.sample_steps)
+    config = model_config(options.chunk_frames, num_steps=options.sample_steps)
     pred, times = _stream_timed(params, config, tokens, style_vec, jax.random.key(2), frames)
     stem = Path(options.audio).stem
     files["user_params"] = options.out_dir / f"{stem}_params.npz"
@@ -393,7 +396,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     files["run"] = out / "run.json"
     files["checkpoint"] = out / "checkpoint"
 
-    config = model_config(num_steps=options.sample_steps)
+    config = model_config(options.chunk_frames, num_steps=options.sample_steps)
     clip, style_ref = _pick_clips(corpus)
     gt = np.asarray(corpus.motion(clip), np.float32)
     tokens = np.asarray(corpus.tokens(clip, "A").embeddings, np.float32)
