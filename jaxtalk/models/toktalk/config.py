@@ -80,6 +80,9 @@ class TokTalkConfig:
         dropout: dropout rate in the transformer blocks (training only).
         precondition: wrap the decoder in the Gaussian-optimal skip/scale of the flow path (see
             :func:`jaxtalk.models.toktalk.model.velocity`); False = the raw decoder output, as in CosyVoice.
+        noise_frames: temporal correlation of the flow's starting noise, as the standard deviation in
+            frames of a Gaussian smoothing of white noise (rescaled to unit variance per frame); 0 =
+            white noise (the paper's). See :mod:`jaxtalk.models.toktalk.noise`.
         time_sampling: training flow times: "cosine" (``t = 1 - cos(u pi / 2)``, ``u ~ U(0, 1)``:
             more weight near the noise end, where the conditional mean is learned; CosyVoice's
             ``t_scheduler: cosine``) or "uniform" (``t ~ U(0, 1)``). On SynthTalk small (600 steps)
@@ -124,6 +127,7 @@ class TokTalkConfig:
     chunk_mask_prob: float = 0.5
     dropout: float = 0.0
     precondition: bool = True
+    noise_frames: float = 0.0
     time_sampling: str = "cosine"
 
     def __post_init__(self) -> None:
@@ -160,6 +164,7 @@ class TokTalkConfig:
             _check(name, 0.0 <= value <= 1.0, value)
         _check("sigma_min", 0.0 <= self.sigma_min < 1.0, self.sigma_min)
         _check("kl_weight", self.kl_weight >= 0.0, self.kl_weight)
+        _check("noise_frames", math.isfinite(self.noise_frames) and 0.0 <= self.noise_frames <= 50.0, self.noise_frames)
         _check("time_sampling", self.time_sampling in ("uniform", "cosine"), self.time_sampling)
 
     # ------------------------------------------------------------------------------- presets

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.models.toktalk.noise import prior_noise
 from jaxtalk.models.toktalk.model import (
     Condition,
     adapter_forward,
@@ -129,7 +130,7 @@ def _flow_loss(
     times = jax.random.uniform(k_t, (b,), x1.dtype)
     if config.time_sampling == "cosine":
         times = 1.0 - jnp.cos(times * (0.5 * jnp.pi))
-    z = jax.random.normal(k_z, x1.shape, x1.dtype)
+    z = prior_noise(k_z, x1.shape, config.noise_frames, x1.dtype)
     x_t, u = flow_matching_terms(x1, z, times, config.sigma_min)
 
     known_mask = random_known_mask(k_known, valid, config.known_prob, config.known_max_fraction)

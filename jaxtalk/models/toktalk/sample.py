@@ -26,6 +26,7 @@ from jaxtalk.models.toktalk.model import (
     style_vector,
     to_flow_space,
 )
+from jaxtalk.models.toktalk.noise import prior_noise
 from jaxtalk.samplers import cosine_grid, sample_euler
 from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 
@@ -130,7 +131,7 @@ def sample(
     if noise is None:
         if key is None:
             raise ValueError("sample needs a PRNG key (or explicit noise)")
-        noise = jax.random.normal(key, motion_shape, dtype=jnp.result_type(float))
+        noise = prior_noise(key, motion_shape, config.noise_frames, jnp.result_type(float))
     elif tuple(np.shape(noise)) != motion_shape:
         raise ValueError(f"noise must have shape {motion_shape}, got {tuple(np.shape(noise))}")
     check_finite("noise", noise)

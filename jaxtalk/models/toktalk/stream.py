@@ -42,6 +42,7 @@ from jaxtalk.models.toktalk.model import (
     frames_for_tokens,
     source_to_base_rate,
 )
+from jaxtalk.models.toktalk.noise import cyclic_prior_noise
 from jaxtalk.models.toktalk.sample import default_grid, generate_frames, resolve_style
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 
@@ -173,7 +174,7 @@ def init_stream(
         tokens=jnp.zeros((batch, wt, config.token_dim), dtype),
         motion=jnp.zeros((batch, w, config.param_dim), dtype),
         valid=jnp.zeros((batch, w), bool),
-        noise=jax.random.normal(key, (batch, buffer_frames, config.param_dim), dtype),
+        noise=cyclic_prior_noise(key, (batch, buffer_frames, config.param_dim), config.noise_frames, dtype),
         position=jnp.zeros((), jnp.int32),
         step=jnp.zeros((), jnp.int32),
         adapter=None if source_dim is None else AdapterState(
