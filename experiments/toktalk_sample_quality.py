@@ -29,6 +29,7 @@ from jaxtalk.face import builtin_face
 from jaxtalk.metrics import jitter
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.loss import flow_matching_terms
+from jaxtalk.models.toktalk.noise import prior_noise
 from jaxtalk.models.toktalk.model import Condition, frames_for_tokens, interpolate_tokens, to_flow_space, velocity
 from jaxtalk.models.toktalk.sample import default_grid
 
@@ -117,7 +118,7 @@ def loss_by_time(run, data, clips, by_speaker, args):
     for t in (0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 0.97):
         losses, base, hf = [], [], []
         for r in range(args.repeats):
-            z = jax.random.normal(jax.random.key(100 + r), x1.shape)
+            z = prior_noise(jax.random.key(100 + r), x1.shape, config.noise_frames)  # the run's own prior
             times = jnp.full((b,), t)
             x_t, u = flow_matching_terms(x1, z, times, config.sigma_min)
             v = v_of(params, x_t, times)

@@ -82,7 +82,9 @@ class TokTalkConfig:
             :func:`jaxtalk.models.toktalk.model.velocity`); False = the raw decoder output, as in CosyVoice.
         noise_frames: temporal correlation of the flow's starting noise, as the standard deviation in
             frames of a Gaussian smoothing of white noise (rescaled to unit variance per frame); 0 =
-            white noise (the paper's). See :mod:`jaxtalk.models.toktalk.noise`.
+            white noise (the paper's). See :mod:`jaxtalk.models.toktalk.noise`. Default 2 frames:
+            on SynthTalk small (1,200 steps, 8 test clips) it cut the streamed 10-step jitter from
+            19.1 to 3.2 mm/frame^2 (data: 0.72) and LVE from 209 to 169 mm^2 (1 step: 116 -> 73).
         time_sampling: training flow times: "cosine" (``t = 1 - cos(u pi / 2)``, ``u ~ U(0, 1)``:
             more weight near the noise end, where the conditional mean is learned; CosyVoice's
             ``t_scheduler: cosine``) or "uniform" (``t ~ U(0, 1)``). On SynthTalk small (600 steps)
@@ -127,7 +129,7 @@ class TokTalkConfig:
     chunk_mask_prob: float = 0.5
     dropout: float = 0.0
     precondition: bool = True
-    noise_frames: float = 0.0
+    noise_frames: float = 2.0
     time_sampling: str = "cosine"
 
     def __post_init__(self) -> None:
