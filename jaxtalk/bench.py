@@ -147,6 +147,39 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     }
 
 
+def toktalk_window(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
+    """Time of one streaming chunk's computation (the sampler on a full window under the chunk mask,
+    overlap inpainted) for ANY decoder: the causal one and the offline one (which may not stream, so
+    its cost is measured on the same window outside the streaming engine).
+
+    Returns:
+        Row: ``decoder`` (causal / offline), ``window_frames``, ``compile_s``, ``latency_s``.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from jaxtalk.models import toktalk as tt
+    from jaxtalk.models.toktalk.sample import default_grid, generate_frames
+
+    params = random_params(lambda k: tt.init_params(config, k))
+    rng = np.random.default_rng(0)
+    w, ctx = config.window_frames, config.context_frames
+    tokens = jnp.asarray(rng.normal(size=(1, tt.tokens_per_chunk(config, w), config.token_dim)), jnp.float32)
+    style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
+    noise = jnp.asarray(rng.normal(size=(1, w, config.param_dim)), jnp.float32)
+    frames = np.arange(w)
+    known_mask = jnp.asarray(((frames >= ctx - config.overlap_frames) & (frames < ctx))[None])
+    run = jax.jit(lambda p, tok, sty, z: generate_frames(
+        p, config, tok, sty, z, jnp.asarray(default_grid(config), jnp.float32), jnp.float32(config.cfg_scale),
+        known=z, known_mask=known_mask, mask=jnp.ones((1, w), bool), chunked=jnp.ones((), bool)))
+    t0 = time.perf_counter()
+    jax.block_until_ready(run(params, tokens, style, noise))
+    compile_s = time.perf_counter() - t0
+    latency = _median_time(lambda: run(params, tokens, style, noise), repeats)
+    return {"model": "TokTalk", "case": name, "decoder": "causal" if config.causal else "offline",
+            "window_frames": w, "compile_s": compile_s, "latency_s": latency}
+
+
 def toktalk_growth(config: Any, chunks: int = 50, repeats: int = 10) -> dict[str, Any]:
     """Per-chunk latency at chunk 2 and at chunk ``chunks`` of one stream (the bounded window keeps
     them equal; a model that recomputes the whole prefix grows).

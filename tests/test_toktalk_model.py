@@ -81,12 +81,16 @@ def _perturb_from(x, cond, start):
     return jnp.where(later, x + 1.0, x), cond._replace(tokens=jnp.where(later, cond.tokens * -2.0, cond.tokens))
 
 
-def test_causal_decoder_under_chunk_mask_ignores_later_chunks_bitwise():
-    p = tt.init_params(CFG, jax.random.key(1))["decoder"]
+def _decoder_inputs(cfg):
+    """Fresh decoder parameters, noisy motion, flow times and a chunk-masked condition."""
+    p = tt.init_params(cfg, jax.random.key(1))["decoder"]
     rng = np.random.default_rng(0)
     x = jnp.asarray(rng.normal(size=(B, T, 56)), jnp.float32)
-    t = jnp.asarray([0.3, 0.8], jnp.float32)
-    c_chunk = _cond(rng, chunked=True)
+    return p, x, jnp.asarray([0.3, 0.8], jnp.float32), _cond(rng, chunked=True)
+
+
+def test_causal_decoder_under_chunk_mask_ignores_later_chunks_bitwise():
+    p, x, t, c_chunk = _decoder_inputs(CFG)
     y1 = np.asarray(_decoder_apply(CFG, p, x, t, c_chunk))
     # Perturb every input from frame 8 on (chunks of 4: chunks 2 and 3): chunks 0 and 1 stay bitwise.
     for start in (8, 12):
@@ -102,11 +106,7 @@ def test_causal_decoder_under_chunk_mask_ignores_later_chunks_bitwise():
 
 
 def test_offline_decoder_sees_the_next_chunk_through_its_convolutions():
-    p = tt.init_params(OFFLINE, jax.random.key(1))["decoder"]
-    rng = np.random.default_rng(0)
-    x = jnp.asarray(rng.normal(size=(B, T, 56)), jnp.float32)
-    t = jnp.asarray([0.3, 0.8], jnp.float32)
-    c_chunk = _cond(rng, chunked=True)
+    p, x, t, c_chunk = _decoder_inputs(OFFLINE)
     x2, c2 = _perturb_from(x, c_chunk, 8)
     y1 = _decoder_apply(OFFLINE, p, x, t, c_chunk)
     y2 = _decoder_apply(OFFLINE, p, x2, t, c2)
