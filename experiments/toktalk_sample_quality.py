@@ -8,6 +8,8 @@ jitter beside them. Then, on validation windows, the conditional flow loss at fi
 the loss of the preconditioning's linear part alone (``F = 0``): where the network gains little over
 it, samples keep the noise the linear part cannot remove. A high-frequency split of the 1-step output
 (energy of the second difference) shows whether the starting noise leaks into the posterior mean.
+The mean of four 10-step samples against a single sample separates the samples' spread (what the
+model has not pinned down, which a single sample's LVE adds) from their bias.
 
 Usage: ``python experiments/toktalk_sample_quality.py RUN [--cache-dir DIR] [--clips 8] [--best]``
 """
@@ -53,7 +55,8 @@ def sample_rows(run, data, clips, by_speaker, args):
     settings += [("offline, 10 steps, no guidance", "offline", 10, 0.0),
                  ("offline chunk mask, 1 step", "chunked", 1, None), ("offline chunk mask, 10 steps", "chunked", 10, None),
                  ("streamed, 1 step", "stream", 1, None), ("streamed, 10 steps", "stream", 10, None),
-                 ("streamed, 10 steps, no guidance", "stream", 10, 0.0)]
+                 ("streamed, 10 steps, no guidance", "stream", 10, 0.0),
+                 ("offline, 10 steps, mean of 4 samples", "mean4", 10, None)]
     per = {name: [] for name, *_ in settings}
     per["mean pose"], per["ground truth"] = [], []
     frames = []
@@ -73,6 +76,9 @@ def sample_rows(run, data, clips, by_speaker, args):
             grid = default_grid(config, steps)
             if mode == "stream":
                 out = tt.stream(params, config, tokens, style, k, ts=grid, cfg_scale=w)
+            elif mode == "mean4":  # the samples' own mean: what a sharp posterior's samples would give
+                out = sum(tt.sample(params, config, tokens, style, jax.random.fold_in(k, r), ts=grid, cfg_scale=w)
+                          for r in range(4)) / 4
             else:
                 out = tt.sample(params, config, tokens, style, k, ts=grid, cfg_scale=w, chunked=mode == "chunked")
             per[name].append(vertex_metrics(np.asarray(out)[0][:t], gt, face, gt_vertices=vg, template=template))

@@ -185,3 +185,17 @@ def test_sample_user_errors(run, tmp_path):
     np.save(tmp_path / "nan.npy", bad)
     _user_error(["stream", run_dir, str(tmp_path / "nan.npy")], "NaN")
     _user_error(["sample", str(tmp_path), str(tmp_path / "wide.npy")], "is not a training run")
+
+
+def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise():
+    import dataclasses
+
+    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.models.toktalk import TokTalkConfig
+
+    config = dataclasses.asdict(TokTalkConfig.tiny())
+    old = {k: v for k, v in config.items() if k != "noise_frames"}
+    record = RunRecord(model="toktalk", preset="tiny", items=[], config=old, train={}, optim={}, data={}, seed=0,
+                       extra={})
+    assert record.model_config().noise_frames == 0.0
+    assert RunRecord(**{**dataclasses.asdict(record), "config": config}).model_config().noise_frames == 2.0

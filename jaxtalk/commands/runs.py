@@ -37,6 +37,10 @@ RUN_FILE = "run.json"
 _PRESETS = ("paper", "small", "tiny")
 
 
+# Values of config fields added after runs were first written, as those runs were trained.
+_FIELDS_BEFORE_THEY_EXISTED = {"toktalk": {"noise_frames": 0.0}}
+
+
 def config_class(model: str) -> type:
     """The frozen config dataclass of ``model`` (imported on demand).
 
@@ -191,8 +195,13 @@ class RunRecord:
             raise ValueError(f"{path} is not a run record of this jaxtalk version ({err}); train it again") from None
 
     def model_config(self) -> Any:
-        """The model config instance."""
-        return config_class(self.model)(**self.config)
+        """The model config instance.
+
+        Fields a run recorded before they existed take the value the run was trained with, not
+        today's default (a TokTalk run without ``noise_frames`` was trained on white noise).
+        """
+        fields = {**_FIELDS_BEFORE_THEY_EXISTED.get(self.model, {}), **self.config}
+        return config_class(self.model)(**fields)
 
     def optim_config(self) -> Any:
         """The :class:`jaxtalk.train.OptimConfig` instance."""
