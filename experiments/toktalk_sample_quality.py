@@ -2,7 +2,7 @@
 setting, and its flow loss by flow time.
 
 For ``--clips`` test clips of the run's data (style: another clip of the same speaker, as ``jaxtalk
-eval``): LVE (mm^2) and vertex jitter (mm/frame^2) of offline samples (full attention and chunk mask)
+eval``): LVE (mm^2), vertex jitter (mm/frame^2) and parameter jitter (the TokTalk tables' unit) of offline samples (full attention and chunk mask)
 at 1/2/5/10/20 Euler steps, with and without guidance, and of the streaming engine; the data's own
 jitter beside them. Then, on validation windows, the conditional flow loss at fixed flow times next to
 the loss of the preconditioning's linear part alone (``F = 0``): where the network gains little over
@@ -81,16 +81,19 @@ def sample_rows(run, data, clips, by_speaker, args):
                           for r in range(4)) / 4
             else:
                 out = tt.sample(params, config, tokens, style, k, ts=grid, cfg_scale=w, chunked=mode == "chunked")
-            per[name].append(vertex_metrics(np.asarray(out)[0][:t], gt, face, gt_vertices=vg, template=template))
-        per["mean pose"].append(vertex_metrics(np.broadcast_to(mean_pose, gt.shape).copy(), gt, face, gt_vertices=vg,
-                                               template=template))
-        per["ground truth"].append({"LVE_mm2": 0.0, "MSE": 0.0, "jitter_mm": float(jitter(vg)) * 1e3})
+            pred = np.asarray(out)[0][:t]
+            per[name].append({**vertex_metrics(pred, gt, face, gt_vertices=vg, template=template),
+                              "jitter_params": float(jitter(pred))})
+        per["mean pose"].append({**vertex_metrics(np.broadcast_to(mean_pose, gt.shape).copy(), gt, face, gt_vertices=vg,
+                                                  template=template), "jitter_params": 0.0})
+        per["ground truth"].append({"LVE_mm2": 0.0, "MSE": 0.0, "jitter_mm": float(jitter(vg)) * 1e3,
+                                    "jitter_params": float(jitter(gt))})
         frames.append(t)
     w = np.asarray(frames, float)
     rows = []
     for name, items in per.items():
         row = {"setting": name}
-        for key_ in ("MSE", "LVE_mm2", "jitter_mm"):
+        for key_ in ("MSE", "LVE_mm2", "jitter_mm", "jitter_params"):
             row[key_] = float(np.sum(w * np.array([it[key_] for it in items])) / w.sum())
         rows.append(row)
     return rows
