@@ -46,6 +46,12 @@ def _clips(data, split, n):
     return chosen, by_speaker
 
 
+def _reference(data, by_speaker, i, frames):
+    """The first ``frames`` frames of another clip of clip ``i``'s speaker (itself when it has none)."""
+    other = next((j for j in by_speaker[data.clips[i]["speaker"]] if j != i), i)
+    return np.asarray(data.record(other, ("motion",))["motion"], np.float32)[:frames]
+
+
 def sample_rows(run, data, clips, by_speaker, args):
     config, params = run.config, run.params
     face = builtin_face(0)
@@ -64,9 +70,7 @@ def sample_rows(run, data, clips, by_speaker, args):
     key = jax.random.key(args.seed)
     for n, i in enumerate(clips):
         rec = data.record(i, ("motion", "tokens"))
-        other = next(j for j in by_speaker[data.clips[i]["speaker"]] + [i] if j != i or len(by_speaker[data.clips[i]["speaker"]]) == 1)
-        ref = np.asarray(data.record(other, ("motion",))["motion"], np.float32)[:s]
-        style = tt.encode_style(params, config, ref[None])
+        style = tt.encode_style(params, config, _reference(data, by_speaker, i, s)[None])
         tokens = np.asarray(rec["tokens"], np.float32)[None]
         t = min(frames_for_tokens(tokens.shape[1], config.token_rate, config.fps), rec["motion"].shape[0])
         gt = np.asarray(rec["motion"], np.float32)[:t]
@@ -107,8 +111,7 @@ def loss_by_time(run, data, clips, by_speaker, args):
     motion, tokens, styles = [], [], []
     for i in clips:
         rec = data.record(i, ("motion", "tokens"))
-        other = next((j for j in by_speaker[data.clips[i]["speaker"]] if j != i), i)
-        ref = np.asarray(data.record(other, ("motion",))["motion"], np.float32)[:s]
+        ref = _reference(data, by_speaker, i, s)
         for start in range(0, rec["motion"].shape[0] - win + 1, win):
             motion.append(rec["motion"][start:start + win])
             tokens.append(rec["tokens"][start // 2:(start + win) // 2])

@@ -160,15 +160,15 @@ def toktalk_window(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
 
     from jaxtalk.models import toktalk as tt
     from jaxtalk.models.toktalk.sample import default_grid, generate_frames
+    from jaxtalk.models.toktalk.stream import overlap_window_mask
 
     params = random_params(lambda k: tt.init_params(config, k))
     rng = np.random.default_rng(0)
-    w, ctx = config.window_frames, config.context_frames
+    w = config.window_frames
     tokens = jnp.asarray(rng.normal(size=(1, tt.tokens_per_chunk(config, w), config.token_dim)), jnp.float32)
     style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
     noise = jnp.asarray(rng.normal(size=(1, w, config.param_dim)), jnp.float32)
-    frames = np.arange(w)
-    known_mask = jnp.asarray(((frames >= ctx - config.overlap_frames) & (frames < ctx))[None])
+    known_mask = jnp.asarray(overlap_window_mask(config)[None])
     run = jax.jit(lambda p, tok, sty, z: generate_frames(
         p, config, tok, sty, z, jnp.asarray(default_grid(config), jnp.float32), jnp.float32(config.cfg_scale),
         known=z, known_mask=known_mask, mask=jnp.ones((1, w), bool), chunked=jnp.ones((), bool)))

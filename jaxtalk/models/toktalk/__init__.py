@@ -8,7 +8,6 @@
 * Training: :mod:`jaxtalk.models.toktalk.train` (two stages with the shared loop).
 """
 
-from jaxtalk.models.toktalk import adapter
 from jaxtalk.models.toktalk.adapter import Adapter
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.decoder import Decoder, attention_bias

@@ -539,9 +539,7 @@ def adapt_tokens(
         ValueError: no adapter in ``params``, a source width the adapter was not trained for,
             bad shapes, NaN/inf.
     """
-    if "adapter" not in params:
-        raise ValueError("params has no 'adapter' entry: train stage 2 (train_adapter) first")
-    src_dim = adapter_source_dim(params)
+    src_dim = adapter_source_dim(params)  # raises without an adapter
     check_tokens(src, width=src_dim, rate=src_rate, fps=config.fps, name="source tokens")
     return _adapt(params, jnp.asarray(src), float(src_rate), config)
 

@@ -54,6 +54,7 @@ __all__ = [
     "stream",
     "tokens_per_chunk",
     "source_tokens_per_chunk",
+    "overlap_window_mask",
 ]
 
 PyTree = Any
@@ -121,6 +122,14 @@ def source_tokens_per_chunk(config: TokTalkConfig, src_rate: float | int) -> int
     """
     rate = Fraction(str(float(src_rate))) / config.fps
     return _whole(config.chunk_frames * rate, f"{config.chunk_frames} frames at {src_rate} Hz source tokens")
+
+
+def overlap_window_mask(config: TokTalkConfig) -> np.ndarray:
+    """``(window_frames,)`` True on the window rows inpainted as known frames: the last
+    ``overlap_frames`` frames of left context before the new chunk (only where they exist)."""
+    frames = np.arange(config.window_frames)
+    ctx = config.context_frames
+    return (frames >= ctx - config.overlap_frames) & (frames < ctx)
 
 
 def _require_causal(config: TokTalkConfig) -> None:
@@ -230,10 +239,10 @@ def stream_step(
     else:
         if src_rate is None:
             raise ValueError("this stream takes source-space tokens: pass their rate, src_rate=...")
-        width = int(state.adapter.inputs.shape[2])
-        if adapter_source_dim(params) != width:
+        width, trained = int(state.adapter.inputs.shape[2]), adapter_source_dim(params)
+        if trained != width:
             raise ValueError(f"the stream was made for {width}-d source tokens but the adapter in params "
-                             f"takes {adapter_source_dim(params)}-d ones")
+                             f"takes {trained}-d ones")
         ct, rate, name = source_tokens_per_chunk(config, src_rate), src_rate, "source chunk tokens"
         src_rate = float(src_rate)
     shape = tuple(np.shape(chunk_tokens))
@@ -276,8 +285,7 @@ def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, ts, config, 
     valid = jnp.concatenate([state.valid[:, c:], jnp.ones((batch, c), bool)], axis=1)
     motion = jnp.concatenate([state.motion[:, c:], jnp.zeros((batch, c, config.param_dim), state.motion.dtype)], axis=1)
     frames = jnp.arange(w)
-    overlap = (frames >= ctx - config.overlap_frames) & (frames < ctx)
-    known_mask = valid & overlap[None, :]
+    known_mask = valid & overlap_window_mask(config)[None, :]
     n = state.noise.shape[1]
     rows = jnp.mod(state.position - ctx + frames, n)
     noise = jnp.take(state.noise, rows, axis=1)
