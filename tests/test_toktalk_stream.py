@@ -175,3 +175,24 @@ def test_offline_model_refuses_to_stream():
     cfg = tt.TokTalkConfig.tiny(causal=False)
     with pytest.raises(ValueError, match="offline model"):
         tt.init_stream(cfg, jax.random.key(0))
+
+
+def test_source_token_stream_bad_input_errors(params):
+    style = np.zeros((1, CFG.style_vector_dim), np.float32)
+    src_chunk = np.zeros((1, 4, 48), np.float32)
+    base = tt.init_stream(CFG, jax.random.key(0), batch=1, buffer_frames=32)
+    with pytest.raises(ValueError, match="src_rate given but the stream takes base tokens"):
+        tt.stream_step(params, CFG, base, src_chunk, style, src_rate=25.0)
+    source = tt.init_stream(CFG, jax.random.key(0), batch=1, buffer_frames=32, source_dim=48)
+    with pytest.raises(ValueError, match="pass their rate, src_rate"):
+        tt.stream_step(params, CFG, source, src_chunk, style)
+    with pytest.raises(ValueError, match=r"must have shape \(1, 4, 48\)"):
+        tt.stream_step(params, CFG, source, src_chunk[:, :3], style, src_rate=25.0)
+    with pytest.raises(ValueError, match="made for 40-d source tokens"):
+        tt.stream_step(params, CFG, tt.init_stream(CFG, jax.random.key(0), buffer_frames=32, source_dim=40),
+                       src_chunk[..., :40], style, src_rate=25.0)
+    with pytest.raises(ValueError, match="no 'adapter'"):
+        tt.stream({k: params[k] for k in ("decoder", "style", "norm")}, CFG, src_chunk, style, jax.random.key(0),
+                  src_rate=25.0)
+    with pytest.raises(ValueError, match="not a whole number of tokens"):
+        tt.source_tokens_per_chunk(CFG, 10.0)  # 4 frames at 10 Hz = 1.6 source tokens
