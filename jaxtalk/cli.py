@@ -228,7 +228,7 @@ def _sample_options(run: Path, input_: Path, out: Path | None, style: Path | Non
                          num_steps=steps, seed=seed, best=best)
 
 
-_RUN = Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk or timar).")]
+_RUN = Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk or timar; ats with --stm).")]
 _INPUT = Annotated[Path, typer.Argument(help="Speech: WAV/FLAC (any rate, mono or stereo), or a .npy of token "
                                               "embeddings (tokens, width) for TokTalk.")]
 _OUT = Annotated[Path | None, typer.Option(help="Output .npz (default: INPUT_params.npz beside the input).")]
@@ -242,12 +242,32 @@ _BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoi
 
 @app.command()
 @_user_errors
-def sample(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False) -> None:
-    """Animate a speech file with a trained model; writes head parameters (.npz, 25 fps)."""
-    from jaxtalk.commands.inference import sample_run
+def sample(
+    run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
+    cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False,
+    stm: Annotated[Path | None, typer.Option(help="FreeTalk: the STM run that maps an ATS run's landmarks onto --mesh.")] = None,
+    mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).")] = None,
+    emotion: Annotated[str, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary.")] = "neutral",
+    intensity: Annotated[float, typer.Option(help="FreeTalk: emotion intensity, continuous in [1, levels].")] = 1.0,
+    units: Annotated[str | None, typer.Option(help="FreeTalk: the mesh's units, m|cm|mm|um (default: from its size).")] = None,
+    landmarks: Annotated[Path | None, typer.Option(help="FreeTalk: the mesh's 68 landmarks, (68, 3) positions or (68,) "
+                                                        "vertex indices (.npy/.txt), to guide the alignment.")] = None,
+) -> None:
+    """Animate a speech file with a trained model; writes head parameters (.npz, 25 fps), or with an ATS
+    run, --stm and --mesh, the mesh's vertices (.npy, 25 fps, the mesh's own units and frame)."""
+    from jaxtalk.commands.inference import MeshOptions, animate_run, sample_run
 
-    result = sample_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best))
+    opts = _sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best)
+    if stm is not None or mesh is not None:
+        if stm is None or mesh is None:
+            raise ValueError("FreeTalk needs both --stm RUN_STM and --mesh FILE")
+        result = animate_run(opts, MeshOptions(stm_run=stm, mesh=mesh, emotion=emotion, intensity=intensity,
+                                               units=units, landmarks=landmarks), echo=typer.echo)
+        frames = result.params.shape[0]
+        typer.echo(f"{frames} frames ({frames / 25:.1f} s) of {result.params.shape[1]} vertices written to {result.path}; "
+                   f"render: jaxtalk render {result.path} --faces {mesh} --audio {input_}")
+        return
+    result = sample_run(opts)
     typer.echo(f"{result.params.shape[0]} frames ({result.params.shape[0] / 25:.1f} s) written to {result.path}")
 
 
@@ -341,7 +361,8 @@ def render(
     out: Annotated[Path, typer.Option(help="Output .mp4 (with audio) or .gif.")] = Path("render.mp4"),
     audio: Annotated[Path | None, typer.Option(help="Audio track (default: the audio stored in the .npz).")] = None,
     compare: Annotated[Path | None, typer.Option(help="A second file drawn beside the first.")] = None,
-    faces: Annotated[Path | None, typer.Option(help="Triangles .npy for vertices of another mesh.")] = None,
+    faces: Annotated[Path | None, typer.Option(help="Triangles of vertices of another mesh: an (F, 3) .npy, or the mesh file "
+                                                     "they were animated on (OBJ, PLY, GLB/GLTF).")] = None,
     flame: Annotated[Path | None, typer.Option(help="FLAME 2020 model file to pose parameters on.")] = None,
     size: Annotated[int, typer.Option(help="Panel size in pixels.")] = 256,
     captions: Annotated[bool, typer.Option(help="Caption each panel with its file name.")] = True,

@@ -467,7 +467,7 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
         batch = items[b:b + _ATS_BATCH]
         batch = batch + [batch[-1]] * (_ATS_BATCH - len(batch))  # one compiled shape
         audio = np.stack([recs[n]["speech"][st:st + window] for n, st in batch]).astype(np.float32)
-        emotion = np.concatenate([emotion_ids(data.clips[chosen[n]]["emotion"] or NEUTRAL) for n, _ in batch])
+        emotion = np.concatenate([emotion_ids(data.clips[chosen[n]]["emotion"] or NEUTRAL, run.config.emotions) for n, _ in batch])
         intensity = np.asarray([data.clips[chosen[n]]["intensity"] if data.clips[chosen[n]]["intensity"] is not None
                                 else 1.0 for n, _ in batch], np.float32)
         out = sample_displacements(fitted, audio, emotion, intensity, jax.random.fold_in(key, b))

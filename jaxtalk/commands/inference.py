@@ -21,7 +21,8 @@ import numpy as np
 
 from jaxtalk.commands.runs import LoadedRun, RunRecord, load_run
 
-__all__ = ["SampleOptions", "SampleResult", "sample_run", "stream_run", "AUDIO_SUFFIXES"]
+__all__ = ["SampleOptions", "SampleResult", "MeshOptions", "sample_run", "stream_run", "animate_run",
+           "AUDIO_SUFFIXES"]
 
 AUDIO_SUFFIXES = (".wav", ".flac", ".ogg", ".aiff", ".aif")
 _SPEECH_MODELS = ("toktalk", "timar")
@@ -89,10 +90,13 @@ def _check_input(opts: SampleOptions, model: str) -> str:
 
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
     record = RunRecord.load(opts.run_dir)
+    if record.model == "ats":
+        raise ValueError(f"{opts.run_dir} is a FreeTalk ATS run: sample it onto a mesh with --stm RUN_STM --mesh FILE "
+                         "(and --emotion, --intensity); stream is for toktalk and timar runs")
     if record.model not in _SPEECH_MODELS:
         raise ValueError(
-            f"{opts.run_dir} is a {record.model} run; sample/stream animate speech with toktalk or timar runs "
-            "(FreeTalk's ATS gives landmarks and STM maps them onto a mesh: see jaxtalk.models.freetalk)"
+            f"{opts.run_dir} is a {record.model} run; sample/stream animate speech with toktalk, timar or (with "
+            "--stm and --mesh) ats runs; an stm run goes after an ats run: jaxtalk sample RUN_ATS AUDIO --stm RUN_STM"
         )
     kind = _check_input(opts, record.model)
     if opts.num_steps is not None and opts.num_steps < 1:
@@ -284,3 +288,78 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
              f"(real-time factor {statistics.median(steady) / 1e3 / chunk_s:.3f})")
     params = np.asarray(params, np.float32)
     return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=times, chunk_s=chunk_s)
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshOptions:
+    """FreeTalk's ``jaxtalk sample RUN_ATS AUDIO --stm RUN_STM --mesh FILE`` settings.
+
+    Attributes:
+        stm_run: the STM run folder.
+        mesh: the mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).
+        emotion: a name of the ATS run's emotion vocabulary.
+        intensity: continuous, in ``[1, num_intensities]``.
+        units: the mesh's unit (``m``, ``cm``, ``mm``, ``um``); None: detected from its size.
+        landmarks: optional landmark file (see :func:`jaxtalk.models.freetalk.animate.read_landmarks`).
+    """
+
+    stm_run: Path
+    mesh: Path
+    emotion: str = "neutral"
+    intensity: float = 1.0
+    units: str | None = None
+    landmarks: Path | None = None
+
+
+def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[str], None] = print) -> SampleResult:
+    """FreeTalk end to end: an ATS run + an STM run + speech + a user's mesh -> ``(T, V, 3)`` vertices
+    (``.npy``, the mesh's units, frame and vertex order), rendered with ``jaxtalk render OUT.npy --faces MESH``.
+
+    Returns:
+        :class:`SampleResult` whose ``params`` holds the ``(T, V, 3)`` vertices.
+
+    Raises:
+        FileNotFoundError: a missing run, audio, mesh or landmark file.
+        ValueError: runs of the wrong models, bad audio, an unknown emotion, an intensity out of range,
+            a mesh that cannot be animated (a point cloud, too few vertices, not the size or shape of a face).
+    """
+    import jax
+
+    from jaxtalk.audio import load_audio
+    from jaxtalk.geometry.canonical import load_mesh
+    from jaxtalk.models.freetalk.animate import landmark_track, displace, prepare_user_mesh, read_landmarks
+    from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM
+
+    for run_dir, model in ((opts.run_dir, "ats"), (mesh_opts.stm_run, "stm")):
+        record = RunRecord.load(run_dir)
+        if record.model != model:
+            raise ValueError(f"{run_dir} is a {record.model} run; FreeTalk needs an ats run first and an stm run "
+                             f"after --stm")
+    path = Path(opts.input)
+    if not path.is_file():
+        raise FileNotFoundError(f"input file not found: {str(path)!r}")
+    if path.suffix.lower() not in AUDIO_SUFFIXES:
+        raise ValueError(f"{str(path)!r}: expected an audio file ({', '.join(AUDIO_SUFFIXES)}) for FreeTalk")
+    out = Path(opts.out) if opts.out is not None else path.with_name(f"{path.stem}_vertices.npy")
+    if out.suffix != ".npy":
+        raise ValueError(f"FreeTalk writes vertices: the output must be a .npy file, got {str(out)!r}")
+    ats = FittedATS.from_run(opts.run_dir, best=opts.best)
+    stm = FittedSTM.from_run(mesh_opts.stm_run, best=opts.best)
+    audio = load_audio(path)
+    vertices, faces = load_mesh(mesh_opts.mesh)
+    landmarks = None if mesh_opts.landmarks is None else read_landmarks(mesh_opts.landmarks, vertices)
+    t0 = time.perf_counter()
+    mesh = prepare_user_mesh(stm, (vertices, faces), units=mesh_opts.units, landmarks=landmarks)
+    c = mesh.canonical
+    echo(f"mesh {mesh_opts.mesh}: {vertices.shape[0]} vertices, {faces.shape[0]} faces, units {c.units}, aligned to "
+         f"the template by {c.method} (scale {c.fitted_scale:.3f}, mean distance {c.residual * 1000:.1f} mm) in "
+         f"{time.perf_counter() - t0:.1f} s")
+    track = landmark_track(ats, audio, mesh_opts.emotion, mesh_opts.intensity, jax.random.key(opts.seed),
+                           num_steps=opts.num_steps)
+    verts = displace(stm, mesh, track)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp")
+    with open(tmp, "wb") as handle:
+        np.save(handle, verts)
+    tmp.replace(out)
+    return SampleResult(path=out, params=verts, chunk_ms=[], chunk_s=None)

@@ -118,7 +118,8 @@ def load_motion(path: str | Path, *, faces: str | Path | None = None, flame: str
 
     Args:
         path: ``.npz`` parameters or ``.npy`` vertices.
-        faces: triangles for vertices that are not on the built-in face.
+        faces: triangles for vertices that are not on the built-in face: an ``(F, 3)`` ``.npy``, or
+            the mesh file they were animated on (OBJ, PLY, GLB/GLTF, OFF, STL).
         flame: FLAME model file to pose parameters on.
 
     Returns:
@@ -153,7 +154,16 @@ def load_motion(path: str | Path, *, faces: str | Path | None = None, flame: str
     if not np.all(np.isfinite(verts)):
         raise ValueError(f"{str(path)!r}: vertices contain NaN or inf")
     if faces is not None:
-        tri = np.load(_require(Path(faces)), allow_pickle=False)
+        faces_path = _require(Path(faces))
+        if faces_path.suffix.lower() == ".npy":
+            tri = np.load(faces_path, allow_pickle=False)
+        else:  # the mesh file the vertices were animated on (FreeTalk's output keeps its vertex order)
+            from jaxtalk.geometry.canonical import load_mesh
+
+            mesh_vertices, tri = load_mesh(faces_path)
+            if mesh_vertices.shape[0] != verts.shape[1]:
+                raise ValueError(f"{str(faces_path)!r} has {mesh_vertices.shape[0]} vertices but {str(path)!r} "
+                                 f"animates {verts.shape[1]}: not the mesh these vertices belong to")
         return Motion(verts.astype(np.float32), np.asarray(tri), None, None)
     found = _builtin_faces(verts.shape[1])
     if found is None:

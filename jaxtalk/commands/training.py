@@ -211,9 +211,6 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
                          f"{data.key!r}; resume it on the same data or choose another --out")
     explicit = parse_overrides(config_class(opts.model), model_items)
     config = build_config(opts.model, preset, [*_data_fields(opts.model, data, explicit), *model_items])
-    if opts.model == "ats" and "displacement_scale" not in explicit:
-        # ATS trains on standardised displacements, so its own scale is 1 whatever the preset says.
-        config = dataclasses.replace(config, displacement_scale=1.0)
     settings = dataclasses.replace(defaults, **train_kw)
     if settings.window_frames is not None and opts.model in ("timar", "stm"):
         raise ValueError(f"window_frames is not a {opts.model} setting ({opts.model} windows are "

@@ -248,13 +248,11 @@ def make_condition(
         raise ValueError(f"{ta} audio frames exceed config.max_audio_frames={config.max_audio_frames}")
     if not isinstance(audio, jax.core.Tracer) and not bool(np.all(np.isfinite(np.asarray(audio)))):
         raise ValueError("audio features contain NaN or inf")
-    ids = emotion_ids(emotion)
+    ids = emotion_ids(emotion, config.emotions)
     if ids.shape[0] == 1 and b > 1:
         ids = np.repeat(ids, b)
     if ids.shape != (b,):
         raise ValueError(f"need one emotion per example ({b}), got {ids.shape[0]}")
-    if np.max(ids) >= config.num_emotions:
-        raise ValueError(f"emotion id {int(np.max(ids))} exceeds config.num_emotions={config.num_emotions}")
     inten = check_intensity(intensity, config.num_intensities, b)
     if mask is None:
         frames = int(round(ta / config.audio_frames_per_frame)) if num_frames is None else int(num_frames)

@@ -12,13 +12,16 @@ import dataclasses
 import math
 
 from jaxtalk.geometry.diffusionnet import DiffusionNetConfig
-from jaxtalk.models.freetalk.emotions import NUM_EMOTIONS
+from jaxtalk.models.freetalk.emotions import EMOTIONS, parse_vocabulary
 from jaxtalk.types import NUM_LANDMARKS
 
-__all__ = ["ATSConfig", "STMConfig", "FUSIONS"]
+__all__ = ["ATSConfig", "STMConfig", "FUSIONS", "DECODERS"]
 
 # STM feature-combination variants of the supplement's ablation (Table 2), full model last.
 FUSIONS: tuple[str, ...] = ("concat", "ca", "ca_concat", "gcn_ca_concat")
+# STM decoders: the paper's DiffusionNet, and the supplement's substitution, a per-vertex MLP that
+# sees no mesh operator (each vertex decoded from its own fused features alone).
+DECODERS: tuple[str, ...] = ("diffusionnet", "mlp")
 
 
 def _positive_ints(owner: object, names: tuple[str, ...]) -> None:
@@ -40,7 +43,8 @@ class ATSConfig:
 
     Attributes:
         num_landmarks: N (68); the motion width is ``3 N``.
-        audio_dim: width of the per-frame audio features (HuBERT 768; jaxtalk's log-mel stack 320).
+        audio_dim: width of the per-frame audio features (HuBERT-base 768 in the paper preset;
+            jaxtalk's log-mel stack 320 in the small one).
         audio_frames_per_frame: audio feature frames per motion frame (1.0 once resampled to the
             motion rate, as in the paper; 2.0 for raw 50 Hz HuBERT against 25 fps).
         width: model width d (paper 512).
@@ -50,12 +54,15 @@ class ATSConfig:
         max_frames: longest motion sequence (size of the learned target positional table).
         band_radius: cross-attention band half-width r in motion frames (paper: not given; 2).
         num_intensities: intensity levels (MEAD 3); intensity is accepted in ``[1, num_intensities]``.
-        num_emotions: emotion categories (11 EmoVOCA + neutral).
+        emotions: the emotion vocabulary, neutral first (default EmoVOCA's 11 + neutral; MEAD's 8 is
+            ``emotions.MEAD_EMOTIONS``, ``--set emotions=mead``); row e of the emotion table.
         time_frequency_dim: sinusoidal features of the diffusion step.
         num_timesteps: DDPM training steps (1000, linear betas 1e-4 .. 0.02).
         num_sampling_steps: default DDIM steps at inference (100).
-        displacement_scale: the model sees ``scale * displacement`` (metres -> centimetres keeps the
-            data near unit variance, which the fixed unit-variance noise schedule assumes).
+        displacement_scale: the model sees ``scale * displacement``. The training recipe feeds
+            standardised displacements (unit variance per coordinate, what the unit-variance noise
+            schedule assumes), so every preset uses 1; 100 (metres -> centimetres) suits raw
+            displacements in metres.
         velocity_weight, acceleration_weight: loss weights (0.3, 0.1).
         dropout: dropout in the decoder blocks (training only).
     """
@@ -70,21 +77,24 @@ class ATSConfig:
     max_frames: int = 600
     band_radius: int = 2
     num_intensities: int = 3
-    num_emotions: int = NUM_EMOTIONS
+    # Given as a tuple, a list (run.json) or a name / comma-separated string (--set); stored as a tuple.
+    emotions: tuple[str, ...] | list[str] | str = EMOTIONS
     time_frequency_dim: int = 256
     num_timesteps: int = 1000
     num_sampling_steps: int = 100
-    displacement_scale: float = 100.0
+    displacement_scale: float = 1.0
     velocity_weight: float = 0.3
     acceleration_weight: float = 0.1
     dropout: float = 0.0
 
     def __post_init__(self) -> None:
         _positive_ints(self, ("num_landmarks", "audio_dim", "width", "num_layers", "num_heads", "ff_dim",
-                              "max_frames", "num_intensities", "num_emotions", "time_frequency_dim",
+                              "max_frames", "num_intensities", "time_frequency_dim",
                               "num_timesteps", "num_sampling_steps"))
         _positive_float(self, "audio_frames_per_frame")
         _positive_float(self, "displacement_scale")
+        # A list (from run.json) or a name / comma-separated string (from --set) becomes the tuple.
+        object.__setattr__(self, "emotions", parse_vocabulary(self.emotions))
         if self.width % self.num_heads:
             raise ValueError(f"ATSConfig.width={self.width} must be divisible by num_heads={self.num_heads}")
         if isinstance(self.band_radius, bool) or not isinstance(self.band_radius, int) or self.band_radius < 0:
@@ -97,6 +107,11 @@ class ATSConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"ATSConfig.{name} must be finite and >= 0, got {value!r}")
+
+    @property
+    def num_emotions(self) -> int:
+        """Rows of the emotion table (the vocabulary's size)."""
+        return len(self.emotions)
 
     @property
     def motion_dim(self) -> int:
@@ -114,12 +129,14 @@ class ATSConfig:
 
     @classmethod
     def paper(cls, **overrides) -> ATSConfig:
-        """The supplement's sizes: d 512, 6 layers, 8 heads, FF 2048, 1000 steps, 100 DDIM steps."""
-        return cls(**overrides)
+        """The supplement's sizes: d 512, 6 layers, 8 heads, FF 2048, 1000 steps, 100 DDIM steps, on
+        768-d HuBERT-base features at the motion rate (``prepare --features hubert:PATH``)."""
+        return cls(**{"audio_dim": 768, **overrides})
 
     @classmethod
     def small(cls, **overrides) -> ATSConfig:
-        """CPU-sized model (trains in minutes on 2 cores): d 128, 3 layers, 4 heads, FF 256."""
+        """CPU-sized model (trains in minutes on 2 cores): d 128, 3 layers, 4 heads, FF 256, on the
+        320-d log-mel stack."""
         kwargs = dict(width=128, num_layers=3, num_heads=4, ff_dim=256, max_frames=300)
         return cls(**{**kwargs, **overrides})
 
@@ -139,6 +156,9 @@ class STMConfig:
         attention_dim: d_c, cross-attention model width (paper 128).
         attention_heads: cross-attention heads (paper 4).
         fusion: feature combination (one of :data:`FUSIONS`; the paper's is ``"gcn_ca_concat"``).
+        decoder: ``"diffusionnet"`` (the paper's) or ``"mlp"``: the supplement's substitution, a
+            per-vertex MLP of the same width and depth (``decoder_blocks`` x 2 hidden layers) that
+            decodes every vertex from its own fused features, with no spatial diffusion.
         position_scale: mesh coordinates are multiplied by this before the operators and the encoder
             (metres -> decimetres puts a face in about [-1, 1]).
         displacement_scale: landmark and vertex displacements are multiplied by this inside the model
@@ -159,6 +179,7 @@ class STMConfig:
     attention_dim: int = 128
     attention_heads: int = 4
     fusion: str = "gcn_ca_concat"
+    decoder: str = "diffusionnet"
     position_scale: float = 10.0
     displacement_scale: float = 100.0
     num_eigenpairs: int = 128
@@ -179,6 +200,8 @@ class STMConfig:
             )
         if self.fusion not in FUSIONS:
             raise ValueError(f"STMConfig.fusion must be one of {FUSIONS}, got {self.fusion!r}")
+        if self.decoder not in DECODERS:
+            raise ValueError(f"STMConfig.decoder must be one of {DECODERS}, got {self.decoder!r}")
         _positive_float(self, "position_scale")
         _positive_float(self, "displacement_scale")
         for name in ("velocity_weight", "acceleration_weight"):

@@ -22,19 +22,102 @@ from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.train import OptimConfig, train
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["FittedATS", "fit_ats", "fit_stm", "sample_displacements"]
+__all__ = ["FittedATS", "FittedSTM", "fit_ats", "fit_stm", "sample_displacements"]
 
 PyTree = Any
 
 
 @dataclasses.dataclass(frozen=True)
 class FittedATS:
-    """A trained ATS: its configuration, parameters and the data standardisation it was trained on."""
+    """A trained ATS: its configuration, parameters and the data standardisation it was trained on.
+
+    Attributes:
+        config, params, stats, history: the model, its weights, the displacement statistics of its
+            training split, the training log.
+        window: the training window in frames (longer audio is sampled in such windows; default
+            ``config.max_frames``).
+        features: the audio front end it was trained on (``logmel``, ``hubert:PATH``...).
+    """
 
     config: ATSConfig
     params: PyTree
     stats: DisplacementStats
     history: list[dict[str, Any]]
+    window: int | None = None
+    features: str = "logmel"
+
+    @property
+    def window_frames(self) -> int:
+        return min(self.window or self.config.max_frames, self.config.max_frames)
+
+    def audio_features(self, audio: np.ndarray, num_frames: int) -> np.ndarray:
+        """``(num_frames, audio_dim)`` features of 16 kHz ``audio`` with the run's front end.
+
+        Raises:
+            ValueError: features of another width than the model's ``audio_dim``.
+        """
+        from jaxtalk.data.features import parse_audio_features
+
+        feats = parse_audio_features(self.features).speech(np.asarray(audio, np.float32), num_frames)
+        if feats.shape[-1] != self.config.audio_dim:
+            raise ValueError(f"the {self.features} front end gives {feats.shape[-1]}-d features but this ATS "
+                             f"expects audio_dim={self.config.audio_dim}")
+        return feats
+
+    @classmethod
+    def from_run(cls, run_dir: str | os.PathLike[str], *, best: bool = False) -> FittedATS:
+        """A trained ATS from a run folder (``jaxtalk train ats``).
+
+        Raises:
+            FileNotFoundError: not a run, or no checkpoint.
+            ValueError: a run of another model.
+        """
+        from jaxtalk.commands.runs import load_run
+
+        run = load_run(run_dir, best=best)
+        if run.record.model != "ats":
+            raise ValueError(f"{run_dir} is a {run.record.model} run, not an ats run")
+        extra = run.record.extra
+        stats = DisplacementStats(np.asarray(extra["stats"]["mean"], np.float32),
+                                  np.asarray(extra["stats"]["std"], np.float32))
+        return cls(run.config, jax.tree.map(jax.numpy.asarray, run.params), stats, [], window=int(extra["window"]),
+                   features=run.features()["audio"])
+
+
+@dataclasses.dataclass(frozen=True)
+class FittedSTM:
+    """A trained STM: its configuration, parameters and the built-in face resolution it was trained on.
+
+    The template face (identity 0 of the built-in face at ``resolution``) defines the frame, units
+    and landmark positions STM expects: a user's mesh is aligned to it before STM runs.
+    """
+
+    config: STMConfig
+    params: PyTree
+    resolution: str = "low"
+
+    def template(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(vertices (V, 3) m, faces (F, 3), landmarks (68, 3) m)`` of the template face."""
+        from jaxtalk.face import builtin_face
+        from jaxtalk.models.freetalk.data import neutral_landmarks
+
+        face = builtin_face(0, resolution=self.resolution)
+        return np.asarray(face.template, np.float64), np.asarray(face.faces), neutral_landmarks(face).astype(np.float64)
+
+    @classmethod
+    def from_run(cls, run_dir: str | os.PathLike[str], *, best: bool = False) -> FittedSTM:
+        """A trained STM from a run folder (``jaxtalk train stm``).
+
+        Raises:
+            FileNotFoundError: not a run, or no checkpoint.
+            ValueError: a run of another model.
+        """
+        from jaxtalk.commands.runs import load_run
+
+        run = load_run(run_dir, best=best)
+        if run.record.model != "stm":
+            raise ValueError(f"{run_dir} is a {run.record.model} run, not an stm run")
+        return cls(run.config, jax.tree.map(jax.numpy.asarray, run.params), run.record.extra.get("resolution", "low"))
 
 
 def fit_ats(

@@ -48,10 +48,11 @@ def fit_displacement_stats(data: PreparedData) -> DisplacementStats:
 
 @dataclasses.dataclass(frozen=True)
 class ATSWindows:
-    """ATS's window recipe (see the module docstring)."""
+    """ATS's window recipe (see the module docstring); ``emotions`` is the model's vocabulary."""
 
     window: int
     stats: DisplacementStats
+    emotions: tuple[str, ...]
 
     def table(self, data: PreparedData, split: str) -> np.ndarray:
         """Rows ``(clip, start)``; clips shorter than a window give none."""
@@ -68,7 +69,7 @@ class ATSWindows:
         sl = slice(s, s + self.window)
         return {"displacements": np.asarray(self.stats.normalize(rec["landmarks"][sl]), np.float32),
                 "audio": rec["speech"][sl].astype(np.float32),
-                "emotion": np.asarray(emotion_ids(clip["emotion"] or NEUTRAL)[0], np.int32),
+                "emotion": np.asarray(emotion_ids(clip["emotion"] or NEUTRAL, self.emotions)[0], np.int32),
                 "intensity": np.asarray(clip["intensity"] if clip["intensity"] is not None else 1.0, np.float32)}
 
 
@@ -106,8 +107,13 @@ def train_ats(
     if data.manifest["speech_dim"] != config.audio_dim:
         raise ValueError(f"{data.root} has {data.manifest['speech_dim']}-d speech features but the model expects "
                          f"audio_dim={config.audio_dim} (--set audio_dim=...)")
+    labels = sorted({c["emotion"] for c in data.clips if c["emotion"]} - set(config.emotions))
+    if labels:
+        raise ValueError(f"{data.root} has emotion labels {labels} outside the model's vocabulary "
+                         f"({', '.join(config.emotions)}): set emotions to the data's (--set emotions=mead, or a "
+                         "comma-separated list starting with neutral)")
     stats = fit_displacement_stats(data)
-    recipe = ATSWindows(window_frames or min(config.max_frames, 50), stats)
+    recipe = ATSWindows(window_frames or min(config.max_frames, 50), stats, config.emotions)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = ats.init_ats(config, k_init) if params is None else params
     extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}

@@ -272,6 +272,21 @@ class _VertexLandmarkAttention(nn.Module):
         return self.out(dot_product_attention(queries, self.key(landmarks), self.value(landmarks)))
 
 
+class _VertexMLP(nn.Module):
+    """The supplement's decoder substitution: ``layers`` ReLU layers of ``width`` then a linear map to
+    3, applied to every vertex on its own (no mesh operator, so neighbours never exchange features)."""
+
+    width: int
+    layers: int
+
+    @nn.compact
+    def __call__(self, x: Array) -> Array:
+        h = x
+        for i in range(self.layers):
+            h = nn.Dense(self.width, name=f"mlp_{i}")(nn.relu(h) if i else h)
+        return nn.Dense(3, name="linear_out")(nn.relu(h))
+
+
 class MeshContext(NamedTuple):
     """The per-mesh half of STM's fusion, computed once and reused by every frame.
 
@@ -307,7 +322,10 @@ class SparseToMesh(nn.Module):
         if cfg.uses_attention:
             self.landmarks = _LandmarkEncoder(cfg, name="landmarks")
             self.cross_attention = _VertexLandmarkAttention(cfg, name="cross_attention")
-        self.decoder = DiffusionNet(cfg.decoder_config(), name="decoder")
+        if cfg.decoder == "mlp":
+            self.decoder = _VertexMLP(cfg.decoder_width, 2 * cfg.decoder_blocks, name="decoder")
+        else:
+            self.decoder = DiffusionNet(cfg.decoder_config(), name="decoder")
 
     def mesh_features(self, vertices: Array, normals: Array, ops: DiffusionOperators) -> Array:
         """``f_i = E_M([x_i | n_i])``, ``(V, mesh_feature_dim)``."""
@@ -330,8 +348,8 @@ class SparseToMesh(nn.Module):
         return h
 
     def decode_fused(self, fused: Array, ops: DiffusionOperators) -> Array:
-        """The DiffusionNet decoder on fused inputs ``(V, [*frames,] width)`` -> displacements."""
-        return self.decoder(fused, ops)
+        """The decoder on fused inputs ``(V, [*frames,] width)`` -> displacements."""
+        return self.decoder(fused) if self.config.decoder == "mlp" else self.decoder(fused, ops)
 
     def decode_frame(self, features: Array, disp: Array, ops: DiffusionOperators) -> Array:
         """Vertex displacements (model units) of one frame from landmark displacements (model units)."""
