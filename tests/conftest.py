@@ -84,3 +84,32 @@ def prepared_tiny(tmp_path_factory, synthtalk_tiny):
                     tokenizer=lambda: synthtalk_tiny.tokenizer("A"))
     prepare(source, cache / "synthtalk-tiny-seed0", progress=False, echo=lambda line: None)
     return PreparedData(cache / "synthtalk-tiny-seed0")
+
+
+@pytest.fixture(scope="module")
+def stm_run(tmp_path_factory, prepared_tiny):
+    """An STM run at its initial parameters (a step-0 checkpoint) on one small mesh.
+
+    Training STM renders several meshes (minutes); tests of the wiring around it need only a run.
+    """
+    import dataclasses
+
+    import optax
+
+    from jaxtalk.commands.runs import RunRecord, checkpoint_dir, save_run_assets
+    from jaxtalk.models.freetalk import stm
+    from jaxtalk.models.freetalk.config import STMConfig
+    from jaxtalk.models.freetalk.data import face_mesh
+    from jaxtalk.train import create_train_state, save_checkpoint
+
+    out = tmp_path_factory.mktemp("stm_run")
+    config = STMConfig.small(encoder_blocks=1, decoder_blocks=1, num_eigenpairs=16)
+    fm = face_mesh(1, "decimated")
+    params = stm.init_stm(config, jax.random.key(0), stm.prepare_mesh(fm.vertices, fm.faces, config))
+    save_checkpoint(checkpoint_dir(out), create_train_state(params, optax.identity(), jax.random.key(0)))
+    data = prepared_tiny
+    RunRecord(model="stm", preset="small", items=[], config=dataclasses.asdict(config), train={}, optim={},
+              data={"spec": "synthtalk:tiny", "path": str(data.root), "key": data.key}, seed=0,
+              extra={"meshes": [[1, "decimated"]], "resolution": "low", "window": 16}).save(out)
+    save_run_assets(out, "stm", data, config)
+    return out

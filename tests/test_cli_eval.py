@@ -258,30 +258,6 @@ def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_
 # ---------------------------------------------------------------------------------------------- STM
 
 
-@pytest.fixture(scope="module")
-def stm_run(tmp_path_factory, prepared_tiny):
-    """An STM run at its initial parameters (a step-0 checkpoint) on one small mesh."""
-    import optax
-
-    from jaxtalk.commands.runs import RunRecord, checkpoint_dir, save_run_assets
-    from jaxtalk.models.freetalk import stm
-    from jaxtalk.models.freetalk.config import STMConfig
-    from jaxtalk.models.freetalk.data import face_mesh
-    from jaxtalk.train import create_train_state, save_checkpoint
-
-    out = tmp_path_factory.mktemp("stm_run")
-    config = STMConfig.small(encoder_blocks=1, decoder_blocks=1, num_eigenpairs=16)
-    fm = face_mesh(1, "decimated")
-    params = stm.init_stm(config, jax.random.key(0), stm.prepare_mesh(fm.vertices, fm.faces, config))
-    save_checkpoint(checkpoint_dir(out), create_train_state(params, optax.identity(), jax.random.key(0)))
-    data = prepared_tiny
-    RunRecord(model="stm", preset="small", items=[], config=dataclasses.asdict(config), train={}, optim={},
-              data={"spec": "synthtalk:tiny", "path": str(data.root), "key": data.key}, seed=0,
-              extra={"meshes": [[1, "decimated"]], "resolution": "low", "window": 16}).save(out)
-    save_run_assets(out, "stm", data, config)
-    return out
-
-
 def test_stm_eval_maps_true_landmarks_on_the_run_meshes(stm_run, prepared_tiny, tmp_path):
     from jaxtalk.models.freetalk.data import face_mesh, without_head_pose
 

@@ -1,0 +1,144 @@
+"""``jaxtalk sample RUN_ATS AUDIO --stm RUN_STM --mesh FACE``: FreeTalk from the command line onto a mesh
+file a user brings, ``jaxtalk render`` of the result with the mesh file's triangles, user errors, and
+the ATS ``paper`` preset on 768-d HuBERT features from a checkpoint on disk.
+
+The ATS run trains two steps through the CLI on SynthTalk tiny; the STM run is at its initial
+parameters (``stm_run`` in conftest). The checks are on the wiring: shapes, units, file order, finite
+values and the one-line errors.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import soundfile as sf
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from jaxtalk.cli import app
+
+runner = CliRunner()
+ATS_SMALL = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
+             "--set", "num_sampling_steps=4", "--set", "batch_size=2"]
+
+
+def _ok(args: list) -> str:
+    result = runner.invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def _user_error(args: list, message: str) -> None:
+    result = runner.invoke(app, [str(a) for a in args])
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message in errors[0], result.output
+    assert "Traceback" not in result.output
+
+
+@pytest.fixture(scope="module")
+def ats_run(tmp_path_factory, prepared_tiny):
+    out = tmp_path_factory.mktemp("ats_run") / "ats"
+    _ok(["train", "ats", "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent, "--steps", "2",
+         *ATS_SMALL, "--no-progress", "--out", out])
+    return out
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, synthtalk_tiny):
+    """A 1.2-s 44.1 kHz speech WAV and a face in millimetres, rotated and shifted, as PLY and OBJ."""
+    import trimesh
+
+    from jaxtalk.face import builtin_face
+
+    root = tmp_path_factory.mktemp("freetalk_files")
+    clip = synthtalk_tiny.split("test")[0]
+    audio = synthtalk_tiny.audio(clip)[: int(16000 * 1.2)]
+    from jaxtalk.audio import resample_audio
+
+    sf.write(root / "speech.wav", resample_audio(audio, 16000, 44100), 44100)
+    face = builtin_face(3, resolution="low")
+    rotation = Rotation.from_euler("xyz", [20, -70, 10], degrees=True).as_matrix()
+    vertices = 1000.0 * (np.asarray(face.template, np.float64) @ rotation.T + [0.3, -1.2, 0.5])
+    mesh = trimesh.Trimesh(vertices, np.asarray(face.faces), process=False)
+    mesh.export(root / "face.ply")
+    mesh.export(root / "face.obj")
+    trimesh.PointCloud(vertices).export(root / "cloud.ply")
+    return {"wav": root / "speech.wav", "ply": root / "face.ply", "obj": root / "face.obj",
+            "cloud": root / "cloud.ply", "vertices": vertices, "root": root}
+
+
+def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, stm_run, files):
+    out = files["root"] / "anim.npy"
+    output = _ok(["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh", files["ply"], "--emotion", "happy",
+                  "--intensity", "2.5", "--out", out])
+    assert "units mm" in output and "aligned to the template by icp" in output
+    verts = np.load(out)
+    assert verts.shape == (30, files["vertices"].shape[0], 3) and np.isfinite(verts).all()
+    # In the file's own frame and units: every frame stays within a few cm (tens of mm) of the input.
+    assert np.abs(verts - files["vertices"]).max() < 50.0
+    assert f"jaxtalk render {out} --faces {files['ply']}" in output
+    gif = files["root"] / "anim.gif"
+    _ok(["render", out, "--faces", files["obj"], "--out", gif, "--size", "96"])
+    assert gif.stat().st_size > 0
+
+
+def test_sample_onto_a_mesh_user_errors_are_one_line(ats_run, stm_run, files, tmp_path):
+    base = ["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh"]
+    _user_error([*base, files["ply"], "--emotion", "elated"], "unknown emotion name(s) ['elated']")
+    _user_error([*base, files["ply"], "--intensity", "4"], "intensity must lie in [1, 3]")
+    _user_error([*base, files["cloud"]], "is a point cloud")
+    _user_error([*base, tmp_path / "missing.obj"], "mesh file not found")
+    _user_error([*base, files["ply"], "--units", "inch"], "unknown units 'inch'")
+    _user_error([*base, files["ply"], "--units", "m"], "check the units")
+    _user_error([*base, files["ply"], "--out", tmp_path / "x.npz"], "must be a .npy file")
+    _user_error(["sample", ats_run, files["wav"], "--stm", stm_run], "needs both --stm RUN_STM and --mesh FILE")
+    _user_error(["sample", ats_run, files["wav"]], "sample it onto a mesh with --stm RUN_STM --mesh FILE")
+    _user_error(["sample", stm_run, files["wav"], "--stm", stm_run, "--mesh", files["ply"]], "is a stm run")
+    _user_error(["render", files["root"] / "none.npy", "--faces", files["ply"]], "not found")
+
+
+def test_render_refuses_a_mesh_file_of_another_vertex_count(files, tmp_path):
+    np.save(tmp_path / "v.npy", np.zeros((2, 10, 3), np.float32))
+    _user_error(["render", tmp_path / "v.npy", "--faces", files["ply"], "--out", tmp_path / "x.gif"],
+                "not the mesh these vertices belong to")
+
+
+@pytest.mark.slow
+def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path, stm_run, files, fast_compile):
+    """``prepare --features hubert:PATH`` -> ``train ats --preset paper`` (768-d input, displacement
+    scale 1 as the preset says) -> ``sample`` onto a mesh through the run's own front end. The HuBERT
+    port is randomly initialised with the real base model's 768-d hidden states and one layer; ATS keeps
+    the paper's widths with one decoder layer so that a step runs on a CPU."""
+    pytest.importorskip("safetensors")
+    import jax
+    import jax.numpy as jnp
+
+    from jaxtalk.audio.encoders import EncoderConfig, Wav2Vec2Model, save_checkpoint
+    from jaxtalk.commands.runs import RunRecord
+
+    enc = EncoderConfig.small("hubert", "base", hidden_size=768, num_hidden_layers=1, num_attention_heads=12,
+                              intermediate_size=256, conv_dim=(16,) * 7, conv_kernel=(10, 3, 3, 3, 3, 2, 2),
+                              conv_stride=(5, 2, 2, 2, 2, 2, 2), num_conv_pos_embedding_groups=16)
+    params = jax.jit(Wav2Vec2Model(enc).init)(jax.random.key(0), jnp.zeros((1, enc.receptive_field)))["params"]
+    ckpt = save_checkpoint(tmp_path / "hubert-base", enc, params, normalize=False)
+    clips = tmp_path / "clips"
+    _ok(["data", "--size", "tiny", "--out", clips])
+    for extra in sorted(clips.glob("*.wav"))[12:]:  # a dozen clips are plenty for one step
+        for path in clips.glob(f"{extra.stem}.*"):
+            path.unlink()
+    _ok(["prepare", clips, "--out", tmp_path / "prepared", "--features", f"hubert:{ckpt}", "--no-progress"])
+    run = tmp_path / "run"
+    _ok(["train", "ats", "--data", tmp_path / "prepared", "--preset", "paper", "--set", "num_layers=1",
+         "--set", "max_frames=25", "--set", "window_frames=25", "--set", "batch_size=2", "--steps", "1",
+         "--no-progress", "--out", run])
+    record = RunRecord.load(run)
+    assert record.preset == "paper" and record.config["audio_dim"] == 768 and record.config["width"] == 512
+    assert record.config["displacement_scale"] == 1.0
+    out = tmp_path / "anim.npy"
+    _ok(["sample", run, files["wav"], "--stm", stm_run, "--mesh", files["obj"], "--steps", "2", "--out", out])
+    verts = np.load(out)
+    assert verts.shape == (30, files["vertices"].shape[0], 3) and np.isfinite(verts).all()
+    assert Path(record.data["path"]).is_dir()
