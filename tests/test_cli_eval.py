@@ -10,7 +10,6 @@ audio-only partners) run through prepare, train and eval when ``../shared`` is p
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import pickle
 import shutil
@@ -140,7 +139,6 @@ def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path)
 
 def test_toktalk_eval_rows_per_step_count_streamed_and_offline(runs, tmp_path):
     from jaxtalk.commands.runs import load_run
-    from jaxtalk.models import toktalk
 
     _ok(["eval", runs["toktalk"], "--max-clips", "1", "--sample-steps", "1,2", "--offline", "--best",
          "--json", tmp_path / "r.json"])

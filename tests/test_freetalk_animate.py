@@ -3,7 +3,8 @@ broken meshes, bad input, the emotion vocabulary, and the windowed ATS track.
 
 Models are at their initial parameters (small configs): these tests check the chain's geometry and
 error handling, which do not depend on training. A real, independently made face scan (menpo3d's
-``james.obj``, fetched by ``.ci/run`` from its package) runs through the chain when it is present.
+``james.obj``, fetched by ``experiments/fetch_real_scan.sh``, which ``.ci/run`` runs) goes through the
+chain when it is present.
 """
 
 from __future__ import annotations
@@ -288,7 +289,7 @@ def test_presets_use_the_displacement_scale_training_accepts():
 # ------------------------------------------------------------------------------ a real scan
 
 
-@pytest.mark.skipif(not REAL_SCAN.is_file(), reason="menpo3d's james.obj not fetched (.ci/run fetches it)")
+@pytest.mark.skipif(not REAL_SCAN.is_file(), reason="no real face scan: run bash experiments/fetch_real_scan.sh (.ci/run does)")
 def test_a_real_face_scan_in_millimetres_animates_in_its_own_frame(models):
     """menpo3d's james.obj: a textured head scan in mm, its own pose, 28 components, UV-seam
     duplicates. It is found to be in millimetres, aligns to within millimetres of the template, and

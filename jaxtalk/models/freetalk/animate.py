@@ -32,7 +32,7 @@ from jaxtalk.geometry.canonical import Canonicalization, canonicalize, load_mesh
 from jaxtalk.geometry.mesh_checks import CleanedMesh, clean_mesh, validate_mesh
 from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM, sample_displacements
 from jaxtalk.models.freetalk.stm import STMMesh, prepare_mesh, stm_decode, stm_mesh_features
-from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, NUM_LANDMARKS, Array, Float, Int, PRNGKeyArray
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, NUM_LANDMARKS, Float, PRNGKeyArray
 
 __all__ = ["UserMesh", "prepare_user_mesh", "landmark_track", "animate", "read_landmarks", "STM_CHUNK"]
 

@@ -27,6 +27,21 @@ __all__ = ["FittedATS", "FittedSTM", "fit_ats", "fit_stm", "sample_displacements
 PyTree = Any
 
 
+def _load_run(run_dir: str | os.PathLike[str], model: str, best: bool) -> Any:
+    """The newest (or best-validated) checkpoint of a ``model`` run.
+
+    Raises:
+        FileNotFoundError: not a run, or no checkpoint.
+        ValueError: a run of another model.
+    """
+    from jaxtalk.commands.runs import load_run
+
+    run = load_run(run_dir, best=best)
+    if run.record.model != model:
+        raise ValueError(f"{run_dir} is a {run.record.model} run, not an {model} run")
+    return run
+
+
 @dataclasses.dataclass(frozen=True)
 class FittedATS:
     """A trained ATS: its configuration, parameters and the data standardisation it was trained on.
@@ -66,17 +81,8 @@ class FittedATS:
 
     @classmethod
     def from_run(cls, run_dir: str | os.PathLike[str], *, best: bool = False) -> FittedATS:
-        """A trained ATS from a run folder (``jaxtalk train ats``).
-
-        Raises:
-            FileNotFoundError: not a run, or no checkpoint.
-            ValueError: a run of another model.
-        """
-        from jaxtalk.commands.runs import load_run
-
-        run = load_run(run_dir, best=best)
-        if run.record.model != "ats":
-            raise ValueError(f"{run_dir} is a {run.record.model} run, not an ats run")
+        """A trained ATS from a run folder (``jaxtalk train ats``; see :func:`_load_run`)."""
+        run = _load_run(run_dir, "ats", best)
         extra = run.record.extra
         stats = DisplacementStats(np.asarray(extra["stats"]["mean"], np.float32),
                                   np.asarray(extra["stats"]["std"], np.float32))
@@ -106,17 +112,8 @@ class FittedSTM:
 
     @classmethod
     def from_run(cls, run_dir: str | os.PathLike[str], *, best: bool = False) -> FittedSTM:
-        """A trained STM from a run folder (``jaxtalk train stm``).
-
-        Raises:
-            FileNotFoundError: not a run, or no checkpoint.
-            ValueError: a run of another model.
-        """
-        from jaxtalk.commands.runs import load_run
-
-        run = load_run(run_dir, best=best)
-        if run.record.model != "stm":
-            raise ValueError(f"{run_dir} is a {run.record.model} run, not an stm run")
+        """A trained STM from a run folder (``jaxtalk train stm``; see :func:`_load_run`)."""
+        run = _load_run(run_dir, "stm", best)
         return cls(run.config, jax.tree.map(jax.numpy.asarray, run.params), run.record.extra.get("resolution", "low"))
 
 
