@@ -176,11 +176,41 @@ def test_a_face_cut_into_forty_components_with_holes_animates_without_nan(models
         pieces_v.append(v[used])
         pieces_f.append(remap[ff])
         offset += used.size
+    from jaxtalk.geometry.mesh_checks import inspect_mesh
+
     keep = np.concatenate(pieces_f)[rng.random(f.shape[0]) > 0.05]  # and 5% of the faces gone (holes)
-    mesh = ft.prepare_user_mesh(fitted_stm, (np.concatenate(pieces_v), keep))
-    assert mesh.stm_mesh.ops is not None
+    verts = np.concatenate(pieces_v)
+    assert inspect_mesh(verts, keep).components >= 40
+    mesh = ft.prepare_user_mesh(fitted_stm, (verts, keep))
     out = ft.displace(fitted_stm, mesh, np.zeros((3, 68, 3), np.float32) + 0.002)
-    assert np.all(np.isfinite(out))
+    assert out.shape == (3, verts.shape[0], 3) and np.all(np.isfinite(out))
+
+
+def test_non_manifold_edges_and_degenerate_faces_animate_on_the_robust_laplacian(models):
+    from jaxtalk.geometry.mesh_checks import inspect_mesh
+    from jaxtalk.geometry.operators import resolve_method
+
+    fitted_ats, fitted_stm = models
+    v, f = _face(1)
+    # Three fins on existing edges (each edge then has three faces), and zero-area faces: one with a
+    # repeated index and one with collinear corners.
+    und = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, counts = np.unique(und, axis=0, return_counts=True)
+    edges = unique[counts == 2][[0, 100, 200]]  # interior edges: two faces each, three with the fin
+    fins = np.column_stack([edges, np.arange(3) + v.shape[0]])
+    tips = v[edges].mean(axis=1) + [0.0, 0.0, 0.01]
+    mid = (v[f[10, 0]] + v[f[10, 1]]) / 2
+    verts = np.concatenate([v, tips, [mid]])
+    faces = np.concatenate([f, fins, [[f[5, 0], f[5, 0], f[5, 1]], [f[10, 0], f[10, 1], verts.shape[0] - 1]]])
+    report = inspect_mesh(verts, faces)
+    # The collinear face lies on an interior edge too: four edges with three faces.
+    assert report.nonmanifold_edges == 4 and report.degenerate_faces == 2
+    mesh = ft.prepare_user_mesh(fitted_stm, (verts, faces))
+    # Cleaning drops the zero-area faces; the fins stay, so the operators use the robust Laplacian.
+    assert mesh.cleaned.faces.shape[0] == faces.shape[0] - 2
+    assert resolve_method(mesh.cleaned.vertices, mesh.cleaned.faces, "auto") == "robust"
+    out = ft.displace(fitted_stm, mesh, np.full((4, 68, 3), 0.002, np.float32))
+    assert out.shape == (4, verts.shape[0], 3) and np.all(np.isfinite(out))
 
 
 # ----------------------------------------------------------------------------------- bad input
