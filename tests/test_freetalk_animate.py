@@ -186,6 +186,22 @@ def test_a_face_cut_into_forty_components_with_holes_animates_without_nan(models
     assert out.shape == (3, verts.shape[0], 3) and np.all(np.isfinite(out))
 
 
+def test_parts_of_a_mesh_far_beyond_the_template_face_stay_still(models):
+    """A face with a second, disconnected copy 4 cm below it (like a neck or shoulders far outside
+    what STM was trained on): the face moves, the copy's vertices do not move at all."""
+    fitted_ats, fitted_stm = models
+    v, f = _face(0)
+    below = v + [0.0, -0.24, 0.0]  # 24 cm down: its top 4 cm below the chin, beyond FADE_END_M
+    _, _, landmarks = fitted_stm.template()  # the alignment is guided: this test is about the fade
+    mesh = ft.prepare_user_mesh(fitted_stm, (np.concatenate([v, below]), np.concatenate([f, f + v.shape[0]])),
+                                landmarks=landmarks)
+    assert np.all(mesh.weights[mesh.cleaned.vertex_map[: v.shape[0]]] == 1.0)
+    assert np.all(mesh.weights[mesh.cleaned.vertex_map[v.shape[0]:]] == 0.0)
+    out = ft.displace(fitted_stm, mesh, np.full((2, 68, 3), 0.003, np.float32))
+    np.testing.assert_array_equal(out[:, v.shape[0]:], np.broadcast_to(below.astype(np.float32), (2, *below.shape)))
+    assert np.abs(out[:, : v.shape[0]] - v).max() > 1e-4
+
+
 def test_non_manifold_edges_and_degenerate_faces_animate_on_the_robust_laplacian(models):
     from jaxtalk.geometry.mesh_checks import inspect_mesh
     from jaxtalk.geometry.operators import resolve_method

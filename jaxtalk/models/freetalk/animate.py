@@ -17,6 +17,12 @@ in centimetres, a remeshed face):
 4. The displacements are rotated and scaled back into the user's frame and units and added to the
    user's own vertices, in the user's own vertex order (an isolated vertex, which no face uses, stays
    still).
+
+STM was trained on face masks, so on the parts of a scan that lie beyond the template face (neck,
+shoulders, the back of a head) its output is an extrapolation: on menpo3d's head scan it moved
+neck vertices 5 cm below the chin by up to 3 cm. Displacements therefore fade linearly to zero
+between :data:`FADE_START_M` and :data:`FADE_END_M` from the aligned template surface (1 and 3 cm):
+the face moves as STM says, what lies well outside it stays still.
 """
 
 from __future__ import annotations
@@ -34,10 +40,14 @@ from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM, sample_displacemen
 from jaxtalk.models.freetalk.stm import STMMesh, prepare_mesh, stm_decode, stm_mesh_features
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, NUM_LANDMARKS, Float, PRNGKeyArray
 
-__all__ = ["UserMesh", "prepare_user_mesh", "landmark_track", "animate", "read_landmarks", "STM_CHUNK"]
+__all__ = ["UserMesh", "prepare_user_mesh", "landmark_track", "animate", "displace", "read_landmarks", "STM_CHUNK",
+           "FADE_START_M", "FADE_END_M"]
 
 # Frames STM decodes per call: the last chunk is padded, so clips of any length share one program.
 STM_CHUNK = 25
+# Distance from the aligned template face (metres, template frame) over which displacements fade out.
+FADE_START_M = 0.01
+FADE_END_M = 0.03
 _SAMPLES_PER_FRAME = AUDIO_SAMPLE_RATE // MOTION_FPS
 
 
@@ -52,6 +62,8 @@ class UserMesh:
         canonical: the transform into the template frame (units, scale, rotation, translation).
         stm_mesh: STM's operators on the canonical cleaned mesh.
         features: ``(V', mesh_feature_dim)`` STM's static features of it.
+        weights: ``(V',)`` in [0, 1], how much of STM's displacement each cleaned vertex takes (1 on
+            the face, fading to 0 beyond it; see the module docstring).
     """
 
     vertices: np.ndarray
@@ -60,6 +72,7 @@ class UserMesh:
     canonical: Canonicalization
     stm_mesh: STMMesh
     features: Any
+    weights: np.ndarray
 
     @property
     def num_vertices(self) -> int:
@@ -137,9 +150,15 @@ def prepare_user_mesh(
     tv, tf, tl = stm.template()
     canon = canonicalize(cleaned.vertices, cleaned.faces, tv, tf, units=units, landmarks=landmarks,
                          template_landmarks=tl)
-    stm_mesh = prepare_mesh(canon.to_template(cleaned.vertices), cleaned.faces, stm.config, cache_dir=cache_dir)
+    from scipy.spatial import cKDTree
+
+    placed = canon.to_template(cleaned.vertices)
+    stm_mesh = prepare_mesh(placed, cleaned.faces, stm.config, cache_dir=cache_dir)
     features = stm_mesh_features(stm.params, stm.config, stm_mesh)
-    return UserMesh(vertices=v, faces=f, cleaned=cleaned, canonical=canon, stm_mesh=stm_mesh, features=features)
+    distance, _ = cKDTree(tv).query(placed)
+    weights = np.clip((FADE_END_M - distance) / (FADE_END_M - FADE_START_M), 0.0, 1.0)
+    return UserMesh(vertices=v, faces=f, cleaned=cleaned, canonical=canon, stm_mesh=stm_mesh, features=features,
+                    weights=weights)
 
 
 def _window_starts(num_frames: int, window: int) -> list[int]:
@@ -269,7 +288,7 @@ def displace(stm: FittedSTM, mesh: UserMesh, landmark_disp: Float[np.ndarray, "f
     padded = np.concatenate([disp, np.repeat(disp[-1:], total - frames, axis=0)])
     chunks = [np.asarray(stm_decode(stm.params, stm.config, mesh.features, padded[s:s + STM_CHUNK], mesh.stm_mesh))
               for s in range(0, total, STM_CHUNK)]
-    canon = np.concatenate(chunks)[:frames]  # (T, V', 3) metres, template frame
+    canon = np.concatenate(chunks)[:frames] * mesh.weights[None, :, None]  # (T, V', 3) metres, template frame
     user = mesh.canonical.displacements_to_user(canon)
     vmap = mesh.cleaned.vertex_map
     out = np.zeros((frames, mesh.num_vertices, 3), np.float64)
