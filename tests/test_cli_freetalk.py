@@ -142,3 +142,9 @@ def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path,
     verts = np.load(out)
     assert verts.shape == (30, files["vertices"].shape[0], 3) and np.isfinite(verts).all()
     assert Path(record.data["path"]).is_dir()
+
+
+def test_training_ats_on_labels_outside_its_vocabulary_is_a_user_error(prepared_tiny, tmp_path):
+    _user_error(["train", "ats", "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent, "--steps", "1",
+                 *ATS_SMALL, "--set", "emotions=mead", "--no-progress", "--out", tmp_path / "run"],
+                "outside the model's vocabulary (neutral, angry, contempt")
