@@ -7,8 +7,7 @@ audio with the clip's own emotion label and intensity, i.e. the whole chain a us
 * ATS: an ``ats`` run folder (``--ats``; ``jaxtalk train ats --data synthtalk:small --set max_frames=50
   --set window_frames=50``), sampled over whole test clips with :func:`freetalk.animate.landmark_track`
   (training-length windows, cross-faded).
-* STM: trained here with its recipe on the seen meshes of ``freetalk_topology.py`` (identities 0-2 on
-  three topologies), once with the paper's DiffusionNet decoder and once with the supplement's
+* STM: trained here with its recipe on its seen meshes (identities 0-2 on three topologies), once with the paper's DiffusionNet decoder and once with the supplement's
   per-vertex MLP decoder (the decoder-substitution ablation); each is a run folder under ``--work``.
 
 Table 1 (per mesh, seen / unseen identities and topologies, SynthTalk test clips, head pose removed):
@@ -36,7 +35,6 @@ Usage: python experiments/freetalk_end_to_end.py --ats runs/e2e/ats [--stm-steps
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -49,37 +47,31 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from freetalk_topology import HELD_OUT, SEEN, evaluate  # noqa: E402
 
 from jaxtalk import benchmarking as bm  # noqa: E402
-from jaxtalk.commands.runs import RunRecord, checkpoint_dir, save_run_assets  # noqa: E402
+from jaxtalk.commands.runs import checkpoint_dir  # noqa: E402
+from jaxtalk.commands.training import TrainOptions, train_run  # noqa: E402
 from jaxtalk.data import synthtalk  # noqa: E402
-from jaxtalk.data.loader import open_data  # noqa: E402
 from jaxtalk.data.synthtalk.emotions import face_offset  # noqa: E402
 from jaxtalk.models.freetalk import animate as ft  # noqa: E402
 from jaxtalk.models.freetalk import data, stm  # noqa: E402
-from jaxtalk.models.freetalk import recipe as freetalk_recipe  # noqa: E402
-from jaxtalk.models.freetalk.config import STMConfig  # noqa: E402
 from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM  # noqa: E402
-from jaxtalk.train import OptimConfig, latest_checkpoint_step  # noqa: E402
+from jaxtalk.train import latest_checkpoint_step  # noqa: E402
 from jaxtalk.types import JAW_SLICE  # noqa: E402
 
 MM = 1000.0
 
 
-def stm_run(run_dir: Path, prepared, decoder: str, steps: int, batch: int) -> FittedSTM:
-    """STM ``small`` with ``decoder`` trained by its recipe on the SEEN meshes, as a run folder (or
-    loaded when the folder already holds the finished run)."""
+def stm_run(run_dir: Path, args: argparse.Namespace, decoder: str) -> FittedSTM:
+    """STM ``small`` with ``decoder``, trained by its recipe through the one training entry point (as
+    ``jaxtalk train stm --data synthtalk:SIZE --set decoder=... --set batch_size=... --set lr=2e-3``
+    does: the recipe's seen meshes, 16-frame windows), or loaded when ``run_dir`` holds the finished run."""
     ckpt = checkpoint_dir(run_dir)
-    if (run_dir / "run.json").is_file() and ckpt.exists() and latest_checkpoint_step(ckpt) == steps:
-        print(f"found the finished run {run_dir}: not training again", flush=True)
-        return FittedSTM.from_run(run_dir)
-    cfg = STMConfig.small(decoder=decoder)
-    optim = OptimConfig(lr=2e-3, warmup_steps=min(50, steps // 10), total_steps=steps)
-    result = freetalk_recipe.train_stm(cfg, prepared, optim, steps=steps, key=jax.random.key(0), batch_size=batch,
-                                       meshes=tuple(SEEN), resolution="low", ckpt_dir=ckpt, progress=True,
-                                       log_every=max(1, steps // 20), save_every=max(steps // 4, 1))
-    RunRecord(model="stm", preset="small", items=[f"decoder={decoder}"], config=dataclasses.asdict(cfg), train={},
-              optim=optim.to_dict(), data={"spec": "synthtalk", "path": str(prepared.root.absolute()), "key": prepared.key},
-              seed=0, extra=result.extra).save(run_dir)
-    save_run_assets(run_dir, "stm", prepared, cfg)
+    done = latest_checkpoint_step(ckpt) if ckpt.exists() else None
+    if done != args.stm_steps or not (run_dir / "run.json").is_file():
+        train_run(TrainOptions(model="stm", out_dir=run_dir, data=f"synthtalk:{args.size}", preset="small",
+                               overrides=(f"decoder={decoder}", f"batch_size={args.batch}", "lr=2e-3"),
+                               steps=args.stm_steps, seed=0, cache_dir=args.cache))
+    else:
+        print(f"found the finished run {run_dir} (step {done}): not training again", flush=True)
     return FittedSTM.from_run(run_dir)
 
 
@@ -180,7 +172,6 @@ def real_mesh(args, corpus, ats_fit: FittedATS, fitted: FittedSTM, clip: int, ke
     mesh = ft.prepare_user_mesh(fitted, (vertices, faces))
     prep_s = time.perf_counter() - t0
     c = mesh.canonical
-    info = corpus.clips[clip]
     audio = corpus.audio(clip)
     t0 = time.perf_counter()
     out = ft.displace(fitted, mesh, ft.landmark_track(ats_fit, audio, "happy", 2.0, key))
@@ -253,10 +244,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results/freetalk_end_to_end.json"))
     args = parser.parse_args()
     corpus = synthtalk.generate(args.size, seed=0, cache_dir=args.cache / "synthtalk")
-    prepared = open_data(f"synthtalk:{args.size}", cache_dir=args.cache)
     ats_fit = FittedATS.from_run(args.ats, best=True)
-    stms = {dec: stm_run(args.work / f"stm_{dec}", prepared, dec, args.stm_steps, args.batch)
-            for dec in ("diffusionnet", "mlp")}
+    stms = {dec: stm_run(args.work / f"stm_{dec}", args, dec) for dec in ("diffusionnet", "mlp")}
     clips = [c for c in corpus.split("test") if not corpus.clips[c].is_conversation][: args.test_clips]
     payload: dict = {"args": {k: str(v) for k, v in vars(args).items()}}
     if not args.only_real:

@@ -38,12 +38,11 @@ from jaxtalk.models.freetalk import recipe as freetalk_recipe
 from jaxtalk.models.freetalk.config import STMConfig
 from jaxtalk.train import OptimConfig
 
-# Training meshes are padded to the largest one, so the seen set avoids the ~4x denser subdivided
-# topology (it would make every training window 4x dearer); it is held out instead, which also
-# tests a resolution never seen in training. Each retriangulation is a fresh random remesh (seeded
-# by the identity), so (3, "retriangulated") is a connectivity never seen in training.
-SEEN = [(0, "base"), (1, "decimated"), (2, "retriangulated")]
-HELD_OUT = [(0, "subdivided"), (3, "base"), (3, "retriangulated")]
+# The recipe's training meshes (seen) and the held-out ones: the subdivided topology tests a
+# resolution never seen in training; each retriangulation is a fresh random remesh (seeded by the
+# identity), so (3, "retriangulated") is a connectivity never seen in training.
+SEEN = list(freetalk_recipe.STM_MESHES)
+HELD_OUT = list(freetalk_recipe.STM_HELD_OUT)
 
 
 def evaluate(pred: np.ndarray, gt: np.ndarray, rest: np.ndarray, lips: np.ndarray, upper: np.ndarray) -> dict:
