@@ -88,6 +88,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results/bench_freetalk_e2e.json"))
     args = parser.parse_args()
     peak = bm.measure_matmul_peak() / 1e9
+    print(f"float32 matmul peak {peak:.0f} GFLOP/s", flush=True)
     acfg = ATSConfig.small(max_frames=args.window)
     ats_fit = FittedATS(acfg, ats.init_ats(acfg, jax.random.key(0)),
                         DisplacementStats(np.zeros((68, 3), np.float32), np.full((68, 3), 0.003, np.float32)), [],
