@@ -330,6 +330,10 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     from jaxtalk.models.freetalk.animate import landmark_track, displace, prepare_user_mesh, read_landmarks
     from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM
 
+    unused = [name for name, value in (("--style", opts.style), ("--partner", opts.partner),
+                                       ("--cfg-scale", opts.cfg_scale)) if value is not None]
+    if unused:
+        raise ValueError(f"{', '.join(unused)}: not FreeTalk options (it takes --emotion, --intensity, --steps, --seed)")
     for run_dir, model in ((opts.run_dir, "ats"), (mesh_opts.stm_run, "stm")):
         record = RunRecord.load(run_dir)
         if record.model != model:
