@@ -213,7 +213,7 @@ def model_setups(data: Any) -> list[dict]:
     from jaxtalk.models.freetalk.data import face_mesh
     from jaxtalk.models.freetalk.recipe import STM_MESHES, ATSWindows, STMWindows, fit_displacement_stats
 
-    config = dataclasses.replace(build_config("ats", "small", [f"audio_dim={m['speech_dim']}"]), displacement_scale=1.0)
+    config = build_config("ats", "small", [f"audio_dim={m['speech_dim']}"])
     out.append({"model": "ats", "recipe": ATSWindows(min(config.max_frames, 50), fit_displacement_stats(data)),
                 "params": ats.init_ats(config, jax.random.key(0)), "loss": ats.make_ats_loss(config), "trainable": None})
 

@@ -21,6 +21,7 @@ import numpy as np
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
+from jaxtalk.models.freetalk.emotions import EMOTIONS
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, window_starts
 from jaxtalk.types import PRNGKeyArray
@@ -56,7 +57,7 @@ class ATSWindows:
 
     window: int
     stats: DisplacementStats
-    emotions: tuple[str, ...]
+    emotions: tuple[str, ...] = EMOTIONS
 
     def table(self, data: PreparedData, split: str) -> np.ndarray:
         """Rows ``(clip, start)``; clips shorter than a window give none."""
