@@ -247,6 +247,18 @@ def test_prepare_user_mesh_rejects_what_cannot_be_a_face_mesh(models, vertices, 
         ft.prepare_user_mesh(models[1], (vertices, faces))
 
 
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".glb", ".gltf", ".off"])
+def test_load_mesh_keeps_the_files_vertex_order(tmp_path, suffix):
+    import trimesh
+
+    v, f = _face(4)
+    path = tmp_path / f"face{suffix}"
+    trimesh.Trimesh(100.0 * v, f, process=False).export(path)
+    vertices, faces = load_mesh(path)
+    np.testing.assert_allclose(vertices, 100.0 * v, atol=1e-5)  # glTF stores float32
+    np.testing.assert_array_equal(faces, f)
+
+
 def test_load_mesh_errors_name_the_file_and_the_problem(tmp_path):
     import trimesh
 
