@@ -16,9 +16,10 @@ LVE (lips, mm^2), MVE (mm), FDD (upper face, mm^2) for the chain, for STM on the
 (SynthTalk's deterministic motion: the best any model can do from audio).
 
 Table 2, emotion control on the mesh: per emotion and intensity 1-3, the brow and eye vertices'
-offset from the neutral sample (same audio, same noise; mean over frames; its norm averaged over the
-vertices, and its signed component along SynthTalk's own offset, in mm) on a seen and an unseen
-mesh, beside SynthTalk's own offset on that mesh.
+offset from the neutral sample (same audio, same noise; mean over frames, pooled over
+``--emotion-clips`` clips x ``--emotion-seeds`` noise seeds; its norm averaged over the vertices, and
+its signed component along SynthTalk's own offset with its standard error, in mm) on a seen and an
+unseen mesh, beside SynthTalk's own offset on that mesh.
 
 Real mesh (``--real-mesh``, e.g. menpo3d's ``james.obj``, a head scan in mm; ``--real-landmarks``
 its ``.ljson`` for the landmark-guided comparison): units found, alignment scale and residual,
@@ -111,27 +112,35 @@ def mesh_table(corpus, ats_fit: FittedATS, stms: dict[str, FittedSTM], clips: li
     return rows
 
 
-def emotion_table(corpus, ats_fit: FittedATS, fitted: FittedSTM, clip: int, key) -> list[dict]:
-    """Upper-face vertex offsets from neutral by emotion and intensity on one seen and one unseen mesh."""
-    audio = corpus.audio(clip)
-    neutral = ft.landmark_track(ats_fit, audio, "neutral", 1.0, key)
+def emotion_table(corpus, ats_fit: FittedATS, fitted: FittedSTM, clips: list[int], seeds: int, key) -> list[dict]:
+    """Brow and eye vertex offsets from neutral by emotion and intensity on one seen and one unseen
+    mesh, pooled over ``clips`` x ``seeds`` samples (the same audio and noise for every label)."""
     labels = [(e, i) for e in ats_fit.config.emotions[1:] for i in (1, 2, 3)]
-    tracks = [ft.landmark_track(ats_fit, audio, e, float(i), key) for e, i in labels]
     rows = []
     for (ident, kind) in (SEEN[0], HELD_OUT[2]):
         m = data.face_mesh(ident, kind)
         upper = np.union1d(m.region("brows"), m.region("eyes"))
-        out = decode(fitted, m, [neutral, *tracks])
-        base = out[0][:, upper].mean(0)
-        for (emotion, level), pred in zip(labels, out[1:]):
-            delta = pred[:, upper].mean(0) - base  # (U, 3) mean offset of each brow / eye vertex
+        deltas = []  # per (clip, seed): (labels, U, 3) mean offset of each brow / eye vertex
+        for n, clip in enumerate(clips):
+            audio = corpus.audio(clip)
+            for seed in range(seeds):
+                k = jax.random.fold_in(key, 100 * n + seed)
+                tracks = [ft.landmark_track(ats_fit, audio, e, float(i), k) for e, i in [("neutral", 1), *labels]]
+                out = decode(fitted, m, tracks)
+                base = out[0][:, upper].mean(0)
+                deltas.append(np.stack([pred[:, upper].mean(0) - base for pred in out[1:]]))
+        deltas = np.stack(deltas)
+        for j, (emotion, level) in enumerate(labels):
+            delta = deltas[:, j].mean(0)
             true_motion = data.without_head_pose(face_offset(emotion, level)[None].astype(np.float32))
             true = m.motion(true_motion)[1][0, upper]
             direction = true / np.maximum(np.linalg.norm(true, axis=-1, keepdims=True), 1e-12)
+            along = np.sum(deltas[:, j] * direction, axis=-1).mean(axis=-1)  # per sample
             rows.append({"mesh": m.name, "emotion": emotion, "intensity": level,
                          "model_mm": float(np.linalg.norm(delta, axis=-1).mean() * MM),
                          # Signed component along the true offset: label-independent noise averages out.
-                         "along_mm": float(np.sum(delta * direction, axis=-1).mean() * MM),
+                         "along_mm": float(along.mean() * MM),
+                         "along_se_mm": float(along.std(ddof=1) / np.sqrt(len(along)) * MM) if len(along) > 1 else None,
                          "true_mm": float(np.linalg.norm(true, axis=-1).mean() * MM)})
     return rows
 
@@ -239,6 +248,11 @@ def main() -> None:
     parser.add_argument("--real-mesh", type=Path, default=None)
     parser.add_argument("--real-landmarks", type=Path, default=None)
     parser.add_argument("--only-real", action="store_true", help="skip the SynthTalk tables")
+    parser.add_argument("--only-emotion", action="store_true", help="only Table 2 (and the real mesh, if given)")
+    parser.add_argument("--emotion-clips", type=int, default=3)
+    parser.add_argument("--emotion-seeds", type=int, default=2)
+    parser.add_argument("--emotion-checkpoint", choices=("best", "final"), default="final",
+                        help="ATS checkpoint for Table 2 (Table 1 uses the best-validated one)")
     parser.add_argument("--work", type=Path, default=Path("runs/e2e"))
     parser.add_argument("--cache", type=Path, default=Path(".cache/prepared"))
     parser.add_argument("--out", type=Path, default=Path("experiments/results/freetalk_end_to_end.json"))
@@ -249,14 +263,27 @@ def main() -> None:
     clips = [c for c in corpus.split("test") if not corpus.clips[c].is_conversation][: args.test_clips]
     payload: dict = {"args": {k: str(v) for k, v in vars(args).items()}}
     if not args.only_real:
-        tables(args, corpus, ats_fit, stms, clips, payload)
+        ats_emotion = FittedATS.from_run(args.ats, best=args.emotion_checkpoint == "best")
+        tables(args, corpus, ats_fit, ats_emotion, stms, clips, payload)
     if args.real_mesh is not None:
         payload["real_mesh"] = real_mesh(args, corpus, ats_fit, stms["diffusionnet"], clips[0], jax.random.key(3))
         print(json.dumps(payload["real_mesh"], indent=1))
     print(f"wrote {bm.write_json(args.out, payload)}")
 
 
-def tables(args, corpus, ats_fit: FittedATS, stms: dict[str, FittedSTM], clips: list[int], payload: dict) -> None:
+def tables(args, corpus, ats_fit: FittedATS, ats_emotion: FittedATS, stms: dict[str, FittedSTM], clips: list[int],
+           payload: dict) -> None:
+    if not args.only_emotion:
+        mesh_tables(args, corpus, ats_fit, stms, clips, payload)
+    emo = emotion_table(corpus, ats_emotion, stms["diffusionnet"], clips[: args.emotion_clips], args.emotion_seeds,
+                        jax.random.key(7))
+    bm.print_table(emo, "Brow and eye offset from neutral on the mesh (mm): model vs SynthTalk's own")
+    payload["emotion_table"] = emo
+    payload["emotion_summary"] = emotion_summary(emo)
+    print(json.dumps(payload["emotion_summary"], indent=1))
+
+
+def mesh_tables(args, corpus, ats_fit: FittedATS, stms: dict[str, FittedSTM], clips: list[int], payload: dict) -> None:
     rows = []
     for seed in range(args.seeds):
         for r in mesh_table(corpus, ats_fit, stms, clips, jax.random.key(100 + seed)):
@@ -282,11 +309,7 @@ def tables(args, corpus, ats_fit: FittedATS, stms: dict[str, FittedSTM], clips: 
             summary[f"{split} / {method}"] = float(np.mean(vals))
     print(json.dumps(summary, indent=1))
     payload["summary_LVE_mm2"] = summary
-    emo = emotion_table(corpus, ats_fit, stms["diffusionnet"], clips[0], jax.random.key(7))
-    bm.print_table(emo, "Upper-face offset from neutral on the mesh (mm): model vs SynthTalk's own")
-    payload["emotion_table"] = emo
-    payload["emotion_summary"] = emotion_summary(emo)
-    print(json.dumps(payload["emotion_summary"], indent=1))
+
 
 
 if __name__ == "__main__":
