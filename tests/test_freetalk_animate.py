@@ -369,3 +369,18 @@ def test_a_real_face_scan_in_millimetres_animates_in_its_own_frame(models):
         _, _, tl = fitted_stm.template()
         err = np.linalg.norm(guided.canonical.to_template(points) - tl, axis=1)
         assert guided.canonical.method == "landmarks" and err[48:].mean() < 0.01  # mouth within 1 cm
+
+
+def test_an_ats_run_recorded_before_the_vocabulary_setting_loads_as_emovoca():
+    import dataclasses
+
+    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.models.freetalk.emotions import EMOTIONS
+
+    old = dataclasses.asdict(ATSConfig.small())
+    old.pop("emotions")
+    record = RunRecord(model="ats", preset="small", items=[], config={**old, "num_emotions": 12}, train={}, optim={},
+                       data={}, seed=0)
+    assert record.model_config().emotions == EMOTIONS
+    with pytest.raises(ValueError, match="no vocabulary on record"):
+        dataclasses.replace(record, config={**old, "num_emotions": 8}).model_config()

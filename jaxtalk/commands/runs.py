@@ -204,7 +204,7 @@ class RunRecord:
         if self.model == "ats" and "num_emotions" in fields:
             # ATS runs recorded before the vocabulary was a setting have the EmoVOCA table (12 rows).
             if fields.pop("num_emotions") != 12:
-                raise ValueError(f"this ATS run's emotion table has no vocabulary on record; train it again")
+                raise ValueError("this ATS run's emotion table has no vocabulary on record; train it again")
         return config_class(self.model)(**fields)
 
     def optim_config(self) -> Any:
