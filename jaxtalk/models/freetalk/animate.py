@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from jaxtalk.geometry.canonical import Canonicalization, canonicalize, load_mesh
 from jaxtalk.geometry.mesh_checks import CleanedMesh, clean_mesh, validate_mesh
@@ -150,8 +151,6 @@ def prepare_user_mesh(
     tv, tf, tl = stm.template()
     canon = canonicalize(cleaned.vertices, cleaned.faces, tv, tf, units=units, landmarks=landmarks,
                          template_landmarks=tl)
-    from scipy.spatial import cKDTree
-
     placed = canon.to_template(cleaned.vertices)
     stm_mesh = prepare_mesh(placed, cleaned.faces, stm.config, cache_dir=cache_dir)
     features = stm_mesh_features(stm.params, stm.config, stm_mesh)
