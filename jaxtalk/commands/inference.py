@@ -85,7 +85,7 @@ def _check_input(opts: SampleOptions, model: str) -> str:
         return "tokens"
     kinds = "an audio file (" + ", ".join(AUDIO_SUFFIXES) + ")" + (" or a .npy of token embeddings"
                                                                    if model == "toktalk" else "")
-    raise ValueError(f"{str(path)!r}: expected {kinds} for a {model} run")
+    raise ValueError(f"{str(path)!r}: expected {kinds} for {'an' if model[0] in 'aeiou' else 'a'} {model} run")
 
 
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
@@ -327,23 +327,16 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
 
     from jaxtalk.audio import load_audio
     from jaxtalk.geometry.canonical import load_mesh
-    from jaxtalk.models.freetalk.animate import landmark_track, displace, prepare_user_mesh, read_landmarks
+    from jaxtalk.models.freetalk.animate import animate, prepare_user_mesh, read_landmarks
     from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM
+    from jaxtalk.render._atomic import atomic_output
 
     unused = [name for name, value in (("--style", opts.style), ("--partner", opts.partner),
                                        ("--cfg-scale", opts.cfg_scale)) if value is not None]
     if unused:
         raise ValueError(f"{', '.join(unused)}: not FreeTalk options (it takes --emotion, --intensity, --steps, --seed)")
-    for run_dir, model in ((opts.run_dir, "ats"), (mesh_opts.stm_run, "stm")):
-        record = RunRecord.load(run_dir)
-        if record.model != model:
-            raise ValueError(f"{run_dir} is a {record.model} run; FreeTalk needs an ats run first and an stm run "
-                             f"after --stm")
     path = Path(opts.input)
-    if not path.is_file():
-        raise FileNotFoundError(f"input file not found: {str(path)!r}")
-    if path.suffix.lower() not in AUDIO_SUFFIXES:
-        raise ValueError(f"{str(path)!r}: expected an audio file ({', '.join(AUDIO_SUFFIXES)}) for FreeTalk")
+    _check_input(opts, "ats")
     out = Path(opts.out) if opts.out is not None else path.with_name(f"{path.stem}_vertices.npy")
     if out.suffix != ".npy":
         raise ValueError(f"FreeTalk writes vertices: the output must be a .npy file, got {str(out)!r}")
@@ -358,12 +351,9 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     echo(f"mesh {mesh_opts.mesh}: {vertices.shape[0]} vertices, {faces.shape[0]} faces, units {c.units}, aligned to "
          f"the template by {c.method} (scale {c.fitted_scale:.3f}, mean distance {c.residual * 1000:.1f} mm) in "
          f"{time.perf_counter() - t0:.1f} s")
-    track = landmark_track(ats, audio, mesh_opts.emotion, mesh_opts.intensity, jax.random.key(opts.seed),
-                           num_steps=opts.num_steps)
-    verts = displace(stm, mesh, track)
+    verts = animate(ats, stm, audio, mesh_opts.emotion, mesh_opts.intensity, mesh, key=jax.random.key(opts.seed),
+                    num_steps=opts.num_steps)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    with open(tmp, "wb") as handle:
-        np.save(handle, verts)
-    tmp.replace(out)
+    with atomic_output(out) as tmp:
+        np.save(tmp, verts)
     return SampleResult(path=out, params=verts, chunk_ms=[], chunk_s=None)
