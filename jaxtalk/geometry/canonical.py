@@ -226,15 +226,16 @@ def _split(matrix: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     return scale, linear / scale, matrix[:3, 3].copy()
 
 
-def _icp(template_pts: np.ndarray, user_pts: np.ndarray, initial: np.ndarray, iterations: int) -> tuple[np.ndarray, float]:
+def _icp(template_pts: np.ndarray, user_pts: np.ndarray, user_tree, initial: np.ndarray,
+         iterations: int) -> tuple[np.ndarray, float]:
     """ICP of the template points onto the user points (the template -> user similarity) and the mean
-    distance of the moved template points to their nearest user points (in the user's frame)."""
-    from scipy.spatial import cKDTree
+    distance of the moved template points to their nearest user points (in the user's frame);
+    ``user_tree`` is the KD-tree of ``user_pts``, built once for every candidate."""
     from trimesh.registration import icp
 
     matrix, moved, _ = icp(template_pts, user_pts, initial=initial, max_iterations=iterations, threshold=1e-10,
                            reflection=False, scale=True)
-    dist, _ = cKDTree(user_pts).query(moved)
+    dist, _ = user_tree.query(moved)
     return matrix, float(dist.mean())
 
 
@@ -267,6 +268,7 @@ def canonicalize(
         ValueError: an unknown unit, a size that is not a face's, landmarks of the wrong shape or
             with NaN, or an alignment whose scale or residual shows that the mesh is not a face.
     """
+    from scipy.spatial import cKDTree
     from trimesh.registration import procrustes
 
     v = np.asarray(vertices, np.float64)
@@ -285,6 +287,7 @@ def canonicalize(
                          f"({lo * 100:.0f}-{hi * 100:.0f} cm); check the units")
     metres = v * unit
     user_pts = _surface_samples(metres, f, min(_USER_POINTS, max(4 * v.shape[0], 2000)), seed=0)
+    user_tree = cKDTree(user_pts)
     tpl_search = _surface_samples(tv, tf, _SEARCH_POINTS, seed=1)
     tpl_final = _surface_samples(tv, tf, _FINAL_POINTS, seed=2)
     if landmarks is not None:
@@ -297,7 +300,7 @@ def canonicalize(
         if not np.all(np.isfinite(lm)):
             raise ValueError("landmarks contain NaN or inf")
         start, _, _ = procrustes(tl, lm * unit, reflection=False, scale=True)
-        matrix, residual = _icp(tpl_final, user_pts, start, 30)
+        matrix, residual = _icp(tpl_final, user_pts, user_tree, start, 30)
         method = "landmarks"
     else:
         t_centre, t_axes = _principal_frame(tpl_search)
@@ -306,10 +309,10 @@ def canonicalize(
         for r in _candidate_rotations():
             rotation = u_axes @ r @ t_axes.T  # template axes -> user axes
             start = _similarity(1.0, rotation, u_centre - rotation @ t_centre)
-            matrix, residual = _icp(tpl_search, user_pts, start, 15)
+            matrix, residual = _icp(tpl_search, user_pts, user_tree, start, 15)
             if best is None or residual < best[1]:
                 best = (matrix, residual)
-        matrix, residual = _icp(tpl_final, user_pts, best[0], 40)
+        matrix, residual = _icp(tpl_final, user_pts, user_tree, best[0], 40)
         method = "icp"
     s, rot, trans = _split(matrix)  # template (m) -> user (m)
     # Invert: user metres -> template metres; fold the unit factor into the scale.
