@@ -173,7 +173,7 @@ def _grows(values: list[float]) -> bool:
 
 
 def real_mesh(args, corpus, ats_fit: FittedATS, fitted: FittedSTM, clip: int, key) -> dict:
-    from jaxtalk.geometry.canonical import load_mesh
+    from jaxtalk.geometry.canonical import UNITS, load_mesh
     from jaxtalk.render import render_clip, render_frames, save_png
 
     vertices, faces = load_mesh(args.real_mesh)
@@ -185,7 +185,7 @@ def real_mesh(args, corpus, ats_fit: FittedATS, fitted: FittedSTM, clip: int, ke
     t0 = time.perf_counter()
     out = ft.displace(fitted, mesh, ft.landmark_track(ats_fit, audio, "happy", 2.0, key))
     run_s = time.perf_counter() - t0
-    disp = np.linalg.norm(out - vertices, axis=-1) * UNIT_MM[c.units]
+    disp = np.linalg.norm(out - vertices, axis=-1) * UNITS[c.units] * MM
     _, _, tl = fitted.template()
     points = None
     if args.real_landmarks is not None and args.real_landmarks.is_file():
@@ -199,7 +199,7 @@ def real_mesh(args, corpus, ats_fit: FittedATS, fitted: FittedSTM, clip: int, ke
     else:
         canon = c.to_template(vertices)
         top, bottom = (int(np.argmin(np.linalg.norm(canon - tl[j], axis=1))) for j in (51, 57))
-    opening = np.linalg.norm(out[:, top] - out[:, bottom], axis=-1) * UNIT_MM[c.units]
+    opening = np.linalg.norm(out[:, top] - out[:, bottom], axis=-1) * UNITS[c.units] * MM
     jaw = np.asarray(corpus.motion(clip))[:, JAW_SLICE.start]
     n = min(len(opening), len(jaw))
     truth = data.face_mesh(0, "base").motion(data.without_head_pose(corpus.motion(clip)))[1]
@@ -232,9 +232,6 @@ def real_mesh(args, corpus, ats_fit: FittedATS, fitted: FittedSTM, clip: int, ke
     result["video"] = str(video)
     result["png"] = str(save_png(work / "real_mesh.png", image))
     return result
-
-
-UNIT_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0, "um": 1e-3}
 
 
 def main() -> None:
