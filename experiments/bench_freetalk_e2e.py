@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import statistics
 import time
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import jax
 import numpy as np
 
 from jaxtalk import benchmarking as bm
+from jaxtalk.bench import _median_time
 from jaxtalk.face import builtin_face
 from jaxtalk.models.freetalk import animate as ft
 from jaxtalk.models.freetalk import ats, stm
@@ -69,12 +69,7 @@ def timed(fn, repeats: int) -> tuple[float, float]:
     t0 = time.perf_counter()
     fn()
     first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        runs.append(time.perf_counter() - t0)
-    run = statistics.median(runs)
+    run = _median_time(fn, repeats)
     return max(first - run, 0.0), run
 
 
