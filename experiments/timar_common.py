@@ -1,6 +1,6 @@
 """Shared pieces of the TIMAR experiments (``timar_context``, ``timar_ablation``, ``timar_dualtalk``):
-command-line training knobs, training on SynthTalk, streaming predictions, metrics and the pickled
-model format.
+command-line training knobs, training on SynthTalk, streaming predictions (and the DualTalk baseline's
+turn-window predictions), metrics and the pickled model format.
 
 Training goes through TIMAR's recipe (:func:`jaxtalk.models.timar.recipe.train`, what ``jaxtalk train
 timar`` runs) on the prepared corpus (``open_data("synthtalk:SIZE")``): 8-turn windows every turn of
@@ -116,6 +116,24 @@ def predict(config, params, normalizer, convs, *, context, cfg_scale, temperatur
             normalizer.speech(c.agent_speech)[None], jax.random.key(seed + i), context=context, cfg_scale=cfg_scale,
             temperature=temperature, sampler=sampler,
         )
+        out.append(normalizer.unmotion(np.asarray(x)[0]))
+    return out
+
+
+def predict_dualtalk(config, params, normalizer, convs, *, context):
+    """The DualTalk baseline on every conversation at ``context`` turns of history; raw (denormalised) motion.
+
+    Turn t of a conversation comes from the window of turns ``[max(0, t - context), t]`` (both
+    speakers' speech and the user's motion, standardised with ``normalizer`` as :func:`predict` does),
+    the whole current turn included, as DualTalk reads a whole clip: Table 1's progressive-context
+    protocol (:func:`jaxtalk.models.dualtalk.predict_turns`). Deterministic: no seed.
+    """
+    from jaxtalk.models.dualtalk import predict_turns
+
+    out = []
+    for c in convs:
+        x = predict_turns(params, config, normalizer.speech(c.user_speech)[None], normalizer.motion(c.user_motion)[None],
+                          normalizer.speech(c.agent_speech)[None], context=context)
         out.append(normalizer.unmotion(np.asarray(x)[0]))
     return out
 

@@ -18,6 +18,7 @@ from typing import Annotated, Any
 import typer
 
 from jaxtalk.demo import DemoOptions
+from jaxtalk.viewer import ViewerError
 
 app = typer.Typer(
     name="jaxtalk",
@@ -30,7 +31,9 @@ app = typer.Typer(
 _STATE = {"debug": False}
 
 # Errors that mean "the user asked for something wrong", reported as one line.
-USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, FileExistsError, KeyError)
+# (ViewerError: no Node.js / npm for `jaxtalk view`, or its install failed; jaxtalk.viewer imports only the
+# standard library, so naming it here costs the CLI's start-up nothing.)
+USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, FileExistsError, KeyError, ViewerError)
 
 
 def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -138,9 +141,11 @@ def demo(
     typer.echo(f"done in {result.wall_s:.1f} s; outputs in {result.out_dir.resolve()}")
     for name, path in result.files.items():
         typer.echo(f"  {name:15s} {path}")
+    typer.echo(f"play the animation with its audio in a browser: jaxtalk view {result.out_dir}")
 
 
-_MODEL_HELP = "Model: toktalk, ats (FreeTalk landmarks), stm (FreeTalk sparse-to-mesh) or timar."
+_MODEL_HELP = ("Model: toktalk, ats (FreeTalk landmarks), stm (FreeTalk sparse-to-mesh), timar or dualtalk (TIMAR's "
+               "non-causal baseline).")
 
 
 def _echo_table(rows: list[dict[str, Any]], title: str) -> None:
@@ -286,7 +291,7 @@ def stream(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, pa
 @app.command(name="eval")
 @_user_errors
 def eval_(
-    run: Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk, timar, ats or stm).")],
+    run: Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk, timar, dualtalk, ats or stm).")],
     data: Annotated[
         str | None, typer.Option(help="Prepared dataset folder or synthtalk:SIZE (default: the run's own data); its "
                                       "features must be the run's.")
@@ -309,8 +314,8 @@ def eval_(
 ) -> None:
     """Score a trained run on a split of prepared data, next to the mean pose (and the oracle where known).
 
-    TokTalk: LVE, MVE, FDD, MOD, jitter of vertices. TIMAR: FD, P-FD, MSE, SID, rPCC per group (exp,
-    jaw, pose) in the published scaling. ATS: landmark LVE, mean error, jitter. STM: vertex errors on
+    TokTalk: LVE, MVE, FDD, MOD, jitter of vertices. TIMAR and the DualTalk baseline: FD, P-FD, MSE, SID,
+    rPCC per group (exp, jaw, pose) in the published scaling. ATS: landmark LVE, mean error, jitter. STM: vertex errors on
     the run's meshes from the true landmarks.
     """
     from jaxtalk.commands.evaluation import EvalOptions, evaluate_run
@@ -373,6 +378,49 @@ def render(
     path = render_file(RenderOptions(input=input_, out=out, audio=audio, compare=compare, faces=faces, flame=flame,
                                      size=size, captions=captions))
     typer.echo(f"written {path}")
+
+
+@app.command()
+@_user_errors
+def export(
+    input_: Annotated[Path, typer.Argument(help="Head parameters .npz (params or params56) or vertices .npy.")],
+    out: Annotated[Path, typer.Option(help="Output binary glTF (.glb); the audio goes beside it as .wav.")] = Path("anim.glb"),
+    audio: Annotated[Path | None, typer.Option(help="Audio to write beside it (default: the audio stored in the .npz).")] = None,
+    faces: Annotated[Path | None, typer.Option(help="Triangles of vertices of another mesh: an (F, 3) .npy, or the mesh file "
+                                                     "they were animated on (OBJ, PLY, GLB/GLTF).")] = None,
+    flame: Annotated[Path | None, typer.Option(help="FLAME 2020 model file to write parameters on.")] = None,
+    fps: Annotated[float, typer.Option(help="Frame rate of a vertex sequence (an .npz states its own).")] = 25.0,
+    max_error_mm: Annotated[float, typer.Option(help="Largest vertex error of a vertex sequence's morph basis, mm.")] = 0.1,
+) -> None:
+    """Export motion as a glTF 2.0 animation (morph targets + jaw/neck skin) that 3D tools and browsers play."""
+    from jaxtalk.commands.exporting import ExportOptions, export_file
+
+    result = export_file(ExportOptions(input=input_, out=out, audio=audio, faces=faces, flame=flame, fps=fps,
+                                       max_error_mm=max_error_mm))
+    typer.echo(f"written {result.summary.describe()}")
+    typer.echo(f"written {result.audio}" if result.audio is not None else "no audio: pass --audio to write it beside the .glb")
+
+
+@app.command()
+@_user_errors
+def view(
+    folder: Annotated[Path, typer.Argument(help="Folder of exported .glb files (and the .wav beside each).")],
+    port: Annotated[int, typer.Option(help="Port on 127.0.0.1 (0: any free one).")] = 8000,
+    open_browser: Annotated[bool, typer.Option("--open", help="Open the page in the default browser.")] = False,
+) -> None:
+    """Play exported animations in sync with their audio on a local web page (three.js, installed by npm)."""
+    from jaxtalk.viewer import start_server
+
+    server = start_server(folder, port=port)
+    typer.echo(f"jaxtalk view: {server.url} (Ctrl-C stops)")
+    if open_browser:
+        import webbrowser
+
+        webbrowser.open(server.url)
+    try:
+        server.thread.join()
+    except KeyboardInterrupt:
+        server.close()
 
 
 def main() -> None:

@@ -428,6 +428,12 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
 
     files["params"] = out / "prediction.npz"
     _atomic_savez(files["params"], params56=pred, ground_truth=gt, fps=np.asarray(25), clip=np.asarray(clip))
+    # The prediction as a glTF animation with its audio beside it: Blender, engines and `jaxtalk view` play it.
+    from jaxtalk.export import export_face_model, write_audio_beside
+
+    files["gltf"] = export_face_model(face, pred, out / "animation.glb", name="jaxtalk demo").path
+    audio = np.asarray(corpus.audio(clip), np.float32)
+    files["gltf_audio"] = write_audio_beside(files["gltf"], audio)
 
     sweep_path = out / "sweep.json"
     sweep_rows: list[dict] = []
@@ -455,7 +461,6 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     if options.render:
         from jaxtalk.render import render_clip
 
-        audio = np.asarray(corpus.audio(clip), np.float32)
         verts = [np.asarray(face.vertices_seq(gt)), np.asarray(face.vertices_seq(pred))]
         captions = ["ground truth", "jaxtalk (streamed)"]
         files["video"] = render_clip(out / "animation.mp4", verts, face.faces, audio=audio, captions=captions,

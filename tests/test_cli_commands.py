@@ -18,7 +18,7 @@ from jaxtalk.cli import app
 
 runner = CliRunner()
 
-COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render"]
+COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render", "export", "view"]
 
 
 def _ok(args: list[str]) -> str:

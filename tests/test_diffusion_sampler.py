@@ -47,8 +47,9 @@ def gaussian_model(schedule, prediction):
     return apply_fn
 
 
-def affine_gain(r, s, kind):
-    """Exact std gain of the sampler on Gaussian data with the exact predictor (every step is affine)."""
+def affine_gain(r, s, kind, temperature=1.0):
+    """Exact std gain of the sampler on Gaussian data with the exact predictor (every step is affine;
+    DDPM's step noise times ``temperature``)."""
     gain, var = np.ones_like(s), np.ones_like(s)
     for i in range(r.num_steps - 1, -1, -1):
         a, ap = r.alphas_cumprod[i], r.alphas_cumprod_prev[i]
@@ -57,7 +58,7 @@ def affine_gain(r, s, kind):
             gain = gain * (np.sqrt(ap) * g + np.sqrt(1 - ap) * (1 - np.sqrt(a) * g) / np.sqrt(1 - a))
         else:
             m = r.posterior_coef_x0[i] * g + r.posterior_coef_xt[i]
-            var = m**2 * var + (np.exp(r.posterior_log_variance_clipped[i]) if i > 0 else 0.0)
+            var = m**2 * var + (temperature**2 * np.exp(r.posterior_log_variance_clipped[i]) if i > 0 else 0.0)
     return gain if kind == "ddim" else np.sqrt(var)
 
 
@@ -90,6 +91,20 @@ def test_ddpm_fixed_small_equals_exact_chain(noise):
     np.testing.assert_allclose(x.mean(0), MU, atol=0.02 * S.max())
     # ...which is visibly below the target: the fixed posterior variance ignores Var[x0 | x_t].
     assert np.all(affine_gain(r, S, "ddpm") < 0.98 * S)
+
+
+@pytest.mark.parametrize("temperature", [0.0, 0.5])
+def test_ddpm_temperature_scales_every_steps_noise_as_the_affine_chain_predicts(noise, temperature):
+    sched = make_schedule("cosine")
+    r = respace(sched, 50)
+    x = np.asarray(dif.sample_ddpm(gaussian_model(sched, "x0"), noise, {}, r, jax.random.key(2),
+                                   temperature=temperature))
+    z = np.asarray(noise, np.float64)
+    gain = affine_gain(r, S, "ddpm", temperature)
+    np.testing.assert_allclose(x.std(0) / z.std(0), gain, rtol=0.02 if temperature else 2e-3)
+    np.testing.assert_allclose(x.mean(0), MU, atol=0.02 * S.max())
+    # Cooler than 1, narrower than the temperature-1 chain: the noise, not only x_T, was scaled.
+    assert np.all(gain < 0.9 * affine_gain(r, S, "ddpm"))
 
 
 @pytest.mark.parametrize("prediction", ["x0", "v"])
@@ -139,16 +154,20 @@ def make_model(seed=0, calls=None, out_mult=1):
     return apply_fn, apply_np
 
 
-def reference_loop(apply_np, r, z, c, c_u, w, noises, kind, eta=0.0, prediction="x0", clip=()):
-    """Independent NumPy loop over respaced steps, written from the DDPM/DDIM formulas."""
+def reference_loop(apply_np, r, z, c, c_u, w, noises, kind, eta=0.0, prediction="x0", clip=(),
+                   temperature=1.0, variance="fixed_small"):
+    """Independent NumPy loop over respaced steps, written from the DDPM/DDIM formulas (a learned
+    range: the second half of the output interpolates the log variance; guidance on the first half)."""
     x = z.copy()
     n = r.num_steps
+    d = x.shape[-1]
     for j, i in enumerate(range(n - 1, -1, -1)):
         a, ap = r.alphas_cumprod[i], r.alphas_cumprod_prev[i]
         t = np.full((x.shape[0],), float(r.timesteps[i]))
-        out = apply_np(x, t, c)
+        raw = apply_np(x, t, c)
+        out, v = raw[..., :d], raw[..., d:]
         if c_u is not None:
-            out = (1 + w) * out - w * apply_np(x, t, c_u)
+            out = (1 + w) * out - w * apply_np(x, t, c_u)[..., :d]
         if prediction == "x0":
             x0 = out
         elif prediction == "eps":
@@ -164,7 +183,12 @@ def reference_loop(apply_np, r, z, c, c_u, w, noises, kind, eta=0.0, prediction=
         else:
             beta = 1 - a / ap
             mean = beta * np.sqrt(ap) / (1 - a) * x0 + np.sqrt(1 - beta) * (1 - ap) / (1 - a) * x
-            x = mean + (i > 0) * np.sqrt(r.posterior_variance[i]) * noises[j]
+            if variance == "learned_range":
+                frac = (v + 1) / 2
+                std = np.exp(0.5 * (frac * np.log(beta) + (1 - frac) * r.posterior_log_variance_clipped[i]))
+            else:
+                std = np.sqrt(r.posterior_variance[i])
+            x = mean + (i > 0) * temperature * std * noises[j]
     return x
 
 
@@ -175,10 +199,11 @@ def reference_loop(apply_np, r, z, c, c_u, w, noises, kind, eta=0.0, prediction=
         ("ddim", dict(eta=0.6, prediction="eps", clip=(((0, 2), -0.5, 0.5),))),
         ("ddpm", dict(prediction="v")),
         ("ddpm", dict(clip=(((1,), -0.2, 0.3),))),
+        ("ddpm", dict(temperature=0.7, variance="learned_range")),
     ],
 )
 def test_scan_matches_numpy_loop(float64, kind, kw):
-    apply_fn, apply_np = make_model()
+    apply_fn, apply_np = make_model(out_mult=2 if kw.get("variance") == "learned_range" else 1)
     rng = np.random.default_rng(1)
     z, c = rng.normal(size=(B, T, D)), rng.normal(size=(B, T, D))
     r = respace(make_schedule("cosine", 1000), 7)

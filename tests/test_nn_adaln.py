@@ -5,15 +5,14 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+from helpers import perturbed
 
 from jaxtalk.nn import AdaLNFinalLayer, AdaLNResBlock, adaln_modulation
 
 
 def _perturbed(params, key):
     # Zero-initialised modulations would make every comparison trivially 0 == 0.
-    leaves, tree = jax.tree.flatten(params)
-    keys = jax.random.split(key, len(leaves))
-    return jax.tree.unflatten(tree, [x + 0.1 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
+    return perturbed(params, key, scale=0.1)
 
 
 def _silu(x):

@@ -8,6 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import perturbed
+from test_nn_support import random_params
 
 from jaxtalk.nn import (
     MLP,
@@ -17,8 +19,6 @@ from jaxtalk.nn import (
     modulate,
     sinusoidal_embedding,
 )
-
-from test_nn_support import random_params
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -109,11 +109,7 @@ def test_timestep_embedding_is_sinusoid_dense_silu_dense(key):
 
 
 def _perturbed(params, key, scale=0.3):
-    leaves, tree = jax.tree_util.tree_flatten(params)
-    keys = jax.random.split(key, len(leaves))
-    return jax.tree_util.tree_unflatten(
-        tree, [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
-    )
+    return perturbed(params, key, scale=scale)
 
 
 def _ln(x, eps=1e-6):

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import perturbed
 
 from jaxtalk.data.features import AudioFeatures
 from jaxtalk.models.timar import TimarConfig, init_params
@@ -22,12 +23,6 @@ pytestmark = pytest.mark.usefixtures("fast_compile")
 TURNS, CUT = 5, 2  # change the audio of turns 3 and 4
 
 
-@jax.jit
-def _perturb(p, key):
-    # Zero-initialised adaLN layers make a fresh head output exactly 0; perturb so outputs see the input.
-    leaves, tree = jax.tree.flatten(p)
-    keys = jax.random.split(key, len(leaves))
-    return jax.tree.unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
 
 
 def _audio(seed: int) -> np.ndarray:
@@ -38,7 +33,7 @@ def _audio(seed: int) -> np.ndarray:
 def _agent_motion(features: AudioFeatures, speech_dim: int, user: np.ndarray, agent: np.ndarray) -> np.ndarray:
     config = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=speech_dim,
                                max_turns=4)
-    params = _perturb(init_params(config, jax.random.key(0)), jax.random.key(1))
+    params = perturbed(init_params(config, jax.random.key(0)), jax.random.key(1))
     us, as_ = features.turn_speech(user, TURNS), features.turn_speech(agent, TURNS)
     assert us.shape == (TURNS * MOTION_FPS, speech_dim)
     um = jnp.zeros((1, TURNS * MOTION_FPS, 56))

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import perturbed
 from scipy import stats
 
 from jaxtalk.models.timar import TimarConfig, init_params, timar_loss
@@ -30,18 +31,12 @@ def _batch(seed=0, n=N):
 
 
 
-@jax.jit
-def _perturb(p, key):
-    # Zero-initialised adaLN layers make a fresh head output exactly 0; perturb so tests see signal.
-    leaves, tree = jax.tree.flatten(p)
-    keys = jax.random.split(key, len(leaves))
-    return jax.tree.unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
 
 
 @pytest.fixture(scope="module")
 def params():
     p = init_params(CFG, jax.random.key(0))
-    return _perturb(p, jax.random.key(9))
+    return perturbed(p, jax.random.key(9))
 
 
 def test_mask_ratio_follows_the_truncated_normal_on_0p7_1():

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import perturbed
 
 from jaxtalk.models.timar import TimarConfig, encode_window, init_params, sample
 from jaxtalk.models.timar.head import (
@@ -26,16 +27,10 @@ B, N, F = 2, 3, 5
 
 
 def _perturbed(params, seed=3):
-    return _perturb(params, jax.random.key(seed))
+    return perturbed(params, jax.random.key(seed))
 
 
 
-@jax.jit
-def _perturb(p, key):
-    # Zero-initialised adaLN layers make a fresh head output exactly 0; perturb so tests see signal.
-    leaves, tree = jax.tree.flatten(p)
-    keys = jax.random.split(key, len(leaves))
-    return jax.tree.unflatten(tree, [x + 0.05 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
 
 
 @pytest.fixture(scope="module")
@@ -191,13 +186,21 @@ def test_positional_table_starts_frame_aligned_across_spans():
     assert np.abs(table[0, 12:] - table[cfg.tokens_per_turn, 12:]).max() > 0.1
 
 
-def test_config_presets_and_errors():
+def test_config_presets_training_settings_and_errors():
     paper = TimarConfig.paper()
     assert (paper.width, paper.num_layers, paper.num_heads, paper.head_width, paper.head_blocks) == (1024, 16, 16, 1024, 3)
     assert paper.tokens_per_turn == 110 and paper.num_timesteps == 1000 and paper.sample_steps == 5
     assert TimarConfig.small().width < paper.width
+    # The paper's (and MAR's) training and sampling: r ~ TN[0.7, 1], 4 draws per frame, learned variance, DDPM.
+    assert (paper.mask_ratio_min, paper.diffusion_batch_mul, paper.learn_sigma, paper.sampler) == (0.7, 4, True, "ddpm")
+    from jaxtalk.commands.training import recipe_for
+
+    _, settings = recipe_for("timar", "paper")
+    assert (settings.lr, settings.batch_size, settings.warmup_steps, settings.final_lr_ratio) == (1e-4, 32, 100, 1.0)
+    _, small = recipe_for("timar", "small")
+    assert (small.lr, small.batch_size, TimarConfig.small().sampler) == (1e-3, 16, "ddim")
     for bad in ({"width": 30, "num_heads": 4}, {"head": "x"}, {"attention": "causal"}, {"mask_ratio_min": 1.5},
-                {"cfg_prob": 1.0}, {"num_layers": 0}, {"sample_steps": 2000}, {"param_dim": 50}):
+                {"cfg_prob": 1.0}, {"num_layers": 0}, {"sample_steps": 2000}, {"param_dim": 50}, {"sampler": "euler"}):
         with pytest.raises(ValueError):
             TimarConfig.small(**bad)
 

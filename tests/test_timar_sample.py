@@ -128,6 +128,39 @@ def test_sampler_equals_a_python_loop_ddim_reference(params, learn_sigma):
     np.testing.assert_allclose(got[True], got[False], atol=1e-5, rtol=1e-5)
 
 
+def test_paper_default_ddpm_reads_the_learned_variance_and_scales_each_steps_noise_like_a_loop(params):
+    # The paper preset's sampler (MAR's): ancestral DDPM over the respaced steps, the head's second
+    # half interpolating each step's log variance, Eq. (9) guidance on the first half only, and the
+    # temperature on every step's noise (x_T unscaled). Written out in float64 with the same draws.
+    cfg = TimarConfig.small(**{**CFG.__dict__, "learn_sigma": True, "sampler": "ddpm"})
+    assert TimarConfig.paper().sampler == "ddpm" and TimarConfig.paper().learn_sigma
+    p = {**params, "head": _perturb(init_head(cfg, jax.random.key(0)), jax.random.key(8))}
+    us, um, as_ = _streams()
+    zc, zu = conditions(p, cfg, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
+    key, omega, steps, tau = jax.random.key(9), 1.6, 4, 0.6
+    sched = respaced_schedule(cfg.schedule, cfg.num_timesteps, steps)
+    k_noise, k_steps = jax.random.split(key)
+    x = np.asarray(jax.random.normal(k_noise, zc.shape[:-1] + (56,)), np.float64)
+    step_keys = jax.random.split(k_steps, steps)
+    for j, i in enumerate(reversed(range(steps))):  # noisiest first
+        t = jnp.full(zc.shape[:-1], float(sched.timesteps[i]))
+        xf = jnp.asarray(x, jnp.float32)
+        oc = np.asarray(apply_head(p["head"], cfg, zc, xf, t), np.float64)
+        ou = np.asarray(apply_head(p["head"], cfg, zu, xf, t), np.float64)
+        x0 = ou[..., :56] + omega * (oc[..., :56] - ou[..., :56])
+        frac = (oc[..., 56:] + 1) / 2
+        log_var = frac * sched.log_betas[i] + (1 - frac) * sched.posterior_log_variance_clipped[i]
+        mean = sched.posterior_coef_x0[i] * x0 + sched.posterior_coef_xt[i] * x
+        z = np.asarray(jax.random.normal(step_keys[j], x.shape, jnp.float32), np.float64)
+        x = mean + (i > 0) * tau * np.exp(0.5 * log_var) * z
+    got = np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega, num_steps=steps, temperature=tau))
+    np.testing.assert_allclose(got, x, atol=5e-5, rtol=1e-5)
+    # The temperature acts: 0 leaves only x_T's randomness, and a cooler chain differs from a warmer one.
+    cold = [np.asarray(sample_frames(p, cfg, zc, zu, k, cfg_scale=omega, num_steps=steps, temperature=0.0))
+            for k in (key, jax.random.key(10))]
+    assert np.abs(cold[0] - got).max() > 1e-3 and np.abs(cold[0] - cold[1]).max() > 1e-3
+
+
 def test_ddpm_and_step_counts_and_mlp_head(params):
     us, um, as_ = _streams()
     x = sample(params, CFG, us, um, as_, jax.random.key(1), sampler="ddpm", num_steps=3)
@@ -162,7 +195,7 @@ def test_sample_rejects_bad_input(params):
         sample(params, CFG, us, um, as_, key, cfg_scale=jnp.ones(2))
 
 
-def test_temperature_scales_the_initial_noise(params):
+def test_ddim_temperature_scales_the_initial_noise(params):
     us, um, as_ = _streams()
     zc, zu = conditions(params, CFG, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     k1, k2 = jax.random.key(1), jax.random.key(2)

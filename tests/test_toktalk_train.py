@@ -97,15 +97,21 @@ def test_training_reduces_the_flow_loss_on_a_learnable_task(fast_compile):
     assert losses[-20:].mean() < 0.85 * losses[:5].mean(), (losses[:5], losses[-20:])
 
 
-# Steps of the learning test. Measured on SynthTalk tiny (seed 0, 8 held-out clips, 600 steps, 2 CPU
-# cores, 3.9 min): LVE / mean-pose LVE = 0.70 at 1 step and 0.97 at 10 steps. The bars are 0.8 and
-# 0.99: a 10-step sample of a model trained this briefly is only just better than the mean pose
-# (its samples spread over what it has not learned; see experiments/toktalk_sample_quality.py).
-LEARN_STEPS = 600
+# Steps of the learning test. Measured on SynthTalk tiny v2 (the 6 held-out monologues, 2 CPU cores),
+# LVE / mean-pose LVE at 1 and 10 sampler steps, over training seeds 0-3:
+#   200 steps (1 min): 0.38 / 0.43 / 0.43 / 0.44 and 0.84 / 0.88 / 0.87 / 0.89;
+#   300 steps: 0.47 / 0.53 / 0.55 / 0.57 and 0.89 / 0.95 / 0.95 / 0.99;
+#   600 steps (seeds 0-1): 0.67 / 0.83 and 0.98 / 1.11.
+# Longer training overfits the tiny corpus's training speakers, so the test trains 200 steps and its
+# bars, 0.6 and 0.95, clear every seed measured by at least 0.06. A 10-step sample scores worse than a
+# 1-step one: its samples spread over what so brief a training has not learned (see
+# experiments/toktalk_sample_quality.py). The held-out conversation sides are left out: their head
+# motion repeats the partner's (delayed mimicry), which one voice cannot predict.
+LEARN_STEPS = 200
 
 
 @pytest.mark.slow
-def test_streamed_small_model_beats_the_mean_pose_on_held_out_clips(prepared_tiny):
+def test_streamed_small_model_beats_the_mean_pose_on_held_out_monologues(prepared_tiny):
     from jaxtalk.face import builtin_face
     from jaxtalk.metrics import lve
     from jaxtalk.models.toktalk import recipe
@@ -120,7 +126,8 @@ def test_streamed_small_model_beats_the_mean_pose_on_held_out_clips(prepared_tin
     face = builtin_face(0)
     lips = np.asarray(face.regions["lips"])
     mean_pose = np.asarray(params["norm"]["mean"], np.float32)
-    test = [i for i in data.split("test") if data.clips[i]["tokens"]]
+    # Monologues only: TokTalk maps one voice to its face (see LEARN_STEPS' comment).
+    test = [i for i in data.split("test") if data.clips[i]["tokens"] and not data.clips[i]["partner"]]
     by_speaker = {}
     for i in test:
         by_speaker.setdefault(data.clips[i]["speaker"], []).append(i)
@@ -139,5 +146,5 @@ def test_streamed_small_model_beats_the_mean_pose_on_held_out_clips(prepared_tin
     base = np.mean(errors["mean pose"])
     ratios = {steps: np.mean(errors[steps]) / base for steps in (1, 10)}
     print("LVE / mean-pose LVE:", ratios)
-    assert ratios[1] < 0.8, ratios
-    assert ratios[10] < 0.99, ratios
+    assert ratios[1] < 0.6, ratios
+    assert ratios[10] < 0.95, ratios

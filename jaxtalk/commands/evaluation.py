@@ -22,6 +22,9 @@ Each model is scored the way it is used:
   P-FD, MSE, SID (k-means fit on the ground truth) and rPCC, in the published scaling
   (``PUBLISHED_SCALE``, in each table's title). SID needs 40 frames per side; shorter sides leave it
   out.
+* DualTalk baseline (``dualtalk`` runs): the same sides, normaliser and tables as TIMAR, each turn
+  predicted from the window of its past turns (as many as the training window holds, less one) and
+  the whole current turn (:func:`jaxtalk.models.dualtalk.predict_turns`).
 * ATS: landmark displacements (68 landmarks on the built-in face, head pose removed, as ``prepare``
   computes them) are sampled for consecutive training-length windows of each clip (the last one flush
   with the clip's end) and de-standardised with the run's statistics. Columns: LVE (mm^2, the lip
@@ -216,8 +219,8 @@ def open_eval_data(record: RunRecord, spec: str | Path | None, cache_dir: str | 
 def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> None:
     """Raise ValueError unless ``data`` carries the inputs the run was trained on.
 
-    TokTalk: token width and rate; TIMAR: per-turn speech of the run's audio front end and width; ATS:
-    per-frame speech likewise. Every model: 56-d motion.
+    TokTalk: token width and rate; TIMAR and the DualTalk baseline: per-turn speech of the run's audio front
+    end and width; ATS: per-frame speech likewise. Every model: 56-d motion.
     """
     m, cfg = data.manifest, record.config
     where = f"{data.root} (prepared from {m['source']['spec']})"
@@ -230,8 +233,8 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
             raise ValueError(f"{where} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz, the run was "
                              f"trained on width {cfg['token_dim']} at {cfg['token_rate']:g} Hz")
         return
-    if record.model in ("timar", "ats"):
-        key, width = ("turn_speech_dim", cfg["speech_dim"]) if record.model == "timar" else ("speech_dim", cfg["audio_dim"])
+    if record.model in ("timar", "dualtalk", "ats"):
+        key, width = ("speech_dim", cfg["audio_dim"]) if record.model == "ats" else ("turn_speech_dim", cfg["speech_dim"])
         if m["settings"]["audio"] != features.get("audio") or m.get(key) != width:
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
@@ -371,6 +374,10 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     from jaxtalk.models.timar.recipe import agent_sides
     from jaxtalk.models.timar.stream import stream_conversation
 
+    # The DualTalk baseline is scored on the same sides, normaliser and context, predicting each turn
+    # from a window of its past turns and the whole current turn instead of streaming.
+    baseline = run.record.model == "dualtalk"
+    title = "DualTalk baseline" if baseline else "TIMAR"
     config, extra = run.config, run.record.extra
     sides = agent_sides(data, split)
     if not sides:
@@ -382,7 +389,8 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     f = config.frames_per_turn
     key = jax.random.key(opts.seed)
     chosen = sides[: opts.max_clips]
-    echo(f"streaming {len(chosen)} {split} conversation sides of {data.root} with TIMAR (step {run.step})")
+    echo(f"{'predicting' if baseline else 'streaming'} {len(chosen)} {split} conversation sides of {data.root} "
+         f"with {title} (step {run.step})")
     preds, gts, partners, oracles, still_partners = [], [], [], [], 0
     for n, (i, j) in enumerate(chosen):
         agent = data.record(i, ("turn_speech", "motion", "oracle"))
@@ -394,9 +402,14 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
             user_motion = np.asarray(user["motion"], np.float32)[:usable]
         else:
             user_motion, still_partners = np.broadcast_to(still, (usable, still.shape[0])).copy(), still_partners + 1
-        out = stream_conversation(run.params, config, norm.speech(user["turn_speech"][:usable])[None],
-                                  norm.motion(user_motion)[None], norm.speech(agent["turn_speech"][:usable])[None],
-                                  jax.random.fold_in(key, n), context=context)
+        streams = (norm.speech(user["turn_speech"][:usable])[None], norm.motion(user_motion)[None],
+                   norm.speech(agent["turn_speech"][:usable])[None])
+        if baseline:
+            from jaxtalk.models.dualtalk import predict_turns
+
+            out = predict_turns(run.params, config, *streams, context=context)
+        else:
+            out = stream_conversation(run.params, config, *streams, jax.random.fold_in(key, n), context=context)
         preds.append(norm.unmotion(np.asarray(out)[0]))
         gts.append(np.asarray(agent["motion"], np.float32)[:usable])
         partners.append(user_motion)
@@ -409,7 +422,8 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     with_sid = min(g.shape[0] for g in gts) >= max(SID_CLUSTERS.values())
     if not with_sid:
         echo(f"note: a side is shorter than {max(SID_CLUSTERS.values())} frames: SID left out")
-    methods = {"timar (streamed)": preds, "mean pose": [np.broadcast_to(norm.motion_mean, g.shape).astype(np.float32)
+    label = "dualtalk (turn windows)" if baseline else "timar (streamed)"
+    methods = {label: preds, "mean pose": [np.broadcast_to(norm.motion_mean, g.shape).astype(np.float32)
                                                         for g in gts]}
     if all(o is not None for o in oracles):
         methods["oracle"] = oracles
@@ -427,7 +441,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
             rows.append(row)
         scaling = ", ".join(f"{col} x{PUBLISHED_SCALE[f'{col}_{group}']:g}" for col in _GROUP_COLUMNS
                             if f"{col}_{group}" in PUBLISHED_SCALE)
-        tables.append(EvalTable(f"TIMAR on {split} ({data.root.name}), {group}"
+        tables.append(EvalTable(f"{title} on {split} ({data.root.name}), {group}"
                                 f"{' (' + scaling + ')' if scaling else ''}", rows))
     return len(gts), tables
 
@@ -526,7 +540,8 @@ def _eval_stm(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
                                    "mesh (head pose removed)", rows)]
 
 
-_EVALUATORS = {"toktalk": _eval_toktalk, "timar": _eval_timar, "ats": _eval_ats, "stm": _eval_stm}
+_EVALUATORS = {"toktalk": _eval_toktalk, "timar": _eval_timar, "dualtalk": _eval_timar, "ats": _eval_ats,
+               "stm": _eval_stm}
 
 
 def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> EvalReport:

@@ -93,6 +93,9 @@ def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
     if record.model == "ats":
         raise ValueError(f"{opts.run_dir} is a FreeTalk ATS run: sample it onto a mesh with --stm RUN_STM --mesh FILE "
                          "(and --emotion, --intensity); stream is for toktalk and timar runs")
+    if record.model == "dualtalk":
+        raise ValueError(f"{opts.run_dir} is a DualTalk baseline run: an offline model scored with `jaxtalk eval "
+                         f"{opts.run_dir}`; sample/stream animate speech with toktalk or timar runs")
     if record.model not in _SPEECH_MODELS:
         raise ValueError(
             f"{opts.run_dir} is a {record.model} run; sample/stream animate speech with toktalk, timar or (with "

@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from jaxtalk.face.model import LinearFaceModel
 from jaxtalk.types import PARAM_DIM, Float
 
-__all__ = ["RenderOptions", "Motion", "read_params", "load_motion", "render_file"]
+__all__ = ["RenderOptions", "Motion", "face_model", "read_params", "read_head_clip", "load_motion", "render_file"]
 
 _RESOLUTIONS = ("low", "default", "high")
 
@@ -77,11 +78,19 @@ def read_params(path: str | Path) -> Float[np.ndarray, "frames 56"]:
         FileNotFoundError: missing file.
         ValueError: not an npz, no parameters in it, wrong width, NaN.
     """
-    return _read_npz(_require(Path(path)))[0]
+    return read_head_clip(path)[0]
 
 
-def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+def read_head_clip(path: str | Path) -> tuple[Float[np.ndarray, "frames 56"], Float[np.ndarray, " samples"] | None, float]:
+    """``(params, audio, fps)`` of a parameters ``.npz`` (audio: 16 kHz, or None; a demo output is 25 fps).
+
+    Raises:
+        As :func:`read_params`.
+    """
     from jaxtalk.data.formats import read_npz
+    from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
+
+    path = _require(Path(path))
 
     try:
         data = np.load(path, allow_pickle=False)
@@ -89,18 +98,38 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise ValueError(f"{str(path)!r} is not a readable .npz file ({err})") from None
     with data:
         if "params56" in data:  # `jaxtalk demo`'s prediction.npz
-            params, audio = np.asarray(data["params56"], np.float32), None
+            params, audio, fps = np.asarray(data["params56"], np.float32), None, float(MOTION_FPS)
         else:
             clip = read_npz(path, load_audio=True)
             if clip.params is None:
                 raise ValueError(f"{str(path)!r} holds no 'params' ({PARAM_DIM}-d) array; found {sorted(data.files)}")
             params = np.asarray(clip.params, np.float32)
             audio = None if clip.audio is None else np.asarray(clip.audio, np.float32)
+            if audio is not None and clip.sample_rate != AUDIO_SAMPLE_RATE:
+                from jaxtalk.audio import resample_audio
+
+                audio = resample_audio(audio, clip.sample_rate, AUDIO_SAMPLE_RATE)
+            fps = float(clip.fps)
     if params.ndim != 2 or params.shape[1] != PARAM_DIM or params.shape[0] < 1:
         raise ValueError(f"{str(path)!r}: params must have shape (frames, {PARAM_DIM}), got {params.shape}")
     if not np.all(np.isfinite(params)):
         raise ValueError(f"{str(path)!r}: params contain NaN or inf")
-    return params, audio
+    return params, audio, fps
+
+
+def face_model(flame: str | Path | None = None) -> LinearFaceModel:
+    """The face model parameters are posed on: the FLAME model file ``flame``, else the built-in face.
+
+    Raises:
+        FileNotFoundError: a missing FLAME file.
+    """
+    if flame is not None:
+        from jaxtalk.face import load_flame
+
+        return load_flame(_require(Path(flame)))
+    from jaxtalk.face import builtin_face
+
+    return builtin_face(0)
 
 
 def _builtin_faces(num_vertices: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -132,15 +161,8 @@ def load_motion(path: str | Path, *, faces: str | Path | None = None, flame: str
     path = _require(Path(path))
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        params, audio = _read_npz(path)
-        if flame is not None:
-            from jaxtalk.face import load_flame
-
-            face = load_flame(_require(Path(flame)))
-        else:
-            from jaxtalk.face import builtin_face
-
-            face = builtin_face(0)
+        params, audio, _ = read_head_clip(path)
+        face = face_model(flame)
         verts = np.asarray(face.vertices_seq(params), np.float32)
         return Motion(verts, np.asarray(face.faces), np.asarray(face.template, np.float32), audio)
     if suffix != ".npy":

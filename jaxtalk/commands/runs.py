@@ -3,7 +3,7 @@
 A run directory holds ``checkpoint/`` (orbax, written by :class:`jaxtalk.train.Checkpointer` through
 the shared loop), ``run.json`` (the model, preset, overrides, the full model, training and optimiser
 settings, the data it was trained on, and what the recipe fitted: TIMAR's normaliser, ATS's
-displacement statistics, STM's meshes) and the inference assets copied from the data
+displacement statistics, STM's meshes; the DualTalk baseline's normaliser, as TIMAR's) and the inference assets copied from the data
 (``features.json``, the VQ ``tokenizer.npz``, TokTalk's default ``style.npy``), so a run samples
 without its dataset. The CLI, the demo and the experiments all write and read this one format.
 """
@@ -32,7 +32,7 @@ __all__ = [
     "save_run_assets",
 ]
 
-MODELS = ("toktalk", "ats", "stm", "timar")
+MODELS = ("toktalk", "ats", "stm", "timar", "dualtalk")
 RUN_FILE = "run.json"
 _PRESETS = ("paper", "small", "tiny")
 
@@ -55,6 +55,10 @@ def config_class(model: str) -> type:
         from jaxtalk.models.timar import TimarConfig
 
         return TimarConfig
+    if model == "dualtalk":
+        from jaxtalk.models.dualtalk import DualTalkConfig
+
+        return DualTalkConfig
     if model in ("ats", "stm"):
         from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 
@@ -145,7 +149,7 @@ class RunRecord:
     besides the checkpoint.
 
     Attributes:
-        model: ``toktalk``, ``ats``, ``stm`` or ``timar``.
+        model: ``toktalk``, ``ats``, ``stm``, ``timar`` or ``dualtalk``.
         preset: config preset name.
         items: the ``--set KEY=VALUE`` items as given.
         config: every field of the model config (``dataclasses.asdict``).

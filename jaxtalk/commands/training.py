@@ -1,4 +1,4 @@
-"""``jaxtalk train {toktalk,ats,stm,timar} --data DATA``: a config preset + overrides, trained with the
+"""``jaxtalk train {toktalk,ats,stm,timar,dualtalk} --data DATA``: a config preset + overrides, trained with the
 model's recipe on a prepared dataset (or ``synthtalk:SIZE``, prepared once into a cache).
 
 Every model trains through its recipe (``jaxtalk.models.<model>.recipe``) and the shared loop, which
@@ -11,7 +11,10 @@ seed of a resumed run come from its ``run.json`` and cannot be changed.
 ``--set KEY=VALUE`` sets a field of the model config or of the training settings
 (:class:`jaxtalk.train.recipes.TrainSettings`: lr, weight_decay, warmup_steps, ema_decay,
 batch_size, window_frames, eval_every, ...). Widths the data decides (TokTalk's token width and rate,
-TIMAR's and ATS's speech feature width) follow the data unless set explicitly.
+TIMAR's, the DualTalk baseline's and ATS's speech feature width) follow the data unless set explicitly.
+
+``dualtalk`` is the non-causal DualTalk baseline of TIMAR's Table 1 (:mod:`jaxtalk.models.dualtalk`),
+trained on TIMAR's windows with TIMAR's settings.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ class TrainOptions:
     """Settings of :func:`train_run` (the CLI's options).
 
     Attributes:
-        model: ``toktalk``, ``ats``, ``stm`` or ``timar``.
+        model: ``toktalk``, ``ats``, ``stm``, ``timar`` or ``dualtalk``.
         out_dir: run folder (``run.json`` + ``checkpoint/``).
         data: a prepared dataset folder (``jaxtalk prepare``) or ``synthtalk:SIZE[:SEED]``.
         preset: config preset (``small``, ``paper``; ``tiny`` for TokTalk); None: ``small`` for a new
@@ -100,8 +103,9 @@ class TrainSummary:
     wall_s: float
 
 
-def recipe_for(model: str) -> tuple[Callable[..., Any], Any]:
-    """``(train function, default TrainSettings)`` of ``model``'s recipe."""
+def recipe_for(model: str, preset: str = "small") -> tuple[Callable[..., Any], Any]:
+    """``(train function, default TrainSettings)`` of ``model``'s recipe for a config preset (a recipe
+    with ``PRESET_DEFAULTS`` has settings per preset, e.g. TIMAR's ``paper``; others one ``DEFAULTS``)."""
     if model == "toktalk":
         from jaxtalk.models.toktalk import recipe
 
@@ -109,7 +113,11 @@ def recipe_for(model: str) -> tuple[Callable[..., Any], Any]:
     if model == "timar":
         from jaxtalk.models.timar import recipe
 
-        return recipe.train, recipe.DEFAULTS
+        return recipe.train, recipe.PRESET_DEFAULTS.get(preset, recipe.DEFAULTS)
+    if model == "dualtalk":
+        from jaxtalk.models.dualtalk import recipe
+
+        return recipe.train, recipe.PRESET_DEFAULTS.get(preset, recipe.DEFAULTS)
     if model in ("ats", "stm"):
         from jaxtalk.models.freetalk import recipe
 
@@ -146,6 +154,7 @@ def _data_fields(model: str, data: Any, explicit: dict[str, Any]) -> list[str]:
     wanted = {
         "toktalk": {"token_dim": m.get("token_dim"), "token_rate": m.get("token_rate")},
         "timar": {"speech_dim": m.get("turn_speech_dim")},
+        "dualtalk": {"speech_dim": m.get("turn_speech_dim")},
         "ats": {"audio_dim": m.get("speech_dim")},
     }.get(model, {})
     return [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in wanted.items()
@@ -192,7 +201,6 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         raise ValueError(f"{out} holds a {existing.model} run, not {opts.model}; choose another --out")
     if done > opts.steps:
         raise ValueError(f"{out} is already at step {done} > --steps {opts.steps}")
-    train_fn, defaults = recipe_for(opts.model)
     if existing is not None:
         if opts.preset not in (None, existing.preset) or (opts.overrides and tuple(opts.overrides) != tuple(existing.items)):
             raise ValueError(f"{out} was trained with preset {existing.preset!r} and --set {list(existing.items)}; "
@@ -202,6 +210,7 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         opts = dataclasses.replace(opts, preset=existing.preset, overrides=tuple(existing.items),
                                    data=existing.data["spec"], seed=existing.seed)
     preset = opts.preset or "small"
+    train_fn, defaults = recipe_for(opts.model, preset)
     model_items, train_kw = split_overrides(opts.model, opts.overrides)
     # A resumed run reads the prepared folder it started on (a synthtalk: spec would otherwise be looked
     # up again under this call's --cache-dir), and only if it still holds the same data.
@@ -212,9 +221,9 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     explicit = parse_overrides(config_class(opts.model), model_items)
     config = build_config(opts.model, preset, [*_data_fields(opts.model, data, explicit), *model_items])
     settings = dataclasses.replace(defaults, **train_kw)
-    if settings.window_frames is not None and opts.model in ("timar", "stm"):
+    if settings.window_frames is not None and opts.model in ("timar", "dualtalk", "stm"):
         raise ValueError(f"window_frames is not a {opts.model} setting ({opts.model} windows are "
-                         f"{'whole turns (max_turns)' if opts.model == 'timar' else '16 frames'})")
+                         f"{'16 frames' if opts.model == 'stm' else 'whole turns (max_turns)'})")
     echo(f"{'resuming' if done else 'training'} {opts.model} ({preset}) from step {done} to {opts.steps} on {data}; "
          f"checkpoints in {checkpoint_dir(out)}")
     mesh = None

@@ -268,6 +268,41 @@ class LinearFaceModel:
         corners = jnp.take(v, jnp.asarray(self.landmark_vertices), axis=-2)  # (..., 68, 3, 3)
         return jnp.einsum("...lkc,lk->...lc", corners, jnp.asarray(self.landmark_bary, v.dtype))
 
+    def joint_transforms(self, params: Float[ArrayLike, "..."]) -> Float[Array, "frames joints 12"]:
+        """Each joint's rigid map from the rest pose to the posed frame, as the skinning applies it.
+
+        Vertex ``v`` (expression- and pose-corrected, in the rest pose) weighted fully on joint ``j``
+        goes to ``R v + t`` with ``[R (row-major 9) | t (3)]`` the joint's entry; what an exporter
+        writes into a skeleton (:mod:`jaxtalk.export`).
+
+        Args:
+            params: head vectors, shape ``(T, 56)``.
+
+        Returns:
+            ``(T, J, 12)``.
+
+        Raises:
+            ValueError: as ``vertices_seq``.
+        """
+        _check_params(params, batched=True)
+        return _joint_transforms_jit(self, params)
+
+    def pose_features(self, params: Float[ArrayLike, "..."]) -> Float[Array, "frames pose"]:
+        """The pose-corrective coefficients ``(R_j - I)`` of the non-root joints, flattened row-major,
+        that multiply ``pose_basis`` (FLAME's ``posedirs``).
+
+        Args:
+            params: head vectors, shape ``(T, 56)``.
+
+        Returns:
+            ``(T, 9 (J - 1))``.
+
+        Raises:
+            ValueError: as ``vertices_seq``.
+        """
+        _check_params(params, batched=True)
+        return _pose_features_jit(self, params)
+
     def astype(self, dtype: Any) -> LinearFaceModel:
         """A copy with every floating-point array cast to ``dtype`` (e.g. ``jnp.float64`` for tests)."""
         def cast(x):
@@ -323,29 +358,41 @@ def _world_transforms(
     return jnp.concatenate([r, jnp.stack(world_t, axis=-2)], axis=-1)
 
 
+def _skeleton(
+    model: LinearFaceModel, params: Float[Array, "*batch 56"]
+) -> tuple[Float[Array, "*batch joints 3 3"], Float[Array, "*batch joints 3"]]:
+    """Each joint's local rotation and its position regressed from the expression."""
+    dtype = jnp.result_type(model.template, params)
+    params = jnp.asarray(params, dtype)
+    exp = params[..., :EXP_DIM]
+    jaw = params[..., EXP_DIM : EXP_DIM + 3]
+    neck = params[..., EXP_DIM + 3 : EXP_DIM + 6]
+    joints = _add(
+        jnp.einsum("...k,jck->...jc", exp, jnp.asarray(model.joint_exp_basis, dtype)),
+        jnp.asarray(model.joints, dtype),
+    )
+    axis_angles = jnp.zeros((*params.shape[:-1], model.num_joints, 3), dtype)
+    axis_angles = axis_angles.at[..., model.neck_joint, :].set(neck).at[..., model.jaw_joint, :].set(jaw)
+    return rodrigues(axis_angles), joints
+
+
+def _pose_feature(rotations: Float[Array, "*batch joints 3 3"]) -> Float[Array, "*batch pose"]:
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=rotations.dtype), rotations[..., 1:, :, :].shape)
+    return (rotations[..., 1:, :, :] - eye).reshape(*rotations.shape[:-3], -1)
+
+
 def _pose(model: LinearFaceModel, params: Float[Array, "*batch 56"]) -> Float[Array, "*batch verts 3"]:
     """Vertices for any leading batch of frames (one frame: no batch axes)."""
     dtype = jnp.result_type(model.template, params)
     params = jnp.asarray(params, dtype)
     batch = params.shape[:-1]
-    exp = params[..., :EXP_DIM]
-    jaw = params[..., EXP_DIM : EXP_DIM + 3]
-    neck = params[..., EXP_DIM + 3 : EXP_DIM + 6]
     rest = _add(
-        jnp.einsum("...k,vck->...vc", exp, jnp.asarray(model.exp_basis, dtype)),
+        jnp.einsum("...k,vck->...vc", params[..., :EXP_DIM], jnp.asarray(model.exp_basis, dtype)),
         jnp.asarray(model.template, dtype),
     )
-    joints = _add(
-        jnp.einsum("...k,jck->...jc", exp, jnp.asarray(model.joint_exp_basis, dtype)),
-        jnp.asarray(model.joints, dtype),
-    )
-    axis_angles = jnp.zeros((*batch, model.num_joints, 3), dtype)
-    axis_angles = axis_angles.at[..., model.neck_joint, :].set(neck).at[..., model.jaw_joint, :].set(jaw)
-    rotations = rodrigues(axis_angles)
+    rotations, joints = _skeleton(model, params)
     if model.pose_basis is not None:
-        eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), rotations[..., 1:, :, :].shape)
-        pose_feature = (rotations[..., 1:, :, :] - eye).reshape(*batch, -1)
-        rest = rest + jnp.einsum("...p,vcp->...vc", pose_feature, jnp.asarray(model.pose_basis, dtype))
+        rest = rest + jnp.einsum("...p,vcp->...vc", _pose_feature(rotations), jnp.asarray(model.pose_basis, dtype))
 
     transforms = _world_transforms(rotations, joints, model.parents)  # (..., J, 12)
     # Skinning written as scalar-weighted sums over joints (not an einsum to a (..., V, 12) array
@@ -391,3 +438,5 @@ def _restrict(model: LinearFaceModel, index: Int[Array, "n"]) -> LinearFaceModel
 # One program per input rank: (56,) for a frame, (T, 56) for a sequence.
 _vertices_jit = _vertices_seq_jit = jax.jit(_pose)
 _landmarks_jit = _landmarks_seq_jit = jax.jit(_pose_landmarks)
+_joint_transforms_jit = jax.jit(lambda model, params: _world_transforms(*_skeleton(model, params), model.parents))
+_pose_features_jit = jax.jit(lambda model, params: _pose_feature(_skeleton(model, params)[0]))

@@ -242,13 +242,18 @@ def ddpm_step(
     prediction: str = "x0",
     clip: Sequence[ClipGroup] = (),
     variance: str = "fixed_small",
+    temperature: Float[Array, ""] | float = 1.0,
 ) -> DiffusionState:
     """One ancestral DDPM step: sample ``q(x_prev | x_t, x0_hat)`` (pure).
+
+    ``x_prev = mean + temperature * exp(log_var / 2) * noise``: MAR's temperature scales every
+    step's noise (``p_sample`` of its diffusion loss), 1 samples the model's reverse process.
 
     Args:
         state, tables, key, apply_fn, cond, uncond, cfg_scale, prediction, clip: see :func:`ddim_step`.
         variance: ``"fixed_small"`` (clipped posterior variance), ``"fixed_large"`` (beta) or
             ``"learned_range"``.
+        temperature: ``()`` factor on the step noise (traced).
 
     Returns:
         The next :class:`DiffusionState` (no noise is added on the final step).
@@ -256,7 +261,7 @@ def ddpm_step(
     x = state.x
     x0, log_var = _model_x0(state, tables, apply_fn, cond, uncond, cfg_scale, prediction, clip, variance)
     mean = tables.coef_x0 * x0 + tables.coef_xt * x
-    noise = jax.random.normal(key, x.shape, x.dtype)
+    noise = jax.random.normal(key, x.shape, x.dtype) * jnp.asarray(temperature, x.dtype)
     return DiffusionState(x=mean + tables.nonzero * jnp.exp(0.5 * log_var) * noise, x0=x0)
 
 
@@ -305,10 +310,11 @@ def _sample(
         clip=clip,
         variance=variance,
     )
+    # ``eta`` is DDIM's stochasticity or, for DDPM, the temperature on the step noise.
     if kind == "ddim":
         step_fn = functools.partial(ddim_step, eta=eta, **kwargs)
     else:
-        step_fn = functools.partial(ddpm_step, **kwargs)
+        step_fn = functools.partial(ddpm_step, temperature=eta, **kwargs)
 
     def body(state, xs):
         tables, k = xs
@@ -355,7 +361,7 @@ def _prepare(noise, cond, schedule, key, uncond, cfg_scale, eta, prediction, cli
     cfg_scale = jnp.asarray(cfg_scale, noise.dtype)
     eta = jnp.asarray(eta, noise.dtype)
     if cfg_scale.ndim != 0 or eta.ndim != 0:
-        raise ValueError(f"cfg_scale and eta must be scalars, got shapes {cfg_scale.shape} and {eta.shape}")
+        raise ValueError(f"cfg_scale and eta (DDPM: temperature) must be scalars, got shapes {cfg_scale.shape} and {eta.shape}")
     _check_cond(cond, uncond, noise.shape[0])
     if not (
         isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or key.shape == (2,))
@@ -445,6 +451,7 @@ def sample_ddpm(
     prediction: str = "x0",
     clip: Sequence[ClipGroup] = (),
     variance: str = "fixed_small",
+    temperature: ShapedLike["*scale"] | float | int = 1.0,
     return_trajectory: bool = False,
     remat: bool = False,
 ) -> Float[Array, "batch *dims"] | tuple[Float[Array, "batch *dims"], Float[Array, "grid batch *dims"]]:
@@ -457,6 +464,8 @@ def sample_ddpm(
         apply_fn, noise, cond, schedule, key, uncond, cfg_scale, prediction, clip, return_trajectory,
             remat: see :func:`sample_ddim`.
         variance: the reverse-step variance.
+        temperature: ``()`` factor on every step's noise (traced; MAR's sampling temperature;
+            ``noise`` itself, x_T, is used as given).
 
     Returns:
         ``(B, ...)`` sample (and the trajectory when asked).
@@ -465,7 +474,7 @@ def sample_ddpm(
         ValueError: as :func:`sample_ddim`.
     """
     noise, schedule, cfg_scale, eta, clip = _prepare(
-        noise, cond, schedule, key, uncond, cfg_scale, 0.0, prediction, clip, variance
+        noise, cond, schedule, key, uncond, cfg_scale, temperature, prediction, clip, variance
     )
     return _sample(
         as_model(apply_fn),

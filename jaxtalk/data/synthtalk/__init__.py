@@ -5,7 +5,8 @@
 ``phones`` (inventory, acoustic recipes, visemes), ``emotions`` (EmoVOCA face + voice effects),
 ``speakers`` (styles, in- and out-of-distribution), ``script`` (phrases and timelines), ``speech``
 (source-filter synthesis), ``motion`` (coarticulation, prosody, listener reactions, stochastic parts),
-``conversation`` (turn-taking, per-channel rendering), ``corpus`` (splits, cache, tokens, geometry).
+``conversation`` (turn-taking, turn arousal, rendering), ``dyadic`` (delayed mimicry and the shared mood
+of conversations), ``ceiling`` (what context can explain), ``corpus`` (splits, cache, tokens, geometry).
 """
 
 from jaxtalk.data.synthtalk.corpus import (
@@ -20,6 +21,7 @@ from jaxtalk.data.synthtalk.corpus import (
     SynthTalkCorpus,
     generate,
 )
+from jaxtalk.data.synthtalk.dyadic import DEFAULT_EFFECTS, DyadicEffects
 from jaxtalk.data.synthtalk.emotions import EMOTIONS
 from jaxtalk.data.synthtalk.phones import PHONES
 from jaxtalk.data.synthtalk.speakers import SpeakerStyle
@@ -38,4 +40,6 @@ __all__ = [
     "VERSION",
     "EMOTIONS",
     "PHONES",
+    "DyadicEffects",
+    "DEFAULT_EFFECTS",
 ]

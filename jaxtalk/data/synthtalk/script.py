@@ -26,6 +26,7 @@ class Phrase:
     accent_offsets: np.ndarray  # (k,) float64, seconds from the phrase start
     accent_strengths: np.ndarray  # (k,) float64 in (0, 1]
     backchannel: bool = False
+    arousal: float = 1.0  # loudness and pitch-range factor of the whole phrase (1 = the speaker's usual)
 
     @property
     def duration(self) -> float:
@@ -53,7 +54,14 @@ class Timeline:
     phrase_starts: np.ndarray
     phrase_ends: np.ndarray
     backchannel: np.ndarray
+    phrase_arousal: np.ndarray
     duration: float
+
+    def arousal_at(self, times: np.ndarray) -> np.ndarray:
+        """The arousal of the phrase sounding at each time, 1 between phrases, ``(len(times),)``."""
+        idx = np.searchsorted(self.phrase_starts, times, side="right") - 1
+        inside = (idx >= 0) & (times < self.phrase_ends[np.maximum(idx, 0)])
+        return np.where(inside, self.phrase_arousal[np.maximum(idx, 0)], 1.0)
 
     def speaking(self, times: np.ndarray) -> np.ndarray:
         """Whether a non-silence phone sounds at each time, ``(len(times),)`` bool."""
@@ -151,5 +159,6 @@ def layout_timeline(phrases: list[Phrase], starts: list[float], duration: float)
         phrase_starts=p_starts,
         phrase_ends=p_ends,
         backchannel=np.array([p.backchannel for p in phrases], dtype=bool),
+        phrase_arousal=np.array([p.arousal for p in phrases], dtype=np.float64),
         duration=float(duration),
     )

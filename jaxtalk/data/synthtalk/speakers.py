@@ -14,7 +14,7 @@ import numpy as np
 
 from jaxtalk.layout import GROUPS, JAW_OPEN_INDEX, NECK_SLICE, PARAM_DIM
 
-__all__ = ["SpeakerStyle", "STYLE_RANGES", "OOD_KNOBS", "sample_style"]
+__all__ = ["SpeakerStyle", "STYLE_RANGES", "DYADIC_RANGES", "OOD_KNOBS", "sample_style"]
 
 # (low, high) of each scalar knob for in-distribution speakers.
 STYLE_RANGES: dict[str, tuple[float, float]] = {
@@ -31,6 +31,12 @@ STYLE_RANGES: dict[str, tuple[float, float]] = {
     "react_lag": (0.3, 0.8),        # s, listener nod after the other's phrase ends
     "mirror_gain": (0.3, 0.7),      # fraction of the other's emotion mirrored
     "mirror_lag": (0.6, 1.2),       # s
+}
+# How a speaker takes part in long-range dyadic behaviour (``dyadic.py``), drawn after every other
+# knob so that adding them left each speaker's other draws as they were. Not in ``knobs()``.
+DYADIC_RANGES: dict[str, tuple[float, float]] = {
+    "mimic_lag": (2.0, 4.0),        # s, a head gesture of the partner is repeated this much later
+    "mimic_gain": (0.5, 0.8),       # fraction of the partner's head movement repeated
 }
 # Knobs pushed outside their training range for out-of-distribution speakers: (low band, high band).
 OOD_KNOBS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
@@ -67,6 +73,8 @@ class SpeakerStyle:
     mirror_lag: float
     formant_scale: float
     jaw_asym: float
+    mimic_lag: float
+    mimic_gain: float
     rest: np.ndarray = dataclasses.field(compare=False, repr=False)
 
     def knobs(self) -> np.ndarray:
@@ -122,5 +130,6 @@ def sample_style(rng: np.random.Generator, *, ood: bool = False) -> SpeakerStyle
     rel = (knobs["f0"] - 95.0) / (230.0 - 95.0)
     formant_scale = float(0.95 + 0.12 * rel + rng.uniform(-0.02, 0.02))
     jaw_asym = float(rng.uniform(-0.08, 0.08))
-    return SpeakerStyle(**knobs, formant_scale=formant_scale, jaw_asym=jaw_asym,
-                        rest=_resting_face(rng))
+    rest = _resting_face(rng)
+    dyadic = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in DYADIC_RANGES.items()}
+    return SpeakerStyle(**knobs, formant_scale=formant_scale, jaw_asym=jaw_asym, **dyadic, rest=rest)

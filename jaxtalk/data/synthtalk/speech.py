@@ -48,13 +48,16 @@ def f0_contour(timeline: Timeline, style: SpeakerStyle, voice: VoiceChange,
     """
     base = style.f0 * voice.pitch
     rel = np.zeros_like(times)
-    for s, e, bc in zip(timeline.phrase_starts, timeline.phrase_ends, timeline.backchannel):
+    for s, e, bc, a in zip(timeline.phrase_starts, timeline.phrase_ends, timeline.backchannel,
+                           timeline.phrase_arousal):
         inside = (times >= s) & (times < e)
         frac = (times[inside] - s) / max(e - s, 1e-3)
-        rel[inside] = -0.05 if bc else (0.08 - 0.18 * frac)
+        # An aroused phrase has a wider pitch range (x 1.0 leaves a monologue's contour bitwise as it was).
+        rel[inside] = -0.05 if bc else (0.08 - 0.18 * frac) * a
     if timeline.accents.size:
         d = times[:, None] - timeline.accents[None, :]
-        rel += (0.25 * timeline.accent_strengths[None, :] * np.exp(-0.5 * (d / 0.06) ** 2)).sum(1)
+        strength = timeline.accent_strengths * timeline.arousal_at(timeline.accents)
+        rel += (0.25 * strength[None, :] * np.exp(-0.5 * (d / 0.06) ** 2)).sum(1)
     return base * (1.0 + voice.pitch_range * rel)
 
 
@@ -174,7 +177,9 @@ def synthesize(timeline: Timeline, style: SpeakerStyle, voice: VoiceChange,
     ph = timeline.phones
     prevs = np.concatenate([[ph[0]], ph[:-1]])
     nexts = np.concatenate([ph[1:], [ph[-1]]])
-    for phone, prev, nxt, s, e in zip(ph, prevs, nexts, starts.tolist(), ends.tolist()):
+    # Each phone as loud as its phrase's arousal (1 in monologues).
+    gains = timeline.arousal_at(0.5 * (timeline.starts + timeline.ends))
+    for phone, prev, nxt, s, e, gain in zip(ph, prevs, nexts, starts.tolist(), ends.tolist(), gains.tolist()):
         if recipe(int(phone)).kind == "silence" or e <= s:
             continue
         lo, hi = max(s - h, 0), min(e + h, n)
@@ -183,7 +188,7 @@ def synthesize(timeline: Timeline, style: SpeakerStyle, voice: VoiceChange,
         # Complementary raised-cosine ramps centred on each boundary: neighbours sum to one.
         t = np.arange(lo, hi)
         w = _ramp((t - s) / h) * _ramp((e - t) / h)
-        audio[lo:hi] += w * seg
+        audio[lo:hi] += (w * seg) * gain
     audio *= _LEVEL * voice.energy
     # A faint noise floor: real recordings are never digitally silent.
     audio += 1e-4 * noise[::-1]

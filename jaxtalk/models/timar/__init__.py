@@ -1,7 +1,7 @@
 """TIMAR: turn-level interleaved masked autoregression with a per-frame diffusion head.
 
 Modules: ``config`` (presets), ``tokens`` (turn layout, separators, interleave), ``encoder``
-(embedding + turn-causal fusion), ``head`` (per-frame adaLN diffusion head, vmapped), ``model``
+(embedding + turn-causal fusion, and the MAE-style encoder-decoder variant), ``head`` (per-frame adaLN diffusion head, vmapped), ``model``
 (parameters, window pass), ``loss`` (masking, CFG dropout, grouped x0 diffusion loss), ``sample``
 (respaced DDIM/DDPM with traced CFG), ``stream`` (turn-by-turn engine with a KV cache), ``data``
 (SynthTalk conversations -> turn windows, normalisation).

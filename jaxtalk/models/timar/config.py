@@ -15,7 +15,14 @@ import math
 
 from jaxtalk.types import EXP_SLICE, JAW_SLICE, MOTION_FPS, NECK_SLICE, PARAM_DIM
 
-__all__ = ["TimarConfig", "NUM_SEPARATORS", "NUM_SPANS", "LOSS_GROUPS"]
+__all__ = ["TimarConfig", "NUM_SEPARATORS", "NUM_SPANS", "LOSS_GROUPS", "SAMPLERS", "ARCHITECTURES"]
+
+# "ddpm": ancestral steps (MAR's sampler; with a learned variance and the temperature on every step's
+# noise); "ddim": deterministic DDIM from x_T; "mean": the guided posterior mean (no denoising loop).
+SAMPLERS = ("ddpm", "ddim", "mean")
+# "encoder": TIMAR's encoder-only backbone; "encoder_decoder": the MAE-style asymmetric variant of
+# Table 2 (MAR's default layout: the encoder sees the visible tokens only, a decoder fills in the masks).
+ARCHITECTURES = ("encoder", "encoder_decoder")
 
 # Turn open/close plus an open/close pair around each of the four modality spans.
 NUM_SEPARATORS = 10
@@ -35,6 +42,16 @@ class TimarConfig:
     Attributes:
         width: shared token width d_t (= encoder width d_e).
         num_layers: encoder blocks.
+        architecture: ``"encoder"`` (TIMAR: one encoder over all tokens, masked agent frames enter
+            it as the mask token) or ``"encoder_decoder"`` (Table 2's MAE-style variant, MAR's
+            default layout: the encoder attends to the visible tokens only; a decoder of
+            ``decoder_layers`` blocks takes the encoder's outputs at the visible positions, a
+            learned mask token at every masked agent frame and its own positional table, and its
+            outputs condition the diffusion head). One of :data:`ARCHITECTURES`.
+        decoder_layers: decoder blocks of the ``"encoder_decoder"`` variant (ignored by
+            ``"encoder"``; same width, heads and attention mask as the encoder). Default 2 (``small``)
+            and 8 (``paper``): half of the preset's encoder depth, an asymmetric (lighter) decoder
+            as MAE's, between MAE's 1/3 and MAR's equal depths.
         num_heads: attention heads (``width`` must be divisible by it).
         mlp_ratio: encoder feed-forward width / ``width``.
         speech_dim: width of the per-frame speech feature fed to the learnable projection (80 for
@@ -62,6 +79,8 @@ class TimarConfig:
         mask_ratio_std: its standard deviation (mean 1.0).
         cfg_prob: probability that an example's user tokens are all replaced by the fake token.
         sample_steps: default respaced sampling steps.
+        sampler: default sampler, one of :data:`SAMPLERS` (``paper``: ``"ddpm"`` as MAR samples,
+            reading the learned variance; ``small``: ``"ddim"``).
         cfg_scale: default guidance scale omega (paper's convention: 0 = unconditional,
             1 = conditional, > 1 = guided).
         dropout_rate: dropout in the encoder (residual branches and attention).
@@ -69,6 +88,8 @@ class TimarConfig:
 
     width: int = 128
     num_layers: int = 4
+    architecture: str = "encoder"
+    decoder_layers: int = 2
     num_heads: int = 4
     mlp_ratio: float = 4.0
     speech_dim: int = 80
@@ -88,12 +109,14 @@ class TimarConfig:
     mask_ratio_std: float = 0.25
     cfg_prob: float = 0.1
     sample_steps: int = 5
+    sampler: str = "ddim"
     cfg_scale: float = 1.5
     dropout_rate: float = 0.0
 
     def __post_init__(self) -> None:
         positive = ("width", "num_layers", "num_heads", "speech_dim", "param_dim", "frames_per_turn",
-                    "max_turns", "head_width", "head_blocks", "num_timesteps", "sample_steps", "diffusion_batch_mul")
+                    "max_turns", "head_width", "head_blocks", "num_timesteps", "sample_steps", "diffusion_batch_mul",
+                    "decoder_layers")
         for name in positive:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -102,6 +125,8 @@ class TimarConfig:
             raise ValueError(f"TimarConfig.width {self.width} is not divisible by num_heads {self.num_heads}")
         if self.param_dim != PARAM_DIM:
             raise ValueError(f"TimarConfig.param_dim must be {PARAM_DIM} (exp 50 | jaw 3 | neck 3), got {self.param_dim}")
+        if self.architecture not in ARCHITECTURES:
+            raise ValueError(f"TimarConfig.architecture must be one of {ARCHITECTURES}, got {self.architecture!r}")
         if self.head not in ("diffusion", "mlp"):
             raise ValueError(f"TimarConfig.head must be 'diffusion' or 'mlp', got {self.head!r}")
         if self.attention not in ("turn_causal", "bidirectional"):
@@ -116,6 +141,8 @@ class TimarConfig:
             raise ValueError(f"TimarConfig.cfg_prob must lie in [0, 1), got {self.cfg_prob}")
         if self.sample_steps > self.num_timesteps:
             raise ValueError(f"TimarConfig.sample_steps {self.sample_steps} exceeds num_timesteps {self.num_timesteps}")
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"TimarConfig.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
         if not 0.0 <= self.dropout_rate < 1.0:
             raise ValueError(f"TimarConfig.dropout_rate must lie in [0, 1), got {self.dropout_rate}")
 
@@ -131,7 +158,10 @@ class TimarConfig:
 
     @classmethod
     def paper(cls, **overrides) -> TimarConfig:
-        """The paper's sizes: 1024 wide, 16 layers, 16 heads, head K = 3 x 1024, wav2vec 2.0 features.
+        """The paper's sizes and training: 1024 wide, 16 layers, 16 heads, head K = 3 x 1024, wav2vec 2.0
+        features, mask ratio from TN[0.7, 1], a learned variance, 4 diffusion draws per frame (MAR's
+        ``diffusion_batch_mul``) and MAR's ancestral DDPM sampler. Its optimiser (AdamW 1e-4, batch
+        32, 100 warm-up steps) is :data:`jaxtalk.models.timar.recipe.PRESET_DEFAULTS` ``["paper"]``.
 
         Args:
             **overrides: any field to change.
@@ -140,13 +170,21 @@ class TimarConfig:
             The config.
         """
         base = dict(width=1024, num_layers=16, num_heads=16, speech_dim=1024, head_width=1024,
-                    head_blocks=3, learn_sigma=True)
+                    head_blocks=3, learn_sigma=True, diffusion_batch_mul=4, sampler="ddpm", decoder_layers=8)
         return cls(**(base | overrides))
 
     @classmethod
     def small(cls, **overrides) -> TimarConfig:
         """A CPU-sized model (trains in minutes on 2 cores) on jaxtalk's 80-band log-mel features,
         trained with every agent frame masked.
+
+        How it differs from ``paper`` and why (each measured at CPU scale): 128 wide x 4 layers and a
+        128-wide head (minutes per run instead of GPU-days); every agent frame masked (below); one
+        diffusion draw per frame (4 made a step 1.5x slower for the same held-out loss at equal steps,
+        see ``diffusion_batch_mul``); a fixed variance and deterministic DDIM, the sampler that
+        needs no learned variance; and AdamW at 1e-3 at batch 16 with 20 warm-up steps, decaying to a
+        tenth (``PRESET_DEFAULTS["small"]``), for runs of a few thousand steps rather than the
+        paper's 400 epochs at 1e-4.
 
         Args:
             **overrides: any field to change.

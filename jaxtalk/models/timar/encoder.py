@@ -9,9 +9,20 @@ embedding ``P1`` over the whole window, pre-LN transformer blocks with the turn-
 additive bias, a final ``LayerNorm``. The diffusion head's positional embedding ``P2`` (per agent
 frame of the window) lives here too.
 
-Every method takes its window's first turn slot (``first_turn``, may be traced), so a streaming step
-can encode the current turn alone at its slot of the window, continuing the keys/values of the past
-turns (:mod:`~jaxtalk.models.timar.stream`).
+``architecture="encoder_decoder"`` (Table 2's MAE-style variant, MAR's default layout) adds a
+decoder: the encoder attends to the VISIBLE tokens only (masked agent-motion tokens are no keys in any
+of its layers: with static shapes this is exactly MAE's dropping of the masked tokens, since a token
+that is no key cannot influence any other token, and the masked tokens' own outputs are discarded);
+the decoder takes ``Dense(encoder output)`` at the visible positions and the learned mask token at
+every masked agent frame, adds its own positional table, runs ``decoder_layers`` blocks under the same
+turn-causal (or bidirectional) mask, and its agent-motion outputs plus ``P2`` condition the head.
+The variant's parameters live in the same module (the ``"encoder"`` subtree, prefixed ``decoder_``).
+
+:meth:`~TimarEncoder.encode` and :meth:`~TimarEncoder.head_condition` take their tokens' first turn
+slot (``first_turn``, may be traced), so a streaming step can encode the current turn alone at its
+slot of the window, continuing the keys/values of the past turns (:mod:`~jaxtalk.models.timar.stream`);
+the whole-window methods (:meth:`~TimarEncoder.fuse`, and the variant's ``encode_visible`` and
+``decode``) place the window at slots ``0..N-1``.
 """
 
 from __future__ import annotations
@@ -25,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.models.timar.config import NUM_SEPARATORS, TimarConfig
-from jaxtalk.models.timar.tokens import interleave, turn_layout
+from jaxtalk.models.timar.tokens import agent_token_mask, interleave, turn_layout
 from jaxtalk.nn import MLP, TransformerBlock, bias_from_mask
 from jaxtalk.nn.embeddings import sinusoidal_embedding
 from jaxtalk.types import Array, Bool, Float, Int
@@ -90,18 +101,28 @@ class TimarEncoder(nn.Module):
         self.pos_embed = self.param("pos_embed", aligned_position_init(c), (c.max_turns * c.tokens_per_turn, w))
         self.head_pos_embed = self.param("head_pos_embed", small, (c.max_turns * c.frames_per_turn, w))
         self.in_norm = nn.LayerNorm(name="in_norm")
-        self.blocks = [
-            TransformerBlock(
-                num_heads=c.num_heads,
-                head_dim=w // c.num_heads,
-                mlp_ratio=c.mlp_ratio,
-                dropout_rate=c.dropout_rate,
-                attention_dropout_rate=c.dropout_rate,
-                name=f"block_{i}",
-            )
-            for i in range(c.num_layers)
-        ]
+        self.blocks = self._stack("block", c.num_layers)
         self.out_norm = nn.LayerNorm(name="out_norm")
+        if c.architecture == "encoder_decoder":
+            # MAR's decoder: decoder_embed, decoder_pos_embed_learned, decoder blocks, decoder_norm; its
+            # mask token is the model's one ``mask_token``. The positional table starts frame-aligned
+            # for the encoder's reason: the decoder's identical mask tokens must find their own
+            # frame's speech among the encoder outputs.
+            self.decoder_embed = nn.Dense(w, name="decoder_embed")
+            self.decoder_pos_embed = self.param(
+                "decoder_pos_embed", aligned_position_init(c), (c.max_turns * c.tokens_per_turn, w)
+            )
+            self.decoder_blocks = self._stack("decoder_block", c.decoder_layers)
+            self.decoder_norm = nn.LayerNorm(name="decoder_norm")
+
+    def _stack(self, prefix: str, depth: int) -> list[TransformerBlock]:
+        """``depth`` transformer blocks of the config's width, heads and dropout, named ``prefix_i``."""
+        c = self.config
+        return [
+            TransformerBlock(num_heads=c.num_heads, head_dim=c.width // c.num_heads, mlp_ratio=c.mlp_ratio,
+                             dropout_rate=c.dropout_rate, attention_dropout_rate=c.dropout_rate, name=f"{prefix}_{i}")
+            for i in range(depth)
+        ]
 
     def embed(
         self,
@@ -181,6 +202,100 @@ class TimarEncoder(nn.Module):
         x = self.out_norm(x).reshape(b, nq, tpt, w)
         return (x, tuple(caches)) if return_kv else x
 
+    def encode_visible(
+        self,
+        tokens: Float[Array, "batch turns tokens width"],
+        agent_mask: Bool[Array, "batch turns frames"],
+        visibility: Bool[Array, "*vis_batch seq seq"],
+        deterministic: bool = True,
+    ) -> Float[Array, "batch turns tokens width"]:
+        """The MAE-style variant's encoder: a window at slots ``0..N-1`` seen through its visible tokens.
+
+        Masked agent-motion tokens are excluded as keys in every layer, on top of ``visibility``: the
+        outputs at the other positions are those of the encoder run on the visible tokens alone
+        (tested), whatever the masked tokens hold. The outputs AT the masked positions are
+        meaningless and are replaced by the mask token in :meth:`decode`.
+
+        Args:
+            tokens: ``(B, N, 4F + 10, width)`` from :meth:`embed`.
+            agent_mask: ``(B, N, F)`` True where the agent frame is masked.
+            visibility: ``[query, key]`` mask, ``(S, S)`` or ``(B, S, S)`` with ``S = N (4F + 10)``
+                (turn-causal or bidirectional, and any unfilled slots of a stream hidden).
+            deterministic: disables dropout.
+
+        Returns:
+            ``(B, N, 4F + 10, width)``.
+        """
+        b, n, tpt, _ = tokens.shape
+        hidden = agent_token_mask(agent_mask).reshape(b, n * tpt)
+        vis = visibility if visibility.ndim == 3 else visibility[None]
+        keys = vis & ~hidden[:, None, :]  # (B, S, S)
+        return self.encode(tokens, 0, bias_from_mask(keys)[:, None], deterministic=deterministic)
+
+    def decode(
+        self,
+        features: Float[Array, "batch turns tokens width"],
+        agent_mask: Bool[Array, "batch turns frames"],
+        visibility: Bool[Array, "*vis_batch seq seq"],
+        deterministic: bool = True,
+    ) -> Float[Array, "batch turns tokens width"]:
+        """The MAE-style variant's decoder over a window at slots ``0..N-1``.
+
+        Args:
+            features: ``(B, N, 4F + 10, width)`` from :meth:`encode_visible`.
+            agent_mask: ``(B, N, F)`` True where the agent frame is masked: its feature is replaced
+                by the mask token.
+            visibility: ``[query, key]`` mask as in :meth:`encode_visible` (no masked-token
+                exclusion here: the decoder reads the mask tokens).
+            deterministic: disables dropout.
+
+        Returns:
+            ``(B, N, 4F + 10, width)`` decoded features (agent-motion positions feed the head).
+        """
+        if self.config.architecture != "encoder_decoder":
+            raise ValueError(f"decode needs architecture='encoder_decoder', got {self.config.architecture!r}")
+        b, n, tpt, w = features.shape
+        x = self.decoder_embed(features)
+        masked = agent_token_mask(agent_mask)[..., None]
+        x = jnp.where(masked, self.mask_token.astype(x.dtype), x).reshape(b, n * tpt, w)
+        x = x + self.decoder_pos_embed[None, : n * tpt].astype(x.dtype)
+        bias = bias_from_mask(visibility)
+        if bias.ndim == 3:
+            bias = bias[:, None]
+        for block in self.decoder_blocks:
+            x = block(x, bias=bias, deterministic=deterministic)
+        return self.decoder_norm(x).reshape(b, n, tpt, w)
+
+    def fuse(
+        self,
+        tokens: Float[Array, "batch turns tokens width"],
+        agent_mask: Bool[Array, "batch turns frames"],
+        visibility: Bool[Array, "*vis_batch seq seq"],
+        deterministic: bool = True,
+    ) -> Float[Array, "batch turns frames width"]:
+        """Head conditions of a whole window at slots ``0..N-1``, for either architecture.
+
+        Args:
+            tokens: ``(B, N, 4F + 10, width)`` from :meth:`embed` (masked agent frames already hold
+                the mask token).
+            agent_mask: ``(B, N, F)`` True where the agent frame is masked (read by the
+                encoder-decoder variant only).
+            visibility: ``[query, key]`` mask, ``(S, S)`` or ``(B, S, S)``.
+            deterministic: disables dropout.
+
+        Returns:
+            ``(B, N, F, width)``.
+        """
+        if self.config.architecture == "encoder":
+            bias = bias_from_mask(visibility)
+            if bias.ndim == 3:
+                bias = bias[:, None]
+            features = self.encode(tokens, 0, bias, deterministic=deterministic)
+        else:
+            features = self.encode_visible(tokens, agent_mask, visibility, deterministic)
+            features = self.decode(features, agent_mask, visibility, deterministic)
+        return self.head_condition(features, 0)
+
     def head_condition(
         self, features: Float[Array, "batch turns tokens width"], first_turn: Int[Array, ""] | int
     ) -> Float[Array, "batch turns frames width"]:
@@ -223,13 +338,18 @@ class TimarEncoder(nn.Module):
             ``(B, N, F, width)`` head conditions of every agent frame.
         """
         tokens = self.embed(user_speech, user_motion, agent_speech, agent_motion, agent_mask, user_drop)
-        n = tokens.shape[1]
+        b, n = tokens.shape[:2]
+        frames = (b, n, self.config.frames_per_turn)
+        if agent_motion is None:
+            masked = jnp.ones(frames, bool)
+        elif agent_mask is None:
+            masked = jnp.zeros(frames, bool)
+        else:
+            masked = jnp.asarray(agent_mask, bool)
         mask = turn_layout(self.config.frames_per_turn).attention_mask(
             n, causal=self.config.attention == "turn_causal"
         )
-        bias = bias_from_mask(mask)
-        features = self.encode(tokens, 0, bias, deterministic=deterministic)
-        return self.head_condition(features, 0)
+        return self.fuse(tokens, masked, jnp.asarray(mask), deterministic)
 
 
 def init_encoder(config: TimarConfig, key: Any) -> dict[str, Any]:

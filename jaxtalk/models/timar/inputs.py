@@ -8,16 +8,35 @@ of deep inside XLA.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.types import Array, Float, Shaped
 
-__all__ = ["check_streams", "to_turns", "from_turns"]
+__all__ = ["TurnConfig", "check_streams", "to_turns", "from_turns"]
+
+
+@runtime_checkable
+class TurnConfig(Protocol):
+    """What the turn-window code reads from a model config: TIMAR's
+    (:class:`~jaxtalk.models.timar.TimarConfig`) and the DualTalk baseline's
+    (:class:`~jaxtalk.models.dualtalk.DualTalkConfig`) both have these fields, so both models check
+    their streams and cut their training windows with the same code."""
+
+    @property
+    def speech_dim(self) -> int: ...
+
+    @property
+    def param_dim(self) -> int: ...
+
+    @property
+    def frames_per_turn(self) -> int: ...
+
+    @property
+    def max_turns(self) -> int: ...
 
 
 def _concrete(x: Any) -> bool:
@@ -25,7 +44,7 @@ def _concrete(x: Any) -> bool:
 
 
 def check_streams(
-    config: TimarConfig,
+    config: TurnConfig,
     streams: dict[str, Shaped[Array, "..."] | Shaped[np.ndarray, "..."] | None],
     *,
     max_turns: int | None = None,

@@ -13,7 +13,9 @@ Per batch (Sec. 3.4 and the public code):
    (plus, with a learned variance, improved diffusion's variational bound with the mean frozen),
    averaged over the draws and over the MASKED frames only.
 
-The MLP-head ablation regresses x0 directly from the feature with the same grouped loss.
+The MLP-head ablation regresses x0 directly from the feature with the same grouped loss. The
+MAE-style encoder-decoder variant (``architecture="encoder_decoder"``) trains with the same masks and
+loss: its encoder ignores the masked frames and its decoder's outputs there are the features.
 """
 
 from __future__ import annotations

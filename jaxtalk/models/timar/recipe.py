@@ -11,6 +11,7 @@ motion: a constant that carries no information about the agent.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -20,16 +21,24 @@ from jaxtalk.data.loader import PreparedData
 from jaxtalk.data.standardize import fit_standardizer
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.data import Normalizer
+from jaxtalk.models.timar.inputs import TurnConfig
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["DEFAULTS", "TimarWindows", "agent_sides", "fit_data_normalizer", "window_turns", "train"]
+__all__ = ["DEFAULTS", "PRESET_DEFAULTS", "TimarWindows", "agent_sides", "fit_data_normalizer", "window_turns", "make_windows",
+           "train"]
 
 PyTree = Any
 
-# What trains the small model on 2 CPU cores; the paper: AdamW 1e-4 at batch 32, 100 warm-up steps.
+# What trains the small model on 2 CPU cores.
 DEFAULTS = TrainSettings(lr=1e-3, warmup_steps=20, final_lr_ratio=0.1)
+# Training settings of each config preset. The paper (Sec. 4): AdamW at 1e-4, batch 32, a 100-iteration
+# warm-up and no stated decay, so the rate stays constant after the warm-up (as MAR's public recipe).
+PRESET_DEFAULTS: dict[str, TrainSettings] = {
+    "small": DEFAULTS,
+    "paper": TrainSettings(lr=1e-4, warmup_steps=100, final_lr_ratio=1.0, batch_size=32),
+}
 
 
 def agent_sides(data: PreparedData, split: str) -> list[tuple[int, int]]:
@@ -50,8 +59,8 @@ def fit_data_normalizer(data: PreparedData, *, floor: float = 1e-3) -> Normalize
     """
     sides = agent_sides(data, "train")
     if not sides:
-        raise ValueError(f"{data.root}: TIMAR trains on conversations and the training split has none "
-                         "(a clip with motion needs its partner's clip)")
+        raise ValueError(f"{data.root}: TIMAR and the DualTalk baseline train on conversations and the "
+                         "training split has none (a clip with motion needs its partner's clip)")
     speech, motion = [], []
     for i, _ in sides:
         rec = data.record(i, ("turn_speech", "motion"))
@@ -61,7 +70,7 @@ def fit_data_normalizer(data: PreparedData, *, floor: float = 1e-3) -> Normalize
     return Normalizer(s["mean"], s["std"], m["mean"], m["std"])
 
 
-def window_turns(config: TimarConfig, data: PreparedData) -> int:
+def window_turns(config: TurnConfig, data: PreparedData) -> int:
     """Turns per training window: the config's ``max_turns``, capped by the longest training side."""
     sides = agent_sides(data, "train")
     longest = max(min(data.clips[i]["frames"], data.clips[j]["frames"]) for i, j in sides) // config.frames_per_turn
@@ -70,7 +79,8 @@ def window_turns(config: TimarConfig, data: PreparedData) -> int:
 
 @dataclasses.dataclass(frozen=True)
 class TimarWindows:
-    """TIMAR's window recipe (see the module docstring).
+    """TIMAR's window recipe (see the module docstring), also the DualTalk baseline's: both models train
+    and validate on the same windows.
 
     Attributes:
         config: the model config (frames per turn).
@@ -79,7 +89,7 @@ class TimarWindows:
         still: ``(56,)`` the motion of a partner without tracked motion (the training mean pose).
     """
 
-    config: TimarConfig
+    config: TurnConfig
     num_turns: int
     normalizer: Normalizer
     still: tuple[float, ...]
@@ -106,7 +116,7 @@ class TimarWindows:
                 "agent_speech": n.speech(agent["turn_speech"][sl]), "agent_motion": n.motion(agent["motion"][sl])}
 
 
-def make_windows(config: TimarConfig, data: PreparedData) -> TimarWindows:
+def make_windows(config: TurnConfig, data: PreparedData) -> TimarWindows:
     """The recipe with its normaliser fitted on ``data``'s training split."""
     if data.manifest["turn_speech_dim"] != config.speech_dim:
         raise ValueError(f"{data.root} has {data.manifest['turn_speech_dim']}-d speech features but the model "
@@ -139,10 +149,46 @@ def train(
     """
     from jaxtalk.models.timar.loss import make_loss_fn
     from jaxtalk.models.timar.model import init_params
+
+    return train_on_turn_windows("timar", config, data, optim, init_params, make_loss_fn, steps=steps, key=key,
+                                 batch_size=batch_size, seed=seed, params=params, ckpt_dir=ckpt_dir, mesh=mesh,
+                                 eval_every=eval_every, **loop_kwargs)
+
+
+def train_on_turn_windows(
+    model: str,
+    config: Any,
+    data: PreparedData,
+    optim: OptimConfig,
+    init_params: Callable[[Any, PRNGKeyArray], PyTree],
+    make_loss_fn: Callable[[Any], Callable[..., Any]],
+    *,
+    steps: int | None,
+    key: PRNGKeyArray,
+    batch_size: int,
+    seed: int,
+    params: PyTree | None,
+    ckpt_dir: Any,
+    mesh: Any,
+    eval_every: int | None,
+    **loop_kwargs: Any,
+) -> RecipeResult:
+    """The training TIMAR and the DualTalk baseline share: :func:`make_windows`' turn windows and
+    normaliser, one key split (init / train / eval) and the run's ``extra`` (normaliser, window turns,
+    still pose), so that both models see the same data under the same settings.
+
+    Args:
+        model: the run's model name (``"timar"``, ``"dualtalk"``).
+        config: the model's config (a :class:`TurnConfig`).
+        init_params: ``(config, key) -> params`` (used when ``params`` is None).
+        make_loss_fn: ``config -> loss_fn`` for :func:`~jaxtalk.train.recipes.fit_recipe`.
+        others: as :func:`train`.
+    """
     recipe = make_windows(config, data)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     if params is None:
         params = init_params(config, k_init)
     extra = {"normalizer": recipe.normalizer.to_dict(), "num_turns": recipe.num_turns, "still": list(recipe.still)}
-    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
-                      metadata={"model": "timar"}, extra=extra, **loop_kwargs)
+    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps,
+                      batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
+                      metadata={"model": model}, extra=extra, **loop_kwargs)

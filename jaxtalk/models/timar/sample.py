@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.models.timar.config import TimarConfig
+from jaxtalk.models.timar.config import SAMPLERS, TimarConfig
 from jaxtalk.models.timar.head import (
     apply_head,
     apply_head_hoisted,
@@ -46,14 +46,13 @@ __all__ = [
     "MODULATION_TABLE_BYTES",
     "respaced_schedule",
     "check_temperature",
+    "resolve_sampler",
     "conditions",
     "sample_frames",
     "sample",
     "posterior_mean",
 ]
 
-# "mean": no denoising loop, the head's x0 estimate at the last training timestep (the posterior mean).
-SAMPLERS = ("ddim", "ddpm", "mean")
 # Largest precomputed modulation table (bytes) before the sampler falls back to computing the
 # modulations inside its loop: 100 steps x 2 x 25 frames of the 1024-wide paper head is 225 MB.
 MODULATION_TABLE_BYTES = 512 * 2**20
@@ -143,7 +142,7 @@ def sample_frames(
     *,
     cfg_scale: Float[Array, ""] | float,
     num_steps: int,
-    sampler: str = "ddim",
+    sampler: str | None = None,
     eta: Float[Array, ""] | float = 0.0,
     temperature: Float[Array, ""] | float = 1.0,
     precompute: bool | None = None,
@@ -158,17 +157,20 @@ def sample_frames(
         key: PRNG key (initial noise and, for DDPM / eta > 0, the step noise).
         cfg_scale: ``()`` omega (traced); ignored without ``z_uncond``.
         num_steps: respaced steps (static).
-        sampler: ``"ddim"``, ``"ddpm"`` or ``"mean"`` (static). ``"mean"`` evaluates the head once, at
+        sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"`` (static; None: ``config.sampler``). ``"ddpm"``
+            takes MAR's ancestral steps over the respaced schedule, with the learned variance when
+            the config learns it (else the clipped posterior variance). ``"mean"`` evaluates the head once, at
             the last training timestep on the initial noise (which carries no information about
             x0 there), with guidance: the (guided) posterior mean ``E[x0 | condition]``, the point
             estimate for MSE-type scores (as :func:`posterior_mean`). A deterministic DDIM
             trajectory (temperature 0) is NOT that: after its first step it denoises the mean
             towards the training data, e.g. towards a training speaker's resting face.
         eta: ``()`` DDIM stochasticity (traced).
-        temperature: ``()`` scale of the initial noise x_T (traced; MAR's sampling temperature).
-            With DDIM and ``eta = 0`` x_T is the only randomness: 1 samples the learned
-            distribution, 0 the deterministic trajectory from x_T = 0. The per-step noise of
-            DDPM / ``eta > 0`` is not scaled.
+        temperature: ``()`` MAR's sampling temperature (traced). DDPM: the factor on every step's
+            noise, as MAR's ``p_sample``; x_T stays standard normal. DDIM: the scale of x_T, its
+            only randomness when ``eta = 0`` (the ``eta`` noise is not scaled). 1 samples the
+            learned distribution in both; 0 gives DDPM's noise-free chain from a random x_T and
+            DDIM's deterministic trajectory from x_T = 0.
         precompute: compute every step's adaLN modulations before the loop (static; None: when
             the table fits in :data:`MODULATION_TABLE_BYTES`). Both ways give the same samples up
             to float32 summation order.
@@ -176,13 +178,16 @@ def sample_frames(
     Returns:
         ``(B, *F, 56)`` samples (the MLP head's prediction for the ``"mlp"`` ablation).
     """
+    sampler = resolve_sampler(config, sampler)
     omega = jnp.asarray(cfg_scale, jnp.float32)
+    tau = jnp.asarray(temperature, jnp.float32)
     hp = params["head"]
     if config.head == "mlp":
         return _guided(lambda z: apply_head(hp, config, z), z_cond, z_uncond, omega)
     k_noise, k_steps = jax.random.split(key)
     noise = jax.random.normal(k_noise, z_cond.shape[:-1] + (config.param_dim,), jnp.float32)
-    noise = noise * jnp.asarray(temperature, jnp.float32)
+    if sampler != "ddpm":
+        noise = noise * tau
     if sampler == "mean":
         return _guided(lambda z: _head_at_last_timestep(config, hp, z, noise), z_cond, z_uncond, omega)
     schedule = respaced_schedule(config.schedule, config.num_timesteps, num_steps)
@@ -208,7 +213,19 @@ def sample_frames(
     )
     if sampler == "ddim":
         return sample_ddim(model, noise, {"cz": cz}, schedule, k_steps, eta=eta, **kwargs)
-    return sample_ddpm(model, noise, {"cz": cz}, schedule, k_steps, **kwargs)
+    return sample_ddpm(model, noise, {"cz": cz}, schedule, k_steps, temperature=tau, **kwargs)
+
+
+def resolve_sampler(config: TimarConfig, sampler: str | None) -> str:
+    """``sampler``, or the config's default when None.
+
+    Raises:
+        ValueError: a name not in :data:`~jaxtalk.models.timar.config.SAMPLERS`.
+    """
+    sampler = config.sampler if sampler is None else sampler
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; expected one of {SAMPLERS}")
+    return sampler
 
 
 def _guided(fn: Any, z_cond: Array, z_uncond: Array | None, omega: Array) -> Array:
@@ -266,7 +283,7 @@ def sample(
     *,
     cfg_scale: Shaped[Array, "..."] | float | None = None,
     num_steps: int | None = None,
-    sampler: str = "ddim",
+    sampler: str | None = None,
     eta: Float[Array, ""] | float = 0.0,
     temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
@@ -284,9 +301,10 @@ def sample(
         key: PRNG key.
         cfg_scale: ``()`` guidance omega (traced; default ``config.cfg_scale``).
         num_steps: respaced diffusion steps (static; default ``config.sample_steps``).
-        sampler: ``"ddim"``, ``"ddpm"`` or ``"mean"`` (the guided posterior mean; see :func:`sample_frames`).
+        sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"`` (the guided posterior mean); None: the
+            config's (see :func:`sample_frames`).
         eta: DDIM stochasticity (traced).
-        temperature: initial-noise scale (traced; see :func:`sample_frames`).
+        temperature: MAR's sampling temperature (traced; see :func:`sample_frames`).
         guidance: run the unconditional branch (False: conditional only, ``cfg_scale`` ignored).
 
     Returns:
@@ -301,8 +319,7 @@ def sample(
         {"user_speech": user_speech, "user_motion": user_motion, "agent_speech": agent_speech},
         max_turns=config.max_turns,
     )
-    if sampler not in SAMPLERS:
-        raise ValueError(f"unknown sampler {sampler!r}; expected one of {SAMPLERS}")
+    sampler = resolve_sampler(config, sampler)
     num_steps = config.sample_steps if num_steps is None else num_steps
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= config.num_timesteps:
         raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")

@@ -9,7 +9,13 @@ fixed-size buffer, and turn t's step encodes only its own 110 tokens against tha
 window slides (t > n) every past turn moves to a new positional slot, so their keys/values are
 rebuilt from the slid window (n turns, turn-causal) and the current turn runs against them as in a
 filling turn (a constant n + 1 turns of work per step, minus the past turns' last-layer queries
-whose outputs are never read). The bidirectional ablation always recomputes the whole window.
+whose outputs are never read). The bidirectional ablation always recomputes the whole window, and so
+does the MAE-style encoder-decoder variant (``architecture="encoder_decoder"``): every turn runs its
+encoder and decoder on the window with the unfilled slots hidden. That is exact, and it is the simpler
+of the two correct ways: a second key/value cache for the decoder would only save work while the
+window fills, since from then on the sliding window moves every past turn to a new positional slot
+and a cache would be rebuilt from the n past turns at every step, about the n + 1 turns of work a
+recomputation costs.
 
 The state is an explicit pytree. :func:`stream_step` compiles two programs, filling and sliding,
 and picks one on the host from the turn counter (under an outer ``jit`` the counter is abstract and
@@ -29,7 +35,7 @@ import numpy as np
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.models.timar.inputs import check_streams
-from jaxtalk.models.timar.sample import SAMPLERS, check_temperature, sample_frames
+from jaxtalk.models.timar.sample import check_temperature, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.nn import bias_from_mask
 from jaxtalk.types import Array, Float, Shaped, Int, PRNGKeyArray
@@ -47,7 +53,8 @@ class StreamState(NamedTuple):
         tokens: ``(S, n + 1, 4F + 10, width)`` embedded tokens of the window's turns (agent motion
             masked), slot order; unfilled slots are zeros.
         keys, values: per encoder layer, ``(S, n (4F + 10), heads, head_dim)`` cached keys/values
-            of slots ``0..n-1`` (valid for slots < turn while the window has not slid).
+            of slots ``0..n-1`` (valid for slots < turn while the window has not slid; unused where
+            the window is recomputed every turn: bidirectional attention, the encoder-decoder variant).
         turn: ``()`` int32, turns processed so far.
     """
 
@@ -103,6 +110,11 @@ def _encoder_call(params: Any, config: TimarConfig, method: str, *args: Any, **k
     return TimarEncoder(config).apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
 
 
+def _cached(config: TimarConfig) -> bool:
+    """Whether past turns' keys/values are cached (turn-causal encoder-only); else the window is recomputed."""
+    return config.attention == "turn_causal" and config.architecture == "encoder"
+
+
 def _mode(config: TimarConfig, state: StreamState) -> str:
     """The branch of this turn, decided on the host when the turn counter is concrete.
 
@@ -111,7 +123,7 @@ def _mode(config: TimarConfig, state: StreamState) -> str:
     computations); under an outer trace the counter is abstract and the ``lax.cond`` remains.
     """
     n = state.tokens.shape[1] - 1
-    if config.attention != "turn_causal" or n == 0 or isinstance(state.turn, jax.core.Tracer):
+    if not _cached(config) or n == 0 or isinstance(state.turn, jax.core.Tracer):
         return "auto"
     return "cached" if int(state.turn) <= n else "sliding"
 
@@ -135,15 +147,16 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
     causal = config.attention == "turn_causal"
     layout = turn_layout(config.frames_per_turn)
 
-    if not causal or n == 0:
-        # Bidirectional: past turns attend to the current one, nothing can be cached; n = 0: the
-        # window is the current turn alone.
+    if not _cached(config) or n == 0:
+        # Bidirectional: past turns attend to the current one, nothing can be cached; encoder-decoder:
+        # recomputed (see the module docstring); n = 0: the window is the current turn alone.
         tokens = jnp.where(t > n, shifted, written)
         static_mask = jnp.asarray(layout.attention_mask(n + 1, causal=causal))
         key_slot = jnp.asarray(np.repeat(np.arange(n + 1), tpt))
         visible = static_mask & (key_slot <= slot)[None, :]
-        feats = _encoder_call(params, config, "encode", tokens, 0, bias_from_mask(visible))
-        z = _encoder_call(params, config, "head_condition", feats, 0)
+        # Every agent frame is masked at inference, past ones included (outputs are never fed back).
+        masked = jnp.ones(tokens.shape[:2] + (config.frames_per_turn,), bool)
+        z = _encoder_call(params, config, "fuse", tokens, masked, visible)
         z = jax.lax.dynamic_index_in_dim(z, slot, axis=1, keepdims=False)
         return StreamState(tokens, state.keys, state.values, t + 1), z
 
@@ -266,7 +279,7 @@ def stream_step(
     *,
     cfg_scale: Shaped[Array, "..."] | float | None = None,
     num_steps: int | None = None,
-    sampler: str = "ddim",
+    sampler: str | None = None,
     eta: Float[Array, ""] | float = 0.0,
     temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
@@ -284,9 +297,10 @@ def stream_step(
         key: PRNG key of this turn.
         cfg_scale: ``()`` omega (traced; default ``config.cfg_scale``).
         num_steps: respaced diffusion steps (static; default ``config.sample_steps``).
-        sampler: ``"ddim"``, ``"ddpm"`` or ``"mean"`` (see :func:`~jaxtalk.models.timar.sample.sample_frames`).
+        sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"``; None: the config's (see
+            :func:`~jaxtalk.models.timar.sample.sample_frames`).
         eta: DDIM stochasticity (traced).
-        temperature: initial-noise scale (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`).
+        temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`).
         guidance: must match the state.
 
     Returns:
@@ -296,8 +310,7 @@ def stream_step(
         ValueError: as :func:`stream_condition`, plus an unknown sampler or bad step count.
     """
     _check_turn(config, state, user_speech, user_motion, agent_speech, guidance)
-    if sampler not in SAMPLERS:
-        raise ValueError(f"unknown sampler {sampler!r}; expected one of {SAMPLERS}")
+    sampler = resolve_sampler(config, sampler)
     num_steps = config.sample_steps if num_steps is None else num_steps
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= config.num_timesteps:
         raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
@@ -323,7 +336,7 @@ def stream_conversation(
     context: int,
     cfg_scale: Shaped[Array, "..."] | float | None = None,
     num_steps: int | None = None,
-    sampler: str = "ddim",
+    sampler: str | None = None,
     temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
 ) -> Float[Array, "batch frames param_dim"]:

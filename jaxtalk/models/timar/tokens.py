@@ -23,7 +23,7 @@ from jaxtalk.masks import turn_causal_mask
 from jaxtalk.models.timar.config import NUM_SEPARATORS, NUM_SPANS
 from jaxtalk.types import Array, Bool, Float, Int
 
-__all__ = ["SPANS", "TurnLayout", "turn_layout", "interleave"]
+__all__ = ["SPANS", "TurnLayout", "turn_layout", "interleave", "agent_token_mask"]
 
 SPANS: tuple[str, ...] = ("user_speech", "user_motion", "agent_speech", "agent_motion")
 
@@ -149,3 +149,22 @@ def interleave(
     seps = jnp.broadcast_to(separators.astype(user_speech.dtype), user_speech.shape[:-2] + separators.shape)
     stacked = jnp.concatenate([*spans, seps], axis=-2)
     return jnp.take(stacked, layout.order, axis=-2)
+
+
+def agent_token_mask(
+    agent_mask: Bool[Array, "*batch turns frames"] | Bool[np.ndarray, "*batch turns frames"],
+) -> Bool[Array, "*batch turns tokens"]:
+    """Spread a per-frame agent mask onto the turn layout: True at the masked agent-motion tokens.
+
+    Args:
+        agent_mask: ``(*B, N, F)`` True where the agent frame is masked.
+
+    Returns:
+        ``(*B, N, 4F + 10)`` bool, False at every other token (speech, user motion, separators).
+    """
+    layout = turn_layout(agent_mask.shape[-1])
+    f = layout.frames
+    # The agent-motion span is contiguous: pad the frame mask with False on both sides (no scatter).
+    lo = int(layout.agent_motion[0])
+    pad = [(0, 0)] * (agent_mask.ndim - 1) + [(lo, layout.tokens - lo - f)]
+    return jnp.pad(jnp.asarray(agent_mask, bool), pad, constant_values=False)

@@ -1,0 +1,25 @@
+"""Motion out of jaxtalk: binary glTF 2.0 files that Blender, game engines and web pages play.
+
+* :func:`export_face_model`: head parameters on a linear face model (built-in or FLAME) as morph
+  targets and a jaw/neck skin;
+* :func:`export_vertex_sequence`: any vertex sequence as a compact principal-component morph basis
+  within a stated error;
+* :func:`write_audio_beside`: the audio next to a ``.glb`` (glTF has none);
+* :class:`GlbAnimation`: read a ``.glb`` back and pose its mesh as a glTF player does.
+
+``jaxtalk export`` and ``jaxtalk view`` (:mod:`jaxtalk.viewer`) wrap them.
+"""
+
+from jaxtalk.export.gltf import (
+    DEFAULT_MAX_ERROR,
+    ExportSummary,
+    export_face_model,
+    export_vertex_sequence,
+    one_sided_targets,
+    vertex_basis,
+    write_audio_beside,
+)
+from jaxtalk.export.playback import GlbAnimation
+
+__all__ = ["DEFAULT_MAX_ERROR", "ExportSummary", "GlbAnimation", "export_face_model", "export_vertex_sequence",
+           "one_sided_targets", "vertex_basis", "write_audio_beside"]

@@ -1,0 +1,454 @@
+"""Motion to binary glTF 2.0 (``.glb``): morph targets, a skin and one animation, written by pygltflib.
+
+Two layouts, both exact to float32 storage:
+
+* **Face model** (:func:`export_face_model`): the neutral mesh; the 50 expression components as morph
+  targets; when the model has FLAME's pose correctives, one more component per entry of ``(R_j - I)``
+  of the non-root joints (their weights are those entries, linear in the targets, so the correctives
+  stay exact); jaw and neck as joints of a skin with the model's skinning weights. The joints are real
+  skin joints rather than baked into the morph sequence: Blender, three.js, Unity and Unreal all play
+  skinned morph-target meshes, and a user can retarget or edit a jaw joint, not a baked vertex stream.
+  Each joint node's rotation is animated, and its translation too when the model regresses its joints
+  from the expression (FLAME), so that the node's global transform times its inverse bind matrix is
+  exactly the model's rigid map of that joint.
+* **Vertex basis** (:func:`export_vertex_sequence`): any vertex sequence (FreeTalk on a user's mesh) as
+  its mean frame plus the fewest principal components whose reconstruction stays within a stated
+  distance of every vertex of every frame.
+
+In both, every signed component is stored as two one-sided morph targets (``exp_07+``, ``exp_07-``)
+whose weights lie in ``[0, 1]`` (:func:`one_sided_targets`: Blender's importer clamps other weights);
+the mesh's ``extras.jaxtalk`` records each target's component and scale, from which
+:meth:`~jaxtalk.export.GlbAnimation.component_weights` gives the coefficients back.
+
+The animation samples every frame at ``frame / fps`` seconds with LINEAR interpolation. glTF has no
+audio: the command line (:mod:`jaxtalk.commands.exporting`) writes the audio beside the ``.glb``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pygltflib
+from scipy.spatial.transform import Rotation
+
+from jaxtalk.face.model import LinearFaceModel
+from jaxtalk.render._atomic import atomic_output, check_output_path
+from jaxtalk.types import MOTION_FPS, Float, Int
+
+# Inputs are annotated loosely ("..."), as in LinearFaceModel, so that a wrong shape reaches the explicit
+# ValueError that names the expected layout; outputs carry their exact shapes.
+
+__all__ = ["ExportSummary", "export_face_model", "export_vertex_sequence", "one_sided_targets", "vertex_basis",
+           "write_audio_beside"]
+
+# Default bound of the vertex-basis layout: 0.1 mm, far below what a renderer shows at face scale.
+DEFAULT_MAX_ERROR = 1e-4
+_SKIN_RGBA = [0.80, 0.62, 0.52, 1.0]
+
+
+@dataclasses.dataclass(frozen=True)
+class ExportSummary:
+    """What an export wrote.
+
+    Attributes:
+        path: the ``.glb``.
+        layout: ``"face model"`` or ``"vertex basis"``.
+        frames, fps: the animation's length and rate.
+        vertices, triangles: the mesh's size.
+        morph_targets: number of morph targets.
+        joints: number of skin joints (0 for the vertex basis).
+        nodes: number of scene nodes (the mesh and the joints).
+        channels: number of animation channels (morph weights, joint rotations and translations).
+        max_error: metres, the vertex basis's largest vertex distance from the input after float32
+            storage (``None`` for the face model, which is exact by construction).
+    """
+
+    path: Path
+    layout: str
+    frames: int
+    fps: float
+    vertices: int
+    triangles: int
+    morph_targets: int
+    joints: int
+    nodes: int
+    channels: int
+    max_error: float | None = None
+
+    def describe(self) -> str:
+        """One line for a user."""
+        error = "" if self.max_error is None else f", max vertex error {self.max_error * 1e3:.3f} mm"
+        return (f"{self.path}: {self.layout}, {self.vertices} vertices, {self.triangles} triangles, "
+                f"{self.morph_targets} morph targets, {self.joints} joints, {self.nodes} nodes, "
+                f"{self.frames} frames at {self.fps:g} fps in {self.channels} animation channels{error}")
+
+
+class _GlbWriter:
+    """Accessors over one binary buffer, then the file."""
+
+    _TYPES = {1: pygltflib.SCALAR, 2: pygltflib.VEC2, 3: pygltflib.VEC3, 4: pygltflib.VEC4, 16: pygltflib.MAT4}
+    _COMPONENTS = {np.dtype(np.float32): pygltflib.FLOAT, np.dtype(np.uint8): pygltflib.UNSIGNED_BYTE,
+                   np.dtype(np.uint16): pygltflib.UNSIGNED_SHORT, np.dtype(np.uint32): pygltflib.UNSIGNED_INT}
+
+    def __init__(self) -> None:
+        self.gltf = pygltflib.GLTF2(asset=pygltflib.Asset(version="2.0", generator="jaxtalk"))
+        self.blob = bytearray()
+
+    def accessor(self, array: np.ndarray, *, target: int | None = None, bounds: bool = False) -> int:
+        """Append ``array`` (rows = elements) as an accessor; ``bounds`` writes its min/max."""
+        array = np.ascontiguousarray(array)
+        width = 1 if array.ndim == 1 else int(np.prod(array.shape[1:]))
+        self.blob.extend(b"\0" * (-len(self.blob) % 4))  # every view starts 4-byte aligned
+        self.gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(self.blob),
+                                                          byteLength=array.nbytes, target=target))
+        self.blob.extend(array.tobytes())
+        rows = array.reshape(array.shape[0], width)
+        self.gltf.accessors.append(pygltflib.Accessor(
+            bufferView=len(self.gltf.bufferViews) - 1, componentType=self._COMPONENTS[array.dtype],
+            count=int(array.shape[0]), type=self._TYPES[width],
+            min=rows.min(axis=0).tolist() if bounds else None, max=rows.max(axis=0).tolist() if bounds else None))
+        return len(self.gltf.accessors) - 1
+
+    def save(self, path: Path) -> None:
+        self.gltf.buffers = [pygltflib.Buffer(byteLength=len(self.blob))]
+        self.gltf.set_binary_blob(bytes(self.blob))
+        with atomic_output(path) as tmp:
+            self.gltf.save_binary(str(tmp))
+
+
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    import trimesh
+
+    normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, np.float64)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    # A vertex on no triangle has no normal; glTF requires unit normals, so give it any.
+    normals = np.where(length > 1e-12, normals / np.maximum(length, 1e-12), [0.0, 0.0, 1.0])
+    return normals.astype(np.float32)
+
+
+def one_sided_targets(
+    targets: Float[np.ndarray, "k verts 3"], weights: Float[np.ndarray, "frames k"],
+) -> tuple[Float[np.ndarray, "k2 verts 3"], Float[np.ndarray, "frames k2"], Float[np.ndarray, " k2"]]:
+    """Each signed component as two morph targets whose weights lie in ``[0, 1]``.
+
+    Component ``k`` with weights ``w`` becomes targets ``+s_k target_k`` and ``-r_k target_k`` weighted
+    by ``max(w, 0) / s_k`` and ``max(-w, 0) / r_k`` (``s_k``, ``r_k``: the largest positive and negative
+    excursion, 1 when there is none). The sum is exact at every keyframe and, the weights being linear
+    in the original ones, along every LINEAR interpolation between keyframes too. Why: Blender's glTF
+    importer (3.4 to 4.x) widens a shape key's [0, 1] slider range to fit only the FIRST keyframe's
+    weight, so it clamps every other weight outside [0, 1]; an expression coefficient of -1.2 would play
+    as 0 there.
+
+    Returns:
+        ``(targets (2K, V, 3), weights (T, 2K), signed scales (2K,))``: target ``2k`` is the positive
+        side of component ``k``, ``2k + 1`` the negative; ``component weight = sum scale x weight``.
+    """
+    positive, negative = np.maximum(weights, 0.0), np.maximum(-weights, 0.0)
+    up = positive.max(axis=0, initial=0.0)
+    down = negative.max(axis=0, initial=0.0)
+    up, down = np.where(up > 0, up, 1.0), np.where(down > 0, down, 1.0)
+    scales = np.stack([up, -down], axis=1).reshape(-1)
+    sided = np.stack([positive / up, negative / down], axis=2).reshape(weights.shape[0], -1)
+    return np.repeat(targets, 2, axis=0) * scales[:, None, None], sided, scales
+
+
+def _mesh(writer: _GlbWriter, base: np.ndarray, faces: np.ndarray, targets: np.ndarray, weights: np.ndarray,
+          names: list[str], skin_attributes: dict[str, int] | None = None) -> np.ndarray:
+    """The one mesh (index 0): base positions, normals, triangles, and the signed components
+    ``targets (K, V, 3)`` with ``weights (T, K)`` as one-sided morph targets (:func:`one_sided_targets`).
+
+    Returns:
+        The morph weights to animate, ``(T, 2K)`` in ``[0, 1]``.
+    """
+    sided_targets, sided_weights, scales = one_sided_targets(targets, weights)
+    index_type = np.uint16 if base.shape[0] <= np.iinfo(np.uint16).max else np.uint32
+    attributes = pygltflib.Attributes(
+        POSITION=writer.accessor(base.astype(np.float32), target=pygltflib.ARRAY_BUFFER, bounds=True),
+        NORMAL=writer.accessor(_vertex_normals(base, faces), target=pygltflib.ARRAY_BUFFER),
+        **(skin_attributes or {}))
+    primitive = pygltflib.Primitive(
+        attributes=attributes,
+        indices=writer.accessor(faces.reshape(-1).astype(index_type), target=pygltflib.ELEMENT_ARRAY_BUFFER),
+        material=0,
+        targets=[pygltflib.Attributes(POSITION=writer.accessor(t.astype(np.float32), target=pygltflib.ARRAY_BUFFER,
+                                                               bounds=True)) for t in sided_targets])
+    # Blender, three.js and Babylon read morph target names from the mesh's extras.targetNames; the
+    # jaxtalk entry says how to turn the one-sided weights back into the components' own.
+    writer.gltf.meshes.append(pygltflib.Mesh(
+        name="face", primitives=[primitive], weights=[0.0] * len(sided_targets),
+        extras={"targetNames": [f"{n}{side}" for n in names for side in "+-"],
+                "jaxtalk": {"components": names, "targetComponent": np.repeat(np.arange(len(names)), 2).tolist(),
+                            "targetScale": scales.tolist()}}))
+    writer.gltf.materials.append(pygltflib.Material(
+        name="skin", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(baseColorFactor=_SKIN_RGBA, metallicFactor=0.0,
+                                                                        roughnessFactor=0.7)))
+    return sided_weights
+
+
+def _channel(writer: _GlbWriter, animation: pygltflib.Animation, times: int, node: int, path: str,
+             values: np.ndarray) -> None:
+    animation.samplers.append(pygltflib.AnimationSampler(input=times, output=writer.accessor(values.astype(np.float32)),
+                                                         interpolation=pygltflib.ANIM_LINEAR))
+    animation.channels.append(pygltflib.AnimationChannel(
+        sampler=len(animation.samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path=path)))
+
+
+def _check_fps(fps: float | int) -> float:
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be a positive number, got {fps}")
+    return float(fps)
+
+
+def _times(writer: _GlbWriter, frames: int, fps: float | int) -> int:
+    return writer.accessor(np.arange(frames, dtype=np.float32) / np.float32(fps), bounds=True)
+
+
+def _continuous(quaternions: np.ndarray) -> np.ndarray:
+    """q and -q are one rotation: flip signs so consecutive keys are on the same side (no spin)."""
+    q = quaternions.copy()
+    for t in range(1, q.shape[0]):
+        if np.dot(q[t], q[t - 1]) < 0:
+            q[t] = -q[t]
+    return q
+
+
+def _skin_attributes(writer: _GlbWriter, weights: np.ndarray) -> dict[str, int]:
+    """JOINTS_n / WEIGHTS_n sets of four holding every non-zero skinning weight of each vertex."""
+    order = np.argsort(-weights, axis=1, kind="stable")
+    nonzero = int(max(1, (weights > 0).sum(axis=1).max()))
+    sets = -(-nonzero // 4)
+    joints = np.zeros((weights.shape[0], 4 * sets), np.int64)
+    values = np.zeros((weights.shape[0], 4 * sets), np.float64)
+    keep = order[:, :nonzero]
+    joints[:, :nonzero] = keep
+    values[:, :nonzero] = np.take_along_axis(weights, keep, axis=1)
+    values = values / values.sum(axis=1, keepdims=True)
+    joints[values == 0] = 0  # an unused slot: joint 0 at weight 0
+    joint_type = np.uint8 if weights.shape[1] <= 256 else np.uint16
+    out = {}
+    for s in range(sets):
+        cols = slice(4 * s, 4 * s + 4)
+        out[f"JOINTS_{s}"] = writer.accessor(joints[:, cols].astype(joint_type), target=pygltflib.ARRAY_BUFFER)
+        out[f"WEIGHTS_{s}"] = writer.accessor(values[:, cols].astype(np.float32), target=pygltflib.ARRAY_BUFFER)
+    return out
+
+
+def _joint_names(face: LinearFaceModel) -> list[str]:
+    return ["neck" if j == face.neck_joint else "jaw" if j == face.jaw_joint else f"joint_{j}"
+            for j in range(face.num_joints)]
+
+
+def _local_joint_motion(face: LinearFaceModel, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame and joint, the node's local rotation ``(T, J, 3, 3)`` and translation ``(T, J, 3)``
+    such that its global transform times ``T(-rest joint)`` is the model's map of that joint."""
+    world = np.asarray(face.joint_transforms(params), np.float64)
+    rot, shift = world[..., :9].reshape(*world.shape[:2], 3, 3), world[..., 9:]
+    rest = np.asarray(face.joints, np.float64)
+    # Global node translation: the model's map applied to the rest joint.
+    origin = shift + np.einsum("tjab,jb->tja", rot, rest)
+    local_r, local_t = rot.copy(), origin.copy()
+    for j, parent in enumerate(face.parents):
+        if parent >= 0:
+            inv = np.swapaxes(rot[:, parent], -1, -2)
+            local_r[:, j] = inv @ rot[:, j]
+            local_t[:, j] = np.einsum("tab,tb->ta", inv, origin[:, j] - origin[:, parent])
+    return local_r, local_t
+
+
+def export_face_model(
+    face: LinearFaceModel, params: Float[np.ndarray, "..."], out: str | Path, *, fps: float | int = MOTION_FPS,
+    name: str = "motion",
+) -> ExportSummary:
+    """Write head parameters on ``face`` as a skinned morph-target ``.glb`` (module docstring).
+
+    Args:
+        face: the linear face model the parameters belong to (built-in or FLAME).
+        params: ``(T, 56)`` head vectors ``[exp 50 | jaw 3 | neck 3]``.
+        out: the ``.glb`` to write (atomically).
+        fps: frames per second of ``params``.
+        name: the animation's name.
+
+    Returns:
+        :class:`ExportSummary`.
+
+    Raises:
+        ValueError: wrong shape, no frames, NaN or inf in ``params``; a bad ``fps`` or output path.
+    """
+    out = check_output_path(out, (".glb",))
+    fps = _check_fps(fps)
+    params = np.asarray(params, np.float32)
+    local_r, local_t = _local_joint_motion(face, params)  # also checks the shape and finiteness
+    pose = np.asarray(face.pose_features(params), np.float64) if face.pose_basis is not None else None
+    frames, num_joints = params.shape[0], face.num_joints
+
+    writer = _GlbWriter()
+    targets = [np.moveaxis(np.asarray(face.exp_basis, np.float64), -1, 0)]
+    names = [f"exp_{k:02d}" for k in range(targets[0].shape[0])]
+    weights = [params[:, : targets[0].shape[0]].astype(np.float64)]
+    if pose is not None:
+        targets.append(np.moveaxis(np.asarray(face.pose_basis, np.float64), -1, 0))
+        joint_names = _joint_names(face)
+        names += [f"pose_{joint_names[j]}_r{a}{b}" for j in range(1, num_joints) for a in range(3) for b in range(3)]
+        weights.append(pose)
+    morph_weights = _mesh(writer, np.asarray(face.template, np.float64), np.asarray(face.faces),
+                          np.concatenate(targets), np.concatenate(weights, axis=1), names,
+                          _skin_attributes(writer, np.asarray(face.weights, np.float64)))
+
+    gltf = writer.gltf
+    rest = np.asarray(face.joints, np.float64)
+    gltf.nodes.append(pygltflib.Node(name="face", mesh=0, skin=0))
+    joint_nodes = list(range(1, num_joints + 1))
+    for j, joint_name in enumerate(_joint_names(face)):
+        parent = face.parents[j]
+        offset = rest[j] - (rest[parent] if parent >= 0 else 0.0)
+        children = [joint_nodes[c] for c, p in enumerate(face.parents) if p == j]
+        gltf.nodes.append(pygltflib.Node(name=joint_name, translation=offset.tolist(), children=children))
+    inverse_bind = np.tile(np.eye(4), (num_joints, 1, 1))
+    inverse_bind[:, :3, 3] = -rest
+    gltf.skins.append(pygltflib.Skin(
+        name="head", joints=joint_nodes, skeleton=joint_nodes[0],
+        inverseBindMatrices=writer.accessor(np.swapaxes(inverse_bind, 1, 2).reshape(num_joints, 16).astype(np.float32))))
+    roots = [joint_nodes[j] for j, p in enumerate(face.parents) if p < 0]
+    gltf.scenes.append(pygltflib.Scene(name="jaxtalk", nodes=[0, *roots]))
+    gltf.scene = 0
+
+    animation = pygltflib.Animation(name=name)
+    times = _times(writer, frames, fps)
+    _channel(writer, animation, times, 0, "weights", morph_weights.reshape(-1))
+    # The joints move with the expression only where the model regresses them from it (FLAME); for
+    # the built-in face the node offsets are exact and no translation is animated.
+    moving_joints = np.abs(np.asarray(face.joint_exp_basis)).max() > 0
+    for j in range(num_joints):
+        if j in (face.neck_joint, face.jaw_joint):
+            quats = _continuous(Rotation.from_matrix(local_r[:, j]).as_quat())  # (x, y, z, w): glTF's order
+            _channel(writer, animation, times, joint_nodes[j], "rotation", quats)
+        if moving_joints:
+            _channel(writer, animation, times, joint_nodes[j], "translation", local_t[:, j])
+    gltf.animations.append(animation)
+    writer.save(out)
+    return ExportSummary(out, "face model", frames, fps, face.num_vertices, int(np.shape(face.faces)[0]),
+                         morph_weights.shape[1], num_joints, len(gltf.nodes), len(animation.channels))
+
+
+def vertex_basis(
+    vertices: Float[np.ndarray, "frames verts 3"], max_error: float | int = DEFAULT_MAX_ERROR,
+) -> tuple[Float[np.ndarray, "verts 3"], Float[np.ndarray, "k verts 3"], Float[np.ndarray, "frames k"], float]:
+    """The fewest principal components of a vertex sequence that keep every vertex within ``max_error``.
+
+    ``vertices[t] ~ mean + sum_k weights[t, k] targets[k]``. The error is the largest Euclidean distance
+    of any vertex in any frame, measured on what a ``.glb`` stores: the float32 mean and the float32
+    one-sided targets and weights of :func:`one_sided_targets`.
+
+    Args:
+        vertices: ``(T, V, 3)`` in metres.
+        max_error: metres.
+
+    Returns:
+        ``(mean (float32), targets, weights, error)``: the components as unit-norm directions and their
+        coefficients (float64), which :func:`one_sided_targets` turns into what is stored.
+
+    Raises:
+        ValueError: a non-positive bound, or one float32 storage cannot meet.
+    """
+    if not (np.isfinite(max_error) and max_error > 0):
+        raise ValueError(f"max_error must be a positive distance in metres, got {max_error}")
+    x = np.asarray(vertices, np.float64)
+    frames, verts = x.shape[:2]
+    mean = x.mean(axis=0)
+    centred = (x - mean).reshape(frames, 3 * verts)
+    u, s, vt = np.linalg.svd(centred, full_matrices=False)
+    mean32 = mean.astype(np.float32)
+
+    def stored(k: int) -> tuple[np.ndarray, np.ndarray, float]:
+        targets, weights = vt[:k].reshape(k, verts, 3), u[:, :k] * s[:k]
+        sided_targets, sided_weights, _ = one_sided_targets(targets, weights)
+        rebuilt = mean32 + np.einsum("tk,kvc->tvc", sided_weights.astype(np.float32).astype(np.float64),
+                                     sided_targets.astype(np.float32).astype(np.float64))
+        return targets, weights, float(np.sqrt(((rebuilt - x) ** 2).sum(-1)).max())
+
+    residual = centred.copy()
+    for k in range(1, len(s) + 1):  # an animation needs a channel: even a still sequence gets one component
+        residual -= np.outer(u[:, k - 1] * s[k - 1], vt[k - 1])
+        if np.sqrt((residual.reshape(frames, verts, 3) ** 2).sum(-1).max()) <= max_error:
+            targets, weights, error = stored(k)  # the float32 rounding may still need one more
+            if error <= max_error:
+                return mean32, targets, weights, error
+    targets, weights, error = stored(max(1, len(s)))
+    if error > max_error:
+        raise ValueError(f"a {max_error * 1e3:g} mm bound is below what float32 storage holds for this sequence "
+                         f"(best {error * 1e3:.4f} mm): choose a larger max_error")
+    return mean32, targets, weights, error
+
+
+def export_vertex_sequence(
+    vertices: Float[np.ndarray, "..."], faces: Int[np.ndarray, "..."], out: str | Path, *,
+    fps: float | int = MOTION_FPS, max_error: float | int = DEFAULT_MAX_ERROR, name: str = "motion",
+) -> ExportSummary:
+    """Write a vertex sequence as a morph-target ``.glb`` on its principal components (module docstring).
+
+    Args:
+        vertices: ``(T, V, 3)`` in metres.
+        faces: ``(F, 3)`` triangles of the mesh the vertices belong to.
+        out: the ``.glb`` to write (atomically).
+        fps: frames per second.
+        max_error: metres, the largest vertex distance allowed (default 0.1 mm).
+        name: the animation's name.
+
+    Returns:
+        :class:`ExportSummary` (``max_error`` = the measured one).
+
+    Raises:
+        ValueError: bad shapes, no frames, NaN or inf, triangles indexing past the vertices, a bad bound,
+            fps or output path.
+    """
+    out = check_output_path(out, (".glb",))
+    fps = _check_fps(fps)
+    x = np.asarray(vertices)
+    if x.ndim != 3 or x.shape[2] != 3 or x.shape[0] < 1 or x.shape[1] < 3:
+        raise ValueError(f"vertices must have shape (frames >= 1, verts >= 3, 3), got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("vertices contain NaN or inf")
+    tri = np.asarray(faces)
+    if tri.ndim != 2 or tri.shape[1] != 3 or tri.shape[0] < 1 or not np.issubdtype(tri.dtype, np.integer):
+        raise ValueError(f"faces must be integer triangles of shape (F, 3), got {tri.dtype} {tri.shape}")
+    if tri.min() < 0 or tri.max() >= x.shape[1]:
+        raise ValueError(f"faces index vertices 0..{tri.max()} but the sequence has {x.shape[1]} vertices: "
+                         "not the mesh these vertices belong to")
+    # The bound is met by what is stored (vertex_basis measures the one-sided float32 form _mesh writes).
+    mean, targets, weights, error = vertex_basis(x, max_error)
+    writer = _GlbWriter()
+    morph_weights = _mesh(writer, mean, tri, targets, weights, [f"pc_{k:03d}" for k in range(targets.shape[0])])
+    writer.gltf.nodes.append(pygltflib.Node(name="face", mesh=0))
+    writer.gltf.scenes.append(pygltflib.Scene(name="jaxtalk", nodes=[0]))
+    writer.gltf.scene = 0
+    animation = pygltflib.Animation(name=name)
+    _channel(writer, animation, _times(writer, x.shape[0], fps), 0, "weights", morph_weights.reshape(-1))
+    writer.gltf.animations.append(animation)
+    writer.save(out)
+    return ExportSummary(out, "vertex basis", x.shape[0], fps, x.shape[1], tri.shape[0], morph_weights.shape[1], 0, 1,
+                         1, max_error=error)
+
+
+def write_audio_beside(glb: str | Path, audio: Float[np.ndarray, " samples"], sample_rate: int = 16_000) -> Path:
+    """Write ``audio`` next to ``glb`` with the same name and a ``.wav`` suffix (16-bit PCM, atomically):
+    glTF has no audio, and ``jaxtalk view`` pairs a clip with its sound by this name.
+
+    Returns:
+        The ``.wav`` written.
+
+    Raises:
+        ValueError: empty audio, or NaN / inf in it.
+    """
+    import soundfile
+
+    audio = np.asarray(audio, np.float32)
+    if audio.ndim != 1 or audio.shape[0] == 0:
+        raise ValueError(f"audio must be a non-empty mono signal, got shape {audio.shape}")
+    if not np.all(np.isfinite(audio)):
+        raise ValueError("audio contains NaN or inf")
+    wav = Path(glb).with_suffix(".wav")
+    with atomic_output(wav) as tmp:
+        soundfile.write(tmp, audio, sample_rate, subtype="PCM_16", format="WAV")
+    return wav

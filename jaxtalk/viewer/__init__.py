@@ -1,0 +1,194 @@
+"""``jaxtalk view``: a page on localhost that plays the ``.glb`` files of a folder in sync with their audio.
+
+The page (``web/index.html``, ``web/viewer.js``) runs three.js, which is not copied into jaxtalk: it is
+installed from the npm registry by ``npm ci`` against ``web/package-lock.json`` into a cache folder
+(once per lock file), and served from there. Without Node.js and npm, :func:`install_web_dependencies`
+says so in one line.
+
+The server answers only on 127.0.0.1 and serves only: the page, the installed three.js, ``clips.json``
+(the folder's ``.glb`` files and the ``.wav`` beside each) and those files themselves (with byte ranges,
+so the audio element can seek).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import mimetypes
+import os
+import shutil
+import subprocess
+import threading
+import uuid
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from urllib.parse import unquote, urlparse
+
+__all__ = ["ViewerError", "ViewerServer", "WEB_DIR", "clips", "install_web_dependencies", "start_server"]
+
+WEB_DIR = Path(__file__).with_name("web")
+DEFAULT_CACHE = Path.home() / ".cache" / "jaxtalk" / "viewer"
+_PAGE_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js"}
+_TYPES = {".js": "text/javascript", ".html": "text/html; charset=utf-8", ".glb": "model/gltf-binary",
+          ".wav": "audio/wav", ".json": "application/json"}
+
+
+class ViewerError(RuntimeError):
+    """The viewer cannot run here (no Node.js/npm, or its install failed); the message says why."""
+
+
+def install_web_dependencies(cache_dir: str | os.PathLike | None = None, *, npm: str | None = None) -> Path:
+    """The page's ``node_modules``, installed by ``npm ci`` from the lock file if not cached yet.
+
+    Args:
+        cache_dir: where installs are kept (default ``~/.cache/jaxtalk/viewer``), one folder per lock file.
+        npm: the npm executable (default: ``npm`` on ``PATH``).
+
+    Returns:
+        The ``node_modules`` folder holding ``three``.
+
+    Raises:
+        ViewerError: npm is not installed, or ``npm ci`` failed (its last output lines are quoted).
+    """
+    lock = (WEB_DIR / "package-lock.json").read_bytes()
+    root = Path(cache_dir or DEFAULT_CACHE) / hashlib.sha256(lock).hexdigest()[:16]
+    modules = root / "node_modules"
+    if (modules / "three" / "package.json").is_file():
+        return modules
+    npm = npm or shutil.which("npm")
+    if npm is None or shutil.which("node") is None:
+        raise ViewerError("jaxtalk view needs Node.js and npm to install three.js from its lock file; install "
+                          "Node.js 18 or newer (https://nodejs.org, or your system's 'nodejs' and 'npm' packages) "
+                          "and run the command again")
+    # Install into a fresh folder, then rename it into place: a second process or an interrupted
+    # install never leaves a half-filled cache behind.
+    root.parent.mkdir(parents=True, exist_ok=True)
+    work = root.parent / f".install-{uuid.uuid4().hex[:12]}"
+    work.mkdir()
+    try:
+        for name in ("package.json", "package-lock.json"):
+            shutil.copyfile(WEB_DIR / name, work / name)
+        done = subprocess.run([npm, "ci", "--ignore-scripts", "--no-audit", "--no-fund"], cwd=work,
+                              capture_output=True, text=True)
+        if done.returncode != 0:
+            tail = "\n".join((done.stderr or done.stdout).strip().splitlines()[-5:])
+            raise ViewerError(f"npm ci could not install the viewer's three.js (exit {done.returncode}; is the npm "
+                              f"registry reachable?):\n{tail}")
+        with contextlib.suppress(OSError):  # another process finished first: keep its install
+            work.rename(root)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return modules
+
+
+def clips(folder: str | os.PathLike) -> list[dict]:
+    """The folder's exported clips: ``{"name", "glb", "audio"}`` per ``.glb`` (audio: the ``.wav`` of the
+    same name, or ``None``), as the page fetches them."""
+    out = []
+    for glb in sorted(Path(folder).glob("*.glb")):
+        wav = glb.with_suffix(".wav")
+        out.append({"name": glb.stem, "glb": f"/data/{glb.name}", "audio": f"/data/{wav.name}" if wav.is_file() else None})
+    return out
+
+
+@dataclasses.dataclass
+class ViewerServer:
+    """A running viewer: open :attr:`url`; :meth:`close` stops it."""
+
+    httpd: ThreadingHTTPServer
+    thread: threading.Thread
+
+    @property
+    def url(self) -> str:
+        host, port = self.httpd.server_address[:2]
+        return f"http://{host}:{port}/"
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        self.thread.join()
+
+
+def _handler(folder: Path, modules: Path) -> type[BaseHTTPRequestHandler]:
+    three = (modules / "three").resolve()
+
+    class Handler(BaseHTTPRequestHandler):
+        def log_message(self, format: str, *args) -> None:  # noqa: A002  (the base class's name)
+            pass  # quiet: the command prints its URL, not every request
+
+        def _file(self, path: Path) -> None:
+            size = path.stat().st_size
+            start, end = 0, size - 1
+            status = HTTPStatus.OK
+            ranged = self.headers.get("Range", "")
+            if ranged.startswith("bytes=") and "," not in ranged:
+                first, _, last = ranged[6:].partition("-")
+                start = int(first) if first else max(0, size - int(last or 0))
+                end = min(int(last), size - 1) if first and last else end
+                if start > end:
+                    self.send_error(HTTPStatus.REQUESTED_RANGE_NOT_SATISFIABLE)
+                    return
+                status = HTTPStatus.PARTIAL_CONTENT
+            self.send_response(status)
+            self.send_header("Content-Type", _TYPES.get(path.suffix, mimetypes.guess_type(path.name)[0]
+                                                        or "application/octet-stream"))
+            self.send_header("Content-Length", str(end - start + 1))
+            self.send_header("Accept-Ranges", "bytes")
+            self.send_header("Cache-Control", "no-store")
+            if status == HTTPStatus.PARTIAL_CONTENT:
+                self.send_header("Content-Range", f"bytes {start}-{end}/{size}")
+            self.end_headers()
+            with open(path, "rb") as f:
+                f.seek(start)
+                self.wfile.write(f.read(end - start + 1))
+
+        def do_GET(self) -> None:  # noqa: N802  (http.server's name)
+            route = unquote(urlparse(self.path).path)
+            if route in _PAGE_FILES:
+                return self._file(WEB_DIR / _PAGE_FILES[route])
+            if route == "/clips.json":
+                body = json.dumps(clips(folder)).encode()
+                self.send_response(HTTPStatus.OK)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+                return None
+            if route.startswith("/data/"):
+                target = folder / route[len("/data/"):]
+                if target.parent == folder and target.suffix in (".glb", ".wav") and target.is_file():
+                    return self._file(target)
+            elif route.startswith("/vendor/three/"):
+                target = (three / route[len("/vendor/three/"):]).resolve()
+                if target.is_relative_to(three) and target.is_file():
+                    return self._file(target)
+            self.send_error(HTTPStatus.NOT_FOUND)
+            return None
+
+    return Handler
+
+
+def start_server(folder: str | os.PathLike, *, port: int = 8000, cache_dir: str | os.PathLike | None = None,
+                 npm: str | None = None) -> ViewerServer:
+    """Serve the viewer for ``folder`` on ``127.0.0.1:port`` (0: any free port) in a background thread.
+
+    Raises:
+        NotADirectoryError: ``folder`` is not a folder.
+        ValueError: it holds no ``.glb`` file.
+        ViewerError: see :func:`install_web_dependencies`.
+        OSError: the port is taken.
+    """
+    folder = Path(folder).resolve()
+    if not folder.is_dir():
+        raise NotADirectoryError(f"not a folder: {str(folder)!r}")
+    if not clips(folder):
+        raise ValueError(f"{str(folder)!r} holds no .glb file: write one with `jaxtalk export INPUT --out "
+                         f"{folder}/anim.glb`")
+    modules = install_web_dependencies(cache_dir, npm=npm)
+    httpd = ThreadingHTTPServer(("127.0.0.1", port), _handler(folder, modules))
+    thread = threading.Thread(target=httpd.serve_forever, name="jaxtalk-view", daemon=True)
+    thread.start()
+    return ViewerServer(httpd, thread)

@@ -1,0 +1,19 @@
+"""Small helpers several test modules share (import as ``from helpers import ...``)."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+
+
+@functools.partial(jax.jit, static_argnames="scale")
+def perturbed(params, key, scale: float = 0.05):
+    """``params`` plus ``scale`` x standard-normal noise on every leaf.
+
+    Zero-initialised layers (adaLN modulations, output projections) make a fresh model's output exactly
+    0 or its input; tests of what a layer computes perturb them first so that comparisons see signal.
+    """
+    leaves, tree = jax.tree.flatten(params)
+    keys = jax.random.split(key, len(leaves))
+    return jax.tree.unflatten(tree, [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
