@@ -17,3 +17,16 @@ def perturbed(params, key, scale: float = 0.05):
     leaves, tree = jax.tree.flatten(params)
     keys = jax.random.split(key, len(leaves))
     return jax.tree.unflatten(tree, [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)])
+
+
+def timar_streams(batch: int, frames: int, seed: int = 0, speech_dim: int = 8) -> dict:
+    """Random float32 TIMAR inputs, ``(batch, frames, .)``: both speakers' speech and motion."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    return {
+        "user_speech": rng.normal(size=(batch, frames, speech_dim)).astype(np.float32),
+        "user_motion": rng.normal(size=(batch, frames, 56)).astype(np.float32),
+        "agent_speech": rng.normal(size=(batch, frames, speech_dim)).astype(np.float32),
+        "agent_motion": rng.normal(size=(batch, frames, 56)).astype(np.float32),
+    }

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import perturbed
+from helpers import perturbed, timar_streams
 from scipy import stats
 
 from jaxtalk.models.timar import TimarConfig, init_params, timar_loss
@@ -20,14 +20,7 @@ B, N, F = 2, 2, 5
 
 
 def _batch(seed=0, n=N):
-    rng = np.random.default_rng(seed)
-    t = n * F
-    return {
-        "user_speech": rng.normal(size=(B, t, 8)).astype(np.float32),
-        "user_motion": rng.normal(size=(B, t, 56)).astype(np.float32),
-        "agent_speech": rng.normal(size=(B, t, 8)).astype(np.float32),
-        "agent_motion": rng.normal(size=(B, t, 56)).astype(np.float32),
-    }
+    return timar_streams(B, n * F, seed)
 
 
 

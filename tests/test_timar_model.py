@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import perturbed
+from helpers import perturbed, timar_streams
 
 from jaxtalk.models.timar import TimarConfig, encode_window, init_params, sample
 from jaxtalk.models.timar.head import (
@@ -39,14 +39,7 @@ def params():
 
 
 def _streams(seed=0, n=N):
-    rng = np.random.default_rng(seed)
-    t = n * F
-    return {
-        "user_speech": rng.normal(size=(B, t, 8)).astype(np.float32),
-        "user_motion": rng.normal(size=(B, t, 56)).astype(np.float32),
-        "agent_speech": rng.normal(size=(B, t, 8)).astype(np.float32),
-        "agent_motion": rng.normal(size=(B, t, 56)).astype(np.float32),
-    }
+    return timar_streams(B, n * F, seed)
 
 
 _encode = jax.jit(encode_window, static_argnums=1)
