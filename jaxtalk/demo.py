@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -24,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from jaxtalk.files import atomic_savez, atomic_write_text
 
 __all__ = ["DemoOptions", "DemoResult", "run_demo", "SWEEP_CHUNKS_S", "SWEEP_STEPS"]
 
@@ -100,18 +101,6 @@ class DemoResult:
     sweep: list[dict[str, Any]]
     trained: bool
     wall_s: float
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
 
 
 def model_config(chunk_frames: int = 10, num_steps: int = 10):
@@ -345,7 +334,7 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
     pred, times = _stream_timed(params, config, tokens, style_vec, jax.random.key(2), frames)
     stem = Path(options.audio).stem
     files["user_params"] = options.out_dir / f"{stem}_params.npz"
-    _atomic_savez(files["user_params"], params56=pred, fps=np.asarray(25))
+    atomic_savez(files["user_params"], params56=pred, fps=np.asarray(25))
     echo(f"animated {options.audio} ({audio.shape[0] / 16000:.1f} s, "
          f"{1e3 * statistics.median(times[1:] or times):.1f} ms per 0.4-s chunk)")
     if options.render:
@@ -427,7 +416,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     ]
 
     files["params"] = out / "prediction.npz"
-    _atomic_savez(files["params"], params56=pred, ground_truth=gt, fps=np.asarray(25), clip=np.asarray(clip))
+    atomic_savez(files["params"], params56=pred, ground_truth=gt, fps=np.asarray(25), clip=np.asarray(clip))
     # The prediction as a glTF animation with its audio beside it: Blender, engines and `jaxtalk view` play it.
     from jaxtalk.export import export_face_model, write_audio_beside
 
@@ -444,7 +433,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
         else:
             echo("chunk x steps sweep (the paper's Table 5) on the held-out clip:")
             sweep_rows = _sweep(params, corpus, clip, ref, echo)
-            _atomic_write_text(sweep_path, json.dumps({"clip": clip, "rows": sweep_rows}, indent=1))
+            atomic_write_text(sweep_path, json.dumps({"clip": clip, "rows": sweep_rows}, indent=1))
         files["sweep_json"] = sweep_path
         from jaxtalk.render import plot_sweep
 
@@ -492,6 +481,6 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     report += ["## Files\n"] + [f"- `{k}`: `{v}`\n" for k, v in files.items()]
     report.append(f"\nTotal wall time of this run: {wall_s:.1f} s.\n")
     files["report"] = out / "report.md"
-    _atomic_write_text(files["report"], "\n".join(report))
+    atomic_write_text(files["report"], "\n".join(report))
     return DemoResult(out_dir=out, files=files, quality=quality, latency=latency, sweep=sweep_rows,
                       trained=trained, wall_s=wall_s)

@@ -118,16 +118,17 @@ def test_errors(tmp_path):
         write_mp4(tmp_path / "a.mp4", frames, audio=np.full(640 * 4, np.nan, np.float32))
     with pytest.raises(ValueError, match="lasts"):
         write_mp4(tmp_path / "a.mp4", frames, audio=_tone(3.0))
-    with pytest.raises(FileNotFoundError, match="does not exist"):
-        write_mp4(tmp_path / "missing" / "a.mp4", frames)
     (tmp_path / "file").write_text("x")
-    with pytest.raises(NotADirectoryError):
+    with pytest.raises(ValueError, match="is a file, not a folder"):
         write_gif(tmp_path / "file" / "a.gif", frames)
     with pytest.raises(ValueError, match=r"\.mp4"):
         write_mp4(tmp_path / "a.avi", frames)
     with pytest.raises(FileNotFoundError):
         probe_media(tmp_path / "nothing.mp4")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+    # Folders of a named output are created, as every jaxtalk command does.
+    write_gif(tmp_path / "new" / "a.gif", frames)
+    assert (tmp_path / "new" / "a.gif").is_file()
 
 
 def test_failure_midway_leaves_no_file(tmp_path):

@@ -427,10 +427,12 @@ class VQTokenizer:
         Returns:
             The path written (``.npz`` appended when missing, as NumPy does).
         """
+        from jaxtalk.files import atomic_savez
+
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_name(path.name + ".npz")
-        np.savez(
+        atomic_savez(
             path,
             format_version=np.int64(_FORMAT_VERSION),
             codebook=self.codebook,

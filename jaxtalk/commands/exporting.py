@@ -65,7 +65,7 @@ def export_file(opts: ExportOptions) -> ExportResult:
             do not match their mesh, a bad bound or audio.
     """
     from jaxtalk.commands.rendering import face_model, load_motion, read_head_clip
-    from jaxtalk.render._atomic import check_output_path
+    from jaxtalk.files import check_output_path
 
     out = check_output_path(opts.out, (".glb",))
     source = Path(opts.input)

@@ -332,7 +332,7 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     from jaxtalk.geometry.canonical import load_mesh
     from jaxtalk.models.freetalk.animate import animate, prepare_user_mesh, read_landmarks
     from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM
-    from jaxtalk.render._atomic import atomic_output
+    from jaxtalk.files import atomic_output
 
     unused = [name for name, value in (("--style", opts.style), ("--partner", opts.partner),
                                        ("--cfg-scale", opts.cfg_scale)) if value is not None]

@@ -174,12 +174,9 @@ class RunRecord:
 
     def save(self, run_dir: str | Path) -> Path:
         """Write ``run_dir/run.json`` (atomically) and return its path."""
-        path = Path(run_dir) / RUN_FILE
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{RUN_FILE}.tmp")
-        tmp.write_text(json.dumps(dataclasses.asdict(self), indent=1, default=str))
-        tmp.replace(path)
-        return path
+        from jaxtalk.files import atomic_write_json
+
+        return atomic_write_json(Path(run_dir) / RUN_FILE, dataclasses.asdict(self))
 
     @classmethod
     def load(cls, run_dir: str | Path) -> RunRecord:
@@ -227,27 +224,23 @@ FEATURES_FILE = "features.json"
 def save_run_assets(run_dir: str | Path, model: str, data: Any, config: Any) -> None:
     """Copy what inference needs from the prepared data into the run: the feature settings, the VQ
     tokenizer (when the data has one) and, for TokTalk, a default style clip (a training clip)."""
-    import shutil
-
     import numpy as np
+
+    from jaxtalk.files import atomic_copy, atomic_save_npy, atomic_write_json
 
     run_dir = Path(run_dir)
     m = data.manifest
     features = {"audio": m["settings"]["audio"], "tokens": m["settings"]["tokens"], "token_rate": m.get("token_rate"),
                 "token_dim": m.get("token_dim"), "speech_dim": m.get("speech_dim"),
                 "turn_speech_dim": m.get("turn_speech_dim")}
-    (run_dir / FEATURES_FILE).write_text(json.dumps(features, indent=1))
+    atomic_write_json(run_dir / FEATURES_FILE, features)
     if m.get("tokenizer"):
-        tmp = run_dir / f".{TOKENIZER_FILE}.tmp"
-        shutil.copyfile(data.root / m["tokenizer"], tmp)
-        tmp.replace(run_dir / TOKENIZER_FILE)
+        atomic_copy(data.root / m["tokenizer"], run_dir / TOKENIZER_FILE)
     if model == "toktalk":
         train = data.split("train")
         clip = max(train, key=lambda i: data.clips[i]["frames"])
         style = data.record(clip, ("motion",))["motion"][: 4 * config.style_frames]
-        with open(run_dir / f".{STYLE_FILE}.tmp", "wb") as handle:
-            np.save(handle, style.astype(np.float32))
-        (run_dir / f".{STYLE_FILE}.tmp").replace(run_dir / STYLE_FILE)
+        atomic_save_npy(run_dir / STYLE_FILE, style.astype(np.float32))
 
 
 @dataclasses.dataclass

@@ -40,10 +40,11 @@ import numpy as np
 
 from jaxtalk.data.features import SAMPLES_PER_FRAME, TURN_FRAMES, AudioFeatures, parse_audio_features
 from jaxtalk.data.sources import BadClip, ClipEntry, RawClip, Source, check_clip, open_source
+from jaxtalk.files import atomic_output, atomic_write_text
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
 __all__ = ["PrepareSettings", "PrepareResult", "prepare", "MANIFEST", "REPORT", "FORMAT_VERSION",
-           "encode_record", "decode_record", "clip_record", "atomic_write_text"]
+           "encode_record", "decode_record", "clip_record"]
 
 MANIFEST = "manifest.json"
 REPORT = "report.csv"
@@ -114,13 +115,6 @@ class PrepareResult:
     new: int
     skipped: list[tuple[str, str]]
     seconds: float
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file and a rename (never a half-written file)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def encode_record(arrays: dict[str, np.ndarray]) -> bytes:
@@ -276,14 +270,13 @@ def _write_shard(shard_dir: Path, number: int, records: list[tuple[dict, bytes]]
     from array_record.python.array_record_module import ArrayRecordWriter
 
     name = f"{number:05d}.array_record"
-    tmp = shard_dir / f".{name}.tmp"
-    # Uncompressed: ArrayRecord's default (zstd) saves only ~25% on float features and doubles the
-    # loader's cost of reading a record (a whole record is read per clip).
-    writer = ArrayRecordWriter(str(tmp), "group_size:1,uncompressed")
-    for _, data in records:
-        writer.write(data)
-    writer.close()
-    os.replace(tmp, shard_dir / name)
+    with atomic_output(shard_dir / name) as tmp:
+        # Uncompressed: ArrayRecord's default (zstd) saves only ~25% on float features and doubles the
+        # loader's cost of reading a record (a whole record is read per clip).
+        writer = ArrayRecordWriter(str(tmp), "group_size:1,uncompressed")
+        for _, data in records:
+            writer.write(data)
+        writer.close()
     clips = [{**meta, "index": i} for i, (meta, _) in enumerate(records)]
     atomic_write_text(shard_dir / f"{number:05d}.json", json.dumps({"settings": digest, "clips": clips}))
     return name
@@ -315,8 +308,7 @@ def _fit_tokenizer(entries: Sequence[ClipEntry], splits: dict[str, str], setting
         raise ValueError("no training clip has 4 s of readable audio to fit the VQ tokenizer on")
     tok = VQTokenizer.fit(pieces, rate=settings.vq_rate, num_codes=min(settings.vq_codes, len(pieces) * int(4 * settings.vq_rate)),
                           width=settings.vq_width, seed=settings.split_seed)
-    tmp = tok.save(out / f".tokenizer.{os.getpid()}.tmp.npz")
-    os.replace(tmp, path)
+    tok.save(path)
     atomic_write_text(tag, digest)
     return tok
 
@@ -368,8 +360,7 @@ def prepare(
     tokenizer = _fit_tokenizer(src.entries, splits, settings, names, out, digest) if tokens_mode == "vq" else None
     if tokens_mode == "clip" and src.tokenizer is not None:
         # The tokenizer that made the clips' tokens: kept so a trained model can tokenise new audio.
-        tmp = src.tokenizer().save(out / f".tokenizer.{os.getpid()}.tmp.npz")
-        os.replace(tmp, out / TOKENIZER)
+        src.tokenizer().save(out / TOKENIZER)
 
     skipped: list[tuple[str, str]] = []
     buffer: list[tuple[dict, bytes]] = []

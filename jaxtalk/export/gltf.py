@@ -34,7 +34,7 @@ import pygltflib
 from scipy.spatial.transform import Rotation
 
 from jaxtalk.face.model import LinearFaceModel
-from jaxtalk.render._atomic import atomic_output, check_output_path
+from jaxtalk.files import atomic_output, check_output_path
 from jaxtalk.types import MOTION_FPS, Float, Int
 
 # Inputs are annotated loosely ("..."), as in LinearFaceModel, so that a wrong shape reaches the explicit

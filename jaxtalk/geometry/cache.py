@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 import zipfile
 
 import numpy as np
 import scipy.sparse as sp
 
+from jaxtalk.files import atomic_savez
 from jaxtalk.geometry.operators import Operators
 
 __all__ = ["CACHE_VERSION", "cache_key", "cache_path", "load", "save"]
@@ -101,13 +101,4 @@ def save(cache_dir: str | os.PathLike[str], key: str, ops: Operators) -> str:
         arrays[f"{name}_data"] = mat.data
         arrays[f"{name}_indices"] = mat.indices
         arrays[f"{name}_indptr"] = mat.indptr
-    fd, tmp = tempfile.mkstemp(dir=os.fspath(cache_dir), prefix=".tmp_ops_", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-    return path
+    return atomic_savez(path, **arrays)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxtalk.render._atomic import check_output_path
+from jaxtalk.files import check_output_path
 from jaxtalk.render.camera import Camera
 from jaxtalk.render.frames import iter_frames
 from jaxtalk.render.shading import RenderStyle

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtalk.render._atomic import atomic_output, check_output_path
+from jaxtalk.files import atomic_output, check_output_path
 from jaxtalk.types import Float
 
 __all__ = ["pivot_sweep", "plot_sweep", "plot_sweep_lines", "plot_training_curves", "training_series"]

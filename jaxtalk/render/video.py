@@ -24,7 +24,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
-from jaxtalk.render._atomic import atomic_output, check_output_path
+from jaxtalk.files import atomic_output, check_output_path
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array, Float, Shaped
 
 # Python scalars: beartype (under pytest) does not promote int to float.

@@ -30,6 +30,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
+from jaxtalk.files import atomic_write_text
 from jaxtalk.train.checks import BatchSpec, check_finite
 from jaxtalk.train.checkpoint import BEST_DIR, HISTORY_FILE, Checkpointer, best_checkpoint_dir, read_history
 from jaxtalk.train.optim import OptimConfig, Trainable, make_optimizer, trainable_mask
@@ -489,9 +490,8 @@ class _HistoryFile:
         if path.is_file():
             lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
             if len(lines) != len(kept):  # rows dropped, or a torn last line
-                tmp = path.with_name(f".{path.name}.tmp")
-                tmp.write_text("".join(_json_line(r) for r in kept))
-                tmp.replace(path)  # atomic: a reader sees the old or the new file, never a mix
+                # Atomic: a reader sees the old or the new file, never a mix.
+                atomic_write_text(path, "".join(_json_line(r) for r in kept))
 
     def append_train(self, rows: list[dict[str, Any]], elapsed: float) -> None:
         """One row for a log flush: mean loss and metrics over its ``window`` of steps."""

@@ -11,6 +11,7 @@ prepared records (tested).
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 from pathlib import Path
@@ -20,6 +21,7 @@ import numpy as np
 
 from jaxtalk.data.sources.clip import ClipEntry, RawClip
 from jaxtalk.data.sources.generic import METADATA_FILE, TOKENIZER_FILE, TOKENS_FILE
+from jaxtalk.files import atomic_output, atomic_save_npy, atomic_savez, atomic_write_text
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
 __all__ = ["clip_name", "synthtalk_entries", "export_generic", "export_dualtalk"]
@@ -77,24 +79,19 @@ def export_generic(corpus: Any, out: str | os.PathLike, *, progress: bool = Fals
     for entry in tqdm(synthtalk_entries(corpus), desc="export", unit="clip", disable=not progress):
         raw = entry.read()
         stem = out / entry.name
-        tmp = out / f".{entry.name}.tmp.wav"
-        save_audio(tmp, raw.audio, AUDIO_SAMPLE_RATE, subtype="FLOAT")
-        os.replace(tmp, stem.with_suffix(".wav"))
-        with open(out / f".{entry.name}.tmp.npz", "wb") as handle:
-            np.savez(handle, params56=raw.params, oracle=raw.oracle, fps=np.float64(raw.fps))
-        os.replace(out / f".{entry.name}.tmp.npz", stem.with_suffix(".npz"))
-        with open(out / f".{entry.name}.tmp.npy", "wb") as handle:
-            np.save(handle, raw.tokens)
-        os.replace(out / f".{entry.name}.tmp.npy", out / f"{entry.name}.tokens.npy")
+        with atomic_output(stem.with_suffix(".wav")) as tmp:
+            save_audio(tmp, raw.audio, AUDIO_SAMPLE_RATE, subtype="FLOAT")
+        atomic_savez(stem.with_suffix(".npz"), params56=raw.params, oracle=raw.oracle, fps=np.float64(raw.fps))
+        atomic_save_npy(out / f"{entry.name}.tokens.npy", raw.tokens)
         rows.append({"clip": entry.name, "speaker": entry.speaker, "emotion": entry.emotion,
                      "intensity": f"{entry.intensity:g}", "split": entry.split, "partner": entry.partner or ""})
-    (out / TOKENS_FILE).write_text(json.dumps({"rate": float(corpus.tokens(0, BASE_STREAM).rate)}))
-    tmp = corpus.tokenizer(BASE_STREAM).save(out / f".{TOKENIZER_FILE}.tmp.npz")
-    os.replace(tmp, out / TOKENIZER_FILE)
-    with open(out / METADATA_FILE, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=["clip", "speaker", "emotion", "intensity", "split", "partner"])
-        writer.writeheader()
-        writer.writerows(rows)
+    atomic_write_text(out / TOKENS_FILE, json.dumps({"rate": float(corpus.tokens(0, BASE_STREAM).rate)}))
+    corpus.tokenizer(BASE_STREAM).save(out / TOKENIZER_FILE)
+    table = io.StringIO()
+    writer = csv.DictWriter(table, fieldnames=["clip", "speaker", "emotion", "intensity", "split", "partner"])
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(out / METADATA_FILE, table.getvalue())
     return out
 
 
@@ -120,10 +117,8 @@ def export_dualtalk(corpus: Any, out: str | os.PathLike, *, progress: bool = Fal
         for side, clip in (("1", a), ("2", b)):
             stem = folder / f"{clip_name(a)}_conv_speaker{side}"
             motion = np.asarray(corpus.motion(clip), np.float32)
-            tmp = folder / f".{stem.name}.tmp.wav"
-            save_audio(tmp, np.asarray(corpus.audio(clip), np.float32), AUDIO_SAMPLE_RATE, subtype="FLOAT")
-            os.replace(tmp, stem.with_suffix(".wav"))
-            with open(folder / f".{stem.name}.tmp.npz", "wb") as handle:
-                np.savez(handle, exp=motion[:, :50], pose=np.concatenate([motion[:, 53:56], motion[:, 50:53]], axis=1))
-            os.replace(folder / f".{stem.name}.tmp.npz", stem.with_suffix(".npz"))
+            with atomic_output(stem.with_suffix(".wav")) as tmp:
+                save_audio(tmp, np.asarray(corpus.audio(clip), np.float32), AUDIO_SAMPLE_RATE, subtype="FLOAT")
+            atomic_savez(stem.with_suffix(".npz"), exp=motion[:, :50],
+                         pose=np.concatenate([motion[:, 53:56], motion[:, 50:53]], axis=1))
     return out

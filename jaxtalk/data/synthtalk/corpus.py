@@ -34,6 +34,7 @@ from jaxtalk.data.synthtalk.motion import MotionParts
 from jaxtalk.data.synthtalk.phones import PHONES
 from jaxtalk.data.synthtalk.script import Timeline
 from jaxtalk.data.synthtalk.speakers import SpeakerStyle, sample_style
+from jaxtalk.files import atomic_savez
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
 __all__ = [
@@ -235,13 +236,6 @@ def _unit_motion(seed: int, unit: int, u: _Unit, clips: list[ClipInfo]) -> list[
     return list(conversation_motion(timelines, styles, emotions, motion_rngs))
 
 
-def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, path)
-
-
 def _digest(clips: list[ClipInfo]) -> str:
     # Identifies the plan: a cache file is only used if it was written for exactly these clips.
     h = hashlib.sha256()
@@ -357,7 +351,7 @@ class SynthTalkCorpus:
             arrays = {"digest": np.asarray(self._digest)}
             for k, ch in enumerate(chans):
                 arrays |= {f"audio{k}": ch.audio, f"motion{k}": ch.motion, f"oracle{k}": ch.oracle}
-            _atomic_savez(path, **arrays)
+            atomic_savez(path, **arrays)
 
     def audio(self, clip: int | ClipInfo) -> Float[np.ndarray, " samples"]:
         """16 kHz mono audio of a clip (only that speaker's voice), ``(num_samples,)`` float32."""
@@ -426,9 +420,7 @@ class SynthTalkCorpus:
                                   num_codes=self.spec.num_codes, width=width,
                                   seed=self.seed * 1000 + ord(stream))
             if path is not None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = tok.save(path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz"))
-                os.replace(tmp, path)
+                tok.save(path)
         self._tokenizers[stream] = tok
         return tok
 
@@ -563,7 +555,7 @@ class SynthTalkCorpus:
             return
         path.parent.mkdir(parents=True, exist_ok=True)
         chans = [self._channels[i] for i in range(len(self.clips))]
-        _atomic_savez(
+        atomic_savez(
             path,
             digest=np.asarray(self._digest),
             metadata=np.asarray(json.dumps({"version": VERSION, "size": self.size, "seed": self.seed})),

@@ -1,0 +1,199 @@
+"""Writing files a user keeps: one atomic writer and one rule for what a command may replace.
+
+Atomic: every file jaxtalk writes goes to a temporary file in the target's folder (a unique name, so
+concurrent writers never share one), then ``os.replace`` puts it in place. An interrupted or failing
+write leaves the old file or the new one, never a half-written one, and readers never see a mix.
+
+What may be replaced (checked by :func:`claim_outputs` before a command does any work):
+
+* a command never writes over one of its own inputs, whatever the options (paths compared resolved);
+* a path the user named (``--out``) may replace an existing file, the usual convention;
+* a name the command picks itself (a default output name, a side file such as the audio beside a
+  ``.glb``, a report) never replaces an existing file unless the user passes ``--overwrite``;
+* an output path that is a folder, or whose parent is a file, is refused before any work.
+
+Missing parent folders are created when the file is written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import uuid
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "Output",
+    "OutputError",
+    "atomic_output",
+    "atomic_write_text",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "atomic_savez",
+    "atomic_save_npy",
+    "atomic_copy",
+    "check_output_path",
+    "claim_outputs",
+]
+
+
+class OutputError(ValueError):
+    """An output path a command must not write: an input, an existing file it may not replace, a
+    folder, or a path under a file. Raised before any work is done."""
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (same suffix); on success rename it onto ``path``.
+
+    The parent folder is created if missing. On an exception the temporary file is removed and
+    ``path`` is left as it was. The temporary name is unique per call, so concurrent writers of the
+    same target never write into one file (the last rename wins, whole).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; returns the path."""
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically; returns the path."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any, *, indent: int | None = 1) -> Path:
+    """Write ``obj`` as JSON to ``path`` atomically (values JSON cannot hold are written with ``str``)."""
+    return atomic_write_text(path, json.dumps(obj, indent=indent, default=str))
+
+
+def atomic_savez(path: str | os.PathLike, **arrays: Any) -> Path:
+    """``np.savez`` to ``path`` atomically (the name is kept exactly: no ``.npz`` is appended)."""
+    with atomic_output(path) as tmp, open(tmp, "wb") as handle:
+        np.savez(handle, **arrays)
+    return Path(path)
+
+
+def atomic_save_npy(path: str | os.PathLike, array: Any) -> Path:
+    """``np.save`` to ``path`` atomically (the name is kept exactly: no ``.npy`` is appended)."""
+    with atomic_output(path) as tmp, open(tmp, "wb") as handle:
+        np.save(handle, np.asarray(array))
+    return Path(path)
+
+
+def atomic_copy(src: str | os.PathLike, dst: str | os.PathLike) -> Path:
+    """Copy the file ``src`` to ``dst`` atomically."""
+    import shutil
+
+    with atomic_output(dst) as tmp:
+        shutil.copyfile(src, tmp)
+    return Path(dst)
+
+
+def check_output_path(path: str | os.PathLike, suffixes: Sequence[str] | None = None) -> Path:
+    """Check that a file can be written at ``path``, before any work is done.
+
+    Args:
+        path: the file to write.
+        suffixes: accepted lower-case suffixes, e.g. ``(".mp4",)``; None accepts any.
+
+    Returns:
+        The path as a ``Path``.
+
+    Raises:
+        OutputError: a wrong suffix, a path that is a folder, or a parent that is a file.
+        PermissionError: the nearest existing parent folder is not writable.
+    """
+    path = Path(path)
+    if suffixes is not None and path.suffix.lower() not in tuple(suffixes):
+        raise OutputError(f"output path {str(path)!r} must end in one of {', '.join(suffixes)}")
+    if path.is_dir():
+        raise OutputError(f"output path {str(path)!r} is a folder; give a file name")
+    # Missing folders are created on writing; the nearest existing ancestor must be a writable folder.
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputError(f"cannot write {str(path)!r}: {str(parent)!r} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"cannot write {str(path)!r}: folder {str(parent)!r} is not writable")
+    return path
+
+
+@dataclasses.dataclass(frozen=True)
+class Output:
+    """A file a command is about to write.
+
+    Attributes:
+        path: where.
+        named: True when the user named this path (``--out``): an existing file there may be
+            replaced. False for names the command picks itself and for side files.
+        suffixes: accepted suffixes (None: any).
+    """
+
+    path: Path
+    named: bool = False
+    suffixes: tuple[str, ...] | None = None
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
+    except OSError:
+        return False
+
+
+def claim_outputs(
+    outputs: Iterable[Output],
+    inputs: Iterable[str | os.PathLike | None] = (),
+    *,
+    overwrite: bool = False,
+) -> list[Path]:
+    """Check, before any work, that a command may write every one of ``outputs``.
+
+    Args:
+        outputs: the files the command will write.
+        inputs: the files it reads (None entries are skipped); no output may be one of them.
+        overwrite: the user passed ``--overwrite``: names the command picks may replace files.
+
+    Returns:
+        The output paths, in order.
+
+    Raises:
+        OutputError: an output that is an input (whatever ``overwrite`` says), an existing file under
+            a name the command picked (without ``overwrite``), two outputs at one path, a folder, or a
+            path under a file. The message names the file and the option that would allow it.
+        PermissionError: a folder that cannot be written.
+    """
+    inputs = [Path(p) for p in inputs if p is not None]
+    claimed: list[Path] = []
+    for out in outputs:
+        path = check_output_path(out.path, out.suffixes)
+        for src in inputs:
+            if _same_file(path, src):
+                raise OutputError(f"{str(path)!r} is an input of this command; it would be overwritten: "
+                                  "choose another output name")
+        for other in claimed:
+            if _same_file(path, other):
+                raise OutputError(f"two outputs of this command are both {str(path)!r}; choose another output name")
+        if path.exists() and not out.named and not overwrite:
+            raise OutputError(f"{str(path)!r} exists; pass --overwrite to replace it (or --out to choose another name)")
+        claimed.append(path)
+    return claimed
