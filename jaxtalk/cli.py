@@ -8,7 +8,6 @@ a malformed input) end with one clear line on stderr and exit code 2, never a tr
 from __future__ import annotations
 
 import functools
-import json
 import sys
 import time
 from pathlib import Path
@@ -30,10 +29,16 @@ app = typer.Typer(
 
 _STATE = {"debug": False}
 
+_OVERWRITE = Annotated[bool, typer.Option(
+    help="Let files whose names the command picks itself (default output names, side files such as the audio "
+         "beside a .glb, a folder's report) replace existing files. A path you name with --out is replaced "
+         "anyway; an input of the command never is.")]
+
 # Errors that mean "the user asked for something wrong", reported as one line.
 # (ViewerError: no Node.js / npm for `jaxtalk view`, or its install failed; jaxtalk.viewer imports only the
 # standard library, so naming it here costs the CLI's start-up nothing.)
-USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, FileExistsError, KeyError, ViewerError)
+USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, FileExistsError, PermissionError, KeyError,
+               ViewerError)
 
 
 def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -74,12 +79,21 @@ def data(
         Path | None, typer.Option(help="Also write the corpus as a dataset folder in the generic layout "
                                        "(wav + npz + tokens + metadata.csv), ready for `jaxtalk prepare`.")
     ] = None,
+    overwrite: _OVERWRITE = False,
 ) -> None:
     """Generate (or load from cache) the built-in SynthTalk corpus and print a summary."""
     from jaxtalk.data import synthtalk
+    from jaxtalk.files import Output, claim_outputs
 
+    if metadata is not None:
+        claim_outputs([Output(metadata, named=True)])
     start = time.perf_counter()
     corpus = synthtalk.generate(size=size, seed=seed, cache_dir=cache_dir)
+    if out is not None:
+        from jaxtalk.data.sources import generic_export_names
+
+        # Every file name of the export is the command's own choice inside the named folder.
+        claim_outputs([Output(out / name) for name in generic_export_names(corpus)], overwrite=overwrite)
     if tokens:
         for stream in synthtalk.TOKEN_STREAMS:
             corpus.tokenizer(stream)
@@ -101,8 +115,9 @@ def data(
     typer.echo(format_table(rows, title=f"SynthTalk {size} (seed {seed}) in {cache_dir}"))
     typer.echo(f"ready in {elapsed:.1f} s")
     if metadata is not None:
-        metadata.parent.mkdir(parents=True, exist_ok=True)
-        metadata.write_text(json.dumps(corpus.metadata(), indent=1, default=str))
+        from jaxtalk.files import atomic_write_json
+
+        atomic_write_json(metadata, corpus.metadata())
         typer.echo(f"metadata written to {metadata}")
     if out is not None:
         from jaxtalk.data.sources import export_generic
@@ -128,12 +143,13 @@ def demo(
     sweep: Annotated[bool, typer.Option(help="Run the chunk size x Euler steps sweep.")] = True,
     render: Annotated[bool, typer.Option(help="Write the mp4 and GIF.")] = True,
     progress: Annotated[bool, typer.Option(help="Show the training progress bar.")] = True,
+    overwrite: _OVERWRITE = False,
 ) -> None:
     """Train TokTalk on SynthTalk, stream a held-out clip, and write video, plots and a report."""
     from jaxtalk.demo import DemoOptions, run_demo
 
     options = DemoOptions(out_dir=out, size=size, seed=seed, train_steps=steps, sample_steps=sample_steps, retrain=retrain,
-                          audio=audio, sweep=sweep, render=render, progress=progress)
+                          audio=audio, sweep=sweep, render=render, progress=progress, overwrite=overwrite)
     result = run_demo(options, echo=typer.echo)
     from jaxtalk.benchmarking import format_table
 
@@ -214,6 +230,7 @@ def prepare(
     split_seed: Annotated[int, typer.Option(help="Seed of the speaker-disjoint splits where the layout has none.")] = 0,
     strict: Annotated[bool, typer.Option(help="Stop at the first bad clip (default: skip it and report).")] = False,
     progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
+    overwrite: _OVERWRITE = False,
 ) -> None:
     """Check every clip of a dataset and compute each model's inputs once; bad clips are skipped and reported."""
     from jaxtalk.data.prepare import PrepareSettings
@@ -222,21 +239,23 @@ def prepare(
 
     settings = PrepareSettings(audio=features, tokens=tokens, min_frames=max(int(round(min_seconds * 25)), 1),
                                split_seed=split_seed)
-    run_prepare(open_source(source, layout=layout), out, settings, strict=strict, progress=progress, echo=typer.echo)
+    run_prepare(open_source(source, layout=layout), out, settings, strict=strict, progress=progress, echo=typer.echo,
+                overwrite=overwrite)
 
 
 def _sample_options(run: Path, input_: Path, out: Path | None, style: Path | None, partner: Path | None,
-                    cfg_scale: float | None, steps: int | None, seed: int, best: bool) -> Any:
+                    cfg_scale: float | None, steps: int | None, seed: int, best: bool, overwrite: bool) -> Any:
     from jaxtalk.commands.inference import SampleOptions
 
     return SampleOptions(run_dir=run, input=input_, out=out, style=style, partner=partner, cfg_scale=cfg_scale,
-                         num_steps=steps, seed=seed, best=best)
+                         num_steps=steps, seed=seed, best=best, overwrite=overwrite)
 
 
 _RUN = Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk or timar; ats with --stm).")]
 _INPUT = Annotated[Path, typer.Argument(help="Speech: WAV/FLAC (any rate, mono or stereo), or a .npy of token "
                                               "embeddings (tokens, width) for TokTalk.")]
-_OUT = Annotated[Path | None, typer.Option(help="Output .npz (default: INPUT_params.npz beside the input).")]
+_OUT = Annotated[Path | None, typer.Option(help="Output .npz, replaced if it exists (default: INPUT_params.npz beside "
+                                                 "the input, which needs --overwrite to replace a file).")]
 _STYLE = Annotated[Path | None, typer.Option(help="TokTalk: reference motion .npz for the speaking style.")]
 _PARTNER = Annotated[Path | None, typer.Option(help="TIMAR: the partner's audio (default: silence).")]
 _CFG = Annotated[float | None, typer.Option(help="Guidance scale (default: the model's).")]
@@ -249,7 +268,7 @@ _BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoi
 @_user_errors
 def sample(
     run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-    cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False,
+    cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False, overwrite: _OVERWRITE = False,
     stm: Annotated[Path | None, typer.Option(help="FreeTalk: the STM run that maps an ATS run's landmarks onto --mesh.")] = None,
     mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).")] = None,
     emotion: Annotated[str, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary.")] = "neutral",
@@ -262,7 +281,7 @@ def sample(
     run, --stm and --mesh, the mesh's vertices (.npy, 25 fps, the mesh's own units and frame)."""
     from jaxtalk.commands.inference import MeshOptions, animate_run, sample_run
 
-    opts = _sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best)
+    opts = _sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best, overwrite)
     if stm is not None or mesh is not None:
         if stm is None or mesh is None:
             raise ValueError("FreeTalk needs both --stm RUN_STM and --mesh FILE")
@@ -279,11 +298,12 @@ def sample(
 @app.command()
 @_user_errors
 def stream(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False) -> None:
+           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False,
+           overwrite: _OVERWRITE = False) -> None:
     """Animate a speech file chunk by chunk as a live stream would, printing each chunk's latency."""
     from jaxtalk.commands.inference import stream_run
 
-    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best),
+    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best, overwrite),
                         echo=typer.echo)
     typer.echo(f"{result.params.shape[0]} frames written to {result.path}")
 
@@ -299,7 +319,8 @@ def eval_(
     split: Annotated[str, typer.Option(help="Split of the data: train, val, test or ood.")] = "test",
     max_clips: Annotated[int, typer.Option(help="At most this many clips (TIMAR: conversation sides).")] = 8,
     seed: _SEED = 0,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the report as JSON here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the report as JSON here (replaced if it "
+                                                               "exists; never a file of the run).")] = None,
     flame: Annotated[
         Path | None, typer.Option(help="TokTalk: FLAME 2020 model file to pose on instead of the built-in face "
                                        "(FLAME_masks.pkl beside it gives the lip and upper-face regions).")
@@ -319,7 +340,11 @@ def eval_(
     the run's meshes from the true landmarks.
     """
     from jaxtalk.commands.evaluation import EvalOptions, evaluate_run
+    from jaxtalk.files import Output, claim_outputs
 
+    if json_out is not None:
+        run_files = [p for p in run.iterdir() if p.is_file()] if run.is_dir() else []
+        claim_outputs([Output(json_out, named=True)], inputs=[*run_files, flame])
     try:
         steps = tuple(int(s) for s in sample_steps.split(",")) if sample_steps else ()
     except ValueError:
@@ -330,8 +355,9 @@ def eval_(
     for table in report.tables:
         _echo_table(table.rows, table.title)
     if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(report.to_dict(), indent=1))
+        from jaxtalk.files import atomic_write_json
+
+        atomic_write_json(json_out, report.to_dict())
 
 
 @app.command()
@@ -342,12 +368,18 @@ def bench(
     ] = None,
     paper: Annotated[bool, typer.Option(help="Also the paper-size presets (minutes of compilation).")] = False,
     repeats: Annotated[int, typer.Option(help="Timed runs per case (median).")] = 5,
-    out: Annotated[Path, typer.Option(help="JSON with every row and the machine.")] = Path(
-        "experiments/results/bench_all.json"),
+    out: Annotated[Path | None, typer.Option(help="JSON with every row and the machine (replaced if it exists; default "
+                                                  "experiments/results/bench_all.json, which needs --overwrite to "
+                                                  "replace a file).")] = None,
+    overwrite: _OVERWRITE = False,
 ) -> None:
     """Speed tables of all three models in one run, with the matmul peak and the achieved fraction."""
     from jaxtalk.bench import BENCH_MODELS, run_benchmarks
     from jaxtalk.benchmarking import machine_info, write_json
+    from jaxtalk.files import Output, claim_outputs
+
+    (out,) = claim_outputs([Output(out or Path("experiments/results/bench_all.json"), named=out is not None)],
+                           overwrite=overwrite)
 
     peak, tables = run_benchmarks(tuple(models or BENCH_MODELS), paper=paper, repeats=repeats, echo=typer.echo)
     info = machine_info()
@@ -363,7 +395,8 @@ def bench(
 @_user_errors
 def render(
     input_: Annotated[Path, typer.Argument(help="Head parameters .npz (params or params56) or vertices .npy.")],
-    out: Annotated[Path, typer.Option(help="Output .mp4 (with audio) or .gif.")] = Path("render.mp4"),
+    out: Annotated[Path | None, typer.Option(help="Output .mp4 (with audio) or .gif, replaced if it exists (default "
+                                                  "render.mp4, which needs --overwrite to replace a file).")] = None,
     audio: Annotated[Path | None, typer.Option(help="Audio track (default: the audio stored in the .npz).")] = None,
     compare: Annotated[Path | None, typer.Option(help="A second file drawn beside the first.")] = None,
     faces: Annotated[Path | None, typer.Option(help="Triangles of vertices of another mesh: an (F, 3) .npy, or the mesh file "
@@ -371,12 +404,13 @@ def render(
     flame: Annotated[Path | None, typer.Option(help="FLAME 2020 model file to pose parameters on.")] = None,
     size: Annotated[int, typer.Option(help="Panel size in pixels.")] = 256,
     captions: Annotated[bool, typer.Option(help="Caption each panel with its file name.")] = True,
+    overwrite: _OVERWRITE = False,
 ) -> None:
     """Render parameters or vertices to an mp4 (with audio) or GIF, optionally side by side."""
     from jaxtalk.commands.rendering import RenderOptions, render_file
 
     path = render_file(RenderOptions(input=input_, out=out, audio=audio, compare=compare, faces=faces, flame=flame,
-                                     size=size, captions=captions))
+                                     size=size, captions=captions, overwrite=overwrite))
     typer.echo(f"written {path}")
 
 
@@ -384,19 +418,22 @@ def render(
 @_user_errors
 def export(
     input_: Annotated[Path, typer.Argument(help="Head parameters .npz (params or params56) or vertices .npy.")],
-    out: Annotated[Path, typer.Option(help="Output binary glTF (.glb); the audio goes beside it as .wav.")] = Path("anim.glb"),
+    out: Annotated[Path | None, typer.Option(help="Output binary glTF (.glb), replaced if it exists (default anim.glb, "
+                                                  "which needs --overwrite to replace a file); the audio goes beside "
+                                                  "it as OUT.glb.wav.")] = None,
     audio: Annotated[Path | None, typer.Option(help="Audio to write beside it (default: the audio stored in the .npz).")] = None,
     faces: Annotated[Path | None, typer.Option(help="Triangles of vertices of another mesh: an (F, 3) .npy, or the mesh file "
                                                      "they were animated on (OBJ, PLY, GLB/GLTF).")] = None,
     flame: Annotated[Path | None, typer.Option(help="FLAME 2020 model file to write parameters on.")] = None,
     fps: Annotated[float, typer.Option(help="Frame rate of a vertex sequence (an .npz states its own).")] = 25.0,
     max_error_mm: Annotated[float, typer.Option(help="Largest vertex error of a vertex sequence's morph basis, mm.")] = 0.1,
+    overwrite: _OVERWRITE = False,
 ) -> None:
     """Export motion as a glTF 2.0 animation (morph targets + jaw/neck skin) that 3D tools and browsers play."""
     from jaxtalk.commands.exporting import ExportOptions, export_file
 
     result = export_file(ExportOptions(input=input_, out=out, audio=audio, faces=faces, flame=flame, fps=fps,
-                                       max_error_mm=max_error_mm))
+                                       max_error_mm=max_error_mm, overwrite=overwrite))
     typer.echo(f"written {result.summary.describe()}")
     typer.echo(f"written {result.audio}" if result.audio is not None else "no audio: pass --audio to write it beside the .glb")
 
@@ -404,7 +441,7 @@ def export(
 @app.command()
 @_user_errors
 def view(
-    folder: Annotated[Path, typer.Argument(help="Folder of exported .glb files (and the .wav beside each).")],
+    folder: Annotated[Path, typer.Argument(help="Folder of exported .glb files (and the NAME.glb.wav beside each).")],
     port: Annotated[int, typer.Option(help="Port on 127.0.0.1 (0: any free one).")] = 8000,
     open_browser: Annotated[bool, typer.Option("--open", help="Open the page in the default browser.")] = False,
 ) -> None:

@@ -60,9 +60,12 @@ class DemoOptions:
         progress: show the training progress bar.
         cache_dir: where the SynthTalk corpus and its prepared copy (``synthtalk-SIZE-seedSEED``) are
             kept (default ``out_dir/cache``).
+        overwrite: let the demo's outputs replace existing files in an ``out_dir`` that is not a
+            previous demo's folder (a demo folder's own outputs are always updated).
     """
 
     out_dir: Path = Path("jaxtalk-demo")
+    overwrite: bool = False
     size: str = "small"
     seed: int = 0
     train_steps: int = 1200
@@ -346,6 +349,34 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
                                           size=options.render_size, rest_vertices=face.template)
 
 
+# The files of a demo folder besides the run (run.json, checkpoint/, the run's assets, the cache).
+DEMO_OUTPUTS = ("prediction.npz", "animation.glb", "animation.glb.wav", "sweep.json", "sweep.png", "training.png",
+                "animation.mp4", "animation.gif", "report.md")
+
+
+def claim_demo_outputs(options: DemoOptions) -> None:
+    """Check, before any work, that the demo may write its files into ``options.out_dir``.
+
+    A folder that already holds a run (``run.json``) is a previous demo's (a run of other settings is
+    refused later with its own message): its outputs are the demo's own and are updated. In any other
+    folder an existing file under one of the demo's names is a user's file, kept unless
+    ``options.overwrite``. The user's ``--audio`` is never written over.
+
+    Raises:
+        jaxtalk.files.OutputError: a name that would replace a user's file, or the audio itself.
+    """
+    from jaxtalk.commands.runs import RUN_FILE, STYLE_FILE, TOKENIZER_FILE, FEATURES_FILE
+    from jaxtalk.files import Output, claim_outputs
+
+    out = Path(options.out_dir)
+    own = (out / RUN_FILE).is_file()
+    names = [*DEMO_OUTPUTS, RUN_FILE, STYLE_FILE, TOKENIZER_FILE, FEATURES_FILE]
+    if options.audio is not None:
+        stem = Path(options.audio).stem
+        names += [f"{stem}_params.npz", f"{stem}.mp4"]
+    claim_outputs([Output(out / name) for name in names], inputs=[options.audio], overwrite=options.overwrite or own)
+
+
 def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None] = print) -> DemoResult:
     """Run the demo; see the module docstring.
 
@@ -373,6 +404,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
         from jaxtalk.audio import load_audio
 
         load_audio(options.audio)  # fail fast on a bad file, before minutes of training
+    claim_demo_outputs(options)
     out = Path(options.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}

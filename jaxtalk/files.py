@@ -123,7 +123,7 @@ def check_output_path(path: str | os.PathLike, suffixes: Sequence[str] | None = 
     """
     path = Path(path)
     if suffixes is not None and path.suffix.lower() not in tuple(suffixes):
-        raise OutputError(f"output path {str(path)!r} must end in one of {', '.join(suffixes)}")
+        raise OutputError(f"output path {str(path)!r} must end in {' or '.join(suffixes)}")
     if path.is_dir():
         raise OutputError(f"output path {str(path)!r} is a folder; give a file name")
     # Missing folders are created on writing; the nearest existing ancestor must be a writable folder.

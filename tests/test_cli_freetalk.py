@@ -93,7 +93,7 @@ def test_sample_onto_a_mesh_user_errors_are_one_line(ats_run, stm_run, files, tm
     _user_error([*base, tmp_path / "missing.obj"], "mesh file not found")
     _user_error([*base, files["ply"], "--units", "inch"], "unknown units 'inch'")
     _user_error([*base, files["ply"], "--units", "m"], "check the units")
-    _user_error([*base, files["ply"], "--out", tmp_path / "x.npz"], "must be a .npy file")
+    _user_error([*base, files["ply"], "--out", tmp_path / "x.npz"], "must end in .npy")
     _user_error([*base, files["ply"], "--cfg-scale", "2"], "--cfg-scale: not FreeTalk options")
     _user_error(["sample", ats_run, files["wav"], "--stm", stm_run], "needs both --stm RUN_STM and --mesh FILE")
     _user_error(["sample", ats_run, files["wav"]], "sample it onto a mesh with --stm RUN_STM --mesh FILE")

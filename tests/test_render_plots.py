@@ -88,6 +88,7 @@ def test_training_curves_png_and_errors(tmp_path):
         plot_training_curves(tmp_path / "x.png", [])
     with pytest.raises(ValueError, match=r"\.png"):
         plot_training_curves(tmp_path / "x.jpg", _history())
-    with pytest.raises(FileNotFoundError):
-        plot_sweep(tmp_path / "no" / "x.png", RECORDS, row="chunk", col="steps", metrics=["lve"])
-    assert [p.name for p in tmp_path.iterdir()] == ["curves.png"]
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="is a file, not a folder"):
+        plot_sweep(tmp_path / "file" / "x.png", RECORDS, row="chunk", col="steps", metrics=["lve"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["curves.png", "file"]

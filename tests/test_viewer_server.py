@@ -51,9 +51,14 @@ def get(url: str, headers: dict | None = None) -> tuple[int, dict, bytes]:
         return err.code, dict(err.headers), b""
 
 
-def test_clips_pair_each_glb_with_the_wav_of_its_name(folder):
+def test_clips_pair_each_glb_with_its_glb_wav_else_the_wav_of_its_stem(folder):
+    # c.glb.wav is the export's own audio; c.wav, the recording it was made from, is not taken instead.
+    export_face_model(builtin_face(0, resolution="low"), np.zeros((4, 56), np.float32), folder / "c.glb")
+    soundfile.write(folder / "c.glb.wav", np.zeros(1600, np.float32), 16000)
+    soundfile.write(folder / "c.wav", np.zeros(800, np.float32), 16000)
     assert clips(folder) == [{"name": "a", "glb": "/data/a.glb", "audio": "/data/a.wav"},
-                             {"name": "b", "glb": "/data/b.glb", "audio": None}]
+                             {"name": "b", "glb": "/data/b.glb", "audio": None},
+                             {"name": "c", "glb": "/data/c.glb", "audio": "/data/c.glb.wav"}]
 
 
 def test_server_serves_the_page_three_the_clips_and_byte_ranges_and_nothing_else(folder, cached_three):

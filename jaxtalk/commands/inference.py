@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,8 @@ class SampleOptions:
     Attributes:
         run_dir: a folder written by ``jaxtalk train``.
         input: audio file, or (TokTalk) ``.npy`` token embeddings.
-        out: output ``.npz`` (default: beside the input, ``<stem>_params.npz``).
+        out: output ``.npz`` (default: beside the input, ``<stem>_params.npz``, which replaces no existing
+            file without ``overwrite``); an input is never written over.
         style: TokTalk reference motion (``.npz`` with ``params``, e.g. a previous output); default: the
             training clip saved with the run.
         partner: TIMAR: the partner's audio (default: silence).
@@ -43,6 +44,7 @@ class SampleOptions:
         num_steps: sampler steps (default: the config's).
         seed: noise seed.
         best: use the run's best-validated checkpoint instead of its newest.
+        overwrite: let the default output name replace an existing file.
     """
 
     run_dir: Path
@@ -54,6 +56,7 @@ class SampleOptions:
     num_steps: int | None = None
     seed: int = 0
     best: bool = False
+    overwrite: bool = False
 
 
 @dataclasses.dataclass
@@ -88,6 +91,20 @@ def _check_input(opts: SampleOptions, model: str) -> str:
     raise ValueError(f"{str(path)!r}: expected {kinds} for {'an' if model[0] in 'aeiou' else 'a'} {model} run")
 
 
+def _claim_output(opts: SampleOptions, suffix: str, default_suffix: str, *, extra_inputs: Sequence[Path | None] = ()) -> Path:
+    """The output path, checked before any work: named by ``--out`` or ``<input stem><default_suffix>``
+    beside the input, never one of the command's inputs (the run's files included)."""
+    from jaxtalk.files import Output, claim_outputs
+
+    path = Path(opts.input)
+    out = Path(opts.out) if opts.out is not None else path.with_name(f"{path.stem}{default_suffix}")
+    run_files = [p for p in Path(opts.run_dir).iterdir() if p.is_file()] if Path(opts.run_dir).is_dir() else []
+    inputs = [opts.input, opts.style, opts.partner, *run_files, *extra_inputs]
+    (out,) = claim_outputs([Output(out, named=opts.out is not None, suffixes=(suffix,))], inputs,
+                           overwrite=opts.overwrite)
+    return out
+
+
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
     record = RunRecord.load(opts.run_dir)
     if record.model == "ats":
@@ -104,6 +121,7 @@ def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
     kind = _check_input(opts, record.model)
     if opts.num_steps is not None and opts.num_steps < 1:
         raise ValueError(f"--steps must be >= 1, got {opts.num_steps}")
+    _claim_output(opts, ".npz", "_params.npz")
     return load_run(opts.run_dir, best=opts.best), kind
 
 
@@ -175,10 +193,7 @@ def _write(opts: SampleOptions, params: np.ndarray, audio: np.ndarray | None) ->
     from jaxtalk.data.formats import MotionClip, save_npz
     from jaxtalk.types import MOTION_FPS
 
-    out = Path(opts.out) if opts.out is not None else Path(opts.input).with_name(f"{Path(opts.input).stem}_params.npz")
-    if out.suffix != ".npz":
-        raise ValueError(f"output must be a .npz file, got {str(out)!r}")
-    out.parent.mkdir(parents=True, exist_ok=True)
+    out = _claim_output(opts, ".npz", "_params.npz")  # checked again: a file may have appeared meanwhile
     clip = MotionClip(name=Path(opts.input).stem, fps=MOTION_FPS, params=np.asarray(params, np.float32),
                       audio=None if audio is None else np.asarray(audio, np.float32))
     return save_npz(out, clip)
@@ -332,7 +347,7 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     from jaxtalk.geometry.canonical import load_mesh
     from jaxtalk.models.freetalk.animate import animate, prepare_user_mesh, read_landmarks
     from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM
-    from jaxtalk.files import atomic_output
+    from jaxtalk.files import atomic_save_npy
 
     unused = [name for name, value in (("--style", opts.style), ("--partner", opts.partner),
                                        ("--cfg-scale", opts.cfg_scale)) if value is not None]
@@ -340,9 +355,8 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
         raise ValueError(f"{', '.join(unused)}: not FreeTalk options (it takes --emotion, --intensity, --steps, --seed)")
     path = Path(opts.input)
     _check_input(opts, "ats")
-    out = Path(opts.out) if opts.out is not None else path.with_name(f"{path.stem}_vertices.npy")
-    if out.suffix != ".npy":
-        raise ValueError(f"FreeTalk writes vertices: the output must be a .npy file, got {str(out)!r}")
+    stm_files = [p for p in Path(mesh_opts.stm_run).iterdir() if p.is_file()] if Path(mesh_opts.stm_run).is_dir() else []
+    out = _claim_output(opts, ".npy", "_vertices.npy", extra_inputs=[mesh_opts.mesh, mesh_opts.landmarks, *stm_files])
     ats = FittedATS.from_run(opts.run_dir, best=opts.best)
     stm = FittedSTM.from_run(mesh_opts.stm_run, best=opts.best)
     audio = load_audio(path)
@@ -356,7 +370,5 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
          f"{time.perf_counter() - t0:.1f} s")
     verts = animate(ats, stm, audio, mesh_opts.emotion, mesh_opts.intensity, mesh, key=jax.random.key(opts.seed),
                     num_steps=opts.num_steps)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_output(out) as tmp:
-        np.save(tmp, verts)
+    atomic_save_npy(out, verts)
     return SampleResult(path=out, params=verts, chunk_ms=[], chunk_s=None)

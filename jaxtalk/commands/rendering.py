@@ -28,23 +28,26 @@ class RenderOptions:
 
     Attributes:
         input: ``.npz`` with ``params`` (or the demo's ``params56``), or ``.npy`` vertices.
-        out: ``.mp4`` or ``.gif``.
+        out: ``.mp4`` or ``.gif`` (None: ``render.mp4``, which replaces no existing file without
+            ``overwrite``); an input is never written over.
         audio: audio track for an mp4 (default: the audio stored in the input npz, if any).
         compare: a second input rendered beside the first.
         faces: ``(F, 3)`` int ``.npy`` triangles for vertices of another mesh.
         flame: a FLAME 2020 model file to pose parameters on instead of the built-in face.
         size: panel size in pixels.
         captions: caption each panel with its file stem.
+        overwrite: let the default output name replace an existing file.
     """
 
     input: Path
-    out: Path
+    out: Path | None = None
     audio: Path | None = None
     compare: Path | None = None
     faces: Path | None = None
     flame: Path | None = None
     size: int = 256
     captions: bool = True
+    overwrite: bool = False
 
 
 @dataclasses.dataclass
@@ -203,11 +206,11 @@ def render_file(opts: RenderOptions) -> Path:
         FileNotFoundError: a missing input, audio, faces or FLAME file.
         ValueError: a bad output suffix, bad inputs (see :func:`load_motion`), bad audio.
     """
+    from jaxtalk.files import Output, claim_outputs
     from jaxtalk.render import render_clip
 
-    out = Path(opts.out)
-    if out.suffix.lower() not in (".mp4", ".gif"):
-        raise ValueError(f"output must end in .mp4 or .gif, got {str(out)!r}")
+    (out,) = claim_outputs([Output(Path(opts.out or "render.mp4"), named=opts.out is not None, suffixes=(".mp4", ".gif"))],
+                           [opts.input, opts.audio, opts.compare, opts.faces, opts.flame], overwrite=opts.overwrite)
     if opts.size < 16:
         raise ValueError(f"--size must be at least 16 pixels, got {opts.size}")
     clips = [load_motion(opts.input, faces=opts.faces, flame=opts.flame)]
@@ -226,7 +229,6 @@ def render_file(opts: RenderOptions) -> Path:
             audio = next((c.audio for c in clips if c.audio is not None), None)
     elif opts.audio is not None:
         raise ValueError("a GIF has no audio track: write an .mp4 to use --audio")
-    out.parent.mkdir(parents=True, exist_ok=True)
     return render_clip(out, [c.vertices[:frames] for c in clips], [c.faces for c in clips], audio=audio,
                        captions=names if opts.captions else None, size=opts.size,
                        rest_vertices=[c.rest for c in clips])

@@ -193,6 +193,7 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         # backend started after initialize() sees the other processes.
         initialize()
     out = Path(opts.out_dir)
+    _check_run_folder(out)
     existing = RunRecord.load(out) if (out / "run.json").is_file() else None
     done = latest_checkpoint_step(checkpoint_dir(out)) or 0
     if existing is not None and not opts.resume:
@@ -251,6 +252,22 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     return TrainSummary(run_dir=out, start_step=done, step=int(result.state.step),
                         final_loss=float(np.mean(losses)) if losses else None, val_loss=evals[-1] if evals else None,
                         examples=result.windows, wall_s=time.perf_counter() - start)
+
+
+def _check_run_folder(out: Path) -> None:
+    """Refuse an ``--out`` that is a file, or a folder of files that is not a run: training writes
+    run.json, checkpoints and the run's assets there, and would replace a user's files of those names.
+
+    A folder with a ``checkpoint/`` but no ``run.json`` is a run killed before its first save: resumed.
+    """
+    from jaxtalk.files import OutputError
+
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"--out {str(out)!r} is a file; a run is a folder: choose another --out")
+    # Files, not folders: the demo keeps its corpus cache in a subfolder of its run folder.
+    if out.is_dir() and not (out / "run.json").is_file() and not checkpoint_dir(out).is_dir() and any(
+            p.is_file() for p in out.iterdir()):
+        raise OutputError(f"--out {str(out)!r} holds files but no jaxtalk run; train into a new or empty folder")
 
 
 def _open_data_once(opts: TrainOptions, prepared: str | None = None) -> Any:

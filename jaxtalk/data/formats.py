@@ -483,9 +483,9 @@ def save_npz(path: str | os.PathLike, clip: MotionClip) -> Path:
             arrays["audio_path"] = np.str_(target.relative_to(path.parent.resolve()))
         except ValueError:
             arrays["audio_path"] = np.str_(target)
-    with open(path, "wb") as handle:  # a file handle keeps NumPy from appending ".npz"
-        np.savez(handle, **arrays)
-    return path
+    from jaxtalk.files import atomic_savez
+
+    return atomic_savez(path, **arrays)
 
 
 def read_clip(path: str | os.PathLike, **kwargs) -> MotionClip:

@@ -313,6 +313,37 @@ def _fit_tokenizer(entries: Sequence[ClipEntry], splits: dict[str, str], setting
     return tok
 
 
+def _is_prepared_folder(out: Path) -> bool:
+    """``out`` holds a preparation: jaxtalk's manifest, or shard indices of an interrupted run."""
+    try:
+        if json.loads((out / MANIFEST).read_text()).get("format") == FORMAT_VERSION:
+            return True
+    except (OSError, ValueError, AttributeError):
+        pass
+    return any((out / SHARDS).glob("[0-9]*.json"))
+
+
+def claim_prepared_folder(out: Path, src: Source, *, overwrite: bool = False) -> None:
+    """Check, before any work, that ``prepare`` may write into ``out``.
+
+    ``out`` may not be the dataset folder itself (its ``tokenizer.npz`` or ``metadata`` could be
+    replaced, and a later scan would read the shards). A folder that holds a preparation already
+    (a jaxtalk ``manifest.json``, or the ``shards/`` of a run killed before writing it) is continued; in any other folder an existing file under one
+    of the names ``prepare`` writes is a user's file, kept unless ``overwrite``.
+
+    Raises:
+        jaxtalk.files.OutputError: as above, naming the file and the option.
+    """
+    from jaxtalk.files import Output, OutputError, claim_outputs
+
+    spec = Path(str(src.spec))
+    if src.layout != "synthtalk" and spec.is_dir() and out.resolve() == spec.resolve():
+        raise OutputError(f"--out {str(out)!r} is the dataset folder itself; prepare into another folder")
+    ours = _is_prepared_folder(out)
+    names = (MANIFEST, REPORT, TOKENIZER, f"{TOKENIZER}.settings")
+    claim_outputs([Output(out / name) for name in names], overwrite=overwrite or ours)
+
+
 def prepare(
     source: Source | str | os.PathLike,
     out: str | os.PathLike,
@@ -322,6 +353,7 @@ def prepare(
     shard_clips: int = 64,
     progress: bool = True,
     echo: Callable[[str], None] = print,
+    overwrite: bool = False,
 ) -> PrepareResult:
     """Prepare a dataset folder (or SynthTalk) into ``out`` (see the module docstring).
 
@@ -333,6 +365,8 @@ def prepare(
         shard_clips: clips per ArrayRecord shard.
         progress: show a progress bar with clips/s.
         echo: where the summary goes.
+        overwrite: let the prepared folder's files replace existing files of the same names in an
+            ``out`` that is not a prepared folder (see :func:`claim_prepared_folder`).
 
     Returns:
         :class:`PrepareResult`.
@@ -340,12 +374,14 @@ def prepare(
     Raises:
         BadClip: with ``strict``, the first bad clip (its file and reason).
         ValueError: a source without one usable clip, or bad settings.
+        jaxtalk.files.OutputError: ``out`` is the dataset folder itself, or would replace a user's file.
     """
     from tqdm.auto import tqdm
 
     start = time.perf_counter()
     src = source if isinstance(source, Source) else open_source(source)
     out = Path(out)
+    claim_prepared_folder(out, src, overwrite=overwrite)
     shard_dir = out / SHARDS
     shard_dir.mkdir(parents=True, exist_ok=True)
     features = parse_audio_features(settings.audio)

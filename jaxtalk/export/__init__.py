@@ -17,9 +17,10 @@ from jaxtalk.export.gltf import (
     export_vertex_sequence,
     one_sided_targets,
     vertex_basis,
+    audio_path_for,
     write_audio_beside,
 )
 from jaxtalk.export.playback import GlbAnimation
 
 __all__ = ["DEFAULT_MAX_ERROR", "ExportSummary", "GlbAnimation", "export_face_model", "export_vertex_sequence",
-           "one_sided_targets", "vertex_basis", "write_audio_beside"]
+           "one_sided_targets", "vertex_basis", "write_audio_beside", "audio_path_for"]

@@ -41,7 +41,7 @@ from jaxtalk.types import MOTION_FPS, Float, Int
 # ValueError that names the expected layout; outputs carry their exact shapes.
 
 __all__ = ["ExportSummary", "export_face_model", "export_vertex_sequence", "one_sided_targets", "vertex_basis",
-           "write_audio_beside"]
+           "write_audio_beside", "audio_path_for"]
 
 # Default bound of the vertex-basis layout: 0.1 mm, far below what a renderer shows at face scale.
 DEFAULT_MAX_ERROR = 1e-4
@@ -92,8 +92,9 @@ class _GlbWriter:
     _COMPONENTS = {np.dtype(np.float32): pygltflib.FLOAT, np.dtype(np.uint8): pygltflib.UNSIGNED_BYTE,
                    np.dtype(np.uint16): pygltflib.UNSIGNED_SHORT, np.dtype(np.uint32): pygltflib.UNSIGNED_INT}
 
-    def __init__(self) -> None:
-        self.gltf = pygltflib.GLTF2(asset=pygltflib.Asset(version="2.0", generator="jaxtalk"))
+    def __init__(self, audio_file: str | None = None) -> None:
+        extras = {"audio": audio_file} if audio_file else {}
+        self.gltf = pygltflib.GLTF2(asset=pygltflib.Asset(version="2.0", generator="jaxtalk", extras=extras))
         self.blob = bytearray()
 
     def accessor(self, array: np.ndarray, *, target: int | None = None, bounds: bool = False) -> int:
@@ -259,7 +260,7 @@ def _local_joint_motion(face: LinearFaceModel, params: np.ndarray) -> tuple[np.n
 
 def export_face_model(
     face: LinearFaceModel, params: Float[np.ndarray, "..."], out: str | Path, *, fps: float | int = MOTION_FPS,
-    name: str = "motion",
+    name: str = "motion", audio_file: str | None = None,
 ) -> ExportSummary:
     """Write head parameters on ``face`` as a skinned morph-target ``.glb`` (module docstring).
 
@@ -269,6 +270,8 @@ def export_face_model(
         out: the ``.glb`` to write (atomically).
         fps: frames per second of ``params``.
         name: the animation's name.
+        audio_file: the name of the audio written beside the file (:func:`audio_path_for`), recorded in
+            the asset's ``extras.audio`` (glTF itself has no audio).
 
     Returns:
         :class:`ExportSummary`.
@@ -283,7 +286,7 @@ def export_face_model(
     pose = np.asarray(face.pose_features(params), np.float64) if face.pose_basis is not None else None
     frames, num_joints = params.shape[0], face.num_joints
 
-    writer = _GlbWriter()
+    writer = _GlbWriter(audio_file)
     targets = [np.moveaxis(np.asarray(face.exp_basis, np.float64), -1, 0)]
     names = [f"exp_{k:02d}" for k in range(targets[0].shape[0])]
     weights = [params[:, : targets[0].shape[0]].astype(np.float64)]
@@ -385,6 +388,7 @@ def vertex_basis(
 def export_vertex_sequence(
     vertices: Float[np.ndarray, "..."], faces: Int[np.ndarray, "..."], out: str | Path, *,
     fps: float | int = MOTION_FPS, max_error: float | int = DEFAULT_MAX_ERROR, name: str = "motion",
+    audio_file: str | None = None,
 ) -> ExportSummary:
     """Write a vertex sequence as a morph-target ``.glb`` on its principal components (module docstring).
 
@@ -395,6 +399,7 @@ def export_vertex_sequence(
         fps: frames per second.
         max_error: metres, the largest vertex distance allowed (default 0.1 mm).
         name: the animation's name.
+        audio_file: the name of the audio beside the file, recorded in the asset's ``extras.audio``.
 
     Returns:
         :class:`ExportSummary` (``max_error`` = the measured one).
@@ -418,7 +423,7 @@ def export_vertex_sequence(
                          "not the mesh these vertices belong to")
     # The bound is met by what is stored (vertex_basis measures the one-sided float32 form _mesh writes).
     mean, targets, weights, error = vertex_basis(x, max_error)
-    writer = _GlbWriter()
+    writer = _GlbWriter(audio_file)
     morph_weights = _mesh(writer, mean, tri, targets, weights, [f"pc_{k:03d}" for k in range(targets.shape[0])])
     writer.gltf.nodes.append(pygltflib.Node(name="face", mesh=0))
     writer.gltf.scenes.append(pygltflib.Scene(name="jaxtalk", nodes=[0]))
@@ -431,8 +436,18 @@ def export_vertex_sequence(
                          1, max_error=error)
 
 
+def audio_path_for(glb: str | Path) -> Path:
+    """Where the audio of ``glb`` goes: its full name plus ``.wav`` (``talk.glb`` -> ``talk.glb.wav``).
+
+    Not ``talk.wav``: that is the natural name of the recording the animation was made from, and an
+    export must never write over its own input.
+    """
+    glb = Path(glb)
+    return glb.with_name(glb.name + ".wav")
+
+
 def write_audio_beside(glb: str | Path, audio: Float[np.ndarray, " samples"], sample_rate: int = 16_000) -> Path:
-    """Write ``audio`` next to ``glb`` with the same name and a ``.wav`` suffix (16-bit PCM, atomically):
+    """Write ``audio`` next to ``glb`` as :func:`audio_path_for` names it (16-bit PCM, atomically):
     glTF has no audio, and ``jaxtalk view`` pairs a clip with its sound by this name.
 
     Returns:
@@ -448,7 +463,7 @@ def write_audio_beside(glb: str | Path, audio: Float[np.ndarray, " samples"], sa
         raise ValueError(f"audio must be a non-empty mono signal, got shape {audio.shape}")
     if not np.all(np.isfinite(audio)):
         raise ValueError("audio contains NaN or inf")
-    wav = Path(glb).with_suffix(".wav")
+    wav = audio_path_for(glb)
     with atomic_output(wav) as tmp:
         soundfile.write(tmp, audio, sample_rate, subtype="PCM_16", format="WAV")
     return wav

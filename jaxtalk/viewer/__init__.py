@@ -85,11 +85,15 @@ def install_web_dependencies(cache_dir: str | os.PathLike | None = None, *, npm:
 
 
 def clips(folder: str | os.PathLike) -> list[dict]:
-    """The folder's exported clips: ``{"name", "glb", "audio"}`` per ``.glb`` (audio: the ``.wav`` of the
-    same name, or ``None``), as the page fetches them."""
+    """The folder's exported clips: ``{"name", "glb", "audio"}`` per ``.glb`` (audio: ``NAME.glb.wav`` as
+    ``jaxtalk export`` writes it, else the ``NAME.wav`` older exports wrote, else ``None``), as the page
+    fetches them."""
     out = []
     for glb in sorted(Path(folder).glob("*.glb")):
-        wav = glb.with_suffix(".wav")
+        # The export's own name first (it never collides with the recording the clip was made from).
+        wav = glb.with_name(glb.name + ".wav")
+        if not wav.is_file():
+            wav = glb.with_suffix(".wav")
         out.append({"name": glb.stem, "glb": f"/data/{glb.name}", "audio": f"/data/{wav.name}" if wav.is_file() else None})
     return out
 

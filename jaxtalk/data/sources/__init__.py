@@ -16,7 +16,7 @@ from typing import Any
 from jaxtalk.data.sources.clip import MAX_SKEW_SECONDS, BadClip, ClipEntry, RawClip, check_clip
 from jaxtalk.data.sources.dualtalk import dualtalk_entries, is_dualtalk
 from jaxtalk.data.sources.generic import TOKENIZER_FILE, generic_entries, is_generic
-from jaxtalk.data.sources.synthtalk import export_dualtalk, export_generic, synthtalk_entries
+from jaxtalk.data.sources.synthtalk import export_dualtalk, export_generic, generic_export_names, synthtalk_entries
 from jaxtalk.data.sources.vocaset import is_vocaset, vocaset_entries
 
 __all__ = [
@@ -28,6 +28,7 @@ __all__ = [
     "RawClip",
     "check_clip",
     "export_generic",
+    "generic_export_names",
     "export_dualtalk",
     "synthtalk_entries",
     "MAX_SKEW_SECONDS",

@@ -60,6 +60,12 @@ def synthtalk_entries(corpus: Any) -> list[ClipEntry]:
     return entries
 
 
+def generic_export_names(corpus: Any) -> list[str]:
+    """The file names :func:`export_generic` writes for ``corpus`` (to check them before writing)."""
+    per_clip = [f"{clip_name(info.index)}{suffix}" for info in corpus.clips for suffix in (".wav", ".npz", ".tokens.npy")]
+    return [*per_clip, TOKENS_FILE, TOKENIZER_FILE, METADATA_FILE]
+
+
 def export_generic(corpus: Any, out: str | os.PathLike, *, progress: bool = False) -> Path:
     """Write ``corpus`` to ``out`` in the generic layout (see the module docstring).
 
