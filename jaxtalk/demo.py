@@ -450,9 +450,10 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     files["params"] = out / "prediction.npz"
     atomic_savez(files["params"], params56=pred, ground_truth=gt, fps=np.asarray(25), clip=np.asarray(clip))
     # The prediction as a glTF animation with its audio beside it: Blender, engines and `jaxtalk view` play it.
-    from jaxtalk.export import export_face_model, write_audio_beside
+    from jaxtalk.export import audio_path_for, export_face_model, write_audio_beside
 
-    files["gltf"] = export_face_model(face, pred, out / "animation.glb", name="jaxtalk demo").path
+    glb = out / "animation.glb"
+    files["gltf"] = export_face_model(face, pred, glb, name="jaxtalk demo", audio_file=audio_path_for(glb).name).path
     audio = np.asarray(corpus.audio(clip), np.float32)
     files["gltf_audio"] = write_audio_beside(files["gltf"], audio)
 
