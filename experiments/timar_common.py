@@ -25,7 +25,7 @@ from jaxtalk.layout import GROUPS
 from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar import TimarConfig
 from jaxtalk.models.timar.data import Normalizer, conversations, fit_normalizer, monologues, windows
-from jaxtalk.models.timar.stream import stream_conversation
+from jaxtalk.models.timar.stream import stream
 
 
 def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None:
@@ -111,7 +111,7 @@ def predict(config, params, normalizer, convs, *, context, cfg_scale, temperatur
     """
     out = []
     for i, c in enumerate(convs):
-        x = stream_conversation(
+        x = stream(
             params, config, normalizer.speech(c.user_speech)[None], normalizer.motion(c.user_motion)[None],
             normalizer.speech(c.agent_speech)[None], jax.random.key(seed + i), context=context, cfg_scale=cfg_scale,
             temperature=temperature, sampler=sampler,

@@ -34,7 +34,7 @@ from jaxtalk.benchmarking import print_table, write_json
 from jaxtalk.data.formats import read_dualtalk
 from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar.data import turn_speech_features
-from jaxtalk.models.timar.stream import stream_conversation
+from jaxtalk.models.timar.stream import stream
 
 from timar_common import load_model  # noqa: E402  (sibling script)
 
@@ -43,7 +43,7 @@ KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_jaw", "MSE_exp", "MSE_jaw", "MSE_po
 
 
 def _stream(config, params, norm, user_speech, user_motion, agent_speech, context, cfg_scale, seed):
-    x = stream_conversation(
+    x = stream(
         params, config, norm.speech(user_speech)[None], norm.motion(user_motion)[None], norm.speech(agent_speech)[None],
         jax.random.key(seed), context=context, cfg_scale=cfg_scale,
     )

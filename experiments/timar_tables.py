@@ -116,7 +116,7 @@ def predictions(d, config, norm, convs, context: int, mode: str, noise_seed: int
     side's turns and cropped after. Exact for both models: TIMAR is turn-causal, and the baseline's
     window for a real turn holds only real turns."""
     from jaxtalk.models.dualtalk import predict_turns
-    from jaxtalk.models.timar.stream import stream_conversation
+    from jaxtalk.models.timar.stream import stream
 
     longest = max(c.num_frames for c in convs)
 
@@ -128,7 +128,7 @@ def predictions(d, config, norm, convs, context: int, mode: str, noise_seed: int
         x = predict_turns(d["params"], config, us, um, as_, context=context)
     else:
         sampler = "mean" if mode == "mean" else config.sampler
-        x = stream_conversation(d["params"], config, us, um, as_, jax.random.key(1000 * noise_seed), context=context,
+        x = stream(d["params"], config, us, um, as_, jax.random.key(1000 * noise_seed), context=context,
                                 cfg_scale=CFG_SCALE, sampler=sampler)
     x = np.asarray(x)
     return [norm.unmotion(x[i, : c.num_frames]) for i, c in enumerate(convs)]

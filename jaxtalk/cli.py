@@ -184,7 +184,7 @@ def train(
     set_: Annotated[
         list[str] | None,
         typer.Option("--set", help="Override a config field or training setting, KEY=VALUE (repeatable), e.g. "
-                                   "--set num_steps=5 --set lr=5e-4 --set ema_decay=0.999 --set window_frames=50."),
+                                   "--set sample_steps=5 --set lr=5e-4 --set ema_decay=0.999 --set window_frames=50."),
     ] = None,
     steps: Annotated[int, typer.Option(help="Train until this many optimiser steps in total.")] = 1000,
     seed: Annotated[int, typer.Option(help="Initialisation and data-order seed.")] = 0,
@@ -244,11 +244,11 @@ def prepare(
 
 
 def _sample_options(run: Path, input_: Path, out: Path | None, style: Path | None, partner: Path | None,
-                    cfg_scale: float | None, steps: int | None, seed: int, best: bool, overwrite: bool) -> Any:
+                    cfg_scale: float | None, sample_steps: int | None, seed: int, best: bool, overwrite: bool) -> Any:
     from jaxtalk.commands.inference import SampleOptions
 
     return SampleOptions(run_dir=run, input=input_, out=out, style=style, partner=partner, cfg_scale=cfg_scale,
-                         num_steps=steps, seed=seed, best=best, overwrite=overwrite)
+                         sample_steps=sample_steps, seed=seed, best=best, overwrite=overwrite)
 
 
 _RUN = Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk or timar; ats with --stm).")]
@@ -259,7 +259,8 @@ _OUT = Annotated[Path | None, typer.Option(help="Output .npz, replaced if it exi
 _STYLE = Annotated[Path | None, typer.Option(help="TokTalk: reference motion .npz for the speaking style.")]
 _PARTNER = Annotated[Path | None, typer.Option(help="TIMAR: the partner's audio (default: silence).")]
 _CFG = Annotated[float | None, typer.Option(help="Guidance scale (default: the model's).")]
-_STEPS = Annotated[int | None, typer.Option(help="Sampler steps (default: the model's).")]
+_SAMPLE_STEPS = Annotated[int | None, typer.Option("--sample-steps", help="Sampler steps: Euler (TokTalk) or DDIM / DDPM "
+                                                                           "(ATS, TIMAR) (default: the model's).")]
 _SEED = Annotated[int, typer.Option(help="Noise seed.")]
 _BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest validation loss).")]
 
@@ -268,7 +269,7 @@ _BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoi
 @_user_errors
 def sample(
     run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-    cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False, overwrite: _OVERWRITE = False,
+    cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, seed: _SEED = 0, best: _BEST = False, overwrite: _OVERWRITE = False,
     stm: Annotated[Path | None, typer.Option(help="FreeTalk: the STM run that maps an ATS run's landmarks onto --mesh.")] = None,
     mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).")] = None,
     emotion: Annotated[str, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary.")] = "neutral",
@@ -281,7 +282,7 @@ def sample(
     run, --stm and --mesh, the mesh's vertices (.npy, 25 fps, the mesh's own units and frame)."""
     from jaxtalk.commands.inference import MeshOptions, animate_run, sample_run
 
-    opts = _sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best, overwrite)
+    opts = _sample_options(run, input_, out, style, partner, cfg_scale, sample_steps, seed, best, overwrite)
     if stm is not None or mesh is not None:
         if stm is None or mesh is None:
             raise ValueError("FreeTalk needs both --stm RUN_STM and --mesh FILE")
@@ -298,12 +299,12 @@ def sample(
 @app.command()
 @_user_errors
 def stream(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-           cfg_scale: _CFG = None, steps: _STEPS = None, seed: _SEED = 0, best: _BEST = False,
+           cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, seed: _SEED = 0, best: _BEST = False,
            overwrite: _OVERWRITE = False) -> None:
     """Animate a speech file chunk by chunk as a live stream would, printing each chunk's latency."""
     from jaxtalk.commands.inference import stream_run
 
-    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, steps, seed, best, overwrite),
+    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, sample_steps, seed, best, overwrite),
                         echo=typer.echo)
     typer.echo(f"{result.params.shape[0]} frames written to {result.path}")
 
@@ -329,7 +330,7 @@ def eval_(
     best: Annotated[bool, typer.Option(help="Evaluate the best-validated checkpoint (checkpoint/best).")] = False,
     sample_steps: Annotated[
         str | None, typer.Option(help="TokTalk: Euler step counts, comma separated (one row each; default the "
-                                      "run's num_steps), e.g. 1,10.")
+                                      "run's sample_steps), e.g. 1,10.")
     ] = None,
     offline: Annotated[bool, typer.Option(help="TokTalk: also sample whole clips offline (full attention).")] = False,
 ) -> None:

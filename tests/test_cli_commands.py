@@ -80,13 +80,13 @@ def test_train_writes_run_and_resume_continues_the_step_count(run):
 def test_train_user_errors_are_one_line(run, tmp_path):
     out = str(tmp_path / "fresh")
     _user_error(["train", "toktalk", "--set", "nonsense=1", "--out", out], "nonsense: neither a TokTalkConfig field")
-    _user_error(["train", "toktalk", "--set", "num_steps=many", "--out", out], "expected int")
+    _user_error(["train", "toktalk", "--set", "sample_steps=many", "--out", out], "expected int")
     _user_error(["train", "toktalk", "--set", "chunk_frames=5", "--out", out], "chunk_frames=5 must be even")
     _user_error(["train", "toktalk", "--set", "channels", "--out", out], "expects key=value")
     _user_error(["train", "toktalk", "--preset", "huge", "--out", out], "no preset 'huge'")
     _user_error(["train", "waveglow", "--out", out], "unknown model 'waveglow'")
     _user_error(["train", "timar", "--out", str(run["dir"])], "holds a toktalk run")
-    _user_error(["train", "toktalk", "--set", "num_steps=5", "--out", str(run["dir"]), "--steps", "5"],
+    _user_error(["train", "toktalk", "--set", "sample_steps=5", "--out", str(run["dir"]), "--steps", "5"],
                 "resume it with the same settings")
     _user_error(["train", "toktalk", "--set", "lr=fast", "--out", out], "expected float")
     _user_error(["train", "toktalk", "--set", "speed=3", "--out", out], "neither a TokTalkConfig field nor a training setting")
@@ -199,3 +199,30 @@ def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise():
                        extra={})
     assert record.model_config().noise_frames == 0.0
     assert RunRecord(**{**dataclasses.asdict(record), "config": config}).model_config().noise_frames == 2.0
+
+
+def test_a_run_written_before_the_one_vocabulary_renames_samples_and_resumes(run, tmp_path):
+    import json
+    import shutil
+
+    from jaxtalk.commands.runs import RENAMED_FIELDS, RunRecord
+
+    # The run as an older jaxtalk wrote it: TokTalk's fields under their old names, in the config and
+    # in the --set items.
+    old_dir = tmp_path / "old"
+    shutil.copytree(run["dir"], old_dir)
+    raw = json.loads((old_dir / "run.json").read_text())
+    back = {new: old for old, new in RENAMED_FIELDS["toktalk"].items()}
+    raw["config"] = {back.get(k, k): v for k, v in raw["config"].items()}
+    raw["items"] = [*raw["items"], "num_steps=3"]
+    assert {"token_dim", "channels", "num_steps", "cond_dropout"} <= set(raw["config"])
+    (old_dir / "run.json").write_text(json.dumps(raw))
+
+    record = RunRecord.load(old_dir)
+    config = record.model_config()
+    assert (config.speech_dim, config.width) == (raw["config"]["token_dim"], raw["config"]["channels"])
+    assert record.items[-1] == "sample_steps=3"
+    wav = tmp_path / "a.wav"
+    sf.write(wav, (0.2 * np.sin(np.arange(32_000) / 5)).astype(np.float32), 16_000)
+    _ok(["sample", str(old_dir), str(wav), "--out", str(tmp_path / "a.npz"), "--sample-steps", "2"])
+    assert np.load(tmp_path / "a.npz")["params"].shape[1] == 56

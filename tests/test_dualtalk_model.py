@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from jaxtalk.models.dualtalk import (
     DualTalkConfig,
     apply,
-    dualtalk_loss,
+    loss,
     init_params,
     predict_turns,
     predict_window,
@@ -127,7 +127,7 @@ def test_loss_gradient_matches_central_finite_differences_in_float64(params, flo
     batch = {k: np.asarray(v, np.float64) for k, v in _streams(n=1).items()}
     batch["agent_motion"] = rng.normal(size=(B, F, 56))
     value_and_grad = jax.jit(jax.value_and_grad(
-        lambda x: dualtalk_loss(unravel(x), batch, jax.random.key(0), config=CFG)[0]))
+        lambda x: loss(unravel(x), CFG, batch, jax.random.key(0))[0]))
     grad = np.asarray(value_and_grad(flat)[1])
     # Every parameter moves, by a random amount, the way its gradient says raises the loss: a parameter
     # whose gradient were missing or of the wrong sign would still move and break the match. The shared
@@ -163,9 +163,9 @@ def test_bad_inputs_and_settings_raise_clear_value_errors(params):
         with pytest.raises(ValueError, match=r"context must be an integer in \[0, max_turns - 1 = 1\]"):
             predict_turns(params, CFG, *long, context=context)
     with pytest.raises(ValueError, match="batch is missing streams"):
-        dualtalk_loss(params, s, jax.random.key(0), config=CFG)
+        loss(params, CFG, s, jax.random.key(0))
     with pytest.raises(ValueError, match="agent_motion must have 56 channels"):
-        dualtalk_loss(params, {**s, "agent_motion": um[..., :3]}, jax.random.key(0), config=CFG)
+        loss(params, CFG, {**s, "agent_motion": um[..., :3]}, jax.random.key(0))
     for field, value, message in [("width", 18, "multiple of 4"), ("num_heads", 3, "not divisible by num_heads"),
                                   ("param_dim", 50, "must be 56"), ("max_turns", 0, "positive integer"),
                                   ("feature_dropout", 1.0, r"in \[0, 1\)"), ("velocity_weight", -1.0, ">= 0")]:
@@ -181,7 +181,7 @@ def test_presets_small_matches_timar_small_budget_and_paper_has_dualtalk_sizes()
         timar.width, timar.num_layers, timar.num_heads, timar.speech_dim)
     assert (paper.feature_width, paper.width, paper.num_layers, paper.num_heads, paper.mlp_ratio * paper.width) == (
         256, 512, 3, 4, 2048)
-    assert (paper.decoder_layers, paper.lstm_layers, paper.dropout_rate, paper.feature_dropout, paper.speech_dim) == (
+    assert (paper.decoder_layers, paper.lstm_layers, paper.dropout, paper.feature_dropout, paper.speech_dim) == (
         1, 2, 0.1, 0.5, 1024)
     assert paper.max_turns * paper.frames_per_turn == 200  # DualTalk's 8-s training clips
     assert hash(small) == hash(DualTalkConfig.small())  # jit-static

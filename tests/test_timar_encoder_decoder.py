@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from helpers import timar_streams
 
-from jaxtalk.models.timar import TimarConfig, encode_window, init_params, sample, timar_loss
+from jaxtalk.models.timar import TimarConfig, encode_window, init_params, loss, sample
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.models.timar.inputs import to_turns
 from jaxtalk.models.timar.sample import conditions
-from jaxtalk.models.timar.stream import stream_condition, stream_conversation, stream_init
+from jaxtalk.models.timar.stream import stream_condition, stream, init_stream
 from jaxtalk.models.timar.tokens import agent_token_mask, turn_layout
 from jaxtalk.nn import bias_from_mask
 
@@ -167,13 +167,13 @@ def test_encoder_decoder_stream_equals_whole_window_sample_and_sliding_window_re
     # DDIM deterministic, so the per-turn keys of the stream do not matter.
     kw = dict(cfg_scale=1.5, sampler="ddim", temperature=0.0)
     whole = np.asarray(sample(params, CFG, *streams, jax.random.key(0), **kw))
-    streamed = np.asarray(stream_conversation(params, CFG, *streams, jax.random.key(1), context=N - 1, **kw))
+    streamed = np.asarray(stream(params, CFG, *streams, jax.random.key(1), context=N - 1, **kw))
     np.testing.assert_allclose(streamed, whole, rtol=1e-5, atol=1e-5)
     assert np.abs(whole).max() > 1e-3
     # Sliding (context 1 over 5 turns): every turn's conditions == recomputing its window offline.
     long = _streams(seed=3, n=5)
     long = (long["user_speech"], long["user_motion"], long["agent_speech"])
-    state = stream_init(CFG, B, 1)
+    state = init_stream(CFG, jax.random.key(0), batch=B, context=1)
     for t in range(5):
         sl = slice(t * F, (t + 1) * F)
         state, z = stream_condition(params, CFG, state, *(x[:, sl] for x in long))
@@ -187,9 +187,9 @@ def test_encoder_decoder_stream_equals_whole_window_sample_and_sliding_window_re
 def test_encoder_decoder_loss_is_finite_on_masked_frames_with_a_gradient_in_encoder_and_decoder(params):
     cfg = dataclasses.replace(CFG, mask_ratio_min=0.7)  # some agent frames visible, as in the paper
     batch = _streams(seed=4)
-    loss_fn = jax.jit(jax.value_and_grad(lambda p, k: timar_loss(p, batch, k, config=cfg), has_aux=True))
-    (loss, metrics), grads = loss_fn(params, jax.random.key(2))
-    assert np.isfinite(float(loss)) and float(loss) > 0
+    loss_fn = jax.jit(jax.value_and_grad(lambda p, k: loss(p, cfg, batch, k), has_aux=True))
+    (value, metrics), grads = loss_fn(params, jax.random.key(2))
+    assert np.isfinite(float(value)) and float(value) > 0
     # The loss covers the masked frames only: exactly ceil(r L) per example.
     expected = B * math.ceil(round(float(metrics["mask_ratio"]) * N * F, 4))
     assert float(metrics["masked_frames"]) == expected

@@ -9,7 +9,7 @@ import pytest
 from helpers import perturbed, timar_streams
 from scipy import stats
 
-from jaxtalk.models.timar import TimarConfig, init_params, timar_loss
+from jaxtalk.models.timar import TimarConfig, init_params, loss
 from jaxtalk.models.timar.inputs import to_turns
 from jaxtalk.models.timar.loss import grouped_mse, masked_loss, random_agent_mask, sample_mask_ratio
 
@@ -95,35 +95,35 @@ def test_loss_only_counts_masked_frames(params):
 
 
 def test_timar_loss_is_finite_differentiable_and_reports_groups(params):
-    loss, m = jax.jit(lambda p, b, k: timar_loss(p, b, k, config=CFG))(params, _batch(), jax.random.key(0))
-    assert np.isfinite(float(loss))
-    np.testing.assert_allclose(float(loss), float(m["loss_exp"] + m["loss_jaw"] + m["loss_neck"]), rtol=1e-5)
+    value, m = jax.jit(lambda p, b, k: loss(p, CFG, b, k))(params, _batch(), jax.random.key(0))
+    assert np.isfinite(float(value))
+    np.testing.assert_allclose(float(value), float(m["loss_exp"] + m["loss_jaw"] + m["loss_neck"]), rtol=1e-5)
     assert 0.7 <= float(m["mask_ratio"]) <= 1.0
     assert float(m["masked_frames"]) == B * np.ceil(np.round(float(m["mask_ratio"]) * N * F, 4))
-    g = jax.jit(jax.grad(lambda p, b: timar_loss(p, b, jax.random.key(0), config=CFG)[0]))(params, _batch())
+    g = jax.jit(jax.grad(lambda p, b: loss(p, CFG, b, jax.random.key(0))[0]))(params, _batch())
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(g))
     sig = TimarConfig.small(**{**CFG.__dict__, "learn_sigma": True})
     ps = init_params(sig, jax.random.key(1))
-    loss_s, ms = jax.jit(lambda p, b: timar_loss(p, b, jax.random.key(0), config=sig))(ps, _batch())
+    loss_s, ms = jax.jit(lambda p, b: loss(p, sig, b, jax.random.key(0)))(ps, _batch())
     assert np.isfinite(float(loss_s)) and float(ms["loss_vlb"]) > 0
 
 
 def test_loss_rejects_bad_batches(params):
     b = _batch()
     with pytest.raises(ValueError, match="missing"):
-        timar_loss(params, {k: v for k, v in b.items() if k != "user_motion"}, jax.random.key(0), config=CFG)
+        loss(params, CFG, {k: v for k, v in b.items() if k != "user_motion"}, jax.random.key(0))
     bad = dict(b, agent_motion=b["agent_motion"][:, :-1])
     with pytest.raises(ValueError, match="aligned"):
-        timar_loss(params, bad, jax.random.key(0), config=CFG)
+        loss(params, CFG, bad, jax.random.key(0))
     short = {k: v[:, :-3] for k, v in b.items()}
     with pytest.raises(ValueError, match="multiple of frames_per_turn"):
-        timar_loss(params, short, jax.random.key(0), config=CFG)
+        loss(params, CFG, short, jax.random.key(0))
     nan = dict(b, user_speech=np.where(np.arange(8) == 3, np.nan, b["user_speech"]).astype(np.float32))
     with pytest.raises(ValueError, match="NaN"):
-        timar_loss(params, nan, jax.random.key(0), config=CFG)
+        loss(params, CFG, nan, jax.random.key(0))
     long = _batch(n=5)
     with pytest.raises(ValueError, match="max_turns"):
-        timar_loss(params, long, jax.random.key(0), config=CFG)
+        loss(params, CFG, long, jax.random.key(0))
 
 
 def test_diffusion_batch_mul_averages_draws_without_bias_and_cuts_the_loss_noise(params):
@@ -134,8 +134,8 @@ def test_diffusion_batch_mul_averages_draws_without_bias_and_cuts_the_loss_noise
     keys = jax.random.split(jax.random.key(1), 96)
 
     def losses(m):
-        cfg = TimarConfig.small(**{**CFG.__dict__, "diffusion_batch_mul": m, "cfg_prob": 0.0})
-        return np.asarray(jax.jit(jax.vmap(lambda k: timar_loss(params, b, k, config=cfg)[0]))(keys))
+        cfg = TimarConfig.small(**{**CFG.__dict__, "diffusion_batch_mul": m, "cfg_dropout": 0.0})
+        return np.asarray(jax.jit(jax.vmap(lambda k: loss(params, cfg, b, k)[0]))(keys))
 
     one, four = losses(1), losses(4)
     assert np.var(four) < 0.5 * np.var(one), (np.var(one), np.var(four))

@@ -12,10 +12,10 @@ from jaxtalk.models.timar import stream as stream_mod
 from jaxtalk.models.timar.inputs import to_turns
 from jaxtalk.models.timar.sample import conditions as _conditions_eager
 from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
-from jaxtalk.models.timar.stream import stream_condition, stream_conversation, stream_init, stream_step
+from jaxtalk.models.timar.stream import stream_condition, stream, init_stream, stream_step
 
 conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
-sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("num_steps", "sampler"))
+sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler"))
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -55,7 +55,7 @@ def _window_reference(config, params, s, lo, hi):
 @pytest.mark.parametrize("context", [0, 1, 3])
 def test_cached_stream_equals_recomputed_window(params, context):
     s = _streams(6)
-    state = stream_init(CFG, B, context)
+    state = init_stream(CFG, jax.random.key(0), batch=B, context=context)
     for t in range(6):
         sl = slice(t * F, (t + 1) * F)
         state, z = stream_condition(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl])
@@ -67,7 +67,7 @@ def test_cached_stream_equals_recomputed_window(params, context):
 def test_bidirectional_stream_recomputes_the_window(params):
     bi = TimarConfig.small(**{**CFG.__dict__, "attention": "bidirectional"})
     s = _streams(4)
-    state = stream_init(bi, B, 2)
+    state = init_stream(bi, jax.random.key(0), batch=B, context=2)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
         state, z = stream_condition(params, bi, state, s[0][:, sl], s[1][:, sl], s[2][:, sl])
@@ -77,25 +77,24 @@ def test_bidirectional_stream_recomputes_the_window(params):
 def test_stream_step_samples_with_the_window_conditions_and_compiles_once(params):
     s = _streams(5)
     context = 2
-    state = stream_init(CFG, B, context)
+    state = init_stream(CFG, jax.random.key(0), batch=B, context=context)
     before = stream_mod._step._cache_size()
     for t in range(5):
         sl = slice(t * F, (t + 1) * F)
-        key = jax.random.fold_in(jax.random.key(0), t)
-        state, x = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], key, cfg_scale=1.0 + 0.3 * t)
+        key = jax.random.fold_in(jax.random.key(0), t)  # turn t's key under the one key policy
+        state, x = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], cfg_scale=1.0 + 0.3 * t)
         z = _window_reference(CFG, params, s, max(0, t - context), t)
         ref = sample_frames(params, CFG, jnp.asarray(z[:B]), jnp.asarray(z[B:]), key, cfg_scale=1.0 + 0.3 * t,
-                            num_steps=CFG.sample_steps)
+                            sample_steps=CFG.sample_steps)
         np.testing.assert_allclose(np.asarray(x), np.asarray(ref), atol=1e-4)
     # Two programs (filling, sliding) serve every turn and every scale: a second stream with new
     # scales compiles nothing.
     compiled = stream_mod._step._cache_size()
     assert compiled - before <= 2
-    state = stream_init(CFG, B, context)
+    state = init_stream(CFG, jax.random.key(0), batch=B, context=context)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
-        state, _ = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], jax.random.key(t),
-                               cfg_scale=2.0 - 0.1 * t)
+        state, _ = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], cfg_scale=2.0 - 0.1 * t)
     assert stream_mod._step._cache_size() == compiled
 
 
@@ -104,7 +103,8 @@ def test_stream_under_an_outer_jit_uses_one_program_with_the_same_outputs(params
     # host-dispatched filling/sliding programs on both kinds of turn.
     s = _streams(4)
     cond = jax.jit(lambda st, a, b, c: stream_mod._condition(params, CFG, st, a, b, c, True, "auto"))
-    state_h, state_j = stream_init(CFG, B, 1), stream_init(CFG, B, 1)
+    state_h = init_stream(CFG, jax.random.key(0), batch=B, context=1)
+    state_j = init_stream(CFG, jax.random.key(0), batch=B, context=1)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
         turn = tuple(jnp.asarray(x[:, sl]) for x in s)
@@ -118,13 +118,13 @@ def test_stream_causality_future_turn_does_not_change_past_outputs(params):
     s2 = tuple(x.copy() for x in s)
     s2[0][:, 3 * F :] += 4.0
     s2[1][:, 3 * F :] -= 2.0
-    a = np.asarray(stream_conversation(params, CFG, *s, jax.random.key(2), context=1))
-    b = np.asarray(stream_conversation(params, CFG, *s2, jax.random.key(2), context=1))
+    a = np.asarray(stream(params, CFG, *s, jax.random.key(2), context=1))
+    b = np.asarray(stream(params, CFG, *s2, jax.random.key(2), context=1))
     np.testing.assert_array_equal(a[:, : 3 * F], b[:, : 3 * F])
     assert np.abs(a[:, 3 * F :] - b[:, 3 * F :]).max() > 1e-4
     # The temperature reaches every turn's sampler: at 0 the stream no longer depends on the key.
-    c0 = np.asarray(stream_conversation(params, CFG, *s, jax.random.key(2), context=1, temperature=0.0))
-    c1 = np.asarray(stream_conversation(params, CFG, *s, jax.random.key(3), context=1, temperature=0.0))
+    c0 = np.asarray(stream(params, CFG, *s, jax.random.key(2), context=1, temperature=0.0))
+    c1 = np.asarray(stream(params, CFG, *s, jax.random.key(3), context=1, temperature=0.0))
     np.testing.assert_array_equal(c0, c1)
     assert np.abs(c0 - a).max() > 1e-3
 
@@ -132,15 +132,15 @@ def test_stream_causality_future_turn_does_not_change_past_outputs(params):
 def test_stream_rejects_bad_input(params):
     s = _streams(1)
     with pytest.raises(ValueError, match="max_turns"):
-        stream_init(CFG, B, 4)  # window of 5 turns > max_turns=4
+        init_stream(CFG, jax.random.key(0), batch=B, context=4)  # window of 5 turns > max_turns=4
     with pytest.raises(ValueError, match="non-negative"):
-        stream_init(CFG, B, -1)
-    state = stream_init(CFG, B, 1)
+        init_stream(CFG, jax.random.key(0), batch=B, context=-1)
+    state = init_stream(CFG, jax.random.key(0), batch=B, context=1)
     with pytest.raises(ValueError, match="one turn"):
-        stream_step(params, CFG, state, s[0][:, :3], s[1][:, :3], s[2][:, :3], jax.random.key(0))
+        stream_step(params, CFG, state, s[0][:, :3], s[1][:, :3], s[2][:, :3])
     with pytest.raises(ValueError, match="aligned|one turn"):
-        stream_step(params, CFG, state, s[0], s[1][:1], s[2], jax.random.key(0))
+        stream_step(params, CFG, state, s[0], s[1][:1], s[2])
     with pytest.raises(ValueError, match="NaN"):
-        stream_step(params, CFG, state, s[0], np.full_like(s[1], np.nan), s[2], jax.random.key(0))
+        stream_step(params, CFG, state, s[0], np.full_like(s[1], np.nan), s[2])
     with pytest.raises(ValueError, match="stream state"):
-        stream_step(params, CFG, state, s[0], s[1], s[2], jax.random.key(0), guidance=False)
+        stream_step(params, CFG, state, s[0], s[1], s[2], guidance=False)

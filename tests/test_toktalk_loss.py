@@ -4,7 +4,6 @@ the loss normalisation (analytic value for a zero-velocity model), the adapter l
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -43,7 +42,7 @@ def _batch(seed=0, motion_scale=0.0):
     }
 
 
-_cfm = jax.jit(functools.partial(tt.cfm_loss, config=CFG))
+_cfm = jax.jit(tt.make_loss_fn(CFG))
 
 
 def test_flow_matching_path_and_target_are_analytic(float64):
@@ -87,7 +86,7 @@ def test_cfm_loss_of_zero_velocity_model_is_noise_energy(params):
     # u = x1 - z adds mean(pose^2) = 1: the loss is 2.
     raw = dataclasses.replace(CFG, precondition=False)
     batch = _constant_pose_batch()
-    loss, metrics = jax.jit(functools.partial(tt.cfm_loss, config=raw))(_zero_output(params), batch, jax.random.key(3))
+    loss, metrics = jax.jit(tt.make_loss_fn(raw))(_zero_output(params), batch, jax.random.key(3))
     n = (batch["mask"].sum()) * 56
     assert abs(float(metrics["flow"]) - 1.0) < 4 * np.sqrt(2.0 / n)
     assert float(metrics["kl"]) >= 0.0
@@ -95,7 +94,7 @@ def test_cfm_loss_of_zero_velocity_model_is_noise_energy(params):
                                rtol=1e-6)
     plain = dataclasses.replace(raw, style_anchor=False)
     plain_params = tt.init_params(plain, jax.random.key(0))
-    _, m2 = jax.jit(functools.partial(tt.cfm_loss, config=plain))(_zero_output(plain_params), batch, jax.random.key(3))
+    _, m2 = jax.jit(tt.make_loss_fn(plain))(_zero_output(plain_params), batch, jax.random.key(3))
     expect = 1.0 + float(np.sum(np.square(batch["motion"]) * batch["mask"][..., None]) / n)
     assert abs(float(m2["flow"]) - expect) < 0.06
 
@@ -140,7 +139,7 @@ def test_adapter_loss_alignment_term_is_analytic(params):
     zero_adapter = {**params, "adapter": dict(params["adapter"])}
     zero_adapter["adapter"]["out"] = jax.tree.map(jnp.zeros_like, params["adapter"]["out"])
     batch = _batch(2)
-    loss_fn = jax.jit(functools.partial(tt.adapter_loss, config=CFG, src_rate=25.0, flow_weight=0.5))
+    loss_fn = jax.jit(lambda p, b, k: tt.adapter_loss(p, CFG, b, k, src_rate=25.0, flow_weight=0.5))
     loss, metrics = loss_fn(zero_adapter, batch, jax.random.key(5))
     # A zero adapter output: the alignment term is the mean square of the base tokens over real tokens
     # (a token is real when its first frame is: frames 0, 2, .., 8 for the padded half).
@@ -154,11 +153,11 @@ def test_adapter_loss_alignment_term_is_analytic(params):
 def test_bad_batches_raise(params):
     batch = _batch(0)
     with pytest.raises(ValueError, match="tokens for 16 frames"):
-        tt.cfm_loss(params, {**batch, "tokens": batch["tokens"][:, :5]}, jax.random.key(0), config=CFG)
+        tt.loss(params, CFG, {**batch, "tokens": batch["tokens"][:, :5]}, jax.random.key(0))
     with pytest.raises(ValueError, match=r"batch\['tokens'\] must be"):
-        tt.cfm_loss(params, {**batch, "tokens": batch["tokens"][..., :10]}, jax.random.key(0), config=CFG)
+        tt.loss(params, CFG, {**batch, "tokens": batch["tokens"][..., :10]}, jax.random.key(0))
     with pytest.raises(ValueError, match=r"batch\['mask'\]"):
-        tt.cfm_loss(params, {**batch, "mask": batch["mask"][:, :4]}, jax.random.key(0), config=CFG)
+        tt.loss(params, CFG, {**batch, "mask": batch["mask"][:, :4]}, jax.random.key(0))
 
 
 @pytest.mark.parametrize("sigma_min", [0.0, 1e-6, 0.1])

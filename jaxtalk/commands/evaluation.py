@@ -16,7 +16,7 @@ Each model is scored the way it is used:
   the upper face less than the truth); MOD (mm, mouth-opening distance); jitter (mm per frame^2, mean
   vertex acceleration).
 * TIMAR: every conversation side of the split whose partner is prepared is streamed turn by turn
-  (:func:`jaxtalk.models.timar.stream.stream_conversation`, standardised with the run's normaliser; a
+  (:func:`jaxtalk.models.timar.stream.stream`, standardised with the run's normaliser; a
   partner without tracked motion is the run's still pose, as in training), and scored with the
   DualTalk benchmark (:func:`jaxtalk.metrics.conversation_metrics`) per group (exp, jaw, pose): FD,
   P-FD, MSE, SID (k-means fit on the ground truth) and rPCC, in the published scaling
@@ -228,13 +228,13 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
         raise ValueError(f"{where} has no training split with motion; prepare it from data with 56-d motion")
     if record.model == "toktalk":
         if not m.get("token_dim"):
-            raise ValueError(f"{where} has no token stream, the TokTalk run needs tokens of width {cfg['token_dim']}")
-        if m["token_dim"] != cfg["token_dim"] or float(m["token_rate"]) != float(cfg["token_rate"]):
+            raise ValueError(f"{where} has no token stream, the TokTalk run needs tokens of width {cfg['speech_dim']}")
+        if m["token_dim"] != cfg["speech_dim"] or float(m["token_rate"]) != float(cfg["token_rate"]):
             raise ValueError(f"{where} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz, the run was "
-                             f"trained on width {cfg['token_dim']} at {cfg['token_rate']:g} Hz")
+                             f"trained on width {cfg['speech_dim']} at {cfg['token_rate']:g} Hz")
         return
     if record.model in ("timar", "dualtalk", "ats"):
-        key, width = ("speech_dim", cfg["audio_dim"]) if record.model == "ats" else ("turn_speech_dim", cfg["speech_dim"])
+        key, width = ("speech_dim", cfg["speech_dim"]) if record.model == "ats" else ("turn_speech_dim", cfg["speech_dim"])
         if m["settings"]["audio"] != features.get("audio") or m.get(key) != width:
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
@@ -319,7 +319,7 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
     mean_pose = np.asarray(norm["mean"] if "mean" in norm else data.motion_stats()["mean"], np.float32)
     key = jax.random.key(opts.seed)
     echo(f"streaming {len(chosen)} {split} clips of {data.root} with TokTalk (step {run.step})")
-    step_counts = tuple(opts.sample_steps) or (config.num_steps,)
+    step_counts = tuple(opts.sample_steps) or (config.sample_steps,)
     if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in step_counts):
         raise ValueError(f"sample steps must be positive integers, got {step_counts}")
     plural = lambda n: f"{n} step{'s' * (n > 1)}"  # noqa: E731
@@ -372,7 +372,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
     from jaxtalk.models.timar.data import Normalizer
     from jaxtalk.models.timar.recipe import agent_sides
-    from jaxtalk.models.timar.stream import stream_conversation
+    from jaxtalk.models.timar.stream import stream
 
     # The DualTalk baseline is scored on the same sides, normaliser and context, predicting each turn
     # from a window of its past turns and the whole current turn instead of streaming.
@@ -409,7 +409,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
 
             out = predict_turns(run.params, config, *streams, context=context)
         else:
-            out = stream_conversation(run.params, config, *streams, jax.random.fold_in(key, n), context=context)
+            out = stream(run.params, config, *streams, jax.random.fold_in(key, n), context=context)
         preds.append(norm.unmotion(np.asarray(out)[0]))
         gts.append(np.asarray(agent["motion"], np.float32)[:usable])
         partners.append(user_motion)

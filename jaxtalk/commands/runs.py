@@ -40,6 +40,30 @@ _PRESETS = ("paper", "small", "tiny")
 # Values of config fields added after runs were first written, as those runs were trained.
 _FIELDS_BEFORE_THEY_EXISTED = {"toktalk": {"noise_frames": 0.0}}
 
+# Config fields renamed when every model took one vocabulary (the same name for the same concept):
+# runs written before keep loading and resuming under the new names.
+RENAMED_FIELDS = {
+    "toktalk": {"token_dim": "speech_dim", "channels": "width", "num_steps": "sample_steps",
+                "cond_dropout": "cfg_dropout"},
+    "ats": {"audio_dim": "speech_dim", "num_sampling_steps": "sample_steps"},
+    "timar": {"cfg_prob": "cfg_dropout", "dropout_rate": "dropout"},
+    "dualtalk": {"dropout_rate": "dropout"},
+}
+
+
+def _renamed(model: str, raw: dict[str, Any]) -> dict[str, Any]:
+    """A run record's dict with renamed config fields (in ``config`` and the ``--set`` items) under
+    their current names."""
+    table = RENAMED_FIELDS.get(raw.get("model", model), {})
+    if not table:
+        return raw
+    config = {table.get(k, k): v for k, v in raw.get("config", {}).items()}
+    items = []
+    for item in raw.get("items", []):
+        key, sep, value = item.partition("=")
+        items.append(f"{table.get(key.strip(), key.strip())}{sep}{value}" if sep else item)
+    return {**raw, "config": config, "items": items}
+
 
 def config_class(model: str) -> type:
     """The frozen config dataclass of ``model`` (imported on demand).
@@ -191,7 +215,7 @@ class RunRecord:
             raise FileNotFoundError(f"{run_dir} is not a training run (no {RUN_FILE}; make one with `jaxtalk train`)")
         try:
             raw = json.loads(path.read_text())
-            return cls(**raw)
+            return cls(**_renamed(raw.get("model", ""), raw))
         except (json.JSONDecodeError, TypeError) as err:
             raise ValueError(f"{path} is not a run record of this jaxtalk version ({err}); train it again") from None
 

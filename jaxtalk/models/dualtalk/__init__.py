@@ -50,8 +50,8 @@ Modules: ``config`` (presets), ``model`` (network, ``init_params``, ``apply``), 
 """
 
 from jaxtalk.models.dualtalk.config import DualTalkConfig
-from jaxtalk.models.dualtalk.loss import dualtalk_loss, make_loss_fn
+from jaxtalk.models.dualtalk.loss import loss, make_loss_fn
 from jaxtalk.models.dualtalk.model import apply, init_params
 from jaxtalk.models.dualtalk.predict import predict_turns, predict_window
 
-__all__ = ["DualTalkConfig", "apply", "dualtalk_loss", "init_params", "make_loss_fn", "predict_turns", "predict_window"]
+__all__ = ["DualTalkConfig", "apply", "loss", "init_params", "make_loss_fn", "predict_turns", "predict_window"]

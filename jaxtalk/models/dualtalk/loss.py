@@ -19,7 +19,7 @@ from jaxtalk.models.timar.inputs import check_streams
 from jaxtalk.models.timar.loss import grouped_mse
 from jaxtalk.types import Array, Float, PRNGKeyArray
 
-__all__ = ["STREAMS", "dualtalk_loss", "make_loss_fn", "regression_loss"]
+__all__ = ["STREAMS", "loss", "make_loss_fn", "regression_loss"]
 
 STREAMS = ("user_speech", "user_motion", "agent_speech", "agent_motion")
 
@@ -50,8 +50,8 @@ def regression_loss(
     return jnp.mean(per_frame) + velocity_weight * velocity, metrics
 
 
-def dualtalk_loss(
-    params: dict[str, Any], batch: dict[str, Any], key: PRNGKeyArray, *, config: DualTalkConfig
+def loss(
+    params: dict[str, Any], config: DualTalkConfig, batch: dict[str, Any], key: PRNGKeyArray
 ) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """The baseline's training loss on a batch of N-turn windows.
 
@@ -75,7 +75,7 @@ def dualtalk_loss(
     check_streams(config, {k: batch[k] for k in STREAMS}, max_turns=config.max_turns)
     # No cast: the loader's float32 stays float32, and a float64 batch (gradient checks) stays float64.
     us, um, as_, am = (jnp.asarray(batch[k]) for k in STREAMS)
-    dropout = config.dropout_rate > 0 or config.feature_dropout > 0
+    dropout = config.dropout > 0 or config.feature_dropout > 0
     pred = apply(params, config, us, um, as_, dropout_key=key if dropout else None)
     return regression_loss(pred, am, config.velocity_weight)
 
@@ -89,5 +89,9 @@ def make_loss_fn(config: DualTalkConfig) -> Callable[[Any, Any, Any], tuple[Arra
     Returns:
         The loss function with the config bound.
     """
-    return functools.partial(dualtalk_loss, config=config)
+    return functools.partial(_bound_loss, config)
+
+
+def _bound_loss(config: DualTalkConfig, params: dict[str, Any], batch: dict[str, Any], key: PRNGKeyArray):
+    return loss(params, config, batch, key)
 

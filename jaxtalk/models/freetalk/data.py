@@ -8,7 +8,7 @@
 * :func:`mesh_motion`: for a face identity and a (re)meshed topology, the landmark displacements and
   the dense vertex displacements of a motion track (the STM supervision).
 * :func:`stm_windows`: fixed-length windows of those over several meshes, vertex axes padded to a
-  common size, for :func:`jaxtalk.models.freetalk.stm.stm_loss`.
+  common size, for :func:`jaxtalk.models.freetalk.stm.loss`.
 """
 
 from __future__ import annotations

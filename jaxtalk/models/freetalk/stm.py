@@ -52,12 +52,12 @@ __all__ = [
     "prepare_meshes",
     "stack_meshes",
     "check_landmark_motion",
-    "init_stm",
+    "init_params",
     "stm_mesh_features",
     "stm_decode",
-    "stm_apply",
-    "stm_loss",
-    "make_stm_loss",
+    "apply",
+    "loss",
+    "make_loss_fn",
 ]
 
 PyTree = Any
@@ -359,7 +359,7 @@ class SparseToMesh(nn.Module):
         return self.decode_frame(self.mesh_features(vertices, normals, ops), disp, ops)
 
 
-def init_stm(config: STMConfig, key: PRNGKeyArray, mesh: STMMesh) -> PyTree:
+def init_params(config: STMConfig, key: PRNGKeyArray, mesh: STMMesh) -> PyTree:
     """Initial STM parameters (their shapes do not depend on the mesh, which only drives the trace).
 
     Args:
@@ -466,7 +466,7 @@ def stm_decode(
     return _decode_jit(params, config, features, disp, mesh.ops)
 
 
-def stm_apply(
+def apply(
     params: PyTree, config: STMConfig, mesh: STMMesh, displacements: Any
 ) -> Float[Array, "frames verts 3"]:
     """Mesh features then per-frame decoding: ``STM(M, (Delta L_t)_t) = (Delta V_t)_t``.
@@ -486,23 +486,25 @@ def stm_apply(
     return stm_decode(params, config, stm_mesh_features(params, config, mesh), displacements, mesh)
 
 
-def stm_loss(
+def loss(
     params: PyTree,
     config: STMConfig,
-    meshes: STMMesh,
     batch: dict[str, Any],
     key: PRNGKeyArray | None = None,
+    *,
+    meshes: STMMesh,
 ) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """Motion loss of STM on a batch of windows, each on one of a stack of padded meshes.
 
     Args:
         params: STM variables.
         config: static configuration.
-        meshes: :func:`stack_meshes` output (leading mesh axis M, common padded V).
         batch: ``"mesh"`` ``(B,)`` int mesh index, ``"landmarks"`` ``(B, T, N, 3)`` landmark
             displacements (metres), ``"vertices"`` ``(B, T, V, 3)`` vertex displacements (metres,
             padding rows ignored), optional ``"mask"`` ``(B, T)``.
         key: unused (the loss is deterministic); accepted for the training loop's signature.
+        meshes: :func:`stack_meshes` output (leading mesh axis M, common padded V): the training
+            set's meshes, which ``batch["mesh"]`` indexes (:func:`make_loss_fn` binds them).
 
     Returns:
         ``(loss, metrics)`` in model units (``displacement_scale`` x metres).
@@ -529,7 +531,7 @@ def stm_loss(
     )
 
 
-def make_stm_loss(config: STMConfig, meshes: STMMesh):
+def make_loss_fn(config: STMConfig, meshes: STMMesh):
     """``loss_fn(params, batch, key)`` for :func:`jaxtalk.train.train` with the meshes bound.
 
     Args:
@@ -543,4 +545,4 @@ def make_stm_loss(config: STMConfig, meshes: STMMesh):
 
 
 def _bound_loss(config: STMConfig, meshes: STMMesh, params: PyTree, batch: dict[str, Any], key: PRNGKeyArray):
-    return stm_loss(params, config, meshes, batch, key)
+    return loss(params, config, batch, key, meshes=meshes)

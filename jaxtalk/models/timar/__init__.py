@@ -8,8 +8,8 @@ Modules: ``config`` (presets), ``tokens`` (turn layout, separators, interleave),
 """
 
 from jaxtalk.models.timar.config import TimarConfig
-from jaxtalk.models.timar.loss import make_loss_fn, timar_loss
+from jaxtalk.models.timar.loss import loss, make_loss_fn
 from jaxtalk.models.timar.model import encode_window, init_params
 from jaxtalk.models.timar.sample import posterior_mean, sample
 
-__all__ = ["TimarConfig", "init_params", "encode_window", "timar_loss", "make_loss_fn", "sample", "posterior_mean"]
+__all__ = ["TimarConfig", "init_params", "encode_window", "loss", "make_loss_fn", "sample", "posterior_mean"]

@@ -2,7 +2,7 @@
 
 * :class:`TokTalkConfig` (``paper``, ``small``, ``tiny`` presets) and :func:`init_params`.
 * Model pieces: :class:`Decoder` (1-D U-Net transformer), :class:`StyleEncoder`, :class:`Adapter`.
-* Losses: :func:`cfm_loss` (stage 1) and :func:`adapter_loss` (stage 2).
+* Losses: :func:`loss` (stage 1) and :func:`adapter_loss` (stage 2).
 * Inference: :func:`sample` (offline), :func:`init_stream` / :func:`stream_step` / :func:`stream`
   (streaming engine with an explicit carried state), :func:`encode_style`, :func:`adapt_tokens`.
 * Training: :mod:`jaxtalk.models.toktalk.train` (two stages with the shared loop).
@@ -11,7 +11,7 @@
 from jaxtalk.models.toktalk.adapter import Adapter
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.decoder import Decoder, attention_bias
-from jaxtalk.models.toktalk.loss import adapter_loss, cfm_loss, flow_matching_terms, random_known_mask
+from jaxtalk.models.toktalk.loss import adapter_loss, flow_matching_terms, loss, make_loss_fn, random_known_mask
 from jaxtalk.models.toktalk.model import (
     Condition,
     adapt_tokens,
@@ -57,7 +57,8 @@ __all__ = [
     "kl_divergence",
     "flow_matching_terms",
     "random_known_mask",
-    "cfm_loss",
+    "loss",
+    "make_loss_fn",
     "adapter_loss",
     "sample",
     "StreamState",

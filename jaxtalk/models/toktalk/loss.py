@@ -2,14 +2,14 @@
 
 CFM (``papers/NOTES.md``): ``t ~ U(0, 1)``, ``z ~ N(0, I)``, ``x_t = (1 - (1 - sigma_min) t) z + t x1``,
 target ``u = x1 - (1 - sigma_min) z``; the loss is the squared error summed over real frames and
-channels divided by (real frames x channels). Per example, with probability ``cond_dropout`` the
+channels divided by (real frames x channels). Per example, with probability ``cfg_dropout`` the
 tokens, style and known frames are dropped together (CFG); with probability ``known_prob`` a random
 contiguous segment of up to ``known_max_fraction`` of the real frames is given as known frames (the
 reference uses a prefix; a segment anywhere also covers the streaming window, whose known overlap
 sits just before the new chunk). Per batch, the chunk mask is used with probability
 ``chunk_mask_prob`` (else full attention), so one model serves streaming and offline.
 
-Batches are dicts: ``motion (B, T, D)``, ``tokens (B, Tt, token_dim)`` at the base token rate,
+Batches are dicts: ``motion (B, T, D)``, ``tokens (B, Tt, speech_dim)`` at the base token rate,
 ``style (B, S, D)`` reference clips, ``mask (B, T)`` bool; stage 2 adds ``src_tokens (B, Ts, src_dim)``.
 
 With ``config.style_anchor`` the flow runs in coordinates centred on the reference clip's mean pose
@@ -20,6 +20,8 @@ centring is a change of coordinates, not a condition: the CFG-dropped branch run
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -40,7 +42,7 @@ from jaxtalk.models.toktalk.model import (
 from jaxtalk.models.toktalk.style import kl_divergence
 from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 
-__all__ = ["cfm_loss", "adapter_loss", "random_known_mask", "flow_matching_terms"]
+__all__ = ["loss", "make_loss_fn", "adapter_loss", "random_known_mask", "flow_matching_terms"]
 
 PyTree = Any
 
@@ -102,8 +104,8 @@ def _check_batch(batch: dict[str, Any], config: TokTalkConfig) -> None:
         raise ValueError(f"batch['motion'] must be (B, T, {config.param_dim}), got {motion.shape}")
     if mask.shape != motion.shape[:2]:
         raise ValueError(f"batch['mask'] must be (B, T) = {motion.shape[:2]}, got {mask.shape}")
-    if tokens.ndim != 3 or tokens.shape[-1] != config.token_dim:
-        raise ValueError(f"batch['tokens'] must be (B, Tt, {config.token_dim}), got {tokens.shape}")
+    if tokens.ndim != 3 or tokens.shape[-1] != config.speech_dim:
+        raise ValueError(f"batch['tokens'] must be (B, Tt, {config.speech_dim}), got {tokens.shape}")
     expected = motion.shape[1] * config.token_rate / config.fps
     if abs(tokens.shape[1] - expected) > 0.5:
         raise ValueError(
@@ -134,7 +136,7 @@ def _flow_loss(
     x_t, u = flow_matching_terms(x1, z, times, config.sigma_min)
 
     known_mask = random_known_mask(k_known, valid, config.known_prob, config.known_max_fraction)
-    keep = jax.random.bernoulli(k_drop, 1.0 - config.cond_dropout, (b,)).astype(x1.dtype)
+    keep = jax.random.bernoulli(k_drop, 1.0 - config.cfg_dropout, (b,)).astype(x1.dtype)
     chunked = jnp.broadcast_to(jax.random.bernoulli(k_chunk, config.chunk_mask_prob), (b,))
     cond = Condition(
         tokens=interpolate_tokens(tokens, config.token_rate, config.fps, t, config.token_alignment),
@@ -153,8 +155,8 @@ def _flow_loss(
     return flow + config.kl_weight * kl, {"flow": flow, "kl": kl}
 
 
-def cfm_loss(
-    params: PyTree, batch: dict[str, Any], key: PRNGKeyArray, *, config: TokTalkConfig
+def loss(
+    params: PyTree, config: TokTalkConfig, batch: dict[str, Any], key: PRNGKeyArray
 ) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
     """Stage-1 loss: masked CFM + ``kl_weight`` x style KL (see the module docstring).
 
@@ -162,7 +164,7 @@ def cfm_loss(
         params: ``{"decoder", "style"}`` parameters.
         batch: ``motion``, ``tokens``, ``style``, ``mask`` (optional ``style_mask``).
         key: PRNG key.
-        config: model settings (bind with ``functools.partial`` for the train loop).
+        config: model settings (:func:`make_loss_fn` binds them for the train loop).
 
     Returns:
         ``(loss, {"flow", "kl"})``.
@@ -175,12 +177,21 @@ def cfm_loss(
     return _flow_loss(params, batch, batch["tokens"], key, config)
 
 
+def make_loss_fn(config: TokTalkConfig) -> Callable[[PyTree, dict[str, Any], PRNGKeyArray], tuple[Array, dict[str, Array]]]:
+    """``loss_fn(params, batch, key)`` for :func:`jaxtalk.train.train`: :func:`loss` with ``config`` bound."""
+    return functools.partial(_bound_loss, config)
+
+
+def _bound_loss(config: TokTalkConfig, params: PyTree, batch: dict[str, Any], key: PRNGKeyArray):
+    return loss(params, config, batch, key)
+
+
 def adapter_loss(
     params: PyTree,
+    config: TokTalkConfig,
     batch: dict[str, Any],
     key: PRNGKeyArray,
     *,
-    config: TokTalkConfig,
     src_rate: float | int,
     flow_weight: float = 1.0,
 ) -> tuple[Float[Array, ""], dict[str, Float[Array, ""]]]:
@@ -191,9 +202,9 @@ def adapter_loss(
 
     Args:
         params: ``{"decoder", "style", "adapter"}``.
+        config: model settings.
         batch: stage-1 keys plus ``src_tokens (B, Ts, src_dim)`` at ``src_rate``.
         key: PRNG key.
-        config: model settings.
         src_rate: source token rate (Hz).
         flow_weight: lambda.
 

@@ -10,7 +10,6 @@ through :func:`train`.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any
 
 import jax
@@ -47,10 +46,10 @@ def check_data(config: TokTalkConfig, data: PreparedData) -> None:
     m = data.manifest
     if not m.get("token_dim"):
         raise ValueError(f"{data.root} has no token stream: prepare it with --tokens vq (or clip token files)")
-    if m["token_dim"] != config.token_dim or float(m["token_rate"]) != float(config.token_rate):
+    if m["token_dim"] != config.speech_dim or float(m["token_rate"]) != float(config.token_rate):
         raise ValueError(
             f"{data.root} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz but the model expects "
-            f"{config.token_dim} at {config.token_rate:g} Hz (--set token_dim=... token_rate=...)"
+            f"{config.speech_dim} at {config.token_rate:g} Hz (--set speech_dim=... token_rate=...)"
         )
 
 
@@ -156,7 +155,7 @@ def train(
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult` (``extra``: the window size).
     """
-    from jaxtalk.models.toktalk.loss import cfm_loss
+    from jaxtalk.models.toktalk.loss import make_loss_fn
     from jaxtalk.models.toktalk.model import fit_flow_scale, init_params
     from jaxtalk.models.toktalk.train import base_trainable
     check_data(config, data)
@@ -170,8 +169,7 @@ def train(
         first = [recipe.example(data, table[j]) for j in spread(len(table), 256)]
         stacked = {k: np.stack([e[k] for e in first]) for k in ("motion", "mask", "style")}
         params["norm"]["flow_scale"] = fit_flow_scale(params, config, stacked["motion"], stacked["mask"], stacked["style"])
-    loss = functools.partial(cfm_loss, config=config)
-    return fit_recipe(recipe, data, loss, params, optim, key=k_train, eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
+    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
                       metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
                       trainable=base_trainable, **loop_kwargs)
 

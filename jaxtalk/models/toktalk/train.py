@@ -1,7 +1,7 @@
 """Two-stage TokTalk training on SynthTalk with the shared training loop.
 
 Stage 1 trains the decoder and style encoder on the base token stream ("A", 12.5 Hz x 64) with
-:func:`~jaxtalk.models.toktalk.loss.cfm_loss`. Stage 2 adds an adapter for another stream ("B",
+:func:`~jaxtalk.models.toktalk.loss.loss`. Stage 2 adds an adapter for another stream ("B",
 25 Hz x 48) and trains only it with :func:`~jaxtalk.models.toktalk.loss.adapter_loss`; the shared
 loop's ``trainable`` predicate keeps every base parameter bitwise unchanged.
 
@@ -23,7 +23,7 @@ import numpy as np
 from jaxtalk.data.batching import BatchIterator
 from jaxtalk.data.standardize import fit_standardizer
 from jaxtalk.models.toktalk.config import TokTalkConfig
-from jaxtalk.models.toktalk.loss import adapter_loss, cfm_loss
+from jaxtalk.models.toktalk.loss import adapter_loss, make_loss_fn
 from jaxtalk.models.toktalk.model import fit_flow_scale, init_adapter, init_params
 from jaxtalk.train import OptimConfig, TrainResult, train
 from jaxtalk.types import PRNGKeyArray
@@ -63,12 +63,12 @@ def make_windows(
         seed: seed of the style-clip crops.
 
     Returns:
-        Dict of stacked arrays: ``motion (N, T, D)``, ``tokens (N, Tt, token_dim)``, ``style (N, S, D)``,
+        Dict of stacked arrays: ``motion (N, T, D)``, ``tokens (N, Tt, speech_dim)``, ``style (N, S, D)``,
         ``mask (N, T)`` bool, ``clip (N,)`` and ``start (N,)``, plus ``src_tokens`` when asked.
 
     Raises:
         ValueError: empty ``clips``, a window that is not a whole number of tokens, or a stream whose
-            width differs from ``config.token_dim``.
+            width differs from ``config.speech_dim``.
     """
     if len(clips) == 0:
         raise ValueError("make_windows needs at least one clip")
@@ -92,8 +92,8 @@ def make_windows(
     for i in clips:
         motion = np.asarray(corpus.motion(i), np.float32)
         tokens = np.asarray(corpus.tokens(i, "A").embeddings, np.float32)
-        if tokens.shape[1] != config.token_dim:
-            raise ValueError(f"stream A has width {tokens.shape[1]}, config.token_dim={config.token_dim}")
+        if tokens.shape[1] != config.speech_dim:
+            raise ValueError(f"stream A has width {tokens.shape[1]}, config.speech_dim={config.speech_dim}")
         src = None
         if src_stream is not None:
             stream = corpus.tokens(i, src_stream)
@@ -164,8 +164,7 @@ def train_base(
         params["norm"] = fit_standardizer(windows["motion"], windows["mask"])
         params["norm"]["flow_scale"] = fit_flow_scale(params, config, windows["motion"], windows["mask"],
                                                       windows["style"])
-    loss = functools.partial(cfm_loss, config=config)
-    return train(loss, params, _model_batches(windows, batch_size, seed), optim, key=k_train,
+    return train(make_loss_fn(config), params, _model_batches(windows, batch_size, seed), optim, key=k_train,
                  trainable=base_trainable, metadata={"model": "toktalk", "stage": 1}, **train_kwargs)
 
 
@@ -217,6 +216,10 @@ def train_adapter(
     k_init, k_train = jax.random.split(key)
     params = {k: v for k, v in base_params.items() if k != "adapter"}
     params["adapter"] = init_adapter(config, k_init, int(windows["src_tokens"].shape[-1]))
-    loss = functools.partial(adapter_loss, config=config, src_rate=float(src_rate), flow_weight=float(flow_weight))
+    loss = functools.partial(_adapter_loss, config, float(src_rate), float(flow_weight))
     return train(loss, params, _model_batches(windows, batch_size, seed), optim, key=k_train,
                  trainable=adapter_trainable, metadata={"model": "toktalk", "stage": 2}, **train_kwargs)
+
+
+def _adapter_loss(config: TokTalkConfig, src_rate: float, flow_weight: float, params: Any, batch: dict, key: Any):
+    return adapter_loss(params, config, batch, key, src_rate=src_rate, flow_weight=flow_weight)
