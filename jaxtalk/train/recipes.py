@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -191,6 +192,8 @@ def fit_recipe(
 ) -> RecipeResult:
     """What every recipe does once its windows, loss and initial parameters are set: the grain loader
     over the training split, the validation loss on ``val`` (and the best checkpoint), the shared loop.
+    With ``ckpt_dir``, the run folder (its parent) gets ``metrics.jsonl`` and TensorBoard event files
+    (:mod:`jaxtalk.train.writers`) unless ``loop_kwargs`` names another ``log_dir``.
 
     Args:
         recipe: the window recipe.
@@ -212,6 +215,8 @@ def fit_recipe(
 
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     eval_fn = split_validation(data, recipe, loss_fn, batch_size, eval_key)
+    if ckpt_dir is not None:  # the run folder of the run layout: <run>/checkpoint is the checkpoint directory
+        loop_kwargs.setdefault("log_dir", Path(ckpt_dir).parent)
     result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
                    mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     return RecipeResult(state=result.state, history=result.history, best=result.best, extra=extra,
