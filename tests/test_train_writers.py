@@ -2,8 +2,8 @@
 through the training loop: what a row holds, the event file agreeing with it, resumes that never repeat
 a step; the batch a small training split allows; and checkpoints opened without orbax's warnings.
 
-Event files are read back here with tensorboardX's protobufs and the TFRecord framing, checksums
-verified, independently of the library's own reading code.
+Event files are read back with tensorboardX's protobufs and the TFRecord framing, checksums verified,
+independently of the library's own reading code (``helpers.read_event_file``).
 """
 
 from __future__ import annotations
@@ -22,45 +22,11 @@ from jaxtalk.data.batching import BatchIterator
 from jaxtalk.train import Checkpointer, OptimConfig, make_schedule, read_history, read_metrics, save_checkpoint, train
 from jaxtalk.train.recipes import usable_batch_size
 from jaxtalk.train.writers import METRICS_FILE, RunMetrics
+from helpers import event_files, read_event_file, scalars
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
 CFG = OptimConfig(lr=1e-2, weight_decay=1e-3, warmup_steps=3, total_steps=12, clip_norm=1.0)
-
-
-# ---------------------------------------------------------------- reading event files independently
-
-
-def read_event_file(path):
-    """Every ``Event`` of one file, checking each record's length and payload checksums."""
-    from tensorboardX.proto.event_pb2 import Event
-    from tensorboardX.record_writer import masked_crc32c
-
-    data, offset, events = path.read_bytes(), 0, []
-    while offset < len(data):
-        header = data[offset:offset + 8]
-        (length,) = struct.unpack("<Q", header)
-        assert struct.unpack("<I", data[offset + 8:offset + 12])[0] == masked_crc32c(header)
-        payload = data[offset + 12:offset + 12 + length]
-        assert len(payload) == length, f"torn record in {path}"
-        assert struct.unpack("<I", data[offset + 12 + length:offset + 16 + length])[0] == masked_crc32c(payload)
-        events.append(Event.FromString(payload))
-        offset += 16 + length
-    return events
-
-
-def event_files(run_dir):
-    return sorted(p for p in run_dir.glob("events.out.tfevents.*") if not p.name.startswith("."))
-
-
-def scalars(run_dir):
-    """``tag -> [(step, value), ...]`` over all event files of a run folder, in file order."""
-    out: dict[str, list[tuple[int, float]]] = {}
-    for path in event_files(run_dir):
-        for event in read_event_file(path):
-            for value in event.summary.value:
-                out.setdefault(value.tag, []).append((event.step, value.simple_value))
-    return out
 
 
 # ---------------------------------------------------------------- tiny problem
