@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import jax
 
@@ -66,3 +67,50 @@ def scalars(run_dir):
             for value in event.summary.value:
                 out.setdefault(value.tag, []).append((event.step, value.simple_value))
     return out
+
+
+# DualTalk's demo clips (real data) live outside the repository, in ../shared; tests that read them
+# also run on a DualTalk-layout folder exported from SynthTalk, so a fresh clone loses no code path.
+DUALTALK_DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
+DUALTALK_SOURCES = ("synthtalk", "real")
+
+
+def dualtalk_folder(root, source: str, corpus=None) -> dict[str, tuple[str, int]]:
+    """A DualTalk release-layout folder at ``root`` shaped like DualTalk's demo: a ``train/``
+    conversation whose speaker 2 alone has tracked motion and a ``test/`` one whose speaker 1 alone has.
+
+    Args:
+        root: the folder to create.
+        source: ``"real"``: the demo clips (the test skips where ``../shared`` lacks them);
+            ``"synthtalk"``: ``corpus``'s training and test conversations (``export_dualtalk``), the
+            other side's ``.npz`` removed.
+        corpus: the SynthTalk corpus (``synthtalk`` only).
+
+    Returns:
+        ``{split: (conversation stem, the speaker with motion)}``; clip names are
+        ``f"{stem}_speaker{k}"``.
+    """
+    import shutil
+
+    import pytest
+
+    if source == "real":
+        if not DUALTALK_DEMO.is_dir():
+            pytest.skip("shared DualTalk demo data not available")
+        convs = {"train": ("UbjUDM1MiGE_sub_video_72", 2), "test": ("xkHwlcDSOjc_sub_video_109_000", 1)}
+        for split, (conv, _) in convs.items():
+            (root / split).mkdir(parents=True)
+            for f in DUALTALK_DEMO.glob(f"{conv}_speaker*"):
+                shutil.copy(f, root / split / f.name)
+        return convs
+    from jaxtalk.data.sources import export_dualtalk
+
+    export_dualtalk(corpus, root)
+    for split in ("val", "ood"):
+        shutil.rmtree(root / split, ignore_errors=True)
+    convs = {}
+    for split, with_motion in (("train", 2), ("test", 1)):
+        [npz] = (root / split).glob(f"*_speaker{3 - with_motion}.npz")
+        npz.unlink()
+        convs[split] = (npz.name[: -len(f"_speaker{3 - with_motion}.npz")], with_motion)
+    return convs
