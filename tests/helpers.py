@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import jax
 
@@ -30,3 +31,86 @@ def timar_streams(batch: int, frames: int, seed: int = 0, speech_dim: int = 8) -
         "agent_speech": rng.normal(size=(batch, frames, speech_dim)).astype(np.float32),
         "agent_motion": rng.normal(size=(batch, frames, 56)).astype(np.float32),
     }
+
+
+def read_event_file(path):
+    """Every TensorBoard ``Event`` of one file, read with tensorboardX's protobufs and the TFRecord
+    framing, each record's length and payload checksums verified (independent of jaxtalk's code)."""
+    import struct
+
+    from tensorboardX.proto.event_pb2 import Event
+    from tensorboardX.record_writer import masked_crc32c
+
+    data, offset, events = path.read_bytes(), 0, []
+    while offset < len(data):
+        header = data[offset:offset + 8]
+        (length,) = struct.unpack("<Q", header)
+        assert struct.unpack("<I", data[offset + 8:offset + 12])[0] == masked_crc32c(header)
+        payload = data[offset + 12:offset + 12 + length]
+        assert len(payload) == length, f"torn record in {path}"
+        assert struct.unpack("<I", data[offset + 12 + length:offset + 16 + length])[0] == masked_crc32c(payload)
+        events.append(Event.FromString(payload))
+        offset += 16 + length
+    return events
+
+
+def event_files(run_dir):
+    """A run folder's TensorBoard event files, in name (creation) order."""
+    return sorted(p for p in run_dir.glob("events.out.tfevents.*") if not p.name.startswith("."))
+
+
+def scalars(run_dir):
+    """``tag -> [(step, value), ...]`` over all event files of a run folder, in file order."""
+    out: dict[str, list[tuple[int, float]]] = {}
+    for path in event_files(run_dir):
+        for event in read_event_file(path):
+            for value in event.summary.value:
+                out.setdefault(value.tag, []).append((event.step, value.simple_value))
+    return out
+
+
+# DualTalk's demo clips (real data) live outside the repository, in ../shared; tests that read them
+# also run on a DualTalk-layout folder exported from SynthTalk, so a fresh clone loses no code path.
+DUALTALK_DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
+DUALTALK_SOURCES = ("synthtalk", "real")
+
+
+def dualtalk_folder(root, source: str, corpus=None) -> dict[str, tuple[str, int]]:
+    """A DualTalk release-layout folder at ``root`` shaped like DualTalk's demo: a ``train/``
+    conversation whose speaker 2 alone has tracked motion and a ``test/`` one whose speaker 1 alone has.
+
+    Args:
+        root: the folder to create.
+        source: ``"real"``: the demo clips (the test skips where ``../shared`` lacks them);
+            ``"synthtalk"``: ``corpus``'s training and test conversations (``export_dualtalk``), the
+            other side's ``.npz`` removed.
+        corpus: the SynthTalk corpus (``synthtalk`` only).
+
+    Returns:
+        ``{split: (conversation stem, the speaker with motion)}``; clip names are
+        ``f"{stem}_speaker{k}"``.
+    """
+    import shutil
+
+    import pytest
+
+    if source == "real":
+        if not DUALTALK_DEMO.is_dir():
+            pytest.skip("shared DualTalk demo data not available")
+        convs = {"train": ("UbjUDM1MiGE_sub_video_72", 2), "test": ("xkHwlcDSOjc_sub_video_109_000", 1)}
+        for split, (conv, _) in convs.items():
+            (root / split).mkdir(parents=True)
+            for f in DUALTALK_DEMO.glob(f"{conv}_speaker*"):
+                shutil.copy(f, root / split / f.name)
+        return convs
+    from jaxtalk.data.sources import export_dualtalk
+
+    export_dualtalk(corpus, root)
+    for split in ("val", "ood"):
+        shutil.rmtree(root / split, ignore_errors=True)
+    convs = {}
+    for split, with_motion in (("train", 2), ("test", 1)):
+        [npz] = (root / split).glob(f"*_speaker{3 - with_motion}.npz")
+        npz.unlink()
+        convs[split] = (npz.name[: -len(f"_speaker{3 - with_motion}.npz")], with_motion)
+    return convs

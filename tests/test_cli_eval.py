@@ -21,10 +21,10 @@ import pytest
 from typer.testing import CliRunner
 
 from jaxtalk.cli import app
+from helpers import DUALTALK_SOURCES, dualtalk_folder
 
 runner = CliRunner()
 
-DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
 
 TIMAR = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
          "--set", "head_blocks=1", "--set", "max_turns=2"]
@@ -325,15 +325,16 @@ def test_eval_user_errors_are_one_line(runs, prepared_tiny, tmp_path):
 # ---------------------------------------------------------------------------------------- real data
 
 
-@pytest.mark.skipif(not DEMO.is_dir(), reason="shared DualTalk demo data not available")
-def test_real_dualtalk_demo_timar_and_toktalk_eval(tmp_path):
+@pytest.mark.slow  # two trainings and evaluations
+@pytest.mark.parametrize("source", DUALTALK_SOURCES)
+def test_dualtalk_demo_layout_timar_and_toktalk_eval(source, tmp_path, request):
+    """DualTalk's demo clips (``real``, where ``../shared`` has them) or the same layout exported from
+    SynthTalk: one tracked side per conversation, no validation split, no oracle."""
     from jaxtalk.data.loader import PreparedData
 
     root = tmp_path / "dualtalk"
-    for split, conv in (("train", "UbjUDM1MiGE_sub_video_72"), ("test", "xkHwlcDSOjc_sub_video_109_000")):
-        (root / split).mkdir(parents=True)
-        for f in DEMO.glob(f"{conv}_speaker*"):
-            shutil.copy(f, root / split / f.name)
+    corpus = request.getfixturevalue("synthtalk_tiny") if source == "synthtalk" else None
+    test_conv, test_k = dualtalk_folder(root, source, corpus)["test"]
     prepared, run = tmp_path / "prepared", tmp_path / "run"
     _ok(["prepare", root, "--out", prepared, "--no-progress"])
     _ok(["train", "timar", "--data", prepared, "--steps", "2", *SMALL["timar"], "--no-progress", "--out", run])
@@ -342,8 +343,8 @@ def test_real_dualtalk_demo_timar_and_toktalk_eval(tmp_path):
     report = _report(tmp_path / "r.json")
     assert report["items"] == 1 and len(report["tables"]) == 3
     data = PreparedData(prepared)
-    agent, partner = (data.index(f"xkHwlcDSOjc_sub_video_109_000_speaker{k}") for k in (1, 2))
-    turns = min(data.clips[agent]["frames"], data.clips[partner]["frames"]) // 25  # the partner's 29.95 s: 29
+    agent, partner = (data.index(f"{test_conv}_speaker{k}") for k in (test_k, 3 - test_k))
+    turns = min(data.clips[agent]["frames"], data.clips[partner]["frames"]) // 25  # real: the partner's 29.95 s, 29
     for group, table in zip(("exp", "jaw", "pose"), report["tables"]):
         assert f", {group}" in table["title"]
         columns, printed = _table(output, table["title"])

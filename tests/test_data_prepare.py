@@ -8,7 +8,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +19,9 @@ from jaxtalk.data.loader import PreparedData
 from jaxtalk.data.prepare import PrepareSettings, prepare
 from jaxtalk.data.sources import BadClip, open_source
 from jaxtalk.data.sources.synthtalk import export_generic, synthtalk_entries
+from helpers import DUALTALK_SOURCES, dualtalk_folder
 
 FAST = PrepareSettings(tokens="none", landmarks=False)
-DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
 
 
 def _quiet(*args, **kwargs):
@@ -415,24 +414,24 @@ def test_synthtalk_recipe_windows_are_bitwise_equal_from_disk_and_memory(synth_p
 
 
 # ------------------------------------------------------------------------------------------ real data
-@pytest.mark.skipif(not DEMO.is_dir(), reason="shared DualTalk demo data not available")
-def test_real_dualtalk_demo_prepares_four_sides_with_exact_motion_turn_speech_and_vq_tokens(tmp_path):
+@pytest.mark.parametrize("source", DUALTALK_SOURCES)
+def test_dualtalk_demo_layout_prepares_four_sides_with_exact_motion_turn_speech_and_vq_tokens(source, tmp_path, request):
+    """DualTalk's demo clips (``real``, where ``../shared`` has them) or the same layout exported from
+    SynthTalk: two conversations, each with one side tracked."""
     from jaxtalk.data.formats import read_dualtalk
 
     root = tmp_path / "dualtalk"
-    for split, conv in (("train", "UbjUDM1MiGE_sub_video_72"), ("test", "xkHwlcDSOjc_sub_video_109_000")):
-        (root / split).mkdir(parents=True)
-        for f in DEMO.glob(f"{conv}_speaker*"):
-            shutil.copy(f, root / split / f.name)
+    corpus = request.getfixturevalue("synthtalk_tiny") if source == "synthtalk" else None
+    convs = dualtalk_folder(root, source, corpus)
+    (train_conv, train_k), (test_conv, _) = convs["train"], convs["test"]
     result = _quiet(root, tmp_path / "out")
     assert result.skipped == [] and result.clips == 4
     data = PreparedData(tmp_path / "out")
     m = data.manifest
     motion = {c["name"]: c["has_motion"] for c in data.clips}
-    assert motion == {"UbjUDM1MiGE_sub_video_72_speaker1": False, "UbjUDM1MiGE_sub_video_72_speaker2": True,
-                      "xkHwlcDSOjc_sub_video_109_000_speaker1": True, "xkHwlcDSOjc_sub_video_109_000_speaker2": False}
-    assert m["splits"]["train"] == ["UbjUDM1MiGE_sub_video_72_speaker1", "UbjUDM1MiGE_sub_video_72_speaker2"]
-    assert m["splits"]["test"] == ["xkHwlcDSOjc_sub_video_109_000_speaker1", "xkHwlcDSOjc_sub_video_109_000_speaker2"]
+    assert motion == {f"{conv}_speaker{k}": k == with_motion for conv, with_motion in convs.values() for k in (1, 2)}
+    assert m["splits"]["train"] == [f"{train_conv}_speaker1", f"{train_conv}_speaker2"]
+    assert m["splits"]["test"] == [f"{test_conv}_speaker1", f"{test_conv}_speaker2"]
     assert m["settings"]["tokens"] == "vq" and m["tokenizer"] == "tokenizer.npz"
     assert m["token_rate"] == 12.5 and m["token_dim"] == 64
     assert data.tokenizer() is not None
@@ -451,10 +450,12 @@ def test_real_dualtalk_demo_prepares_four_sides_with_exact_motion_turn_speech_an
             assert rec["landmarks"].shape == (T, 68, 3)
         else:
             assert "motion" not in rec and "landmarks" not in rec
-    assert {c["name"]: c["frames"] for c in data.clips if c["has_motion"]} == {
-        "UbjUDM1MiGE_sub_video_72_speaker2": 587, "xkHwlcDSOjc_sub_video_109_000_speaker1": 750}
-    assert data.partner(data.index("UbjUDM1MiGE_sub_video_72_speaker2")) == data.index("UbjUDM1MiGE_sub_video_72_speaker1")
+    if source == "real":
+        assert {c["name"]: c["frames"] for c in data.clips if c["has_motion"]} == {
+            "UbjUDM1MiGE_sub_video_72_speaker2": 587, "xkHwlcDSOjc_sub_video_109_000_speaker1": 750}
+    tracked = f"{train_conv}_speaker{train_k}"
+    assert data.partner(data.index(tracked)) == data.index(f"{train_conv}_speaker{3 - train_k}")
     # Training statistics come from the one training side with motion.
-    train = data.record(data.index("UbjUDM1MiGE_sub_video_72_speaker2"))["motion"].astype(np.float64)
+    train = data.record(data.index(tracked))["motion"].astype(np.float64)
     np.testing.assert_allclose(m["stats"]["motion_mean"], train.mean(0), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(m["stats"]["motion_std"], train.std(0), rtol=1e-6, atol=1e-9)

@@ -30,6 +30,8 @@ from jaxtalk.audio.encoders import (  # noqa: E402
     normalize_waveform,
 )
 
+pytestmark = pytest.mark.external  # torch + transformers
+
 TOL = 1e-4
 _HF = {
     "wav2vec2": (transformers.Wav2Vec2Config, transformers.Wav2Vec2Model),

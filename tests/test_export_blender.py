@@ -16,6 +16,8 @@ from test_export_gltf import head_motion
 from jaxtalk.export import export_face_model
 from jaxtalk.face import builtin_face
 
+pytestmark = pytest.mark.external  # Blender
+
 SCRIPT = Path(__file__).with_name("blender_playback.py")
 
 

@@ -24,6 +24,8 @@ from jaxtalk.export import export_face_model, export_vertex_sequence, write_audi
 from jaxtalk.face import builtin_face
 from jaxtalk.viewer import start_server
 
+pytestmark = pytest.mark.external  # Node.js/npm and Chromium
+
 JS = Path(__file__).with_name("js")
 SIZE = 320
 

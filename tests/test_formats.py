@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pickle
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +17,7 @@ from jaxtalk.data.formats import (
     read_vocaset_templates,
     save_npz,
 )
-
-DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
+from helpers import DUALTALK_SOURCES, dualtalk_folder
 
 
 def _wav(path, seconds=0.4, rate=16000):
@@ -43,27 +41,39 @@ def _dualtalk_npz(path, frames=10, **overrides):
 # --- DualTalk ---------------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(not DEMO.is_dir(), reason="shared DualTalk demo data not available")
-def test_dualtalk_demo_clip():
-    npz = DEMO / "UbjUDM1MiGE_sub_video_72_speaker2.npz"
+@pytest.mark.parametrize("source", DUALTALK_SOURCES)
+def test_dualtalk_demo_layout_clip(source, tmp_path, request):
+    """A tracked side of DualTalk's demo (``real``, where ``../shared`` has it) or of the same layout
+    exported from SynthTalk."""
+    corpus = request.getfixturevalue("synthtalk_tiny") if source == "synthtalk" else None
+    conv, k = dualtalk_folder(tmp_path, source, corpus)["train"]
+    npz = tmp_path / "train" / f"{conv}_speaker{k}.npz"
     clip = read_dualtalk(npz)
     raw = np.load(npz)
-    assert clip.params.shape == (587, 56) and clip.fps == 25.0
+    assert clip.params.shape == (raw["exp"].shape[0], 56) and clip.fps == 25.0
     np.testing.assert_array_equal(clip.params[:, :50], raw["exp"])
     np.testing.assert_array_equal(clip.params[:, 50:53], raw["pose"][:, 3:])  # jaw
     np.testing.assert_array_equal(clip.params[:, 53:], raw["pose"][:, :3])  # neck
-    # Audio and motion cover the same 23.5 s; the partner is the other speaker's track.
+    # Audio and motion cover the same time; the partner is the other speaker's track.
     assert clip.audio.dtype == np.float32 and abs(clip.audio.size / 16000 - clip.duration) < 0.1
-    assert clip.partner_audio_path == DEMO / "UbjUDM1MiGE_sub_video_72_speaker1.wav"
-    # Real tracks have the ranges SynthTalk is calibrated against (jaw opening below ~0.5 rad).
-    assert 0.05 < np.abs(clip.params[:, 50]).max() < 0.6
+    assert clip.partner_audio_path == tmp_path / "train" / f"{conv}_speaker{3 - k}.wav"
+    if source == "real":
+        assert clip.params.shape[0] == 587
+        # Real tracks have the ranges SynthTalk is calibrated against (jaw opening below ~0.5 rad).
+        assert 0.05 < np.abs(clip.params[:, 50]).max() < 0.6
 
 
-@pytest.mark.skipif(not DEMO.is_dir(), reason="shared DualTalk demo data not available")
-def test_dualtalk_demo_through_read_clip():
-    clip = read_clip(DEMO / "xkHwlcDSOjc_sub_video_109_000_speaker1.npz", load_audio=False)
-    assert clip.params.shape == (750, 56) and clip.audio is None
-    assert clip.audio_path.name == "xkHwlcDSOjc_sub_video_109_000_speaker1.wav"
+@pytest.mark.parametrize("source", DUALTALK_SOURCES)
+def test_dualtalk_demo_layout_through_read_clip(source, tmp_path, request):
+    corpus = request.getfixturevalue("synthtalk_tiny") if source == "synthtalk" else None
+    conv, k = dualtalk_folder(tmp_path, source, corpus)["test"]
+    npz = tmp_path / "test" / f"{conv}_speaker{k}.npz"
+    clip = read_clip(npz, load_audio=False)
+    assert clip.params.shape == (np.load(npz)["exp"].shape[0], 56) and clip.audio is None
+    np.testing.assert_array_equal(clip.params, read_dualtalk(npz, load_audio=False).params)
+    assert clip.audio_path.name == f"{conv}_speaker{k}.wav"
+    if source == "real":
+        assert clip.params.shape[0] == 750
 
 
 def test_dualtalk_layout_on_synthetic_file(tmp_path):

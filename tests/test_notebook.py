@@ -14,6 +14,8 @@ import pytest
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
+pytestmark = [pytest.mark.external, pytest.mark.slow]  # a Jupyter kernel running the whole quickstart
+
 NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "quickstart.ipynb"
 
 

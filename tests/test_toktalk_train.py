@@ -78,6 +78,7 @@ def test_make_windows_cuts_aligned_motion_tokens_and_foreign_style():
         make_windows(corpus, clips, cfg, window_frames=41)
 
 
+@pytest.mark.slow  # 120 training steps
 def test_training_reduces_the_flow_loss_on_a_learnable_task(fast_compile):
     # Motion that is a fixed linear function of the tokens: learnable from the condition alone.
     rng = np.random.default_rng(0)

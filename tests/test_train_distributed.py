@@ -32,6 +32,7 @@ def _run_all(jobs: list[tuple[list[str], dict[str, str], Path]]) -> None:
     run_all([([sys.executable, str(WORKER), *args], env, log) for args, env, log in jobs], DEADLINE_S)
 
 
+@pytest.mark.multiprocess
 @pytest.mark.slow  # three JAX processes on a shared 2-core machine: 13-22 s
 @pytest.mark.skipif(not gloo_available(), reason="this jaxlib has no gloo CPU collectives")
 def test_two_processes_match_one_process(tmp_path):

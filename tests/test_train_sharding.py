@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 SCRIPT = r"""
 import json
@@ -81,6 +82,7 @@ def _run_on_four_devices() -> dict:
     return json.loads(line[len("RESULT") :])
 
 
+@pytest.mark.multiprocess  # a subprocess started with 4 forced host devices
 def test_four_device_data_parallel_matches_one_device():
     out = _run_on_four_devices()
     assert out["devices"] == 4

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -222,6 +223,9 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     explicit = parse_overrides(config_class(opts.model), model_items)
     config = build_config(opts.model, preset, [*_data_fields(opts.model, data, explicit), *model_items])
     settings = dataclasses.replace(defaults, **train_kw)
+    if existing is not None and "batch_size" not in train_kw and existing.train.get("batch_size"):
+        # The batch the run trained with (smaller than the default on a small training split).
+        settings = dataclasses.replace(settings, batch_size=int(existing.train["batch_size"]))
     if settings.window_frames is not None and opts.model in ("timar", "dualtalk", "stm"):
         raise ValueError(f"window_frames is not a {opts.model} setting ({opts.model} windows are "
                          f"{'16 frames' if opts.model == 'stm' else 'whole turns (max_turns)'})")
@@ -236,10 +240,15 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         if settings.batch_size % local:
             raise ValueError(f"batch_size {settings.batch_size} must divide by the {local} local devices")
     kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames else {}
-    result = train_fn(config, data, settings.optim(opts.steps), steps=opts.steps, key=jax.random.key(opts.seed),
-                      batch_size=settings.batch_size, seed=opts.seed, ckpt_dir=checkpoint_dir(out), mesh=mesh,
-                      eval_every=settings.period(opts.steps), progress=opts.progress,
-                      save_every=opts.save_every or max(opts.steps // 5, 1), **kw)
+    with warnings.catch_warnings():
+        # The library's warnings (a smaller batch than asked, ...) as one line each, not Python's
+        # two-line "file:line: UserWarning" form.
+        warnings.showwarning = lambda message, *_args, **_kw: echo(f"warning: {message}")
+        result = train_fn(config, data, settings.optim(opts.steps), steps=opts.steps, key=jax.random.key(opts.seed),
+                          batch_size=settings.batch_size, seed=opts.seed, ckpt_dir=checkpoint_dir(out), mesh=mesh,
+                          eval_every=settings.period(opts.steps), progress=opts.progress,
+                          save_every=opts.save_every or max(opts.steps // 5, 1), **kw)
+    settings = dataclasses.replace(settings, batch_size=result.batch_size or settings.batch_size)
     record = RunRecord(model=opts.model, preset=preset, items=list(opts.overrides), config=dataclasses.asdict(config),
                        train=dataclasses.asdict(settings), optim=settings.optim(opts.steps).to_dict(),
                        data={"spec": opts.data, "path": str(data.root.absolute()), "key": data.key},

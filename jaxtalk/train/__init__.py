@@ -7,7 +7,8 @@
   :func:`make_train_step`, :func:`ema_update`, :class:`Checkpointer`, :func:`save_checkpoint`,
   :func:`restore_checkpoint`, :func:`make_mesh`, :func:`shard_batch`.
 * Reading a run's folder: :func:`best_checkpoint_dir` (best vs latest), :func:`read_best`,
-  :func:`read_history`.
+  :func:`read_history`, :func:`read_metrics` (``metrics.jsonl``; :mod:`jaxtalk.train.writers` also
+  writes TensorBoard event files beside it).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from jaxtalk.train.optim import OptimConfig, make_optimizer, make_schedule, trai
 from jaxtalk.train.sharding import make_mesh, replicate, shard_batch
 from jaxtalk.train.state import TrainState, create_train_state
 from jaxtalk.train.step import make_train_step
+from jaxtalk.train.writers import METRICS_FILE, RunMetrics, read_metrics
 
 __all__ = [
     "train",
@@ -53,6 +55,9 @@ __all__ = [
     "best_checkpoint_dir",
     "read_best",
     "read_history",
+    "read_metrics",
+    "RunMetrics",
+    "METRICS_FILE",
     "BEST_DIR",
     "HISTORY_FILE",
     "BatchSpec",

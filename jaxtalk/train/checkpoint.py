@@ -22,6 +22,7 @@ curve.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from pathlib import Path
@@ -53,6 +54,34 @@ PyTree = Any
 class CheckpointMismatchError(ValueError):
     """A checkpoint that cannot be read, or whose arrays do not fit the train state it is restored into
     (e.g. written by another model configuration)."""
+
+
+# Orbax's absl warnings that report expected behaviour of this module, not a problem: every read-only
+# open (how `jaxtalk eval`, `sample` and a resumed `train` read a run) and the wait for the previous
+# background save, which the loop's evaluation and save cadence triggers on any short run (its cost
+# shows in the progress bar's steps/s). Matched on orbax's exact format strings; everything else
+# orbax logs still shows.
+_ORBAX_NOISE = (
+    "Given directory is read only=%s",
+    "Waiting for previous save to complete took %f seconds. If this number is high, consider checkpointing less "
+    "frequently.",
+)
+
+
+class _OrbaxNoiseFilter(logging.Filter):
+    """Drops the records of :data:`_ORBAX_NOISE` from absl's logger."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.msg not in _ORBAX_NOISE
+
+
+_NOISE_FILTER = _OrbaxNoiseFilter()
+
+
+def _quiet_orbax() -> None:
+    # Idempotent (logging keeps one copy of a filter object); installed on first use of a
+    # Checkpointer rather than at import, so importing jaxtalk changes no logging.
+    logging.getLogger("absl").addFilter(_NOISE_FILTER)
 
 
 def _saveable(state: TrainState) -> dict[str, PyTree]:
@@ -113,8 +142,12 @@ class Checkpointer:
         if read_only and not self.directory.is_dir():
             raise FileNotFoundError(f"checkpoint directory {self.directory} does not exist")
         self._ocp = ocp
+        _quiet_orbax()
         options = ocp.CheckpointManagerOptions(
-            max_to_keep=max_to_keep,
+            # A read-only manager keeps and saves nothing; orbax logs a warning for each of these
+            # settings it has to override when given otherwise, so give it what it would set.
+            max_to_keep=None if read_only else max_to_keep,
+            save_interval_steps=0 if read_only else 1,
             create=not read_only,
             read_only=read_only,
             enable_async_checkpointing=async_save,

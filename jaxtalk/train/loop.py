@@ -6,7 +6,8 @@ exact resumption (state, optimiser, EMA, RNG and data position).
 
 With ``best_metric`` the loop also keeps the best-validated state in ``<ckpt_dir>/best`` and, with
 evaluation, writes the training and validation curve to ``<ckpt_dir>/history.jsonl`` (layout:
-:mod:`jaxtalk.train.checkpoint`).
+:mod:`jaxtalk.train.checkpoint`). With ``log_dir`` (the run folder) it writes ``metrics.jsonl`` and
+TensorBoard event files there (:mod:`jaxtalk.train.writers`).
 
 Metrics stay on the device and are fetched every ``log_every`` steps (and before each checkpoint or
 evaluation) so the host does not wait for every step; the non-finite-loss check runs on those
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import math
 import os
 import time
@@ -37,6 +37,7 @@ from jaxtalk.train.optim import OptimConfig, Trainable, make_optimizer, trainabl
 from jaxtalk.train.sharding import replicate, shard_batch
 from jaxtalk.train.state import TrainState, create_train_state
 from jaxtalk.train.step import LossFn, make_train_step
+from jaxtalk.train.writers import RunMetrics, json_line
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["train", "TrainResult", "NonFiniteLossError"]
@@ -100,6 +101,7 @@ def train(
     best_metric: str | None = None,
     best_mode: Literal["min", "max"] = "min",
     write_history: bool | None = None,
+    log_dir: str | os.PathLike | None = None,
     trainable: Trainable = None,
     mesh: Mesh | None = None,
     progress: bool = True,
@@ -121,7 +123,9 @@ def train(
         max_steps: stop when ``state.step`` reaches this (default ``config.total_steps``).
         ckpt_dir: checkpoint directory (None: no checkpoints).
         resume: continue from the newest checkpoint in ``ckpt_dir`` if there is one (False with
-            existing checkpoints is an error rather than a silent overwrite).
+            existing checkpoints is an error rather than a silent overwrite). A ``config`` with
+            another schedule length (``total_steps``, ``warmup_steps``) continues the run on the
+            stretched schedule; any other difference from the checkpoint's config warns.
         save_every: also checkpoint every this many steps (the final step is always saved).
         keep_checkpoints: how many recent checkpoints to keep.
         async_checkpoints: write checkpoints in the background.
@@ -141,6 +145,10 @@ def train(
             evaluation to ``<ckpt_dir>/history.jsonl`` (read with :func:`jaxtalk.train.read_history`).
             Default: when ``ckpt_dir`` and ``eval_fn`` are both given. On resume, rows after the
             restored step (from a run killed after its last checkpoint) are dropped first.
+        log_dir: the run folder: ``metrics.jsonl`` and TensorBoard event files of the training
+            scalars (window-mean loss, gradient norm before clipping and model metrics; learning
+            rate; steps/s) and of every evaluation, flushed at each log flush, written by process 0
+            (:mod:`jaxtalk.train.writers`; a resume never repeats a step in them). None: neither.
         trainable: which parameters train: None (all), a predicate ``(path, leaf) -> bool`` on
             ``"a/b/kernel"`` paths, or a pytree of bools. Frozen leaves stay bitwise unchanged.
         mesh: device mesh for data parallelism (batch sharded, state replicated).
@@ -191,6 +199,7 @@ def train(
     meta = {"config": config.to_dict(), **(metadata or {})}
     ckpt = None
     best = None
+    metrics_log = None
     spec: BatchSpec | None = None
     has_position = hasattr(data_iter, "get_state") and hasattr(data_iter, "set_state")
     if ckpt_dir is not None:
@@ -218,7 +227,11 @@ def train(
                 )
             if "batch_spec" in saved_meta:
                 spec = BatchSpec.from_json(saved_meta["batch_spec"])
-            if saved_meta.get("config") != meta["config"]:
+            saved_config = dict(saved_meta.get("config") or {})
+            # Another schedule length is how a run is continued for longer (`jaxtalk train --steps`
+            # stretches the schedule, its warm-up capped to a tenth of the run); other changes surprise.
+            length = {"total_steps": config.total_steps, "warmup_steps": config.warmup_steps}
+            if {**saved_config, **length} != meta["config"]:
                 warnings.warn(
                     f"optimiser config differs from the checkpoint's: {saved_meta.get('config')} -> {meta['config']}",
                     stacklevel=2,
@@ -226,6 +239,8 @@ def train(
         history_file = None
         if write_history and jax.process_index() == 0:  # one writer per run, as for orbax's files
             history_file = _HistoryFile(Path(ckpt_dir) / HISTORY_FILE, start_step=int(state.step))
+        if log_dir is not None and jax.process_index() == 0:
+            metrics_log = RunMetrics(log_dir, start_step=int(state.step))
         loop = _Loop(
             state=state,
             step_fn=step_fn,
@@ -244,9 +259,12 @@ def train(
             progress=progress,
             best=best,
             history_file=history_file,
+            metrics_log=metrics_log,
         )
         return loop.run(max_steps)
     finally:
+        if metrics_log is not None:
+            metrics_log.close()
         if ckpt is not None:
             ckpt.close()
         if best is not None:
@@ -288,6 +306,7 @@ class _Loop:
     progress: bool
     best: _BestKeeper | None = None
     history_file: _HistoryFile | None = None
+    metrics_log: RunMetrics | None = None
 
     def run(self, max_steps: int) -> TrainResult:
         from tqdm.auto import tqdm  # deferred: keeps `import jaxtalk.train` light
@@ -321,11 +340,15 @@ class _Loop:
                     self._evaluate(step, data_state)
                 if self.save_every is not None and step % self.save_every == 0:
                     self._save(step, data_state)
+                if self.metrics_log is not None:  # after this step's log flush and evaluation: one row
+                    self.metrics_log.flush()
             self._flush()
             if self.eval_fn is not None and not (self.history and "eval" in self.history[-1]):
                 self._evaluate(step, data_state)
             if self.ckpt is not None and self.last_saved != step and step > 0:
                 self._save(step, data_state)
+            if self.metrics_log is not None:
+                self.metrics_log.flush()
         finally:
             self.bar.close()
         return TrainResult(
@@ -356,8 +379,10 @@ class _Loop:
             values = {k: float(np.asarray(v)) for k, v in metrics.items()}
             if not math.isfinite(values["loss"]):
                 self.pending = []
-                if self.history_file is not None and done:  # the file keeps the finite steps before it
-                    self.history_file.append_train(self.history[-done:], elapsed)
+                if done:  # the files keep the finite steps before it
+                    if self.history_file is not None:
+                        self.history_file.append_train(self.history[-done:], elapsed)
+                    self._log_train(self.history[-done:], now)
                 where = (
                     f"the last good checkpoint is step {self.last_saved} in {self.ckpt.directory}"
                     if self.ckpt is not None and self.last_saved is not None
@@ -375,12 +400,23 @@ class _Loop:
         last_step = self.pending[-1][0]
         if self.history_file is not None:
             self.history_file.append_train(self.history[-done:], elapsed)
-        rate = (last_step - self.window[0]) / max(now - self.window[1], 1e-9)
+        rate = self._log_train(self.history[-done:], now)
         self.window = (last_step, now)
         self.pending = []
         self.bar.update(last_step - self.bar.n)
         self.postfix.update(loss=f"{self.history[-1]['loss']:.4g}", steps_per_s=f"{rate:.3g}")
         self.bar.set_postfix(self.postfix, refresh=False)
+
+    def _log_train(self, rows: list[dict], now: float) -> float:
+        """Steps/s since the last fetch, and the window's training scalars to the metric writers."""
+        rate = (rows[-1]["step"] - self.window[0]) / max(now - self.window[1], 1e-9)
+        if self.metrics_log is not None:
+            scalars = {f"train/{k}": float(np.mean([r["metrics"][k] for r in rows if k in r["metrics"]]))
+                       for k in rows[-1]["metrics"] if k != "lr"}
+            scalars["train/lr"] = rows[-1]["metrics"]["lr"]  # the schedule at this step, not a mean
+            scalars["train/steps_per_s"] = rate
+            self.metrics_log.log(rows[-1]["step"], scalars)
+        return rate
 
     def _evaluate(self, step: int, data_state: dict | None) -> None:
         # Flush first: a NaN loss raises here, so a NaN state never reaches the best checkpoint.
@@ -398,6 +434,8 @@ class _Loop:
             improved = self.best.offer(state, step, values, data_state=data_state, metadata=self.meta)
         if self.history_file is not None:
             self.history_file.append_eval(step, values, elapsed, best=improved)
+        if self.metrics_log is not None:
+            self.metrics_log.log(step, {f"eval/{k}": v for k, v in values.items()})
         self.postfix.update({f"eval_{k}": f"{v:.4g}" for k, v in values.items()})
         self.bar.set_postfix(self.postfix, refresh=False)
 
@@ -491,7 +529,7 @@ class _HistoryFile:
             lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
             if len(lines) != len(kept):  # rows dropped, or a torn last line
                 # Atomic: a reader sees the old or the new file, never a mix.
-                atomic_write_text(path, "".join(_json_line(r) for r in kept))
+                atomic_write_text(path, "".join(json_line(r) for r in kept))
 
     def append_train(self, rows: list[dict[str, Any]], elapsed: float) -> None:
         """One row for a log flush: mean loss and metrics over its ``window`` of steps."""
@@ -521,16 +559,5 @@ class _HistoryFile:
     def _append(self, row: dict[str, Any]) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.path, "a", encoding="utf-8") as f:
-            f.write(_json_line(row))
+            f.write(json_line(row))
 
-
-def _json_line(row: dict[str, Any]) -> str:
-    # Strict JSON (no NaN/Infinity tokens, which many readers reject): non-finite values become null.
-    def clean(v: Any) -> Any:
-        if isinstance(v, dict):
-            return {k: clean(x) for k, x in v.items()}
-        if isinstance(v, float) and not math.isfinite(v):
-            return None
-        return v
-
-    return json.dumps(clean(row), allow_nan=False) + "\n"

@@ -10,7 +10,9 @@ a prepared dataset (:mod:`jaxtalk.data.loader`), fits what the model needs from 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -18,7 +20,7 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "fit_recipe", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "fit_recipe", "VAL_WINDOWS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
@@ -77,10 +79,47 @@ class RecipeResult(TrainResult):
         extra: JSON-serialisable settings fitted on the training split (normalisers, window sizes),
             stored in the run's ``run.json``.
         windows: training windows (this process's shard).
+        batch_size: windows per step on this process as trained: the requested batch, or the
+            largest the training split allows (:func:`usable_batch_size`). A run's record stores
+            this one, so a resume trains with the same batch.
     """
 
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
     windows: int = 0
+    batch_size: int = 0
+
+
+class BatchSizeWarning(UserWarning):
+    """The training split has fewer windows than one batch: the recipe trains with a smaller one."""
+
+
+def usable_batch_size(windows: int, batch_size: int, *, processes: int = 1, multiple: int = 1) -> int:
+    """The batch a split of ``windows`` windows can train with: ``batch_size``, or the largest that fits.
+
+    A global batch (``batch_size`` x ``processes``) must be cut from the windows of one pass, so a
+    small dataset (a handful of conversations) cannot fill the default batch; rather than refuse to
+    train, take the largest per-process batch that fits and is a multiple of ``multiple`` (the local
+    devices a data-parallel batch is split over).
+
+    Args:
+        windows: windows in the training split.
+        batch_size: the requested per-process batch.
+        processes: processes sharing each global batch.
+        multiple: the batch must divide into this many equal parts.
+
+    Returns:
+        ``batch_size`` when it fits, else the largest fitting multiple of ``multiple``.
+
+    Raises:
+        ValueError: not even ``multiple`` windows per process (the message names the counts).
+    """
+    if windows >= batch_size * processes:
+        return batch_size
+    fitted = windows // processes // multiple * multiple
+    if fitted < 1:
+        raise ValueError(f"split 'train' has {windows} windows, fewer than {multiple} per process x {processes} "
+                         "process(es): too little data to train on")
+    return fitted
 
 
 def window_starts(num_frames: int, window: int, hop: int, *, align: int = 1) -> list[int]:
@@ -191,6 +230,10 @@ def fit_recipe(
 ) -> RecipeResult:
     """What every recipe does once its windows, loss and initial parameters are set: the grain loader
     over the training split, the validation loss on ``val`` (and the best checkpoint), the shared loop.
+    A training split with fewer windows than one batch trains with the largest batch it allows
+    (:func:`usable_batch_size`, a :class:`BatchSizeWarning`; ``RecipeResult.batch_size`` is the one
+    used). With ``ckpt_dir``, the run folder (its parent) gets ``metrics.jsonl`` and TensorBoard event files
+    (:mod:`jaxtalk.train.writers`) unless ``loop_kwargs`` names another ``log_dir``.
 
     Args:
         recipe: the window recipe.
@@ -210,9 +253,19 @@ def fit_recipe(
     from jaxtalk.data.loader import make_loader
     from jaxtalk.train.loop import train
 
+    windows = len(recipe.table(data, "train")) if data.split("train") else 0
+    fitted = usable_batch_size(windows, batch_size, processes=jax.process_count(),
+                               multiple=jax.local_device_count() if mesh is not None else 1) if windows else batch_size
+    if fitted != batch_size:
+        warnings.warn(f"the training split has {windows} windows, fewer than batch_size={batch_size}"
+                      f"{f' x {jax.process_count()} processes' if jax.process_count() > 1 else ''}: training with "
+                      f"the largest batch it allows (--set batch_size={fitted})", BatchSizeWarning, stacklevel=3)
+        batch_size = fitted
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     eval_fn = split_validation(data, recipe, loss_fn, batch_size, eval_key)
+    if ckpt_dir is not None:  # the run folder of the run layout: <run>/checkpoint is the checkpoint directory
+        loop_kwargs.setdefault("log_dir", Path(ckpt_dir).parent)
     result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
                    mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
     return RecipeResult(state=result.state, history=result.history, best=result.best, extra=extra,
-                        windows=loader.num_windows)
+                        windows=loader.num_windows, batch_size=batch_size)
