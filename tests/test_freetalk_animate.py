@@ -374,7 +374,7 @@ def test_a_real_face_scan_in_millimetres_animates_in_its_own_frame(models):
 def test_an_ats_run_recorded_before_the_vocabulary_setting_loads_as_emovoca():
     import dataclasses
 
-    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.runs import RunRecord
     from jaxtalk.models.freetalk.emotions import EMOTIONS
 
     old = dataclasses.asdict(ATSConfig.small())

@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtalk.commands.runs import LoadedRun, RunRecord, checkpoint_dir, load_run
+from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec
 
 __all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
            "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS"]
@@ -233,8 +233,8 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
             raise ValueError(f"{where} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz, the run was "
                              f"trained on width {cfg['token_dim']} at {cfg['token_rate']:g} Hz")
         return
-    if record.model in ("timar", "dualtalk", "ats"):
-        key, width = ("speech_dim", cfg["audio_dim"]) if record.model == "ats" else ("turn_speech_dim", cfg["speech_dim"])
+    for field, key in model_spec(record.model).data_fields:  # the speech feature width of TIMAR, DualTalk, ATS
+        width = cfg[field]
         if m["settings"]["audio"] != features.get("audio") or m.get(key) != width:
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
@@ -243,7 +243,7 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
 
 def _same_tokenizer(run: LoadedRun, data: Any) -> bool:
     """Whether the data's tokens come from the tokenizer the run was trained with (unknown: True)."""
-    from jaxtalk.commands.runs import TOKENIZER_FILE
+    from jaxtalk.runs import TOKENIZER_FILE
 
     ours, theirs = run.run_dir / TOKENIZER_FILE, (data.root / data.manifest["tokenizer"]) if data.manifest.get("tokenizer") else None
     if not ours.is_file() or theirs is None or not theirs.is_file():

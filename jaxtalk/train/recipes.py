@@ -4,7 +4,10 @@ A recipe (``jaxtalk.models.<model>.recipe``) is the one way a model is trained: 
 a prepared dataset (:mod:`jaxtalk.data.loader`), fits what the model needs from the training split
 (normalisers), and runs the shared loop. Every recipe's entry point has the same shape::
 
-    train(config, data, optim, *, steps, key, batch_size=16, ckpt_dir=None, mesh=None, ...) -> RecipeResult
+    train(config, data, optim, *, steps, key, batch_size=16, run_dir=None, ckpt_dir=None, mesh=None, ...) -> RecipeResult
+
+Given a ``run_dir``, a recipe checkpoints into ``run_dir/checkpoint`` and writes a complete run
+(:func:`jaxtalk.runs.write_run`) that ``jaxtalk sample``, ``eval`` and :func:`jaxtalk.runs.load_run` open.
 """
 
 from __future__ import annotations
@@ -63,6 +66,15 @@ class TrainSettings:
         return OptimConfig(lr=self.lr, weight_decay=self.weight_decay, warmup_steps=min(self.warmup_steps, steps // 10),
                            total_steps=steps, clip_norm=self.clip_norm, ema_decay=self.ema_decay,
                            final_lr_ratio=self.final_lr_ratio)
+
+    @classmethod
+    def of_run(cls, optim: Any, *, batch_size: int, window_frames: int | None = None,
+               eval_every: int | None = None) -> TrainSettings:
+        """The settings a recipe ran with, read back from its optimiser settings and arguments (what a
+        run made from Python records; the warm-up is the one the run used, already capped)."""
+        return cls(lr=optim.lr, weight_decay=optim.weight_decay, warmup_steps=optim.warmup_steps,
+                   final_lr_ratio=optim.final_lr_ratio, clip_norm=optim.clip_norm, ema_decay=optim.ema_decay,
+                   batch_size=batch_size, window_frames=window_frames, eval_every=eval_every)
 
     def period(self, steps: int) -> int:
         """The validation period of a ``steps``-long run."""
@@ -187,6 +199,10 @@ def fit_recipe(
     eval_every: int | None,
     metadata: dict[str, Any],
     extra: dict[str, Any],
+    config: Any,
+    run_dir: Any = None,
+    run_info: Any = None,
+    window_frames: int | None = None,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """What every recipe does once its windows, loss and initial parameters are set: the grain loader
@@ -200,19 +216,32 @@ def fit_recipe(
         optim: optimiser settings.
         key: the loop's base key; eval_key: the validation key.
         steps, batch_size, seed, ckpt_dir, mesh, eval_every: as every recipe's ``train``.
-        metadata: saved with each checkpoint.
+        metadata: saved with each checkpoint (``metadata["model"]`` names the run's model).
         extra: what the recipe fitted on the training split (goes into ``run.json``).
+        config: the model config.
+        run_dir: write a complete run here (checkpoints in ``run_dir/checkpoint`` unless ``ckpt_dir``
+            says otherwise), or None.
+        run_info: how the run was asked for (:class:`jaxtalk.runs.RunInfo`; None: a Python call).
+        window_frames: the window setting the recipe was given (recorded with the run).
         **loop_kwargs: passed to :func:`jaxtalk.train.train`.
 
     Returns:
         :class:`RecipeResult`.
     """
     from jaxtalk.data.loader import make_loader
+    from jaxtalk.runs import checkpoint_dir, write_run
     from jaxtalk.train.loop import train
 
+    if run_dir is not None and ckpt_dir is None:
+        ckpt_dir = checkpoint_dir(run_dir)
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     eval_fn = split_validation(data, recipe, loss_fn, batch_size, eval_key)
     result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
                    mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
+    if run_dir is not None and jax.process_index() == 0:  # every process checkpoints; one writes the record
+        settings = TrainSettings.of_run(optim, batch_size=batch_size, window_frames=window_frames,
+                                        eval_every=eval_every)
+        write_run(run_dir, metadata["model"], config, data, optim, seed=seed, extra=extra, settings=settings,
+                  info=run_info)
     return RecipeResult(state=result.state, history=result.history, best=result.best, extra=extra,
                         windows=loader.num_windows)

@@ -9,12 +9,14 @@ identical data.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.models.timar import recipe as timar_recipe
+from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import RecipeResult, TrainSettings
 from jaxtalk.types import PRNGKeyArray
@@ -39,6 +41,8 @@ def train(
     batch_size: int = 16,
     seed: int = 0,
     params: PyTree | None = None,
+    run_dir: str | Path | None = None,
+    run_info: RunInfo | None = None,
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
@@ -56,4 +60,4 @@ def train(
 
     return timar_recipe.train_on_turn_windows("dualtalk", config, data, optim, init_params, make_loss_fn, steps=steps,
                                               key=key, batch_size=batch_size, seed=seed, params=params,
-                                              ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, **loop_kwargs)
+                                              run_dir=run_dir, run_info=run_info, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, **loop_kwargs)

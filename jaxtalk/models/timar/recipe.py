@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -22,6 +23,7 @@ from jaxtalk.data.standardize import fit_standardizer
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.data import Normalizer
 from jaxtalk.models.timar.inputs import TurnConfig
+from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe
 from jaxtalk.types import PRNGKeyArray
@@ -136,6 +138,8 @@ def train(
     batch_size: int = 16,
     seed: int = 0,
     params: PyTree | None = None,
+    run_dir: str | Path | None = None,
+    run_info: RunInfo | None = None,
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
@@ -151,7 +155,7 @@ def train(
     from jaxtalk.models.timar.model import init_params
 
     return train_on_turn_windows("timar", config, data, optim, init_params, make_loss_fn, steps=steps, key=key,
-                                 batch_size=batch_size, seed=seed, params=params, ckpt_dir=ckpt_dir, mesh=mesh,
+                                 batch_size=batch_size, seed=seed, params=params, run_dir=run_dir, run_info=run_info, ckpt_dir=ckpt_dir, mesh=mesh,
                                  eval_every=eval_every, **loop_kwargs)
 
 
@@ -168,6 +172,8 @@ def train_on_turn_windows(
     batch_size: int,
     seed: int,
     params: PyTree | None,
+    run_dir: str | Path | None,
+    run_info: RunInfo | None,
     ckpt_dir: Any,
     mesh: Any,
     eval_every: int | None,
@@ -191,4 +197,4 @@ def train_on_turn_windows(
     extra = {"normalizer": recipe.normalizer.to_dict(), "num_turns": recipe.num_turns, "still": list(recipe.still)}
     return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps,
                       batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
-                      metadata={"model": model}, extra=extra, **loop_kwargs)
+                      metadata={"model": model}, extra=extra, config=config, run_dir=run_dir, run_info=run_info, **loop_kwargs)
