@@ -20,9 +20,9 @@ import numpy as np
 
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.data.standardize import fit_standardizer
+from jaxtalk.data.turns import TurnConfig
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.data import Normalizer
-from jaxtalk.models.timar.inputs import TurnConfig
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe
