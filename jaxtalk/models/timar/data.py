@@ -13,14 +13,15 @@ import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 # Shared with ``prepare`` (a lower layer), re-exported here as part of TIMAR's data API.
 from jaxtalk.audio.speech import TURN_SPEECH_DIM as SPEECH_DIM
 from jaxtalk.audio.speech import turn_speech_features
-from jaxtalk.data.standardize import fit_standardizer, standardize, unstandardize
-from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM, Float
+# Shared with the DualTalk baseline (a lower layer), re-exported here as part of TIMAR's data API.
+from jaxtalk.data.conversation import Normalizer
+from jaxtalk.data.standardize import fit_standardizer
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM
 
 __all__ = [
     "SPEECH_DIM",
@@ -132,54 +133,6 @@ def monologues(corpus: Any, split: str, *, frames_per_turn: int = MOTION_FPS) ->
             agent_oracle=np.asarray(corpus.oracle(i)[:t], np.float32), agent_clip=i, user_clip=-1,
         ))
     return out
-
-
-@dataclasses.dataclass(frozen=True)
-class Normalizer:
-    """Per-channel standardisation of speech features and head motion (fit on training data).
-
-    A pair of :mod:`jaxtalk.data.standardize` statistics (``{"mean", "std"}``) under the field names
-    that TIMAR checkpoints store (:meth:`to_dict`); :meth:`speech_stats` / :meth:`motion_stats` give
-    them in the shared form.
-
-    Attributes:
-        speech_mean, speech_std: ``(80,)``.
-        motion_mean, motion_std: ``(56,)``.
-    """
-
-    speech_mean: np.ndarray
-    speech_std: np.ndarray
-    motion_mean: np.ndarray
-    motion_std: np.ndarray
-
-    @property
-    def speech_stats(self) -> dict[str, np.ndarray]:
-        """The speech statistics as a :func:`jaxtalk.data.standardize.standardize` dict."""
-        return {"mean": self.speech_mean, "std": self.speech_std}
-
-    @property
-    def motion_stats(self) -> dict[str, np.ndarray]:
-        """The motion statistics as a :func:`jaxtalk.data.standardize.standardize` dict."""
-        return {"mean": self.motion_mean, "std": self.motion_std}
-
-    def speech(self, x: Float[np.ndarray, "*frames dim"]) -> np.ndarray:
-        """Raw speech features -> standardised (float32 NumPy)."""
-        return np.asarray(standardize(self.speech_stats, jnp.asarray(x, jnp.float32)))
-
-    def motion(self, x: Float[np.ndarray, "*frames 56"]) -> np.ndarray:
-        """Raw head parameters -> standardised (float32 NumPy)."""
-        return np.asarray(standardize(self.motion_stats, jnp.asarray(x, jnp.float32)))
-
-    def unmotion(self, x: Any) -> np.ndarray:
-        """Normalised motion back to raw head parameters."""
-        return np.asarray(unstandardize(self.motion_stats, jnp.asarray(x, jnp.float32)))
-
-    def to_dict(self) -> dict[str, list[float]]:
-        return {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Sequence[float]]) -> Normalizer:
-        return cls(**{k: np.asarray(v, np.float32) for k, v in d.items()})
 
 
 def fit_normalizer(convs: Sequence[Conversation], *, floor: float = 1e-3) -> Normalizer:
