@@ -229,7 +229,7 @@ def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
 
 def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_path):
     from jaxtalk.runs import RunRecord
-    from jaxtalk.models.freetalk.data import window_starts
+    from jaxtalk.data.batching import window_starts
 
     output = _ok(["eval", runs["ats"], "--max-clips", "1", "--json", tmp_path / "r.json"])
     columns, printed = _table(output, "ATS on test")
@@ -242,7 +242,7 @@ def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_
     window, mean = extra["window"], np.asarray(extra["stats"]["mean"], np.float32)
     clip = data.split("test")[0]
     lms = data.record(clip, ("landmarks",))["landmarks"]
-    starts = window_starts(lms.shape[0], window, window)
+    starts = window_starts(lms.shape[0], window, window, pad_short=False)
     assert rows["neutral"]["windows"] == len(starts) and rows["neutral"]["frames"] == len(starts) * window
     for name, base in (("neutral", np.zeros_like(mean)), ("mean pose", mean)):
         dist = [np.linalg.norm(lms[s:s + window] - base, axis=-1) for s in starts]

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from jaxtalk.data.batching import window_starts
 from jaxtalk.face import builtin_face
 from jaxtalk.geometry.canonical import canonicalize, detect_units, load_mesh
 from jaxtalk.models.freetalk import animate as ft
@@ -304,7 +305,7 @@ def test_landmark_track_of_a_short_clip_is_one_ats_sample(models):
 
 
 def test_crossfade_weights_sum_to_one_and_ramp_over_the_overlaps():
-    starts = ft._window_starts(50, 20)
+    starts = window_starts(50, 20, 15)  # animate's windows: a quarter overlap
     assert starts == [0, 15, 30]
     w = ft._crossfade(50, 20, starts)
     np.testing.assert_allclose(w.sum(axis=0), 1.0)

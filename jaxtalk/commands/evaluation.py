@@ -450,7 +450,9 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
     import jax
 
     from jaxtalk.face import builtin_face
-    from jaxtalk.models.freetalk.data import DisplacementStats, landmark_motion, window_starts, without_head_pose
+    from jaxtalk.data.batching import window_starts
+    from jaxtalk.face.motion import landmark_motion, without_head_pose
+    from jaxtalk.models.freetalk.data import DisplacementStats
     from jaxtalk.models.freetalk.emotions import NEUTRAL, emotion_ids
     from jaxtalk.models.freetalk.fit import FittedATS, sample_displacements
 
@@ -472,7 +474,7 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
         if "oracle" in rec:
             rec["oracle_landmarks"] = landmark_motion(face, without_head_pose(rec.pop("oracle")))
         recs.append(rec)
-        items += [(n, st) for st in window_starts(rec["landmarks"].shape[0], window, window)]
+        items += [(n, st) for st in window_starts(rec["landmarks"].shape[0], window, window, pad_short=False)]
     echo(f"sampling {len(items)} windows of {window} frames from {len(chosen)} {split} clips of {data.root} "
          f"with ATS (step {run.step})")
     key = jax.random.key(opts.seed)

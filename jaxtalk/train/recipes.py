@@ -1,4 +1,4 @@
-"""What the four model recipes share: the result type, window starts, a validation-loss evaluator.
+"""What the model recipes share: the result type, a validation-loss evaluator, the run they write.
 
 A recipe (``jaxtalk.models.<model>.recipe``) is the one way a model is trained: it cuts windows from
 a prepared dataset (:mod:`jaxtalk.data.loader`), fits what the model needs from the training split
@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "fit_recipe", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "fit_recipe", "VAL_WINDOWS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
@@ -93,17 +93,6 @@ class RecipeResult(TrainResult):
 
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
     windows: int = 0
-
-
-def window_starts(num_frames: int, window: int, hop: int, *, align: int = 1) -> list[int]:
-    """Starts of ``window``-frame windows every ``hop`` frames, the last one flush with the end.
-
-    Starts are multiples of ``align`` (a token period); a clip shorter than ``window`` gives one
-    window at 0 (the recipe pads it and masks the padding).
-    """
-    hop = int(np.ceil(hop / align) * align)
-    last = int(np.ceil(max(num_frames - window, 0) / align) * align)
-    return sorted(set(range(0, last + 1, hop)) | {last})
 
 
 def validation_eval(

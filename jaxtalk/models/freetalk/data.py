@@ -22,6 +22,7 @@ import numpy as np
 
 # Shared with ``prepare`` (a lower layer), re-exported here as part of FreeTalk's data API.
 from jaxtalk.audio.speech import AUDIO_FEATURE_DIM, MEL_FRAMES_PER_FRAME, audio_features
+from jaxtalk.data.batching import window_starts
 from jaxtalk.data.standardize import fit_standardizer, standardize, unstandardize
 from jaxtalk.face.motion import bucketed_motion, landmark_motion, without_head_pose
 from jaxtalk.models.freetalk.emotions import emotion_ids
@@ -39,7 +40,6 @@ __all__ = [
     "landmark_motion",
     "mesh_motion",
     "stm_windows",
-    "window_starts",
     "without_head_pose",
 ]
 
@@ -170,22 +170,6 @@ def neutral_landmarks(face: Any) -> Float[np.ndarray, "68 3"]:
     return np.asarray(face.landmarks(jnp.zeros(PARAM_DIM, jnp.float32)))
 
 
-def window_starts(num_frames: int, window: int, hop: int) -> list[int]:
-    """Start frames of length-``window`` windows every ``hop`` frames (the last one flush with the end).
-
-    Raises:
-        ValueError: non-positive sizes.
-    """
-    if window < 1 or hop < 1:
-        raise ValueError(f"window and hop must be >= 1, got {window}, {hop}")
-    if num_frames < window:
-        return []
-    starts = list(range(0, num_frames - window + 1, hop))
-    if starts[-1] != num_frames - window:
-        starts.append(num_frames - window)
-    return starts
-
-
 def ats_windows(
     corpus: Any,
     clips: Sequence[int],
@@ -221,7 +205,7 @@ def ats_windows(
         disp = landmark_motion(face, motion)
         feats = audio_features(corpus.audio(c), disp.shape[0])
         emo = int(emotion_ids(info.emotion)[0])
-        for s in window_starts(disp.shape[0], window, hop):
+        for s in window_starts(disp.shape[0], window, hop, pad_short=False):
             out["displacements"].append(disp[s:s + window])
             out["audio"].append(feats[s:s + window])
             out["emotion"].append(emo)
@@ -293,7 +277,7 @@ def stm_windows(
         if vd.shape[1] > num_vertices:
             raise ValueError(f"track of mesh {idx} has {vd.shape[1]} vertices > num_vertices={num_vertices}")
         padded = np.pad(vd, ((0, 0), (0, num_vertices - vd.shape[1]), (0, 0)))
-        for s in window_starts(lm.shape[0], window, hop):
+        for s in window_starts(lm.shape[0], window, hop, pad_short=False):
             mesh.append(idx)
             lms.append(lm[s:s + window])
             verts.append(padded[s:s + window])

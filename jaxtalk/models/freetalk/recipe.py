@@ -25,7 +25,8 @@ from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.models.freetalk.emotions import EMOTIONS
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, window_starts
+from jaxtalk.data.batching import window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT", "fit_displacement_stats", "train_ats",

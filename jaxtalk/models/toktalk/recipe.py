@@ -17,11 +17,12 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxtalk.data.batching import window_starts
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, spread, window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TokTalkWindows", "default_window", "check_data", "train"]
