@@ -18,7 +18,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "jaxtalk"
 
 FOUNDATIONS = frozenset({
     "types", "layout", "files", "runs", "masks", "nn", "samplers", "audio", "face", "geometry", "metrics",
-    "render", "export", "data", "train", "fit", "viewer", "benchmarking",
+    "render", "export", "data", "train", "fit", "viewer", "benchmarking", "checks",
 })
 APPLICATIONS = frozenset({"commands", "cli", "demo", "serve", "bench"})
 # The package's own entry points sit above every layer.
