@@ -27,7 +27,7 @@ SMALL = {
     "timar": ("small", {"width": 32, "num_layers": 1, "num_heads": 2, "head_width": 32, "head_blocks": 1,
                         "max_turns": 2, "sample_steps": 2}),
     "dualtalk": ("small", {"width": 16, "num_layers": 1, "num_heads": 2, "lstm_layers": 1, "max_turns": 2}),
-    "ats": ("small", {"width": 32, "num_layers": 1, "num_heads": 2, "ff_dim": 32, "num_sampling_steps": 4}),
+    "ats": ("small", {"width": 32, "num_layers": 1, "num_heads": 2, "ff_dim": 32, "sample_steps": 4}),
     "stm": ("small", {"encoder_blocks": 1, "decoder_blocks": 1, "num_eigenpairs": 16}),
 }
 # STM on one small mesh: rendering the default three takes minutes.

@@ -185,7 +185,7 @@ def landmark_track(
     intensity: float,
     key: PRNGKeyArray,
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
 ) -> Float[np.ndarray, "frames 68 3"]:
     """ATS's landmark displacements (metres, template frame) for a whole 16 kHz utterance of any length.
 
@@ -207,7 +207,7 @@ def landmark_track(
     length = min(window, frames)
     batch = 1 << (len(starts) - 1).bit_length()
     chunks = np.stack([feats[s:s + length] for s in starts] + [feats[starts[-1]:starts[-1] + length]] * (batch - len(starts)))
-    disp = sample_displacements(ats, chunks, emotion, intensity, key, num_steps=num_steps)[: len(starts)]
+    disp = sample_displacements(ats, chunks, emotion, intensity, key, sample_steps=sample_steps)[: len(starts)]
     weights = _crossfade(frames, window, starts)
     out = np.zeros((frames, *disp.shape[2:]), np.float64)
     for w, s in enumerate(starts):
@@ -224,7 +224,7 @@ def animate(
     mesh: UserMesh | str | os.PathLike[str] | tuple[Any, Any],
     *,
     key: PRNGKeyArray,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     units: str | None = None,
     landmarks: Float[np.ndarray, "points 3"] | None = None,
 ) -> Float[np.ndarray, "frames verts 3"]:
@@ -238,7 +238,7 @@ def animate(
         intensity: emotion intensity, continuous in ``[1, num_intensities]``.
         mesh: a :class:`UserMesh` (prepared once, reused), a mesh file, or ``(vertices, faces)``.
         key: PRNG key of the DDIM starting noise.
-        num_steps: DDIM steps (default the ATS config's).
+        sample_steps: DDIM steps (default the ATS config's).
         units, landmarks: for a mesh that is not prepared yet (see :func:`prepare_user_mesh`).
 
     Returns:
@@ -256,7 +256,7 @@ def animate(
         from jaxtalk.audio import load_audio
 
         audio = load_audio(audio)
-    track = landmark_track(ats, audio, emotion, intensity, key, num_steps=num_steps)
+    track = landmark_track(ats, audio, emotion, intensity, key, sample_steps=sample_steps)
     return displace(stm, mesh, track)
 
 

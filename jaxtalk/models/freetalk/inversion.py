@@ -44,10 +44,10 @@ PyTree = Any
 ArrayLike = Array | np.ndarray
 
 
-def _resolve_steps(config: ATSConfig, num_steps: Any) -> int:
-    steps = config.num_sampling_steps if num_steps is None else num_steps
+def _resolve_steps(config: ATSConfig, sample_steps: Any) -> int:
+    steps = config.sample_steps if sample_steps is None else sample_steps
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= config.num_timesteps:
-        raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
+        raise ValueError(f"sample_steps must be an integer in [1, {config.num_timesteps}], got {sample_steps!r}")
     return int(steps)
 
 
@@ -75,7 +75,7 @@ def sample_ats_from_noise(
     cond: ATSCondition,
     noise: Float[ArrayLike, "batch frames motion"],
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     remat: bool = False,
 ) -> Float[Array, "batch frames landmarks 3"]:
     """Deterministic DDIM sampling of ATS from explicit starting noise (``sample_ats`` with ``eta = 0``).
@@ -88,7 +88,7 @@ def sample_ats_from_noise(
         config: ATS configuration.
         cond: from :func:`~jaxtalk.models.freetalk.ats.make_condition`.
         noise: ``(B, T, 3N)`` starting noise (model units), e.g. :func:`ats_noise`.
-        num_steps: DDIM steps (static; default ``config.num_sampling_steps``).
+        sample_steps: DDIM steps (static; default ``config.sample_steps``).
         remat: checkpoint each DDIM step.
 
     Returns:
@@ -97,22 +97,22 @@ def sample_ats_from_noise(
     Raises:
         ValueError: a bad step count, or noise of the wrong shape or with NaN/inf.
     """
-    return sample_ats(params, config, cond, None, num_steps=num_steps, noise=noise, remat=remat)
+    return sample_ats(params, config, cond, None, sample_steps=sample_steps, noise=noise, remat=remat)
 
 
-def _intensity_data(intensity, params, cond, target, noise, *, config, num_steps, remat):
+def _intensity_data(intensity, params, cond, target, noise, *, config, sample_steps, remat):
     """Weighted residuals ``(B, T, 3N)`` (model units) whose per-example sum of squares is the MSE."""
     b, frames = cond.mask.shape
-    x = sample_ats(params, config, cond._replace(intensity=intensity), None, num_steps=num_steps, noise=noise,
+    x = sample_ats(params, config, cond._replace(intensity=intensity), None, sample_steps=sample_steps, noise=noise,
                    remat=remat).reshape(b, frames, -1)
     w = _frame_weights(cond.mask, config.motion_dim, x.dtype)
     return config.displacement_scale * (x - target.reshape(b, frames, -1)) * w[..., None]
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "remat"))
-def _intensity_loss(params, cond, target, noise, intensity, *, config, num_steps, remat):
+@functools.partial(jax.jit, static_argnames=("config", "sample_steps", "remat"))
+def _intensity_loss(params, cond, target, noise, intensity, *, config, sample_steps, remat):
     return _per_example(_intensity_data(intensity, params, cond, target, noise, config=config,
-                                        num_steps=num_steps, remat=remat))
+                                        sample_steps=sample_steps, remat=remat))
 
 
 def intensity_loss(
@@ -123,13 +123,13 @@ def intensity_loss(
     noise: Float[ArrayLike, "batch frames motion"],
     intensity: Float[ArrayLike, " batch"],
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     remat: bool = True,
 ) -> Float[Array, " batch"]:
     """Per-example MSE (model units) between the ATS sample for ``intensity`` (fixed noise) and a target.
 
     The data term :func:`invert_intensity` minimises (the same code path), differentiable in
-    ``intensity``; jitted (``config``, ``num_steps``, ``remat`` static).
+    ``intensity``; jitted (``config``, ``sample_steps``, ``remat`` static).
 
     Args:
         params, config: the ATS model.
@@ -137,7 +137,7 @@ def intensity_loss(
         target: ``(B, T, N, 3)`` target displacements in ``sample_ats``'s units.
         noise: ``(B, T, 3N)`` fixed starting noise.
         intensity: ``(B,)`` intensities (meaningful in ``[1, num_intensities]``; ATS clips them).
-        num_steps: DDIM steps (default ``config.num_sampling_steps``).
+        sample_steps: DDIM steps (default ``config.sample_steps``).
         remat: checkpoint each DDIM step.
 
     Returns:
@@ -147,8 +147,8 @@ def intensity_loss(
     Raises:
         ValueError: a bad step count.
     """
-    steps = _resolve_steps(config, num_steps)
-    return _intensity_loss(params, cond, target, noise, intensity, config=config, num_steps=steps,
+    steps = _resolve_steps(config, sample_steps)
+    return _intensity_loss(params, cond, target, noise, intensity, config=config, sample_steps=steps,
                            remat=bool(remat))
 
 
@@ -167,19 +167,19 @@ def _latent_from_intensity(intensity: np.ndarray, levels: int) -> np.ndarray:
     return np.clip((intensity - 1.0) / (levels - 1.0), 0.01, 0.99)
 
 
-def _intensity_residuals(z, args, *, config, num_steps, remat):
+def _intensity_residuals(z, args, *, config, sample_steps, remat):
     params, cond, target, noise = args
     intensity = _intensity_from_latent(z, config.num_intensities)
-    data = _intensity_data(intensity, params, cond, target, noise, config=config, num_steps=num_steps, remat=remat)
+    data = _intensity_data(intensity, params, cond, target, noise, config=config, sample_steps=sample_steps, remat=remat)
     return data, _per_example(data)
 
 
 @functools.partial(
-    jax.jit, static_argnames=("config", "num_steps", "solver", "rtol", "atol", "max_steps", "remat")
+    jax.jit, static_argnames=("config", "sample_steps", "solver", "rtol", "atol", "max_steps", "remat")
 )
-def _invert_intensity_core(params, cond, target, noise, z0, *, config, num_steps, solver, rtol, atol, max_steps,
+def _invert_intensity_core(params, cond, target, noise, z0, *, config, sample_steps, solver, rtol, atol, max_steps,
                            remat):
-    fn = functools.partial(_intensity_residuals, config=config, num_steps=num_steps, remat=remat)
+    fn = functools.partial(_intensity_residuals, config=config, sample_steps=sample_steps, remat=remat)
 
     def one(c, tgt, nz, z_init):  # one problem per example, vmapped (see _invert_style_core)
         args = (params, jax.tree.map(lambda a: a[None], c), tgt[None], nz[None])
@@ -210,7 +210,7 @@ def invert_intensity(
     noise: Float[ArrayLike, "..."],
     *,
     init: float | Sequence[float] | Float[ArrayLike, "..."] | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     solver: str = "levenberg_marquardt",
     rtol: float | None = None,
     atol: float | None = None,
@@ -238,7 +238,7 @@ def invert_intensity(
         noise: ``(B, T, 3N)`` the fixed starting noise (model units), e.g. :func:`ats_noise`.
         init: starting intensity, scalar or ``(B,)`` in ``[1, L]`` (one run; a start within 1 % of the
             range from a bound is moved 1 % inside). ``None``: one run per segment midpoint.
-        num_steps: DDIM steps (static; default ``config.num_sampling_steps``).
+        sample_steps: DDIM steps (static; default ``config.sample_steps``).
         solver: ``"levenberg_marquardt"`` (default: one forward-mode pass per example and step, and
             Gauss-Newton steps land on the kinks of the piecewise-linear embedding) or ``"bfgs"``.
         rtol, atol, max_steps, remat, max_loss, on_failure: as :func:`invert_style`.
@@ -259,7 +259,7 @@ def invert_intensity(
     levels = config.num_intensities
     if levels < 2:
         raise ValueError(f"config.num_intensities={levels}: a single intensity level leaves nothing to invert")
-    steps = _resolve_steps(config, num_steps)
+    steps = _resolve_steps(config, sample_steps)
     dtype = _compute_dtype()
     if not isinstance(cond, ATSCondition):
         raise ValueError(f"cond must be an ATSCondition (see ats.make_condition), got {type(cond).__name__}")
@@ -293,7 +293,7 @@ def invert_intensity(
         _invert_intensity_core(
             params, cond, jnp.asarray(target_arr), jnp.asarray(noise_arr),
             jnp.asarray(_latent_from_intensity(start, levels), dtype),
-            config=config, num_steps=steps, solver=solver, rtol=rtol_, atol=atol_, max_steps=int(max_steps),
+            config=config, sample_steps=steps, solver=solver, rtol=rtol_, atol=atol_, max_steps=int(max_steps),
             remat=bool(remat),
         )
         for start in starts

@@ -41,18 +41,18 @@ PyTree = Any
 ArrayLike = Array | np.ndarray
 
 
-def _style_data(style, params, tokens, target, noise, mask, cfg_scale, *, config, num_steps, remat):
+def _style_data(style, params, tokens, target, noise, mask, cfg_scale, *, config, sample_steps, remat):
     """Weighted residuals ``(B, T, D)`` whose per-example sum of squares is the MSE (the data term)."""
-    x = tt.sample(params, config, tokens, style, noise=noise, num_steps=num_steps, cfg_scale=cfg_scale,
+    x = tt.sample(params, config, tokens, style, noise=noise, sample_steps=sample_steps, cfg_scale=cfg_scale,
                   mask=mask, remat=remat)
     w = _frame_weights(mask, x.shape[-1], x.dtype)
     return (x - target) * w[..., None]
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "remat"))
-def _style_loss(params, tokens, target, noise, style, mask, cfg_scale, *, config, num_steps, remat):
+@functools.partial(jax.jit, static_argnames=("config", "sample_steps", "remat"))
+def _style_loss(params, tokens, target, noise, style, mask, cfg_scale, *, config, sample_steps, remat):
     return _per_example(_style_data(style, params, tokens, target, noise, mask, cfg_scale, config=config,
-                                    num_steps=num_steps, remat=remat))
+                                    sample_steps=sample_steps, remat=remat))
 
 
 def style_loss(
@@ -64,24 +64,24 @@ def style_loss(
     style: Float[ArrayLike, "batch style"],
     *,
     cfg_scale: Float[ArrayLike, ""] | float | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     mask: Bool[ArrayLike, "batch frames"] | None = None,
     remat: bool = True,
 ) -> Float[Array, " batch"]:
     """Per-example MSE between the TokTalk sample for ``style`` (fixed noise) and a target clip.
 
     The data term :func:`invert_style` minimises (the same code path), differentiable in ``style``
-    and every other array argument; jitted (``config``, ``num_steps``, ``remat`` static). No
+    and every other array argument; jitted (``config``, ``sample_steps``, ``remat`` static). No
     validation beyond :func:`jaxtalk.models.toktalk.sample`'s.
 
     Args:
         params, config: the TokTalk model.
-        tokens: ``(B, Tt, token_dim)`` base-space token embeddings.
+        tokens: ``(B, Tt, speech_dim)`` base-space token embeddings.
         target: ``(B, T, param_dim)`` target motion (raw FLAME units).
         noise: ``(B, T, param_dim)`` the sampler's starting noise.
         style: ``(B, style_vector_dim)`` style vectors.
         cfg_scale: guidance weight (traced; default ``config.cfg_scale``).
-        num_steps: Euler steps (default ``config.num_steps``).
+        sample_steps: Euler steps (default ``config.sample_steps``).
         mask: ``(B, T)`` real frames, passed to the sampler and scoring only those (None: all).
         remat: checkpoint each Euler step (memory of the gradient O(1) in the step count).
 
@@ -91,23 +91,23 @@ def style_loss(
     m = jnp.ones(jnp.shape(target)[:2], bool) if mask is None else mask
     w = config.cfg_scale if cfg_scale is None else cfg_scale
     return _style_loss(params, tokens, target, noise, style, m, jnp.asarray(w, jnp.result_type(noise)),
-                       config=config, num_steps=num_steps, remat=bool(remat))
+                       config=config, sample_steps=sample_steps, remat=bool(remat))
 
 
-def _style_residuals(style, args, *, config, num_steps, remat):
+def _style_residuals(style, args, *, config, sample_steps, remat):
     params, tokens, target, noise, mask, cfg_scale, prior = args
     data = _style_data(style, params, tokens, target, noise, mask, cfg_scale, config=config,
-                       num_steps=num_steps, remat=remat)
+                       sample_steps=sample_steps, remat=remat)
     # The per-example data loss rides along as aux: the solver hands it back at its solution.
     return {"data": data, "prior": jnp.sqrt(prior) * style}, _per_example(data)
 
 
 @functools.partial(
-    jax.jit, static_argnames=("config", "num_steps", "solver", "rtol", "atol", "max_steps", "remat")
+    jax.jit, static_argnames=("config", "sample_steps", "solver", "rtol", "atol", "max_steps", "remat")
 )
-def _invert_style_core(params, tokens, target, noise, mask, init, cfg_scale, prior, *, config, num_steps,
+def _invert_style_core(params, tokens, target, noise, mask, init, cfg_scale, prior, *, config, sample_steps,
                        solver, rtol, atol, max_steps, remat):
-    fn = functools.partial(_style_residuals, config=config, num_steps=num_steps, remat=remat)
+    fn = functools.partial(_style_residuals, config=config, sample_steps=sample_steps, remat=remat)
 
     # One problem per example, vmapped: a joint problem would make Levenberg-Marquardt build a
     # block-diagonal (B style_vector_dim)-column Jacobian, B times the forward-mode passes needed.
@@ -129,7 +129,7 @@ def invert_style(
     init: Sequence[float] | Float[ArrayLike, "..."] | None = None,
     mask: Shaped[ArrayLike, "..."] | None = None,
     cfg_scale: float | Float[ArrayLike, ""] | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     prior: float | Float[ArrayLike, ""] = 0.0,
     solver: str = "levenberg_marquardt",
     rtol: float | None = None,
@@ -147,7 +147,7 @@ def invert_style(
 
     Args:
         params, config: a TokTalk model.
-        tokens: ``(B, Tt, token_dim)`` base-space token embeddings at ``config.token_rate``, covering
+        tokens: ``(B, Tt, speech_dim)`` base-space token embeddings at ``config.token_rate``, covering
             ``T`` frames.
         target: ``(B, T, param_dim)`` target motion in raw FLAME units; NaN allowed only on frames
             outside ``mask``.
@@ -156,7 +156,7 @@ def invert_style(
             estimate for the target clip (needs ``T >= config.style_min_frames``).
         mask: ``(B, T)`` bool, real frames (given to the sampler, and only they are scored).
         cfg_scale: guidance weight (default ``config.cfg_scale``).
-        num_steps: Euler steps (static; default ``config.num_steps``).
+        sample_steps: Euler steps (static; default ``config.sample_steps``).
         prior: L2 weight on the style vector (>= 0; regularises directions the clip does not see).
         solver: ``"levenberg_marquardt"`` (default) or ``"bfgs"`` (see the module docstring).
         rtol, atol: optimistix Cauchy termination tolerances (``None``: 1e-5 / 1e-7 in float32,
@@ -183,8 +183,8 @@ def invert_style(
         raise ValueError(f"target must have shape (B >= 1, T >= 1, {config.param_dim}), got {target_arr.shape}")
     batch, frames = target_arr.shape[:2]
     tok = _float_array(tokens, "tokens", dtype)
-    if tok.ndim != 3 or tok.shape[0] != batch or tok.shape[2] != config.token_dim or tok.shape[1] == 0:
-        raise ValueError(f"tokens must have shape ({batch}, Tt >= 1, {config.token_dim}), got {tok.shape}")
+    if tok.ndim != 3 or tok.shape[0] != batch or tok.shape[2] != config.speech_dim or tok.shape[1] == 0:
+        raise ValueError(f"tokens must have shape ({batch}, Tt >= 1, {config.speech_dim}), got {tok.shape}")
     covered = default_num_frames(tok.shape[1], config.token_rate, config.fps)
     if covered != frames:
         raise ValueError(
@@ -226,7 +226,7 @@ def invert_style(
     out = _invert_style_core(
         params, jnp.asarray(tok), jnp.asarray(target_arr), jnp.asarray(noise_arr), jnp.asarray(mask_arr),
         jnp.asarray(np.ascontiguousarray(init_arr)), jnp.asarray(w_arr), jnp.asarray(prior_arr),
-        config=config, num_steps=num_steps, solver=solver, rtol=rtol_, atol=atol_, max_steps=int(max_steps),
+        config=config, sample_steps=sample_steps, solver=solver, rtol=rtol_, atol=atol_, max_steps=int(max_steps),
         remat=bool(remat),
     )
     return _finish("style", *out, int(max_steps), max_loss, on_failure)

@@ -35,9 +35,9 @@ __all__ = ["sample", "resolve_style", "default_grid"]
 PyTree = Any
 
 
-def default_grid(config: TokTalkConfig, num_steps: int | None = None) -> np.ndarray:
-    """The cosine time grid ``t_k = 1 - cos(k / N * pi / 2)`` with ``N = num_steps or config.num_steps``."""
-    return cosine_grid(config.num_steps if num_steps is None else num_steps)
+def default_grid(config: TokTalkConfig, sample_steps: int | None = None) -> np.ndarray:
+    """The cosine time grid ``t_k = 1 - cos(k / N * pi / 2)`` with ``N = sample_steps or config.sample_steps``."""
+    return cosine_grid(config.sample_steps if sample_steps is None else sample_steps)
 
 
 def resolve_style(params: PyTree, config: TokTalkConfig, style: Any, batch: int) -> Array:
@@ -82,7 +82,7 @@ def sample(
     key: PRNGKeyArray | None = None,
     *,
     num_frames: int | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     ts: Any = None,
     cfg_scale: Float[Array, ""] | float | None = None,
     known: Any = None,
@@ -97,11 +97,11 @@ def sample(
     Args:
         params: model parameters.
         config: model settings.
-        tokens: ``(B, Tt, token_dim)`` base-space token embeddings at ``config.token_rate``.
+        tokens: ``(B, Tt, speech_dim)`` base-space token embeddings at ``config.token_rate``.
         style: ``(B, style_vector_dim)`` style vector(s) or a ``(B, S, param_dim)`` reference clip.
         key: PRNG key for the starting noise (required unless ``noise`` is given).
         num_frames: expected number of frames (checked against the token count and rate).
-        num_steps: Euler steps (default ``config.num_steps``; static).
+        sample_steps: Euler steps (default ``config.sample_steps``; static).
         ts: explicit ``(N + 1,)`` time grid (traced values); default: the cosine grid.
         cfg_scale: guidance weight w (traced; default ``config.cfg_scale``).
         known: ``(B, T, param_dim)`` frames to inpaint, with ``known_mask`` ``(B, T)`` bool.
@@ -119,12 +119,12 @@ def sample(
             neither ``key`` nor ``noise``.
     """
     batch = int(np.shape(tokens)[0]) if np.ndim(tokens) == 3 else 0
-    frames = check_tokens(tokens, width=config.token_dim, rate=config.token_rate, fps=config.fps,
+    frames = check_tokens(tokens, width=config.speech_dim, rate=config.token_rate, fps=config.fps,
                           num_frames=num_frames)
     style_vec = resolve_style(params, config, style, batch)
     motion_shape = (batch, frames, config.param_dim)
     if ts is None:
-        ts = default_grid(config, num_steps)
+        ts = default_grid(config, sample_steps)
     ts = jnp.asarray(ts)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"ts must be a 1-D time grid with at least 2 entries, got shape {ts.shape}")
@@ -192,7 +192,7 @@ def generate_frames(
 
     Args:
         params, config: the model.
-        tokens: ``(B, Tt, token_dim)`` at the base rate; interpolated to ``T = noise.shape[1]`` frames.
+        tokens: ``(B, Tt, speech_dim)`` at the base rate; interpolated to ``T = noise.shape[1]`` frames.
         style_vec: ``(B, style_vector_dim)``.
         noise: ``(B, T, param_dim)`` starting noise (in the flow's coordinates, see
             :func:`~jaxtalk.models.toktalk.model.to_flow_space`).
