@@ -181,7 +181,7 @@ def model_setups(data: Any) -> list[dict]:
     """Per model: config (small preset, widths from the data), recipe, params, loss, trainable."""
     import jax
 
-    from jaxtalk.commands.runs import build_config
+    from jaxtalk.runs import build_config
 
     m = data.manifest
     out = []
@@ -354,7 +354,7 @@ def _peak_rss_mb() -> float:
 
 
 def _stream_recipe(data: Any, model: str, stats_file: str) -> Any:
-    from jaxtalk.commands.runs import build_config
+    from jaxtalk.runs import build_config
 
     if model == "toktalk":
         from jaxtalk.models.toktalk.recipe import TokTalkWindows, default_window

@@ -45,7 +45,7 @@ import numpy as np
 from jaxtalk import benchmarking as bm
 from jaxtalk.data import synthtalk
 from jaxtalk.data.synthtalk.emotions import face_offset
-from jaxtalk.commands.runs import RUN_FILE, checkpoint_dir, load_run
+from jaxtalk.runs import RUN_FILE, checkpoint_dir, load_run
 from jaxtalk.commands.training import TrainOptions, train_run
 from jaxtalk.models.freetalk import data
 from jaxtalk.models.freetalk.emotions import EMOTIONS

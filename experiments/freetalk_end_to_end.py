@@ -48,7 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from freetalk_topology import HELD_OUT, SEEN, evaluate  # noqa: E402
 
 from jaxtalk import benchmarking as bm  # noqa: E402
-from jaxtalk.commands.runs import checkpoint_dir  # noqa: E402
+from jaxtalk.runs import checkpoint_dir  # noqa: E402
 from jaxtalk.commands.training import TrainOptions, train_run  # noqa: E402
 from jaxtalk.data import synthtalk  # noqa: E402
 from jaxtalk.data.synthtalk.emotions import face_offset  # noqa: E402

@@ -4,9 +4,9 @@ Two samplers of ``small`` models briefly trained on SynthTalk with their recipes
 (``jaxtalk.models.<model>.recipe``, the training ``jaxtalk train`` runs) on 2-s windows, or parameters
 loaded with ``--toktalk-params`` / ``--ats-params``:
 
-* Euler + CFG (TokTalk): the loss is ``jaxtalk.fit.style_loss`` (MSE of the sample against a real
+* Euler + CFG (TokTalk): the loss is ``jaxtalk.models.toktalk.inversion.style_loss`` (MSE of the sample against a real
   clip) as a function of the style vector, at the encoder's estimate;
-* DDIM, eta 0 (FreeTalk ATS): ``jaxtalk.fit.intensity_loss`` (MSE against real landmark clips, model
+* DDIM, eta 0 (FreeTalk ATS): ``jaxtalk.models.freetalk.inversion.intensity_loss`` (MSE against real landmark clips, model
   units) as a function of the per-clip emotion intensity, at points between the integer levels.
 
 For 1, 5, 10, 20 sampler steps (``--steps``) the table gives: the relative error of the gradient's
@@ -43,7 +43,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
-from jaxtalk.fit import intensity_loss, invert_intensity, invert_style, sample_ats_from_noise, style_loss
+from jaxtalk.models.freetalk.inversion import intensity_loss, invert_intensity, sample_ats_from_noise
+from jaxtalk.models.toktalk.inversion import invert_style, style_loss
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.freetalk import ats, data
 from jaxtalk.models.freetalk.config import ATSConfig

@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
 from jaxtalk.commands.evaluation import open_eval_data, vertex_metrics
-from jaxtalk.commands.runs import RunRecord, load_run
+from jaxtalk.runs import RunRecord, load_run
 from jaxtalk.face import builtin_face
 from jaxtalk.metrics import jitter
 from jaxtalk.models import toktalk as tt

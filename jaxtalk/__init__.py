@@ -32,6 +32,7 @@ _SUBMODULES = (
     "models",
     "render",
     "fit",
+    "runs",
 )
 
 __all__ = ["__version__", *_SUBMODULES]

@@ -157,7 +157,7 @@ def train_overrides(options: DemoOptions) -> tuple[str, ...]:
 
 def _history(run_dir: Path) -> list[dict]:
     """The loss curve the training loop wrote beside the run's checkpoints (empty when there is none)."""
-    from jaxtalk.commands.runs import checkpoint_dir
+    from jaxtalk.runs import checkpoint_dir
     from jaxtalk.train import read_history
 
     return [{"step": r["step"], "loss": r["loss"]} for r in read_history(checkpoint_dir(run_dir))
@@ -190,7 +190,7 @@ def train_or_load(options: DemoOptions, echo: Callable[[str], None] = print) -> 
     """
     import shutil
 
-    from jaxtalk.commands.runs import RUN_FILE, RunRecord, checkpoint_dir, load_run
+    from jaxtalk.runs import RUN_FILE, RunRecord, checkpoint_dir, load_run
     from jaxtalk.commands.training import TrainOptions, train_run
     from jaxtalk.train import CheckpointMismatchError, latest_checkpoint_step
 
@@ -365,7 +365,7 @@ def claim_demo_outputs(options: DemoOptions) -> None:
     Raises:
         jaxtalk.files.OutputError: a name that would replace a user's file, or the audio itself.
     """
-    from jaxtalk.commands.runs import RUN_FILE, STYLE_FILE, TOKENIZER_FILE, FEATURES_FILE
+    from jaxtalk.runs import RUN_FILE, STYLE_FILE, TOKENIZER_FILE, FEATURES_FILE
     from jaxtalk.files import Output, claim_outputs
 
     out = Path(options.out_dir)

@@ -6,6 +6,7 @@ a function annotated with ``Params56`` in and ``Verts`` out checks that ``frames
 
 from __future__ import annotations
 
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, Shaped
 
 __all__ = [
@@ -20,6 +21,7 @@ __all__ = [
     "Landmarks",
     "Features",
     "Mask2D",
+    "StreamLike",
     "PARAM_DIM",
     "EXP_DIM",
     "EXP_SLICE",
@@ -46,3 +48,7 @@ Verts = Float[Array, "frames verts 3"]
 Landmarks = Float[Array, "frames 68 3"]
 Features = Float[Array, "frames dim"]
 Mask2D = Bool[Array, "queries keys"]
+
+# An input stream (JAX or NumPy, any shape) of a public entry point that validates the shape itself,
+# naming the stream in its error (TIMAR's and the DualTalk baseline's conversation streams).
+StreamLike = Shaped[Array, "..."] | Shaped[np.ndarray, "..."]

@@ -96,7 +96,7 @@ def stm_run(tmp_path_factory, prepared_tiny):
 
     import optax
 
-    from jaxtalk.commands.runs import RunRecord, checkpoint_dir, save_run_assets
+    from jaxtalk.runs import RunRecord, checkpoint_dir, save_run_assets
     from jaxtalk.models.freetalk import stm
     from jaxtalk.models.freetalk.config import STMConfig
     from jaxtalk.models.freetalk.data import face_mesh

@@ -8,7 +8,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from jaxtalk.data.batching import BatchIterator, length_buckets
+from jaxtalk.data.batching import BatchIterator, length_buckets, window_starts
 
 
 def _arrays(n=23):
@@ -164,3 +164,14 @@ def test_length_buckets_quantiles_rounded():
 def test_bad_datasets_raise_clear_errors(make, msg):
     with pytest.raises(ValueError, match=msg):
         make()
+
+
+def test_window_starts_cover_the_sequence_with_the_last_window_flush_with_the_end():
+    assert window_starts(10, 4, 3) == [0, 3, 6]
+    assert window_starts(11, 4, 3) == [0, 3, 6, 7]
+    assert window_starts(11, 4, 3, align=2) == [0, 4, 8]  # hop and the last start rounded up to the period
+    assert window_starts(3, 4, 1) == [0]  # a short clip: one window, padded by the caller
+    assert window_starts(3, 4, 1, pad_short=False) == []
+    for bad in ((10, 0, 1), (10, 4, 0), (10, 4, 1, 0)):
+        with pytest.raises(ValueError, match="must be >= 1"):
+            window_starts(*bad[:3], align=bad[3] if len(bad) > 3 else 1)

@@ -59,7 +59,7 @@ def run(tmp_path_factory, synthtalk_tiny, prepared_tiny):
 
 
 def test_train_writes_run_and_resume_continues_the_step_count(run):
-    from jaxtalk.commands.runs import RunRecord, load_run
+    from jaxtalk.runs import RunRecord, load_run
     from jaxtalk.train import Checkpointer, latest_checkpoint_step
 
     assert "step 0 -> 2" in run["first"]
@@ -95,7 +95,7 @@ def test_train_user_errors_are_one_line(run, tmp_path):
 
 
 def test_parse_overrides_types_values_by_field():
-    from jaxtalk.commands.runs import build_config, parse_overrides
+    from jaxtalk.runs import build_config, parse_overrides
     from jaxtalk.models.timar import TimarConfig
     from jaxtalk.train import OptimConfig
 
@@ -123,7 +123,7 @@ def _default_style(loaded, corpus) -> np.ndarray:
 
 
 def test_sample_tokens_equals_the_library_call(run, tmp_path):
-    from jaxtalk.commands.runs import load_run
+    from jaxtalk.runs import load_run
     from jaxtalk.data.formats import read_npz
     from jaxtalk.models import toktalk
 
@@ -139,7 +139,7 @@ def test_sample_tokens_equals_the_library_call(run, tmp_path):
 
 
 def test_stream_prints_each_chunk_and_equals_the_streaming_engine(run, tmp_path):
-    from jaxtalk.commands.runs import load_run
+    from jaxtalk.runs import load_run
     from jaxtalk.data.formats import read_npz
     from jaxtalk.models import toktalk
 
@@ -190,7 +190,7 @@ def test_sample_user_errors(run, tmp_path):
 def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise():
     import dataclasses
 
-    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.runs import RunRecord
     from jaxtalk.models.toktalk import TokTalkConfig
 
     config = dataclasses.asdict(TokTalkConfig.tiny())
@@ -205,7 +205,7 @@ def test_a_run_written_before_the_one_vocabulary_renames_samples_and_resumes(run
     import json
     import shutil
 
-    from jaxtalk.commands.runs import RENAMED_FIELDS, RunRecord
+    from jaxtalk.runs import RENAMED_FIELDS, RunRecord
 
     # The run as an older jaxtalk wrote it: TokTalk's fields under their old names, in the config and
     # in the --set items.

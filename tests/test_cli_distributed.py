@@ -124,7 +124,7 @@ def _assert_trees_close(a, b, what: str, *, rtol: float = 1e-5, atol: float = 0.
 @pytest.mark.slow  # 3 + 2 JAX processes compiling TokTalk on 2 shared cores: 2-5 min (see DEADLINE_S)
 @pytest.mark.skipif(not gloo_available(), reason="this jaxlib has no gloo CPU collectives")
 def test_cli_train_distributed_two_processes_match_one_process(prepared_tiny, tmp_path):
-    from jaxtalk.commands.runs import RunRecord, checkpoint_dir, load_run
+    from jaxtalk.runs import RunRecord, checkpoint_dir, load_run
     from jaxtalk.train import read_best, read_history
 
     cache = str(prepared_tiny.root.parent)  # --data synthtalk:tiny is found there, already prepared

@@ -138,7 +138,7 @@ def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path)
 
 
 def test_toktalk_eval_rows_per_step_count_streamed_and_offline(runs, tmp_path):
-    from jaxtalk.commands.runs import load_run
+    from jaxtalk.runs import load_run
 
     _ok(["eval", runs["toktalk"], "--max-clips", "1", "--sample-steps", "1,2", "--offline", "--best",
          "--json", tmp_path / "r.json"])
@@ -193,7 +193,7 @@ def test_toktalk_eval_on_flame_with_its_masks(runs, tmp_path):
 
 
 def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
-    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.runs import RunRecord
     from jaxtalk.models.timar.data import Normalizer
     from jaxtalk.models.timar.recipe import agent_sides
 
@@ -228,8 +228,8 @@ def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
 
 
 def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_path):
-    from jaxtalk.commands.runs import RunRecord
-    from jaxtalk.models.freetalk.data import window_starts
+    from jaxtalk.runs import RunRecord
+    from jaxtalk.data.batching import window_starts
 
     output = _ok(["eval", runs["ats"], "--max-clips", "1", "--json", tmp_path / "r.json"])
     columns, printed = _table(output, "ATS on test")
@@ -242,7 +242,7 @@ def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_
     window, mean = extra["window"], np.asarray(extra["stats"]["mean"], np.float32)
     clip = data.split("test")[0]
     lms = data.record(clip, ("landmarks",))["landmarks"]
-    starts = window_starts(lms.shape[0], window, window)
+    starts = window_starts(lms.shape[0], window, window, pad_short=False)
     assert rows["neutral"]["windows"] == len(starts) and rows["neutral"]["frames"] == len(starts) * window
     for name, base in (("neutral", np.zeros_like(mean)), ("mean pose", mean)):
         dist = [np.linalg.norm(lms[s:s + window] - base, axis=-1) for s in starts]

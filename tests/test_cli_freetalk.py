@@ -118,7 +118,7 @@ def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path,
     import jax.numpy as jnp
 
     from jaxtalk.audio.encoders import EncoderConfig, Wav2Vec2Model, save_checkpoint
-    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.runs import RunRecord
 
     enc = EncoderConfig.small("hubert", "base", hidden_size=768, num_hidden_layers=1, num_attention_heads=12,
                               intermediate_size=256, conv_dim=(16,) * 7, conv_kernel=(10, 3, 3, 3, 3, 2, 2),

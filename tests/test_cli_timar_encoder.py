@@ -53,7 +53,7 @@ def _keep_conversations(folder, splits):
 @pytest.mark.slow
 def test_paper_timar_trains_and_samples_on_1024_d_wav2vec2_features(tmp_path, fast_compile):
     from jaxtalk.audio.encoders import EncoderConfig, Wav2Vec2Model, save_checkpoint
-    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.runs import RunRecord
     from jaxtalk.data.formats import read_npz
 
     enc = EncoderConfig.small("wav2vec2", "large", hidden_size=1024, num_hidden_layers=1, num_attention_heads=8,

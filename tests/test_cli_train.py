@@ -45,7 +45,7 @@ def cache(prepared_tiny):
 @pytest.mark.slow
 @pytest.mark.parametrize("model", ["toktalk", "timar", "ats", "stm"])
 def test_train_recipe_runs_end_to_end_and_writes_a_loadable_run(model, cache, tmp_path):
-    from jaxtalk.commands.runs import RunRecord, load_run
+    from jaxtalk.runs import RunRecord, load_run
 
     out = tmp_path / model
     output = _ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", cache, "--steps", "2", "--set",
@@ -67,7 +67,7 @@ def test_train_recipe_runs_end_to_end_and_writes_a_loadable_run(model, cache, tm
 
 @pytest.mark.slow
 def test_memory_and_generic_export_paths_train_to_identical_parameters(cache, synthtalk_tiny, tmp_path):
-    from jaxtalk.commands.runs import load_run
+    from jaxtalk.runs import load_run
     from jaxtalk.data.sources import export_generic
 
     folder = export_generic(synthtalk_tiny, tmp_path / "generic")

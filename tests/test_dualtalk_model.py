@@ -193,7 +193,7 @@ def test_jaxtalk_train_dualtalk_lowers_the_loss_on_timar_windows_then_eval_score
     # One run through the CLI, which trains with the recipe (jaxtalk.models.dualtalk.recipe.train): a
     # second, direct recipe run would compile the same training step again.
     from jaxtalk.cli import app
-    from jaxtalk.commands.runs import RunRecord, checkpoint_dir
+    from jaxtalk.runs import RunRecord, checkpoint_dir
     from jaxtalk.models.timar import TimarConfig
     from jaxtalk.models.timar.recipe import fit_data_normalizer, make_windows
     from jaxtalk.train import read_history

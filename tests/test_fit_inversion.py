@@ -1,4 +1,4 @@
-"""Inversion through the samplers (``jaxtalk.fit.inversion``).
+"""Inversion through the samplers (``jaxtalk.fit.inversion`` and the models' ``inversion`` modules).
 
 * A TokTalk style vector and FreeTalk ATS intensities used to sample a target from fixed noise are
   recovered from other starting points (untrained tiny models: the truth is whatever made the target).
@@ -19,15 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtalk.fit import (
-    InversionFailedError,
-    ats_noise,
-    intensity_loss,
-    invert_intensity,
-    invert_style,
-    sample_ats_from_noise,
-    style_loss,
-)
+from jaxtalk.fit import InversionFailedError
+from jaxtalk.models.freetalk.inversion import ats_noise, intensity_loss, invert_intensity, sample_ats_from_noise
+from jaxtalk.models.toktalk.inversion import invert_style, style_loss
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.freetalk import ats
 from jaxtalk.models.freetalk.config import ATSConfig

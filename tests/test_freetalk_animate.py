@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from jaxtalk.data.batching import window_starts
 from jaxtalk.face import builtin_face
 from jaxtalk.geometry.canonical import canonicalize, detect_units, load_mesh
 from jaxtalk.models.freetalk import animate as ft
@@ -304,7 +305,7 @@ def test_landmark_track_of_a_short_clip_is_one_ats_sample(models):
 
 
 def test_crossfade_weights_sum_to_one_and_ramp_over_the_overlaps():
-    starts = ft._window_starts(50, 20)
+    starts = window_starts(50, 20, 15)  # animate's windows: a quarter overlap
     assert starts == [0, 15, 30]
     w = ft._crossfade(50, 20, starts)
     np.testing.assert_allclose(w.sum(axis=0), 1.0)
@@ -374,7 +375,7 @@ def test_a_real_face_scan_in_millimetres_animates_in_its_own_frame(models):
 def test_an_ats_run_recorded_before_the_vocabulary_setting_loads_as_emovoca():
     import dataclasses
 
-    from jaxtalk.commands.runs import RunRecord
+    from jaxtalk.runs import RunRecord
     from jaxtalk.models.freetalk.emotions import EMOTIONS
 
     old = dataclasses.asdict(ATSConfig.small())

@@ -55,14 +55,6 @@ def test_displacement_stats_standardise_per_coordinate_with_a_floor():
         data.DisplacementStats.fit(np.zeros((68, 3), np.float32))
 
 
-def test_window_starts_cover_the_sequence():
-    assert data.window_starts(10, 4, 3) == [0, 3, 6]
-    assert data.window_starts(11, 4, 3) == [0, 3, 6, 7]
-    assert data.window_starts(3, 4, 1) == []
-    with pytest.raises(ValueError):
-        data.window_starts(10, 0, 1)
-
-
 def test_mesh_motion_on_base_and_remeshed_faces():
     face = builtin_face(1, resolution="low")
     rng = np.random.default_rng(1)

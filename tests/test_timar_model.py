@@ -18,7 +18,7 @@ from jaxtalk.models.timar.head import (
     init_head,
     time_embedding,
 )
-from jaxtalk.models.timar.inputs import to_turns
+from jaxtalk.data.turns import to_turns
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 

@@ -11,7 +11,7 @@ import pytest
 
 from jaxtalk.models.timar import TimarConfig, init_params, sample
 from jaxtalk.models.timar.head import apply_head, init_head
-from jaxtalk.models.timar.inputs import to_turns
+from jaxtalk.data.turns import to_turns
 from jaxtalk.models.timar.sample import respaced_schedule
 from jaxtalk.models.timar.sample import conditions as _conditions_eager
 from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager

@@ -9,7 +9,7 @@ import pytest
 
 from jaxtalk.models.timar import TimarConfig, init_params
 from jaxtalk.models.timar import stream as stream_mod
-from jaxtalk.models.timar.inputs import to_turns
+from jaxtalk.data.turns import to_turns
 from jaxtalk.models.timar.sample import conditions as _conditions_eager
 from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
 from jaxtalk.models.timar.stream import stream_condition, stream, init_stream, stream_step

@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtalk.commands.runs import LoadedRun, RunRecord, checkpoint_dir, load_run
+from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec
 
 __all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
            "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS"]
@@ -233,8 +233,8 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
             raise ValueError(f"{where} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz, the run was "
                              f"trained on width {cfg['speech_dim']} at {cfg['token_rate']:g} Hz")
         return
-    if record.model in ("timar", "dualtalk", "ats"):
-        key, width = ("speech_dim", cfg["speech_dim"]) if record.model == "ats" else ("turn_speech_dim", cfg["speech_dim"])
+    for field, key in model_spec(record.model).data_fields:  # the speech feature width of TIMAR, DualTalk, ATS
+        width = cfg[field]
         if m["settings"]["audio"] != features.get("audio") or m.get(key) != width:
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
@@ -243,7 +243,7 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
 
 def _same_tokenizer(run: LoadedRun, data: Any) -> bool:
     """Whether the data's tokens come from the tokenizer the run was trained with (unknown: True)."""
-    from jaxtalk.commands.runs import TOKENIZER_FILE
+    from jaxtalk.runs import TOKENIZER_FILE
 
     ours, theirs = run.run_dir / TOKENIZER_FILE, (data.root / data.manifest["tokenizer"]) if data.manifest.get("tokenizer") else None
     if not ours.is_file() or theirs is None or not theirs.is_file():
@@ -450,7 +450,9 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
     import jax
 
     from jaxtalk.face import builtin_face
-    from jaxtalk.models.freetalk.data import DisplacementStats, landmark_motion, window_starts, without_head_pose
+    from jaxtalk.data.batching import window_starts
+    from jaxtalk.face.motion import landmark_motion, without_head_pose
+    from jaxtalk.models.freetalk.data import DisplacementStats
     from jaxtalk.models.freetalk.emotions import NEUTRAL, emotion_ids
     from jaxtalk.models.freetalk.fit import FittedATS, sample_displacements
 
@@ -472,7 +474,7 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
         if "oracle" in rec:
             rec["oracle_landmarks"] = landmark_motion(face, without_head_pose(rec.pop("oracle")))
         recs.append(rec)
-        items += [(n, st) for st in window_starts(rec["landmarks"].shape[0], window, window)]
+        items += [(n, st) for st in window_starts(rec["landmarks"].shape[0], window, window, pad_short=False)]
     echo(f"sampling {len(items)} windows of {window} frames from {len(chosen)} {split} clips of {data.root} "
          f"with ATS (step {run.step})")
     key = jax.random.key(opts.seed)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxtalk.commands.runs import LoadedRun, RunRecord, load_run
+from jaxtalk.runs import LoadedRun, RunRecord, load_run
 
 __all__ = ["SampleOptions", "SampleResult", "MeshOptions", "sample_run", "stream_run", "animate_run",
            "AUDIO_SUFFIXES"]

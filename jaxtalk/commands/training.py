@@ -28,14 +28,16 @@ from typing import Any
 
 import numpy as np
 
-from jaxtalk.commands.runs import (
+from jaxtalk.runs import (
     MODELS,
+    RunInfo,
     RunRecord,
     build_config,
     checkpoint_dir,
     config_class,
+    model_spec,
     parse_overrides,
-    save_run_assets,
+    preset_names,
 )
 
 __all__ = ["TrainOptions", "TrainSummary", "train_run", "recipe_for", "split_overrides"]
@@ -105,25 +107,10 @@ class TrainSummary:
 
 
 def recipe_for(model: str, preset: str = "small") -> tuple[Callable[..., Any], Any]:
-    """``(train function, default TrainSettings)`` of ``model``'s recipe for a config preset (a recipe
-    with ``PRESET_DEFAULTS`` has settings per preset, e.g. TIMAR's ``paper``; others one ``DEFAULTS``)."""
-    if model == "toktalk":
-        from jaxtalk.models.toktalk import recipe
-
-        return recipe.train, recipe.DEFAULTS
-    if model == "timar":
-        from jaxtalk.models.timar import recipe
-
-        return recipe.train, recipe.PRESET_DEFAULTS.get(preset, recipe.DEFAULTS)
-    if model == "dualtalk":
-        from jaxtalk.models.dualtalk import recipe
-
-        return recipe.train, recipe.PRESET_DEFAULTS.get(preset, recipe.DEFAULTS)
-    if model in ("ats", "stm"):
-        from jaxtalk.models.freetalk import recipe
-
-        return (recipe.train_ats if model == "ats" else recipe.train_stm), recipe.DEFAULTS
-    raise ValueError(f"unknown model {model!r}; expected one of {', '.join(MODELS)}")
+    """``(train function, default TrainSettings)`` of ``model``'s recipe for a config preset (from
+    :data:`jaxtalk.runs.REGISTRY`)."""
+    spec = model_spec(model)
+    return spec.train_fn(), spec.settings(preset)
 
 
 def split_overrides(model: str, items: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
@@ -152,12 +139,7 @@ def split_overrides(model: str, items: Sequence[str]) -> tuple[list[str], dict[s
 def _data_fields(model: str, data: Any, explicit: dict[str, Any]) -> list[str]:
     """Config overrides that make the model's input widths match the data (unless set explicitly)."""
     m = data.manifest
-    wanted = {
-        "toktalk": {"speech_dim": m.get("token_dim"), "token_rate": m.get("token_rate")},
-        "timar": {"speech_dim": m.get("turn_speech_dim")},
-        "dualtalk": {"speech_dim": m.get("turn_speech_dim")},
-        "ats": {"speech_dim": m.get("speech_dim")},
-    }.get(model, {})
+    wanted = {field: m.get(key) for field, key in model_spec(model).data_fields}
     return [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in wanted.items()
             if v is not None and k not in explicit]
 
@@ -183,8 +165,7 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     from jaxtalk.train import latest_checkpoint_step
 
     start = time.perf_counter()
-    if opts.model not in MODELS:
-        raise ValueError(f"unknown model {opts.model!r}; expected one of {', '.join(MODELS)}")
+    spec = model_spec(opts.model)
     if opts.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {opts.steps}")
     if opts.distributed:
@@ -211,8 +192,9 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
             raise ValueError(f"{out} was trained on {existing.data['spec']!r}; resume it on the same data")
         opts = dataclasses.replace(opts, preset=existing.preset, overrides=tuple(existing.items),
                                    data=existing.data["spec"], seed=existing.seed)
-    preset = opts.preset or "small"
-    train_fn, defaults = recipe_for(opts.model, preset)
+    # A run made from Python with a config that equals no preset resumes with None (its config is on record).
+    preset = existing.preset if existing is not None else opts.preset or "small"
+    train_fn, defaults = recipe_for(opts.model, preset or "small")
     model_items, train_kw = split_overrides(opts.model, opts.overrides)
     # A resumed run reads the prepared folder it started on (a synthtalk: spec would otherwise be looked
     # up again under this call's --cache-dir), and only if it still holds the same data.
@@ -220,16 +202,18 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     if existing is not None and data.key != existing.data["key"]:
         raise ValueError(f"{out} was trained on prepared data {existing.data['key']!r}, but {data.root} now holds "
                          f"{data.key!r}; resume it on the same data or choose another --out")
-    explicit = parse_overrides(config_class(opts.model), model_items)
-    config = build_config(opts.model, preset, [*_data_fields(opts.model, data, explicit), *model_items])
+    if existing is not None:
+        config = existing.model_config()
+    else:
+        explicit = parse_overrides(config_class(opts.model), model_items)
+        config = build_config(opts.model, preset, [*_data_fields(opts.model, data, explicit), *model_items])
     settings = dataclasses.replace(defaults, **train_kw)
     if existing is not None and "batch_size" not in train_kw and existing.train.get("batch_size"):
         # The batch the run trained with (smaller than the default on a small training split).
         settings = dataclasses.replace(settings, batch_size=int(existing.train["batch_size"]))
-    if settings.window_frames is not None and opts.model in ("timar", "dualtalk", "stm"):
-        raise ValueError(f"window_frames is not a {opts.model} setting ({opts.model} windows are "
-                         f"{'16 frames' if opts.model == 'stm' else 'whole turns (max_turns)'})")
-    echo(f"{'resuming' if done else 'training'} {opts.model} ({preset}) from step {done} to {opts.steps} on {data}; "
+    if settings.window_frames is not None and spec.windows is not None:
+        raise ValueError(f"window_frames is not a {opts.model} setting ({opts.model} windows are {spec.windows})")
+    echo(f"{'resuming' if done else 'training'} {opts.model} ({preset or 'custom config'}) from step {done} to {opts.steps} on {data}; "
          f"checkpoints in {checkpoint_dir(out)}")
     mesh = None
     if opts.data_parallel or opts.distributed:
@@ -240,22 +224,15 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         if settings.batch_size % local:
             raise ValueError(f"batch_size {settings.batch_size} must divide by the {local} local devices")
     kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames else {}
+    info = RunInfo(preset=preset, items=tuple(opts.overrides), data_spec=opts.data, settings=settings)
     with warnings.catch_warnings():
         # The library's warnings (a smaller batch than asked, ...) as one line each, not Python's
         # two-line "file:line: UserWarning" form.
         warnings.showwarning = lambda message, *_args, **_kw: echo(f"warning: {message}")
         result = train_fn(config, data, settings.optim(opts.steps), steps=opts.steps, key=jax.random.key(opts.seed),
-                          batch_size=settings.batch_size, seed=opts.seed, ckpt_dir=checkpoint_dir(out), mesh=mesh,
+                          batch_size=settings.batch_size, seed=opts.seed, run_dir=out, run_info=info, mesh=mesh,
                           eval_every=settings.period(opts.steps), progress=opts.progress,
                           save_every=opts.save_every or max(opts.steps // 5, 1), **kw)
-    settings = dataclasses.replace(settings, batch_size=result.batch_size or settings.batch_size)
-    record = RunRecord(model=opts.model, preset=preset, items=list(opts.overrides), config=dataclasses.asdict(config),
-                       train=dataclasses.asdict(settings), optim=settings.optim(opts.steps).to_dict(),
-                       data={"spec": opts.data, "path": str(data.root.absolute()), "key": data.key},
-                       seed=opts.seed, extra=result.extra)
-    if jax.process_index() == 0:
-        record.save(out)
-        save_run_assets(out, opts.model, data, config)
     losses = [h["loss"] for h in result.history[-10:] if "loss" in h]
     evals = [h["eval"]["val_loss"] for h in result.history if "eval" in h and "val_loss" in h["eval"]]
     return TrainSummary(run_dir=out, start_step=done, step=int(result.state.step),
@@ -308,6 +285,4 @@ def _open_data_once(opts: TrainOptions, prepared: str | None = None) -> Any:
 
 def describe_presets(models: Sequence[str] = MODELS) -> str:
     """One line per model listing its presets (for ``--help``)."""
-    from jaxtalk.commands.runs import preset_names
-
     return "; ".join(f"{m}: {', '.join(preset_names(m))}" for m in models)

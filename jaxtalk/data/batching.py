@@ -19,9 +19,38 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BatchIterator", "length_buckets"]
+__all__ = ["BatchIterator", "length_buckets", "window_starts"]
 
 Batch = dict[str, np.ndarray]
+
+
+def window_starts(num_frames: int, window: int, hop: int, *, align: int = 1, pad_short: bool = True) -> list[int]:
+    """Starts of ``window``-frame windows every ``hop`` frames, the last one flush with the end (with
+    ``align > 1`` rounded up to the period, so it may overhang: the caller pads).
+
+    Every recipe, FreeTalk's evaluation and its overlapping inference windows cut clips with this.
+
+    Args:
+        num_frames: the clip's length.
+        window: frames per window.
+        hop: frames between window starts (rounded up to a multiple of ``align``).
+        align: starts are multiples of this (a token period).
+        pad_short: a clip shorter than ``window`` gives one window at 0 (the caller pads it and masks
+            the padding); False: it gives none.
+
+    Returns:
+        Increasing start frames.
+
+    Raises:
+        ValueError: ``window``, ``hop`` or ``align`` below 1.
+    """
+    if window < 1 or hop < 1 or align < 1:
+        raise ValueError(f"window, hop and align must be >= 1, got {window}, {hop}, {align}")
+    if num_frames < window and not pad_short:
+        return []
+    hop = int(np.ceil(hop / align) * align)
+    last = int(np.ceil(max(num_frames - window, 0) / align) * align)
+    return sorted(set(range(0, last + 1, hop)) | {last})
 
 
 def length_buckets(lengths: Sequence[int] | np.ndarray, num_buckets: int, *, multiple: int = 1) -> tuple[int, ...]:

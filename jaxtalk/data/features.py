@@ -52,7 +52,7 @@ class AudioFeatures:
     def speech(self, audio: np.ndarray, num_frames: int) -> np.ndarray:
         """Whole-clip features ``(num_frames, D)`` float32 of ``audio`` (16 kHz, any length)."""
         if self.kind == "logmel":
-            from jaxtalk.models.freetalk.data import audio_features
+            from jaxtalk.audio.speech import audio_features
 
             return audio_features(audio, num_frames)
         feats = np.asarray(self._encoder.features_at(_fit(audio, num_frames * SAMPLES_PER_FRAME), MOTION_FPS))
@@ -61,7 +61,7 @@ class AudioFeatures:
     def turn_speech(self, audio: np.ndarray, num_turns: int) -> np.ndarray:
         """Per-turn features ``(num_turns * 25, D)``: each 1-s turn from its own audio only."""
         if self.kind == "logmel":
-            from jaxtalk.models.timar.data import turn_speech_features
+            from jaxtalk.audio.speech import turn_speech_features
 
             spt = TURN_FRAMES * SAMPLES_PER_FRAME
             blocks = -(-num_turns // TURN_BLOCK)

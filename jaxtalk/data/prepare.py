@@ -193,7 +193,7 @@ def clip_record(raw: RawClip, features: AudioFeatures, *, tokenizer: Any = None,
         out["turn_speech"] = features.turn_speech(np.pad(audio, (0, max(turns * TURN_FRAMES * SAMPLES_PER_FRAME - audio.size, 0))), turns)
     if landmarks and "motion" in out:
         from jaxtalk.face import builtin_face
-        from jaxtalk.models.freetalk.data import landmark_motion, without_head_pose
+        from jaxtalk.face.motion import landmark_motion, without_head_pose
 
         out["landmarks"] = landmark_motion(builtin_face(0), without_head_pose(out["motion"]))
     if tokenizer is not None:

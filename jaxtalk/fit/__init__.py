@@ -3,8 +3,9 @@
 ``fit_landmarks`` / ``fit_vertices`` solve for the 56-d head vector ``[exp 50 | jaw 3 | neck 3]``
 per frame or jointly over a sequence (Levenberg-Marquardt or Gauss-Newton), with temporal smoothness,
 an L2 prior, warm starts, topology variants, and failures that raise instead of returning a wrong fit.
-``invert_style`` / ``invert_intensity`` recover a TokTalk style vector or a FreeTalk emotion intensity
-from a target clip by optimistix minimisation through the samplers (fixed noise).
+:mod:`jaxtalk.fit.inversion` is the solve behind inverting a condition through a sampler (fixed noise);
+the inversions themselves live with their models (``jaxtalk.models.toktalk.inversion.invert_style``,
+``jaxtalk.models.freetalk.inversion.invert_intensity``), a layer above this one.
 """
 
 from __future__ import annotations
@@ -19,16 +20,7 @@ from jaxtalk.fit.face_fit import (
     identifiable_params,
     result_name,
 )
-from jaxtalk.fit.inversion import (
-    InversionFailedError,
-    InversionResult,
-    ats_noise,
-    intensity_loss,
-    invert_intensity,
-    invert_style,
-    sample_ats_from_noise,
-    style_loss,
-)
+from jaxtalk.fit.inversion import InversionFailedError, InversionResult
 
 __all__ = [
     "FitConfig",
@@ -42,10 +34,4 @@ __all__ = [
     "result_name",
     "InversionFailedError",
     "InversionResult",
-    "ats_noise",
-    "intensity_loss",
-    "invert_intensity",
-    "invert_style",
-    "sample_ats_from_noise",
-    "style_loss",
 ]

@@ -13,22 +13,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.checks import check_finite
+
 # Metrics accept host (NumPy) or device (JAX) arrays.
 AnyArray = jax.Array | np.ndarray
 
 
 def _is_tracer(x: object) -> bool:
     return isinstance(x, jax.core.Tracer)
-
-
-def check_finite(x: AnyArray, name: str) -> None:
-    """Raise ValueError if a concrete array holds NaN or inf (tracers pass: values unknown)."""
-    if _is_tracer(x):
-        return
-    values = np.asarray(x)
-    if not np.all(np.isfinite(values)):
-        bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
-        raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf); shape {values.shape}")
 
 
 def as_sequence_array(x: AnyArray, name: str, *, trailing: tuple[int, ...] | None = None,

@@ -31,7 +31,8 @@ import numpy as np
 import scipy.linalg
 from jaxtyping import Float
 
-from jaxtalk.metrics._validate import AnyArray, check_finite
+from jaxtalk.checks import check_finite
+from jaxtalk.metrics._validate import AnyArray
 from jaxtalk.types import EXP_SLICE, JAW_SLICE, NECK_SLICE, PARAM_DIM
 
 __all__ = [

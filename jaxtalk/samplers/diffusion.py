@@ -29,12 +29,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.checks import check_finite
 from jaxtalk.samplers.flow import (
     ApplyFn,
     FloatLike,
     ShapedLike,
     _check_cond,
-    _check_finite,
     as_model,
     guided_apply,
 )
@@ -336,7 +336,7 @@ def _prepare(noise, cond, schedule, key, uncond, cfg_scale, eta, prediction, cli
     noise = jnp.asarray(noise)
     if noise.ndim < 1 or not jnp.issubdtype(noise.dtype, jnp.floating):
         raise ValueError(f"noise must be a floating array with a batch axis, got {noise.dtype} {noise.shape}")
-    _check_finite("noise", noise)
+    check_finite(noise, "noise")
     if prediction not in PREDICTIONS:
         raise ValueError(f"unknown prediction {prediction!r}; expected one of {PREDICTIONS}")
     if variance not in VARIANCES:
@@ -350,7 +350,7 @@ def _prepare(noise, cond, schedule, key, uncond, cfg_scale, eta, prediction, cli
         raise ValueError("schedule has no steps")
     # The single explicit float64 -> compute-dtype conversion (no-op for already converted tables).
     schedule = schedule.astype(noise.dtype) if isinstance(schedule.alphas_cumprod, np.ndarray) else schedule
-    _check_finite("schedule.alphas_cumprod", schedule.alphas_cumprod)
+    check_finite(schedule.alphas_cumprod, "schedule.alphas_cumprod")
     clip = tuple(ClipGroup(tuple(int(i) for i in g[0]), float(g[1]), float(g[2])) for g in clip)
     for g in clip:
         if g.low > g.high:

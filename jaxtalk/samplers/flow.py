@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.checks import check_finite
 from jaxtalk.types import Array, Float, Shaped
 
 __all__ = [
@@ -86,16 +87,6 @@ class FlowState(NamedTuple):
     x: Float[Array, "batch *dims"]
     z: Float[Array, "batch *dims"]
     t: Float[Array, ""]
-
-
-def _is_concrete(x: Any) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _check_finite(name: str, x: Any) -> None:
-    # Value checks only when the value is known (not inside someone else's jit/vmap/grad).
-    if _is_concrete(x) and not bool(jnp.all(jnp.isfinite(x))):
-        raise ValueError(f"{name} contains NaN or inf")
 
 
 def guided_apply(
@@ -297,8 +288,8 @@ def sample_euler(
     ts = jnp.asarray(ts, dtype)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"ts must be a 1-D grid with at least 2 times, got shape {ts.shape}")
-    _check_finite("ts", ts)
-    _check_finite("noise", noise)
+    check_finite(ts, "ts")
+    check_finite(noise, "noise")
     cfg_scale = jnp.asarray(cfg_scale, dtype)
     if cfg_scale.ndim != 0:
         raise ValueError(f"cfg_scale must be a scalar (vmap for several), got shape {cfg_scale.shape}")
@@ -350,5 +341,5 @@ def _check_known(known: Any, known_mask: Any, noise: Any) -> tuple[Any, Any]:
         raise ValueError(
             f"known_mask shape {known_mask.shape} must have rank {noise.ndim} and broadcast to {noise.shape}"
         )
-    _check_finite("known", known)
+    check_finite(known, "known")
     return known, known_mask

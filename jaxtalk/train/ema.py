@@ -13,7 +13,7 @@ division on every read, the state holds this debiased value itself and updates i
 equivalent recursion ``ema_t = k_t ema_{t-1} + (1 - k_t) p_t`` where
 ``k_t = d (1 - d**(t-1)) / (1 - d**t)`` (:func:`ema_decay_at`; ``k_1 = 0``, ``k_t -> d``). The step
 count ``t`` is the train state's ``step``, so the checkpointed ``ema_params`` are already the value
-every reader wants (``state.eval_params``, :func:`jaxtalk.commands.runs.load_run`), the checkpoint
+every reader wants (``state.eval_params``, :func:`jaxtalk.runs.load_run`), the checkpoint
 layout is unchanged, and resuming is bitwise exact because the update depends only on the stored
 ``(ema_params, params, step)``.
 

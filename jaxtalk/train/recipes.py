@@ -1,10 +1,13 @@
-"""What the four model recipes share: the result type, window starts, a validation-loss evaluator.
+"""What the model recipes share: the result type, a validation-loss evaluator, the run they write.
 
 A recipe (``jaxtalk.models.<model>.recipe``) is the one way a model is trained: it cuts windows from
 a prepared dataset (:mod:`jaxtalk.data.loader`), fits what the model needs from the training split
 (normalisers), and runs the shared loop. Every recipe's entry point has the same shape::
 
-    train(config, data, optim, *, steps, key, batch_size=16, ckpt_dir=None, mesh=None, ...) -> RecipeResult
+    train(config, data, optim, *, steps, key, batch_size=16, run_dir=None, ckpt_dir=None, mesh=None, ...) -> RecipeResult
+
+Given a ``run_dir``, a recipe checkpoints into ``run_dir/checkpoint`` and writes a complete run
+(:func:`jaxtalk.runs.write_run`) that ``jaxtalk sample``, ``eval`` and :func:`jaxtalk.runs.load_run` open.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "window_starts", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "fit_recipe", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "fit_recipe", "VAL_WINDOWS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
@@ -65,6 +68,15 @@ class TrainSettings:
         return OptimConfig(lr=self.lr, weight_decay=self.weight_decay, warmup_steps=min(self.warmup_steps, steps // 10),
                            total_steps=steps, clip_norm=self.clip_norm, ema_decay=self.ema_decay,
                            final_lr_ratio=self.final_lr_ratio)
+
+    @classmethod
+    def of_run(cls, optim: Any, *, batch_size: int, window_frames: int | None = None,
+               eval_every: int | None = None) -> TrainSettings:
+        """The settings a recipe ran with, read back from its optimiser settings and arguments (what a
+        run made from Python records; the warm-up is the one the run used, already capped)."""
+        return cls(lr=optim.lr, weight_decay=optim.weight_decay, warmup_steps=optim.warmup_steps,
+                   final_lr_ratio=optim.final_lr_ratio, clip_norm=optim.clip_norm, ema_decay=optim.ema_decay,
+                   batch_size=batch_size, window_frames=window_frames, eval_every=eval_every)
 
     def period(self, steps: int) -> int:
         """The validation period of a ``steps``-long run."""
@@ -120,17 +132,6 @@ def usable_batch_size(windows: int, batch_size: int, *, processes: int = 1, mult
         raise ValueError(f"split 'train' has {windows} windows, fewer than {multiple} per process x {processes} "
                          "process(es): too little data to train on")
     return fitted
-
-
-def window_starts(num_frames: int, window: int, hop: int, *, align: int = 1) -> list[int]:
-    """Starts of ``window``-frame windows every ``hop`` frames, the last one flush with the end.
-
-    Starts are multiples of ``align`` (a token period); a clip shorter than ``window`` gives one
-    window at 0 (the recipe pads it and masks the padding).
-    """
-    hop = int(np.ceil(hop / align) * align)
-    last = int(np.ceil(max(num_frames - window, 0) / align) * align)
-    return sorted(set(range(0, last + 1, hop)) | {last})
 
 
 def validation_eval(
@@ -226,6 +227,10 @@ def fit_recipe(
     eval_every: int | None,
     metadata: dict[str, Any],
     extra: dict[str, Any],
+    config: Any,
+    run_dir: Any = None,
+    run_info: Any = None,
+    window_frames: int | None = None,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """What every recipe does once its windows, loss and initial parameters are set: the grain loader
@@ -243,14 +248,20 @@ def fit_recipe(
         optim: optimiser settings.
         key: the loop's base key; eval_key: the validation key.
         steps, batch_size, seed, ckpt_dir, mesh, eval_every: as every recipe's ``train``.
-        metadata: saved with each checkpoint.
+        metadata: saved with each checkpoint (``metadata["model"]`` names the run's model).
         extra: what the recipe fitted on the training split (goes into ``run.json``).
+        config: the model config.
+        run_dir: write a complete run here (checkpoints in ``run_dir/checkpoint`` unless ``ckpt_dir``
+            says otherwise), or None.
+        run_info: how the run was asked for (:class:`jaxtalk.runs.RunInfo`; None: a Python call).
+        window_frames: the window setting the recipe was given (recorded with the run).
         **loop_kwargs: passed to :func:`jaxtalk.train.train`.
 
     Returns:
         :class:`RecipeResult`.
     """
     from jaxtalk.data.loader import make_loader
+    from jaxtalk.runs import checkpoint_dir, write_run
     from jaxtalk.train.loop import train
 
     windows = len(recipe.table(data, "train")) if data.split("train") else 0
@@ -261,11 +272,20 @@ def fit_recipe(
                       f"{f' x {jax.process_count()} processes' if jax.process_count() > 1 else ''}: training with "
                       f"the largest batch it allows (--set batch_size={fitted})", BatchSizeWarning, stacklevel=3)
         batch_size = fitted
+    if run_dir is not None and ckpt_dir is None:
+        ckpt_dir = checkpoint_dir(run_dir)
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     eval_fn = split_validation(data, recipe, loss_fn, batch_size, eval_key)
     if ckpt_dir is not None:  # the run folder of the run layout: <run>/checkpoint is the checkpoint directory
         loop_kwargs.setdefault("log_dir", Path(ckpt_dir).parent)
     result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
                    mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
+    if run_info is not None and run_info.settings is not None:  # the run records the batch it trained with
+        run_info = dataclasses.replace(run_info, settings=dataclasses.replace(run_info.settings, batch_size=batch_size))
+    if run_dir is not None and jax.process_index() == 0:  # every process checkpoints; one writes the record
+        settings = TrainSettings.of_run(optim, batch_size=batch_size, window_frames=window_frames,
+                                        eval_every=eval_every)
+        write_run(run_dir, metadata["model"], config, data, optim, seed=seed, extra=extra, settings=settings,
+                  info=run_info)
     return RecipeResult(state=result.state, history=result.history, best=result.best, extra=extra,
                         windows=loader.num_windows, batch_size=batch_size)

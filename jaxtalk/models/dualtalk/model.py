@@ -27,12 +27,11 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from jaxtalk.data.turns import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
-from jaxtalk.models.timar.inputs import check_streams
-from jaxtalk.models.timar.sample import StreamLike
 from jaxtalk.nn import MLP, DecoderBlock, MultiHeadAttention, TransformerBlock
 from jaxtalk.nn.embeddings import sinusoidal_embedding
-from jaxtalk.types import Array, Float, PRNGKeyArray
+from jaxtalk.types import Array, Float, PRNGKeyArray, StreamLike
 
 __all__ = ["DualTalkNet", "apply", "check_inputs", "init_params"]
 

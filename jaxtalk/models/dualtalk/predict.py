@@ -15,11 +15,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.data.turns import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.models.dualtalk.model import DualTalkNet, check_inputs
-from jaxtalk.models.timar.inputs import check_streams
-from jaxtalk.models.timar.sample import StreamLike
-from jaxtalk.types import Array, Float
+from jaxtalk.types import Array, Float, StreamLike
 
 __all__ = ["WINDOW_BATCH", "predict_turns", "predict_window"]
 

@@ -3,20 +3,22 @@
 TIMAR's Table 1 retrains DualTalk "under the same training configuration as TIMAR", so the windows
 (``num_turns`` whole turns of both sides' per-turn speech and motion, every turn step of every training
 conversation), the normaliser fitted on the training agents, the still pose of motionless partners and
-the optimiser settings are all TIMAR's (:mod:`jaxtalk.models.timar.recipe`): both models see
-identical data.
+the optimiser settings are all TIMAR's (:mod:`jaxtalk.data.conversation`, :mod:`jaxtalk.train.turns`,
+shared a layer below both models): both models see identical data.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.dualtalk.config import DualTalkConfig
-from jaxtalk.models.timar import recipe as timar_recipe
+from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import RecipeResult, TrainSettings
+from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "PRESET_DEFAULTS", "train"]
@@ -25,8 +27,8 @@ PyTree = Any
 
 # TIMAR's settings per preset (small: AdamW 1e-3, 20 warm-up steps, decay to a tenth; paper: AdamW
 # 1e-4, batch 32, 100 warm-up steps, constant after), the same objects so the two never drift apart.
-DEFAULTS: TrainSettings = timar_recipe.DEFAULTS
-PRESET_DEFAULTS: dict[str, TrainSettings] = dict(timar_recipe.PRESET_DEFAULTS)
+DEFAULTS: TrainSettings = TURN_DEFAULTS
+PRESET_DEFAULTS: dict[str, TrainSettings] = dict(TURN_PRESET_DEFAULTS)
 
 
 def train(
@@ -39,6 +41,8 @@ def train(
     batch_size: int = 16,
     seed: int = 0,
     params: PyTree | None = None,
+    run_dir: str | Path | None = None,
+    run_info: RunInfo | None = None,
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
@@ -54,6 +58,6 @@ def train(
     from jaxtalk.models.dualtalk.loss import make_loss_fn
     from jaxtalk.models.dualtalk.model import init_params
 
-    return timar_recipe.train_on_turn_windows("dualtalk", config, data, optim, init_params, make_loss_fn, steps=steps,
+    return train_on_turn_windows("dualtalk", config, data, optim, init_params, make_loss_fn, steps=steps,
                                               key=key, batch_size=batch_size, seed=seed, params=params,
-                                              ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, **loop_kwargs)
+                                              run_dir=run_dir, run_info=run_info, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, **loop_kwargs)

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from jaxtalk.data.batching import window_starts
 from jaxtalk.geometry.canonical import Canonicalization, canonicalize, load_mesh
 from jaxtalk.geometry.mesh_checks import CleanedMesh, clean_mesh, validate_mesh
 from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM, sample_displacements
@@ -160,16 +161,6 @@ def prepare_user_mesh(
                     weights=weights)
 
 
-def _window_starts(num_frames: int, window: int) -> list[int]:
-    if num_frames <= window:
-        return [0]
-    hop = max(window - window // 4, 1)
-    starts = list(range(0, num_frames - window + 1, hop))
-    if starts[-1] != num_frames - window:
-        starts.append(num_frames - window)
-    return starts
-
-
 def _crossfade(num_frames: int, window: int, starts: list[int]) -> np.ndarray:
     """``(W, frames)`` weights of each window's frames, summing to 1 at every output frame: a linear
     ramp over the overlap where a window meets its neighbour, flat elsewhere."""
@@ -212,7 +203,7 @@ def landmark_track(
     frames = max(1, int(round(x.shape[0] / _SAMPLES_PER_FRAME)))
     feats = ats.audio_features(x, frames)
     window = ats.window_frames
-    starts = _window_starts(frames, window)
+    starts = window_starts(frames, window, max(window - window // 4, 1))  # a quarter overlap, cross-faded
     length = min(window, frames)
     batch = 1 << (len(starts) - 1).bit_length()
     chunks = np.stack([feats[s:s + length] for s in starts] + [feats[starts[-1]:starts[-1] + length]] * (batch - len(starts)))

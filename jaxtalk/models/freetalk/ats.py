@@ -407,7 +407,7 @@ def _sample(params, config: ATSConfig, cond: ATSCondition, key, eta, noise, samp
     # The audio memory does not depend on the diffusion step: encode it once, outside the scan.
     memory = nn.apply(lambda m: m.encode_memory(cond.audio), ATSDenoiser(config))(params)
     # A Partial (a pytree) rather than a closure, so the parameters are traced leaves of the scan
-    # (differentiable, e.g. by jaxtalk.fit's intensity inversion) and not baked-in constants.
+    # (differentiable, e.g. by jaxtalk.models.freetalk.inversion) and not baked-in constants.
     apply_fn = jax.tree_util.Partial(functools.partial(_apply_denoiser, config), params)
     k_noise, k_steps = jax.random.split(key)
     if noise is None:

@@ -20,10 +20,13 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.audio import log_mel
+# Shared with ``prepare`` (a lower layer), re-exported here as part of FreeTalk's data API.
+from jaxtalk.audio.speech import AUDIO_FEATURE_DIM, MEL_FRAMES_PER_FRAME, audio_features
+from jaxtalk.data.batching import window_starts
 from jaxtalk.data.standardize import fit_standardizer, standardize, unstandardize
+from jaxtalk.face.motion import bucketed_motion, landmark_motion, without_head_pose
 from jaxtalk.models.freetalk.emotions import emotion_ids
-from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, NECK_SLICE, PARAM_DIM, Float
+from jaxtalk.types import PARAM_DIM, Float
 
 __all__ = [
     "FaceMesh",
@@ -37,15 +40,9 @@ __all__ = [
     "landmark_motion",
     "mesh_motion",
     "stm_windows",
-    "window_starts",
     "without_head_pose",
 ]
 
-_HOP = 160  # 10 ms at 16 kHz
-_BUCKET_SAMPLES = 5 * AUDIO_SAMPLE_RATE
-_BUCKET_FRAMES = 10 * MOTION_FPS
-MEL_FRAMES_PER_FRAME = AUDIO_SAMPLE_RATE // _HOP // MOTION_FPS  # 4
-AUDIO_FEATURE_DIM = 80 * MEL_FRAMES_PER_FRAME  # 320
 
 
 @dataclasses.dataclass(frozen=True)
@@ -168,67 +165,9 @@ def face_mesh(identity: int, kind: str = "base", *, resolution: str = "low", see
     return FaceMesh(face, variant, np.asarray(variant.vertices), np.asarray(variant.faces), f"id{identity}/{kind}")
 
 
-def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Float[np.ndarray, "frames 320"]:
-    """Per-motion-frame audio features: four 10 ms log-mel frames stacked per 40 ms motion frame.
-
-    Mel frame ``f`` is centred on sample ``160 f``, so motion frame ``t`` (samples ``[640 t,
-    640 (t + 1))``) gets mel frames ``4t .. 4t + 3``; missing frames at the end repeat the last one.
-
-    Args:
-        audio: ``(samples,)`` mono 16 kHz signal.
-        num_frames: T motion frames wanted.
-
-    Returns:
-        ``(T, 320)`` float32.
-
-    Raises:
-        ValueError: empty or non-finite audio, or ``num_frames < 1``.
-    """
-    if num_frames < 1:
-        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
-    x = np.asarray(audio, np.float32)
-    if x.ndim != 1 or x.size == 0:
-        raise ValueError(f"audio must be a non-empty 1-D signal, got shape {x.shape}")
-    # Zero-pad to a whole bucket so clips of many lengths share one compiled log-mel program. The
-    # STFT pads with zeros anyway (pad_mode "constant"), so frames of the real signal are unchanged.
-    total = -(-x.size // _BUCKET_SAMPLES) * _BUCKET_SAMPLES
-    mel = np.asarray(log_mel(np.pad(x, (0, total - x.size))))[: 1 + x.size // _HOP]
-    need = num_frames * MEL_FRAMES_PER_FRAME
-    if mel.shape[0] < need:
-        mel = np.concatenate([mel, np.repeat(mel[-1:], need - mel.shape[0], axis=0)])
-    return mel[:need].reshape(num_frames, AUDIO_FEATURE_DIM).astype(np.float32)
-
-
-def without_head_pose(motion: Float[np.ndarray, "frames params"]) -> Float[np.ndarray, "frames params"]:
-    """The motion with the neck rotation zeroed: the face's own deformation only.
-
-    FreeTalk animates a face mesh from speech (EmoVOCA and VOCASET carry no head pose); SynthTalk's
-    head sway is partly random and would otherwise dominate the landmark displacements.
-    """
-    m = np.array(motion, np.float32, copy=True)
-    m[..., NECK_SLICE] = 0.0
-    return m
-
-
 def neutral_landmarks(face: Any) -> Float[np.ndarray, "68 3"]:
     """``L_tpl``: the landmarks of a face model at the zero parameter vector (its neutral template)."""
     return np.asarray(face.landmarks(jnp.zeros(PARAM_DIM, jnp.float32)))
-
-
-def window_starts(num_frames: int, window: int, hop: int) -> list[int]:
-    """Start frames of length-``window`` windows every ``hop`` frames (the last one flush with the end).
-
-    Raises:
-        ValueError: non-positive sizes.
-    """
-    if window < 1 or hop < 1:
-        raise ValueError(f"window and hop must be >= 1, got {window}, {hop}")
-    if num_frames < window:
-        return []
-    starts = list(range(0, num_frames - window + 1, hop))
-    if starts[-1] != num_frames - window:
-        starts.append(num_frames - window)
-    return starts
 
 
 def ats_windows(
@@ -266,7 +205,7 @@ def ats_windows(
         disp = landmark_motion(face, motion)
         feats = audio_features(corpus.audio(c), disp.shape[0])
         emo = int(emotion_ids(info.emotion)[0])
-        for s in window_starts(disp.shape[0], window, hop):
+        for s in window_starts(disp.shape[0], window, hop, pad_short=False):
             out["displacements"].append(disp[s:s + window])
             out["audio"].append(feats[s:s + window])
             out["emotion"].append(emo)
@@ -283,29 +222,6 @@ def ats_windows(
         "clip": np.asarray(out["clip"], np.int32),
         "start": np.asarray(out["start"], np.int32),
     }
-
-
-def _bucketed(motion: np.ndarray) -> tuple[Any, int]:
-    # Row 0 is the neutral face (zero parameters); pad to a whole bucket (repeating the last frame)
-    # so tracks of many lengths share one compiled face program.
-    m = np.asarray(motion, np.float32)
-    if m.ndim != 2 or m.shape[1] != PARAM_DIM or m.shape[0] == 0:
-        raise ValueError(f"motion must have shape (frames > 0, {PARAM_DIM}), got {m.shape}")
-    n = m.shape[0]
-    total = -(-(n + 1) // _BUCKET_FRAMES) * _BUCKET_FRAMES
-    rows = np.concatenate([np.zeros((1, PARAM_DIM), np.float32), m, np.repeat(m[-1:], total - n - 1, axis=0)])
-    return jnp.asarray(rows), n
-
-
-def landmark_motion(face: Any, motion: Float[np.ndarray, "frames params"]) -> Float[np.ndarray, "frames 68 3"]:
-    """Landmark displacements ``L_t - L_tpl`` of a motion track on a face (metres, float32).
-
-    Raises:
-        ValueError: motion not of shape ``(T > 0, 56)``.
-    """
-    rows, n = _bucketed(motion)
-    lms = np.asarray(face.landmarks_seq(rows))
-    return (lms[1 : n + 1] - lms[:1]).astype(np.float32)
 
 
 def mesh_motion(
@@ -325,7 +241,7 @@ def mesh_motion(
     Raises:
         ValueError: motion not of shape ``(T > 0, 56)``.
     """
-    rows, n = _bucketed(motion)
+    rows, n = bucketed_motion(motion)
     lms_all = np.asarray(face.landmarks_seq(rows))
     verts_all = np.asarray(face.vertices_seq(rows))
     if variant is not None:
@@ -361,7 +277,7 @@ def stm_windows(
         if vd.shape[1] > num_vertices:
             raise ValueError(f"track of mesh {idx} has {vd.shape[1]} vertices > num_vertices={num_vertices}")
         padded = np.pad(vd, ((0, 0), (0, num_vertices - vd.shape[1]), (0, 0)))
-        for s in window_starts(lm.shape[0], window, hop):
+        for s in window_starts(lm.shape[0], window, hop, pad_short=False):
             mesh.append(idx)
             lms.append(lm[s:s + window])
             verts.append(padded[s:s + window])

@@ -34,7 +34,7 @@ def _load_run(run_dir: str | os.PathLike[str], model: str, best: bool) -> Any:
         FileNotFoundError: not a run, or no checkpoint.
         ValueError: a run of another model.
     """
-    from jaxtalk.commands.runs import load_run
+    from jaxtalk.runs import load_run
 
     run = load_run(run_dir, best=best)
     if run.record.model != model:

@@ -13,6 +13,7 @@ with its windows over a prepared dataset and the one way it is trained.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -22,8 +23,10 @@ from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.models.freetalk.emotions import EMOTIONS
+from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, window_starts
+from jaxtalk.data.batching import window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT", "fit_displacement_stats", "train_ats",
@@ -89,6 +92,8 @@ def train_ats(
     seed: int = 0,
     window_frames: int | None = None,
     params: Any = None,
+    run_dir: str | Path | None = None,
+    run_info: RunInfo | None = None,
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
@@ -123,7 +128,8 @@ def train_ats(
     params = ats.init_params(config, k_init) if params is None else params
     extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}
     return fit_recipe(recipe, data, ats.make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
-                      steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra, **loop_kwargs)
+                      steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra,
+                      config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -169,6 +175,8 @@ def train_stm(
     meshes: tuple[tuple[int, str], ...] = STM_MESHES,
     resolution: str = "low",
     params: Any = None,
+    run_dir: str | Path | None = None,
+    run_info: RunInfo | None = None,
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
@@ -190,4 +198,5 @@ def train_stm(
     extra = {"meshes": [list(m) for m in meshes], "resolution": resolution, "window": recipe.window}
     return fit_recipe(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
                       eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
+                      config=config, run_dir=run_dir, run_info=run_info,
                       **loop_kwargs)

@@ -10,17 +10,18 @@ gives two examples: speaker A as the agent with B as the user, and the reverse.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Sequence
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.audio import log_mel, resample_features
-from jaxtalk.data.standardize import fit_standardizer, standardize, unstandardize
-from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM, Float, Shaped
+# Shared with ``prepare`` (a lower layer), re-exported here as part of TIMAR's data API.
+from jaxtalk.audio.speech import TURN_SPEECH_DIM as SPEECH_DIM
+from jaxtalk.audio.speech import turn_speech_features
+# Shared with the DualTalk baseline (a lower layer), re-exported here as part of TIMAR's data API.
+from jaxtalk.data.conversation import Normalizer
+from jaxtalk.data.standardize import fit_standardizer
+from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM
 
 __all__ = [
     "SPEECH_DIM",
@@ -33,47 +34,7 @@ __all__ = [
     "windows",
 ]
 
-SPEECH_DIM = 80
-_MEL_RATE = 100
 
-
-@functools.partial(jax.jit, static_argnames=("frames_per_turn", "samples_per_turn"))
-def _features(chunks: jax.Array, frames_per_turn: int, samples_per_turn: int) -> jax.Array:
-    mel = log_mel(chunks, AUDIO_SAMPLE_RATE, n_mels=SPEECH_DIM)  # (turns, mel_frames, 80)
-    fps = frames_per_turn * AUDIO_SAMPLE_RATE / samples_per_turn
-    return jax.vmap(lambda m: resample_features(m, _MEL_RATE, fps, num_frames=frames_per_turn))(mel)
-
-
-def turn_speech_features(
-    # Loose annotation: the checks below raise a ValueError naming the problem (e.g. 2-D audio).
-    audio: Shaped[np.ndarray, "..."], num_turns: int, *, frames_per_turn: int = MOTION_FPS
-) -> Float[np.ndarray, "frames 80"]:
-    """Per-turn log-mel features at the motion rate, each turn computed from its own audio only.
-
-    Args:
-        audio: 16 kHz mono audio with at least ``num_turns`` seconds.
-        num_turns: whole turns to featurise.
-        frames_per_turn: motion frames per 1-s turn (25).
-
-    Returns:
-        ``(num_turns * frames_per_turn, 80)`` float32.
-
-    Raises:
-        ValueError: audio too short, not 1-D, NaN, or ``num_turns < 1``.
-    """
-    audio = np.asarray(audio, np.float32)
-    if audio.ndim != 1:
-        raise ValueError(f"audio must be 1-D (samples,), got shape {audio.shape}")
-    if num_turns < 1:
-        raise ValueError(f"num_turns must be >= 1, got {num_turns}")
-    spt = AUDIO_SAMPLE_RATE * frames_per_turn // MOTION_FPS
-    if audio.shape[0] < num_turns * spt:
-        raise ValueError(f"audio has {audio.shape[0]} samples, fewer than {num_turns} turns x {spt}")
-    if not np.all(np.isfinite(audio)):
-        raise ValueError("audio contains NaN or inf")
-    chunks = audio[: num_turns * spt].reshape(num_turns, spt)
-    feats = _features(jnp.asarray(chunks), frames_per_turn, spt)
-    return np.asarray(feats, np.float32).reshape(num_turns * frames_per_turn, SPEECH_DIM)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,54 +133,6 @@ def monologues(corpus: Any, split: str, *, frames_per_turn: int = MOTION_FPS) ->
             agent_oracle=np.asarray(corpus.oracle(i)[:t], np.float32), agent_clip=i, user_clip=-1,
         ))
     return out
-
-
-@dataclasses.dataclass(frozen=True)
-class Normalizer:
-    """Per-channel standardisation of speech features and head motion (fit on training data).
-
-    A pair of :mod:`jaxtalk.data.standardize` statistics (``{"mean", "std"}``) under the field names
-    that TIMAR checkpoints store (:meth:`to_dict`); :meth:`speech_stats` / :meth:`motion_stats` give
-    them in the shared form.
-
-    Attributes:
-        speech_mean, speech_std: ``(80,)``.
-        motion_mean, motion_std: ``(56,)``.
-    """
-
-    speech_mean: np.ndarray
-    speech_std: np.ndarray
-    motion_mean: np.ndarray
-    motion_std: np.ndarray
-
-    @property
-    def speech_stats(self) -> dict[str, np.ndarray]:
-        """The speech statistics as a :func:`jaxtalk.data.standardize.standardize` dict."""
-        return {"mean": self.speech_mean, "std": self.speech_std}
-
-    @property
-    def motion_stats(self) -> dict[str, np.ndarray]:
-        """The motion statistics as a :func:`jaxtalk.data.standardize.standardize` dict."""
-        return {"mean": self.motion_mean, "std": self.motion_std}
-
-    def speech(self, x: Float[np.ndarray, "*frames dim"]) -> np.ndarray:
-        """Raw speech features -> standardised (float32 NumPy)."""
-        return np.asarray(standardize(self.speech_stats, jnp.asarray(x, jnp.float32)))
-
-    def motion(self, x: Float[np.ndarray, "*frames 56"]) -> np.ndarray:
-        """Raw head parameters -> standardised (float32 NumPy)."""
-        return np.asarray(standardize(self.motion_stats, jnp.asarray(x, jnp.float32)))
-
-    def unmotion(self, x: Any) -> np.ndarray:
-        """Normalised motion back to raw head parameters."""
-        return np.asarray(unstandardize(self.motion_stats, jnp.asarray(x, jnp.float32)))
-
-    def to_dict(self) -> dict[str, list[float]]:
-        return {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Sequence[float]]) -> Normalizer:
-        return cls(**{k: np.asarray(v, np.float32) for k, v in d.items()})
 
 
 def fit_normalizer(convs: Sequence[Conversation], *, floor: float = 1e-3) -> Normalizer:

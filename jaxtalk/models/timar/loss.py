@@ -29,9 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.models.timar.config import LOSS_GROUPS, TimarConfig
+from jaxtalk.data.turns import check_streams, to_turns
+from jaxtalk.metrics.params import grouped_mse  # shared with the DualTalk baseline; part of this API
+from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.head import apply_head
-from jaxtalk.models.timar.inputs import check_streams, to_turns
 from jaxtalk.models.timar.model import encode_window
 from jaxtalk.samplers.schedules import make_schedule, respace
 from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
@@ -89,23 +90,6 @@ def random_agent_mask(
     # Round before ceil so that e.g. 0.7 * 200 = 140.00000001 in float32 still masks 140.
     count = jnp.ceil(jnp.round(jnp.asarray(ratio, jnp.float32) * length, 4))
     return ranks < count
-
-
-def grouped_mse(
-    pred: Float[Array, "*frames param_dim"], target: Float[Array, "*frames param_dim"]
-) -> tuple[Float[Array, "*frames"], dict[str, Float[Array, "*frames"]]]:
-    """Per-frame sum over (exp, jaw, neck) of each group's mean squared error.
-
-    Args:
-        pred: ``(*F, 56)`` prediction.
-        target: ``(*F, 56)`` ground truth.
-
-    Returns:
-        ``(*F,)`` summed loss and the per-group ``(*F,)`` terms.
-    """
-    err = (pred - target) ** 2
-    groups = {name: jnp.mean(err[..., lo:hi], axis=-1) for name, lo, hi in LOSS_GROUPS}
-    return functools.reduce(jnp.add, groups.values()), groups
 
 
 @functools.lru_cache(maxsize=8)

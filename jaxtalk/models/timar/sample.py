@@ -21,7 +21,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxtalk.models.timar.config import SAMPLERS, TimarConfig
 from jaxtalk.models.timar.head import (
@@ -32,14 +31,11 @@ from jaxtalk.models.timar.head import (
     head_modulations,
     time_embedding,
 )
-from jaxtalk.models.timar.inputs import check_streams, from_turns, to_turns
+from jaxtalk.data.turns import check_streams, from_turns, to_turns
 from jaxtalk.models.timar.model import encode_window
 from jaxtalk.samplers import make_schedule, respace, sample_ddim, sample_ddpm
 from jaxtalk.samplers.schedules import RespacedSchedule
-from jaxtalk.types import Array, Float, Shaped, PRNGKeyArray
-
-# Public entry points validate shapes themselves (naming the stream), so the annotation is loose.
-StreamLike = Shaped[Array, "..."] | Shaped[np.ndarray, "..."]
+from jaxtalk.types import Array, Float, PRNGKeyArray, Shaped, StreamLike
 
 __all__ = [
     "SAMPLERS",

@@ -34,14 +34,11 @@ import numpy as np
 
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
-from jaxtalk.models.timar.inputs import check_streams
+from jaxtalk.data.turns import check_streams
 from jaxtalk.models.timar.sample import check_temperature, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.nn import bias_from_mask
-from jaxtalk.types import Array, Float, Shaped, Int, PRNGKeyArray
-
-# Public entry points validate shapes themselves (naming the stream), so the annotation is loose.
-StreamLike = Shaped[Array, "..."] | Shaped[np.ndarray, "..."]
+from jaxtalk.types import Array, Float, Int, PRNGKeyArray, Shaped, StreamLike
 
 __all__ = ["StreamState", "init_stream", "stream_condition", "stream_step", "stream"]
 

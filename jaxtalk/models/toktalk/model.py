@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.checks import check_finite
 from jaxtalk.audio.framerate import area_weights, default_num_frames, interpolation_plan
 from jaxtalk.data.standardize import identity_standardizer, standardize, unstandardize
 from jaxtalk.models.toktalk.adapter import Adapter
@@ -34,7 +35,6 @@ __all__ = [
     "adapter_source_dim",
     "source_to_base_rate",
     "check_tokens",
-    "check_finite",
     "preconditioning",
     "style_vector",
     "anchor_pose",
@@ -73,24 +73,6 @@ class Condition(NamedTuple):
         return self._replace(keep=jnp.zeros_like(self.keep))
 
 
-def _is_concrete(x: Any) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def check_finite(name: str, x: Any) -> None:
-    """Raises a ValueError naming ``name`` if a concrete array holds NaN or inf (tracers pass).
-
-    Args:
-        name: what the array is, for the message.
-        x: array (NumPy or JAX) or tracer.
-
-    Raises:
-        ValueError: NaN or inf in a concrete ``x``.
-    """
-    if _is_concrete(x) and not bool(np.all(np.isfinite(np.asarray(x)))):
-        raise ValueError(f"{name} contains NaN or inf values")
-
-
 def frames_for_tokens(num_tokens: int, token_rate: float | int, fps: int) -> int:
     """Motion frames covered by ``num_tokens`` tokens at ``token_rate`` (``round(n * fps / rate)``)."""
     return default_num_frames(int(num_tokens), token_rate, fps)
@@ -123,7 +105,7 @@ def check_tokens(
         raise ValueError(f"{name} have width {shape[2]}, expected {width} (speech_dim of this stream)")
     if shape[0] == 0 or shape[1] == 0:
         raise ValueError(f"{name} are empty: shape {shape}")
-    check_finite(name, tokens)
+    check_finite(tokens, name)
     frames = frames_for_tokens(shape[1], rate, fps)
     if num_frames is not None and frames != num_frames:
         raise ValueError(
@@ -431,7 +413,7 @@ def check_style_clip(clip: Any, config: TokTalkConfig) -> None:
             f"style clip has {shape[1]} frames, shorter than the minimum style_min_frames="
             f"{config.style_min_frames}"
         )
-    check_finite("style clip", clip)
+    check_finite(clip, "style clip")
 
 
 def encode_style(

@@ -10,15 +10,18 @@ through :func:`train`.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
 
+from jaxtalk.data.batching import window_starts
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, spread, window_starts
+from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TokTalkWindows", "default_window", "check_data", "train"]
@@ -128,6 +131,8 @@ def train(
     seed: int = 0,
     window_frames: int | None = None,
     params: PyTree | None = None,
+    run_dir: str | Path | None = None,
+    run_info: RunInfo | None = None,
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
@@ -146,7 +151,9 @@ def train(
         window_frames: frames per window (default :func:`default_window`).
         params: initial parameters (default: fresh, with the motion standardiser fitted on the
             training split and the flow scale on its first windows).
-        ckpt_dir: checkpoint folder (exact resume), or None.
+        run_dir: write a complete run here (:func:`jaxtalk.runs.write_run`), or None.
+        run_info: how the run was asked for (the CLI's preset, ``--set`` items and settings), or None.
+        ckpt_dir: checkpoint folder (exact resume; default ``run_dir/checkpoint``), or None.
         mesh: device mesh for data parallelism, or None.
         eval_every: validation-loss period in steps (default: at the end); the loss is on up to
             :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of the ``val`` split when it has any.
@@ -171,5 +178,6 @@ def train(
         params["norm"]["flow_scale"] = fit_flow_scale(params, config, stacked["motion"], stacked["mask"], stacked["style"])
     return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
                       metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
+                      config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames,
                       trainable=base_trainable, **loop_kwargs)
 

@@ -14,10 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.checks import check_finite
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import (
     Condition,
-    check_finite,
     check_style_clip,
     check_tokens,
     interpolate_tokens,
@@ -60,7 +60,7 @@ def resolve_style(params: PyTree, config: TokTalkConfig, style: Any, batch: int)
         check_style_clip(style, config)
         vec = style_vector(params, config, jnp.asarray(style))
     elif len(shape) in (1, 2) and shape[-1] == config.style_vector_dim:
-        check_finite("style vector", style)
+        check_finite(style, "style vector")
         vec = jnp.asarray(style)
         if vec.ndim == 1:
             vec = jnp.broadcast_to(vec[None], (batch, config.style_vector_dim))
@@ -134,7 +134,7 @@ def sample(
         noise = prior_noise(key, motion_shape, config.noise_frames, jnp.result_type(float))
     elif tuple(np.shape(noise)) != motion_shape:
         raise ValueError(f"noise must have shape {motion_shape}, got {tuple(np.shape(noise))}")
-    check_finite("noise", noise)
+    check_finite(noise, "noise")
     mask_arr = jnp.ones(motion_shape[:2], bool) if mask is None else jnp.asarray(mask)
     if mask_arr.shape != motion_shape[:2] or mask_arr.dtype != bool:
         raise ValueError(f"mask must be bool of shape {motion_shape[:2]}, got {mask_arr.dtype} {mask_arr.shape}")
@@ -146,7 +146,7 @@ def sample(
         km = jnp.asarray(known_mask)
         if km.shape != motion_shape[:2] or km.dtype != bool:
             raise ValueError(f"known_mask must be bool of shape {motion_shape[:2]}, got {km.dtype} {km.shape}")
-        check_finite("known", known)
+        check_finite(known, "known")
         known, known_mask = jnp.asarray(known), km
     w = config.cfg_scale if cfg_scale is None else cfg_scale
     return _sample(

@@ -31,13 +31,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.checks import check_finite
 from jaxtalk.audio.framerate import default_num_frames
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.adapter import receptive_field
 from jaxtalk.models.toktalk.model import (
     adapter_apply,
     adapter_source_dim,
-    check_finite,
     check_tokens,
     frames_for_tokens,
     source_to_base_rate,
@@ -254,7 +254,7 @@ def stream_step(
     check_tokens(chunk_tokens, width=width, rate=rate, fps=config.fps, num_frames=config.chunk_frames, name=name)
     style_vec = resolve_style(params, config, style, batch)
     ts = jnp.asarray(default_grid(config) if ts is None else ts, state.motion.dtype)
-    check_finite("ts", ts)
+    check_finite(ts, "ts")
     w = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, state.motion.dtype)
     return _stream_step(params, state, jnp.asarray(chunk_tokens, state.tokens.dtype), style_vec, w, ts, config,
                         src_rate)

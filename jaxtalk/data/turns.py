@@ -1,4 +1,7 @@
-"""Validation of TIMAR's input streams and their split into turns.
+"""Validation of conversation input streams and their split into turns.
+
+TIMAR and the DualTalk baseline take the same streams (both sides' speech and motion), so both check
+them here, a layer below the models.
 
 Every stream is per frame at 25 fps and batched: ``(B, T, D)`` with ``T = N * F`` (N whole turns of F
 frames). The checks run on the host on concrete arrays (they are skipped inside someone else's
@@ -14,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.types import Array, Float, Shaped
+from jaxtalk.types import Array, Float, StreamLike
 
 __all__ = ["TurnConfig", "check_streams", "to_turns", "from_turns"]
 
@@ -45,7 +48,7 @@ def _concrete(x: Any) -> bool:
 
 def check_streams(
     config: TurnConfig,
-    streams: dict[str, Shaped[Array, "..."] | Shaped[np.ndarray, "..."] | None],
+    streams: dict[str, StreamLike | None],
     *,
     max_turns: int | None = None,
 ) -> int:

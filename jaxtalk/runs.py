@@ -1,28 +1,40 @@
-"""Training runs on disk: the model registry, ``--set key=value`` overrides, ``run.json``, loading.
+"""Training runs on disk and the registry of models: ``run.json``, ``--set key=value`` overrides, loading.
 
 A run directory holds ``checkpoint/`` (orbax, written by :class:`jaxtalk.train.Checkpointer` through
 the shared loop), ``run.json`` (the model, preset, overrides, the full model, training and optimiser
 settings, the data it was trained on, and what the recipe fitted: TIMAR's normaliser, ATS's
-displacement statistics, STM's meshes; the DualTalk baseline's normaliser, as TIMAR's) and the inference assets copied from the data
-(``features.json``, the VQ ``tokenizer.npz``, TokTalk's default ``style.npy``), so a run samples
-without its dataset. The CLI, the demo and the experiments all write and read this one format.
+displacement statistics, STM's meshes; the DualTalk baseline's normaliser, as TIMAR's),
+``config.json`` (the resolved model config alone, for a reader without jaxtalk) and the inference
+assets copied from the data (``features.json``, the VQ ``tokenizer.npz``, TokTalk's default
+``style.npy``), so a run samples without its dataset. Every recipe writes this one format when given a
+``run_dir`` (:func:`write_run`); the CLI, the demo and the experiments all read it.
+
+:data:`REGISTRY` names, for each model, its config class, its recipe and the recipe's default training
+settings as dotted import paths resolved on demand: this module sits below the models (it may not
+import them), and ``jaxtalk --help`` stays instant.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import types
 import typing
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 __all__ = [
     "MODELS",
+    "REGISTRY",
     "RUN_FILE",
+    "CONFIG_FILE",
+    "ModelSpec",
+    "RunInfo",
     "RunRecord",
     "LoadedRun",
+    "model_spec",
     "config_class",
     "preset_names",
     "parse_overrides",
@@ -30,15 +42,106 @@ __all__ = [
     "checkpoint_dir",
     "load_run",
     "save_run_assets",
+    "write_run",
 ]
 
-MODELS = ("toktalk", "ats", "stm", "timar", "dualtalk")
 RUN_FILE = "run.json"
+CONFIG_FILE = "config.json"
 _PRESETS = ("paper", "small", "tiny")
 
 
-# Values of config fields added after runs were first written, as those runs were trained.
-_FIELDS_BEFORE_THEY_EXISTED = {"toktalk": {"noise_frames": 0.0}}
+def _resolve(path: str) -> Any:
+    """The object a ``"package.module:attribute"`` path names (the module imported on first use)."""
+    module, _, attr = path.partition(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """What the run format, the CLI and the experiments need to know about one model.
+
+    Attributes:
+        name: the model's name in ``run.json`` and on the command line.
+        config: ``"module:Class"`` of its frozen config dataclass (with ``paper``/``small``/``tiny``
+            presets as classmethods).
+        recipe: ``"module:function"`` of its recipe's ``train``.
+        defaults: ``"module:attribute"`` of the recipe's default :class:`~jaxtalk.train.recipes.TrainSettings`.
+        preset_defaults: ``"module:attribute"`` of a ``{preset: TrainSettings}`` table for recipes whose
+            settings depend on the config preset (TIMAR's ``paper``), or None.
+        data_fields: ``(config field, manifest key)`` pairs: input widths that follow the prepared data
+            unless set explicitly, and that evaluation data must match.
+        windows: how the recipe cuts windows when their length is not a setting (None: the
+            ``window_frames`` setting applies).
+        style_asset: the run keeps a default style clip (a training clip) for sampling.
+        legacy_fields: values of config fields added after runs were first written, as those runs
+            were trained.
+    """
+
+    name: str
+    config: str
+    recipe: str
+    defaults: str
+    preset_defaults: str | None = None
+    data_fields: tuple[tuple[str, str], ...] = ()
+    windows: str | None = None
+    style_asset: bool = False
+    legacy_fields: tuple[tuple[str, Any], ...] = ()
+
+    def config_class(self) -> type:
+        """The config dataclass (imports the model)."""
+        return _resolve(self.config)
+
+    def presets(self) -> tuple[str, ...]:
+        """The presets (``paper``, ``small``, ``tiny``) the config class defines."""
+        cls = self.config_class()
+        return tuple(p for p in _PRESETS if callable(getattr(cls, p, None)))
+
+    def train_fn(self) -> Callable[..., Any]:
+        """The recipe's ``train(config, data, optim, *, steps, key, ..., run_dir=None)``."""
+        return _resolve(self.recipe)
+
+    def settings(self, preset: str = "small") -> Any:
+        """The recipe's default :class:`~jaxtalk.train.recipes.TrainSettings` for a config preset."""
+        if self.preset_defaults is not None:
+            table = _resolve(self.preset_defaults)
+            if preset in table:
+                return table[preset]
+        return _resolve(self.defaults)
+
+
+_TURN_SPEECH = (("speech_dim", "turn_speech_dim"),)
+REGISTRY: dict[str, ModelSpec] = {
+    spec.name: spec
+    for spec in (
+        ModelSpec("toktalk", "jaxtalk.models.toktalk.config:TokTalkConfig", "jaxtalk.models.toktalk.recipe:train",
+                  "jaxtalk.models.toktalk.recipe:DEFAULTS",
+                  data_fields=(("speech_dim", "token_dim"), ("token_rate", "token_rate")), style_asset=True,
+                  # TokTalk runs recorded before noise_frames existed were trained on white noise.
+                  legacy_fields=(("noise_frames", 0.0),)),
+        ModelSpec("ats", "jaxtalk.models.freetalk.config:ATSConfig", "jaxtalk.models.freetalk.recipe:train_ats",
+                  "jaxtalk.models.freetalk.recipe:DEFAULTS", data_fields=(("speech_dim", "speech_dim"),)),
+        ModelSpec("stm", "jaxtalk.models.freetalk.config:STMConfig", "jaxtalk.models.freetalk.recipe:train_stm",
+                  "jaxtalk.models.freetalk.recipe:DEFAULTS", windows="16 frames"),
+        ModelSpec("timar", "jaxtalk.models.timar.config:TimarConfig", "jaxtalk.models.timar.recipe:train",
+                  "jaxtalk.models.timar.recipe:DEFAULTS", "jaxtalk.models.timar.recipe:PRESET_DEFAULTS",
+                  data_fields=_TURN_SPEECH, windows="whole turns (max_turns)"),
+        ModelSpec("dualtalk", "jaxtalk.models.dualtalk.config:DualTalkConfig", "jaxtalk.models.dualtalk.recipe:train",
+                  "jaxtalk.models.dualtalk.recipe:DEFAULTS", "jaxtalk.models.dualtalk.recipe:PRESET_DEFAULTS",
+                  data_fields=_TURN_SPEECH, windows="whole turns (max_turns)"),
+    )
+}
+MODELS = tuple(REGISTRY)
+
+
+def model_spec(model: str) -> ModelSpec:
+    """``model``'s entry in :data:`REGISTRY`.
+
+    Raises:
+        ValueError: unknown model name.
+    """
+    if model not in REGISTRY:
+        raise ValueError(f"unknown model {model!r}; expected one of {', '.join(MODELS)}")
+    return REGISTRY[model]
 
 # Config fields renamed when every model took one vocabulary (the same name for the same concept):
 # runs written before keep loading and resuming under the new names.
@@ -71,29 +174,12 @@ def config_class(model: str) -> type:
     Raises:
         ValueError: unknown model name.
     """
-    if model == "toktalk":
-        from jaxtalk.models.toktalk import TokTalkConfig
-
-        return TokTalkConfig
-    if model == "timar":
-        from jaxtalk.models.timar import TimarConfig
-
-        return TimarConfig
-    if model == "dualtalk":
-        from jaxtalk.models.dualtalk import DualTalkConfig
-
-        return DualTalkConfig
-    if model in ("ats", "stm"):
-        from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
-
-        return ATSConfig if model == "ats" else STMConfig
-    raise ValueError(f"unknown model {model!r}; expected one of {', '.join(MODELS)}")
+    return model_spec(model).config_class()
 
 
 def preset_names(model: str) -> tuple[str, ...]:
     """The presets (``paper``, ``small``, ``tiny``) that ``model``'s config class defines."""
-    cls = config_class(model)
-    return tuple(p for p in _PRESETS if callable(getattr(cls, p, None)))
+    return model_spec(model).presets()
 
 
 _TRUE = {"true", "1", "yes", "on"}
@@ -156,9 +242,10 @@ def build_config(model: str, preset: str, items: Sequence[str] = ()) -> Any:
     Raises:
         ValueError: unknown model or preset, bad overrides, or values the config rejects.
     """
-    cls = config_class(model)
-    if preset not in preset_names(model):
-        raise ValueError(f"{model} has no preset {preset!r}; expected one of {', '.join(preset_names(model))}")
+    spec = model_spec(model)
+    cls = spec.config_class()
+    if preset not in spec.presets():
+        raise ValueError(f"{model} has no preset {preset!r}; expected one of {', '.join(spec.presets())}")
     return getattr(cls, preset)(**parse_overrides(cls, items))
 
 
@@ -174,7 +261,7 @@ class RunRecord:
 
     Attributes:
         model: ``toktalk``, ``ats``, ``stm``, ``timar`` or ``dualtalk``.
-        preset: config preset name.
+        preset: config preset name (None: a config built in Python that equals no preset).
         items: the ``--set KEY=VALUE`` items as given.
         config: every field of the model config (``dataclasses.asdict``).
         train: every field of the :class:`jaxtalk.train.recipes.TrainSettings`.
@@ -187,7 +274,7 @@ class RunRecord:
     """
 
     model: str
-    preset: str
+    preset: str | None
     items: list[str]
     config: dict[str, Any]
     train: dict[str, Any]
@@ -225,7 +312,7 @@ class RunRecord:
         Fields a run recorded before they existed take the value the run was trained with, not
         today's default (a TokTalk run without ``noise_frames`` was trained on white noise).
         """
-        fields = {**_FIELDS_BEFORE_THEY_EXISTED.get(self.model, {}), **self.config}
+        fields = {**dict(model_spec(self.model).legacy_fields), **self.config}
         if self.model == "ats" and "num_emotions" in fields:
             # ATS runs recorded before the vocabulary was a setting have the EmoVOCA table (12 rows).
             if fields.pop("num_emotions") != 12:
@@ -260,11 +347,74 @@ def save_run_assets(run_dir: str | Path, model: str, data: Any, config: Any) -> 
     atomic_write_json(run_dir / FEATURES_FILE, features)
     if m.get("tokenizer"):
         atomic_copy(data.root / m["tokenizer"], run_dir / TOKENIZER_FILE)
-    if model == "toktalk":
+    if model_spec(model).style_asset:
         train = data.split("train")
         clip = max(train, key=lambda i: data.clips[i]["frames"])
         style = data.record(clip, ("motion",))["motion"][: 4 * config.style_frames]
         atomic_save_npy(run_dir / STYLE_FILE, style.astype(np.float32))
+
+
+@dataclasses.dataclass(frozen=True)
+class RunInfo:
+    """What ``run.json`` records that a recipe cannot see: how the run was asked for.
+
+    Attributes:
+        preset: the preset the config was built from (None: the preset the config equals, if any).
+        items: the ``--set KEY=VALUE`` items given.
+        data_spec: the data as the user named it (None: the prepared folder).
+        settings: the :class:`~jaxtalk.train.recipes.TrainSettings` (None: read back from the
+            optimiser settings and the recipe's batch size, window and validation period).
+    """
+
+    preset: str | None = None
+    items: tuple[str, ...] = ()
+    data_spec: str | None = None
+    settings: Any = None
+
+
+def _preset_of(model: str, config: Any) -> str | None:
+    """The preset whose config equals ``config`` (a run built in Python names one when it can)."""
+    spec = model_spec(model)
+    cls = spec.config_class()
+    return next((p for p in spec.presets() if getattr(cls, p)() == config), None)
+
+
+def write_run(run_dir: str | Path, model: str, config: Any, data: Any, optim: Any, *, seed: int,
+              extra: dict[str, Any], settings: Any, info: RunInfo | None = None) -> RunRecord:
+    """Write a trained run's ``run.json``, ``config.json`` and inference assets into ``run_dir``.
+
+    Every recipe calls this after training when it is given a ``run_dir`` (the checkpoints are
+    already in ``run_dir/checkpoint``), so a run made from Python opens like one made by
+    ``jaxtalk train``.
+
+    Args:
+        run_dir: the run folder.
+        model: a :data:`REGISTRY` name.
+        config: the model config it trained.
+        data: the :class:`~jaxtalk.data.loader.PreparedData` it trained on.
+        optim: the :class:`~jaxtalk.train.OptimConfig`.
+        seed: the training seed.
+        extra: what the recipe fitted on the training split.
+        settings: the training settings used when ``info`` names none.
+        info: how the run was asked for (preset, ``--set`` items, data as named, settings).
+
+    Returns:
+        The :class:`RunRecord` written.
+    """
+    from jaxtalk.files import atomic_write_json
+
+    info = info or RunInfo()
+    preset = info.preset if info.preset is not None else _preset_of(model, config)
+    record = RunRecord(model=model, preset=preset, items=list(info.items), config=dataclasses.asdict(config),
+                       train=dataclasses.asdict(info.settings if info.settings is not None else settings),
+                       optim=optim.to_dict(),
+                       data={"spec": info.data_spec or str(data.root), "path": str(Path(data.root).absolute()),
+                             "key": data.key},
+                       seed=seed, extra=extra)
+    record.save(run_dir)
+    atomic_write_json(Path(run_dir) / CONFIG_FILE, record.config)
+    save_run_assets(run_dir, model, data, config)
+    return record
 
 
 @dataclasses.dataclass

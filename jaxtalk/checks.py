@@ -1,0 +1,35 @@
+"""The one finite-value check of jaxtalk's public entry points.
+
+Values are checked only when they are known: inside a caller's ``jit``/``vmap``/``grad`` an array is
+a tracer and passes, so a metric can serve as a training loss and a sampler can be differentiated,
+while a NaN handed to the same function eagerly fails at the boundary, naming the argument, instead
+of deep inside XLA.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import numpy as np
+
+__all__ = ["check_finite"]
+
+
+def check_finite(x: Any, name: str) -> None:
+    """Raise a ValueError naming ``name`` if a concrete array holds NaN or inf (tracers pass).
+
+    Args:
+        x: an array (NumPy or JAX), or a tracer.
+        name: what the array is, for the message.
+
+    Raises:
+        ValueError: NaN or inf in a concrete ``x``, with their count and ``x``'s shape.
+    """
+    if isinstance(x, jax.core.Tracer):
+        return
+    values = np.asarray(x)
+    finite = np.isfinite(values)
+    if not finite.all():
+        bad = int(values.size - np.count_nonzero(finite))
+        raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf); shape {values.shape}")

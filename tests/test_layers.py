@@ -1,0 +1,138 @@
+"""Imports run only downwards (ARCHITECTURE.md, Layers).
+
+Foundations (types, masks, nn, samplers, audio, face, geometry, metrics, render, export, data, train,
+fit, runs, ...) never import the models or the applications (commands, cli, demo, serve, bench); no
+model package imports another model package or an application. What two models share moves down a
+layer. The checker walks the AST of every module, imports inside functions included and relative
+imports resolved, so a lazy import cannot hide a dependency.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "jaxtalk"
+
+FOUNDATIONS = frozenset({
+    "types", "layout", "files", "runs", "masks", "nn", "samplers", "audio", "face", "geometry", "metrics",
+    "render", "export", "data", "train", "fit", "viewer", "benchmarking", "checks",
+})
+APPLICATIONS = frozenset({"commands", "cli", "demo", "serve", "bench"})
+# The package's own entry points sit above every layer.
+TOP = frozenset({"__init__", "__main__"})
+
+
+def _module_name(path: Path, root: Path) -> str:
+    parts = path.relative_to(root.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path, module: str) -> list[tuple[str, ...]]:
+    """Every import in ``path``, anywhere in its body: ``(module,)`` for ``import module``, ``(source,
+    source.name)`` for ``from source import name`` (``name`` may be a submodule), relative sources
+    resolved against the module's package."""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    out: list[tuple[str, ...]] = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            out += [(alias.name,) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                source = ".".join(parts[: len(parts) - (node.level - 1)] + ([node.module] if node.module else []))
+            else:
+                source = node.module or ""
+            out += [(source, f"{source}.{alias.name}") for alias in node.names]
+    return out
+
+
+def _forbidden(importer: str, target: str) -> bool:
+    """Whether module ``importer`` may not import ``target`` (both dotted, under ``jaxtalk``)."""
+    src, dst = importer.split("."), target.split(".")
+    if dst[0] != "jaxtalk" or len(src) < 2 or len(dst) < 2:
+        return False
+    if src[1] in FOUNDATIONS:
+        return dst[1] in APPLICATIONS | {"models"}
+    if src[1] == "models" and len(src) > 2:
+        # ``jaxtalk.models`` alone is the (empty) namespace package: ``from jaxtalk.models import x``
+        # is judged by ``x``.
+        other_model = dst[1] == "models" and len(dst) > 2 and dst[2] != src[2]
+        return other_model or dst[1] in APPLICATIONS
+    return False
+
+
+def layer_violations(root: Path) -> list[str]:
+    """``"file -> module"`` for every import under ``root`` (a ``jaxtalk`` package folder) that runs
+    upwards or sideways between models, and ``"file -> unclassified"`` for a top-level module that
+    belongs to no layer (so a new one gets placed)."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        module = _module_name(path, root)
+        rel = path.relative_to(root.parent).as_posix()
+        top = path.relative_to(root).parts[0].removesuffix(".py")
+        if top not in FOUNDATIONS | APPLICATIONS | TOP | {"models"}:
+            found.append(f"{rel} -> unclassified")
+        for candidates in _imports(path, module):
+            # ``from jaxtalk.models.x import Name``: the module is reported, not the name imported from it;
+            # ``from jaxtalk import models``: the name is the module.
+            bad = next((c for c in candidates if _forbidden(module, c)), None)
+            if bad is not None:
+                found.append(f"{rel} -> {bad}")
+    return sorted(set(found))
+
+
+def test_jaxtalk_imports_run_only_downwards():
+    assert layer_violations(PACKAGE) == []
+
+
+def _plant(root: Path, files: dict[str, str]) -> Path:
+    for name, text in files.items():
+        path = root / "jaxtalk" / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    return root / "jaxtalk"
+
+
+def test_checker_reports_exactly_the_planted_upward_and_sideways_imports(tmp_path):
+    package = _plant(tmp_path, {
+        "__init__.py": "from jaxtalk import models\n",  # the package root may import anything
+        "types.py": "import numpy\n",
+        "data/__init__.py": "",
+        # upward, hidden inside a function: still found
+        "data/features.py": "def f():\n    from jaxtalk.models.toktalk.sample import sample\n    return sample\n",
+        "data/ok.py": "from jaxtalk.types import Float\nfrom . import features\n",
+        "train/__init__.py": "import jaxtalk.commands.training\n",  # a foundation importing an application
+        "models/__init__.py": "",
+        "models/timar/__init__.py": "",
+        "models/timar/loss.py": "from ..toktalk import loss\n",  # sideways, relative
+        "models/timar/model.py": "from .loss import f\nfrom jaxtalk.data.ok import g\nfrom jaxtalk.models.timar import loss\n",
+        "models/toktalk/__init__.py": "",
+        "models/toktalk/loss.py": "from jaxtalk import cli\n",  # a model importing an application
+        "scratch.py": "",
+    })
+    assert layer_violations(package) == [
+        "jaxtalk/data/features.py -> jaxtalk.models.toktalk.sample",
+        "jaxtalk/models/timar/loss.py -> jaxtalk.models.toktalk",
+        "jaxtalk/models/toktalk/loss.py -> jaxtalk.cli",
+        "jaxtalk/scratch.py -> unclassified",
+        "jaxtalk/train/__init__.py -> jaxtalk.commands.training",
+    ]
+
+
+@pytest.mark.parametrize("importer, target, forbidden", [
+    ("jaxtalk.runs", "jaxtalk.models.toktalk", True),
+    ("jaxtalk.runs", "jaxtalk.train.recipes", False),
+    ("jaxtalk.fit.inversion", "jaxtalk.models", True),
+    ("jaxtalk.models.dualtalk.loss", "jaxtalk.models.timar.loss", True),
+    ("jaxtalk.models.dualtalk.loss", "jaxtalk.models.dualtalk.model", False),
+    ("jaxtalk.models.dualtalk.loss", "jaxtalk.metrics.params", False),
+    ("jaxtalk.models.toktalk.inversion", "jaxtalk.models", False),
+    ("jaxtalk.models.freetalk.fit", "jaxtalk.commands.runs", True),
+    ("jaxtalk.commands.training", "jaxtalk.models.timar", False),
+    ("jaxtalk.data.prepare", "numpy", False),
+])
+def test_forbidden_rule_per_layer(importer, target, forbidden):
+    assert _forbidden(importer, target) is forbidden
