@@ -185,8 +185,9 @@ def _write(opts: SampleOptions, params: np.ndarray, audio: np.ndarray | None) ->
 
 
 def sample_run(opts: SampleOptions) -> SampleResult:
-    """Animate ``opts.input`` offline (TokTalk: the whole sequence in one sampler call; TIMAR: turn by
-    turn, its only mode).
+    """Animate ``opts.input`` offline (TokTalk: the whole sequence in one sampler call, or minute-long
+    windows for longer inputs, :func:`~jaxtalk.models.toktalk.sample_long`; TIMAR: turn by turn, its
+    only mode).
 
     Returns:
         :class:`SampleResult`.
@@ -203,8 +204,9 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         from jaxtalk.models import toktalk
 
         tokens, style, audio = _toktalk_inputs(run, opts, kind)
-        motion = toktalk.sample(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
-                                num_steps=opts.num_steps)
+        # Window by window past a minute: the decoder's attention is O(frames^2) in memory.
+        motion = toktalk.sample_long(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
+                                     num_steps=opts.num_steps)
     else:
         from jaxtalk.models.timar.data import Normalizer
         from jaxtalk.models.timar.stream import stream_conversation
