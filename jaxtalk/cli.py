@@ -159,8 +159,9 @@ def _echo_table(rows: list[dict[str, Any]], title: str) -> None:
 def train(
     model: Annotated[str, typer.Argument(help=_MODEL_HELP)],
     data: Annotated[
-        str, typer.Option(help="Prepared dataset folder (`jaxtalk prepare`), or synthtalk:SIZE[:SEED].")
-    ] = "synthtalk:tiny",
+        str | None, typer.Option(help="Prepared dataset folder (`jaxtalk prepare`), or synthtalk:SIZE[:SEED]. "
+                                      "Default synthtalk:tiny, or the run's own when resuming.")
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="Run folder (run.json + checkpoint/); default runs/MODEL.")] = None,
     preset: Annotated[
         str | None, typer.Option(help="Config preset: small, paper (tiny for toktalk). Default small, or the run's own.")
