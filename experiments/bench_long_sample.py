@@ -38,7 +38,7 @@ WORKER = textwrap.dedent('''
 
 def run_row(method: str, preset: str, minutes: float) -> dict:
     """One measurement in a fresh process: ``{"frames", "base_mb", "peak_mb", "wall_s"}``."""
-    proc = subprocess.run([sys.executable, "-c", WORKER, method, preset, str(minutes)], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", WORKER, method, preset, str(minutes)], capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
     return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -194,7 +194,7 @@ def test_sample_long_peak_memory_does_not_grow_from_150_s_to_10_minutes():
             peaks.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
         print(peaks[0], peaks[1])
     ''')
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     short_mb, long_mb = map(float, proc.stdout.split())
     assert long_mb - short_mb < 100, (short_mb, long_mb)
