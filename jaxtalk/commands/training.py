@@ -20,7 +20,9 @@ trained on TIMAR's windows with TIMAR's settings.
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -38,6 +40,8 @@ from jaxtalk.commands.runs import (
 )
 
 DEFAULT_DATA = "synthtalk:tiny"
+# What the loop says when a resumed run's schedule is stretched to the new --steps (intended).
+_STRETCH = re.compile(r"optimiser settings differ from the checkpoint's: total_steps \d+ -> \d+")
 
 __all__ = ["DEFAULT_DATA", "TrainOptions", "TrainSummary", "train_run", "recipe_for", "split_overrides"]
 
@@ -242,10 +246,16 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         if settings.batch_size % local:
             raise ValueError(f"batch_size {settings.batch_size} must divide by the {local} local devices")
     kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames else {}
-    result = train_fn(config, data, settings.optim(opts.steps), steps=opts.steps, key=jax.random.key(opts.seed),
-                      batch_size=settings.batch_size, seed=opts.seed, ckpt_dir=checkpoint_dir(out), mesh=mesh,
-                      eval_every=settings.period(opts.steps), progress=opts.progress,
-                      save_every=opts.save_every or max(opts.steps // 5, 1), **kw)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = train_fn(config, data, settings.optim(opts.steps), steps=opts.steps, key=jax.random.key(opts.seed),
+                          batch_size=settings.batch_size, seed=opts.seed, ckpt_dir=checkpoint_dir(out), mesh=mesh,
+                          eval_every=settings.period(opts.steps), progress=opts.progress,
+                          save_every=opts.save_every or max(opts.steps // 5, 1), **kw)
+    # The loop's warnings as one-line notes; a resume's new schedule length is the intended stretch.
+    for note in dict.fromkeys(str(w.message) for w in caught):
+        if not _STRETCH.fullmatch(note):
+            echo(f"note: {note}")
     record = RunRecord(model=opts.model, preset=preset, items=list(opts.overrides), config=dataclasses.asdict(config),
                        train=dataclasses.asdict(settings), optim=settings.optim(opts.steps).to_dict(),
                        data={"spec": opts.data, "path": str(data.root.absolute()), "key": data.key},

@@ -22,6 +22,7 @@ curve.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from pathlib import Path
@@ -74,6 +75,20 @@ def _abstract(tree: PyTree) -> PyTree:
     return jax.tree.map(one, tree)
 
 
+class _QuietReadOnly(logging.Filter):
+    """Drops orbax's absl warnings about a manager opened for reading (``read_only=True``): "Given
+    directory is read only" reads as if the user's folder were not writable, and the settings it
+    lists are ours. Everything else orbax logs passes."""
+
+    _NOTES = ("Given directory is read only", "read_only=True, setting")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not any(note in str(record.msg) for note in self._NOTES)
+
+
+_QUIET_READ_ONLY = _QuietReadOnly()
+
+
 class Checkpointer:
     """A run's checkpoint directory: keep the last ``max_to_keep`` steps, save and restore.
 
@@ -113,6 +128,9 @@ class Checkpointer:
         if read_only and not self.directory.is_dir():
             raise FileNotFoundError(f"checkpoint directory {self.directory} does not exist")
         self._ocp = ocp
+        absl_logger = logging.getLogger("absl")
+        if _QUIET_READ_ONLY not in absl_logger.filters:
+            absl_logger.addFilter(_QUIET_READ_ONLY)
         options = ocp.CheckpointManagerOptions(
             max_to_keep=max_to_keep,
             create=not read_only,

@@ -219,10 +219,10 @@ def train(
             if "batch_spec" in saved_meta:
                 spec = BatchSpec.from_json(saved_meta["batch_spec"])
             if saved_meta.get("config") != meta["config"]:
-                warnings.warn(
-                    f"optimiser config differs from the checkpoint's: {saved_meta.get('config')} -> {meta['config']}",
-                    stacklevel=2,
-                )
+                was, now = saved_meta.get("config") or {}, meta["config"]
+                changes = ", ".join(f"{k} {was.get(k)} -> {now.get(k)}" for k in sorted({*was, *now})
+                                    if was.get(k) != now.get(k))
+                warnings.warn(f"optimiser settings differ from the checkpoint's: {changes}", stacklevel=2)
         history_file = None
         if write_history and jax.process_index() == 0:  # one writer per run, as for orbax's files
             history_file = _HistoryFile(Path(ckpt_dir) / HISTORY_FILE, start_step=int(state.step))
