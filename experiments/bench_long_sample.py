@@ -38,7 +38,7 @@ WORKER = textwrap.dedent('''
         from jaxtalk.models.freetalk.config import ATSConfig
         from jaxtalk.models.freetalk.data import DisplacementStats
         from jaxtalk.models.freetalk.fit import FittedATS
-        cfg = ATSConfig.small(max_frames=300)
+        cfg = ATSConfig.small(max_frames=300, num_layers=1, num_sampling_steps=2)
         stats = DisplacementStats(mean=np.zeros((68, 3), np.float32), std=np.full((68, 3), 0.004, np.float32))
         fitted = FittedATS(cfg, ats.init_ats(cfg, jax.random.key(0)), stats, [], window=300)
         audio = (0.1 * rng.normal(size=int(minutes * 60 * 16000))).astype(np.float32)
@@ -88,7 +88,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="only rows of at most 10 minutes")
     parser.add_argument("--model", choices=("toktalk", "freetalk", "timar"), help="only this model's rows")
     args = parser.parse_args()
-    print("peak RSS of offline sampling, fresh process per row (TokTalk tiny, ATS small, TIMAR small; CPU)")
+    print("peak RSS of offline sampling, fresh process per row (TokTalk tiny; ATS small, 1 layer, 2 DDIM steps; TIMAR small; CPU)")
     print(f"{'method':>20} {'minutes':>8} {'frames':>8} {'peak MB':>9} {'wall s':>8}")
     for model, method, minutes, quick in ROWS:
         if (args.quick and not quick) or (args.model and model != args.model):
