@@ -193,9 +193,9 @@ def test_mesh_units_error_uses_the_cli_spelling_only():
 
 def _no_loading(monkeypatch) -> None:
     """Fail the test if the command gets as far as loading a run's parameters or a mesh."""
-    import jaxtalk.commands.inference as inference
-    import jaxtalk.geometry.canonical as canonical
-    import jaxtalk.models.freetalk.animate as animate
+    from jaxtalk.commands import inference
+    from jaxtalk.geometry import canonical
+    from jaxtalk.models.freetalk import animate
 
     def loaded(*args, **kwargs):
         raise AssertionError("the option was checked only after loading")
