@@ -3,7 +3,7 @@
 Every row runs in a fresh subprocess and reports its peak resident set size (``ru_maxrss``) and wall
 time. TokTalk's ``sample`` holds O(frames^2) attention (a 20-minute clip asked for 45 GB on the
 paper preset); ``sample_long`` (what ``jaxtalk sample`` runs) works on minute-long windows. FreeTalk's
-ATS sampled every window of a clip in one call; it now samples 8 at a time. TIMAR streams turn by
+ATS sampled every window of a clip in one call; it now samples 8 at a time (both rows use the log-mel front end, now computed in 60-s pieces: before, a 60-min clip peaked at 4.4 GB). TIMAR streams turn by
 turn with a fixed context in both ``sample`` and ``stream``. The whole-sequence rows stop at lengths a
 CPU can hold; the bounded rows go to an hour.
 
