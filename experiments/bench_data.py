@@ -192,7 +192,7 @@ def model_setups(data: Any) -> list[dict]:
     from jaxtalk.models.toktalk.recipe import TokTalkWindows, default_window
     from jaxtalk.models.toktalk.train import base_trainable
 
-    config = build_config("toktalk", "small", [f"token_dim={m['token_dim']}", f"token_rate={m['token_rate']:g}"])
+    config = build_config("toktalk", "small", [f"speech_dim={m['token_dim']}", f"token_rate={m['token_rate']:g}"])
     window = default_window(config)
     params = tok_init(config, jax.random.key(0))
     # As the recipe's train sets it, except the fitted flow scale (values do not change the cost).
@@ -213,16 +213,16 @@ def model_setups(data: Any) -> list[dict]:
     from jaxtalk.models.freetalk.data import face_mesh
     from jaxtalk.models.freetalk.recipe import STM_MESHES, ATSWindows, STMWindows, fit_displacement_stats
 
-    config = build_config("ats", "small", [f"audio_dim={m['speech_dim']}"])
+    config = build_config("ats", "small", [f"speech_dim={m['speech_dim']}"])
     out.append({"model": "ats", "recipe": ATSWindows(min(config.max_frames, 50), fit_displacement_stats(data)),
-                "params": ats.init_ats(config, jax.random.key(0)), "loss": ats.make_ats_loss(config), "trainable": None})
+                "params": ats.init_params(config, jax.random.key(0)), "loss": ats.make_loss_fn(config), "trainable": None})
 
     config = build_config("stm", "small")
     faces = tuple(face_mesh(i, kind, resolution="low") for i, kind in STM_MESHES)
     prepared = stm.prepare_meshes([(f.vertices, f.faces) for f in faces], config)
     out.append({"model": "stm", "recipe": STMWindows(faces, max(p.num_vertices for p in prepared)),
-                "params": stm.init_stm(config, jax.random.key(0), prepared[0]),
-                "loss": stm.make_stm_loss(config, stm.stack_meshes(prepared)), "trainable": None})
+                "params": stm.init_params(config, jax.random.key(0), prepared[0]),
+                "loss": stm.make_loss_fn(config, stm.stack_meshes(prepared)), "trainable": None})
     return out
 
 
@@ -361,7 +361,7 @@ def _stream_recipe(data: Any, model: str, stats_file: str) -> Any:
         from jaxtalk.models.toktalk.recipe import TokTalkWindows, default_window
 
         m = data.manifest
-        config = build_config("toktalk", "small", [f"token_dim={m['token_dim']}", f"token_rate={m['token_rate']:g}"])
+        config = build_config("toktalk", "small", [f"speech_dim={m['token_dim']}", f"token_rate={m['token_rate']:g}"])
         window = default_window(config)
         return TokTalkWindows(config, window, hop_frames=window // 4, seed=0)
     from jaxtalk.models.freetalk.data import DisplacementStats

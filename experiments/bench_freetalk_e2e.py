@@ -85,21 +85,21 @@ def main() -> None:
     peak = bm.measure_matmul_peak() / 1e9
     print(f"float32 matmul peak {peak:.0f} GFLOP/s", flush=True)
     acfg = ATSConfig.small(max_frames=args.window)
-    ats_fit = FittedATS(acfg, ats.init_ats(acfg, jax.random.key(0)),
+    ats_fit = FittedATS(acfg, ats.init_params(acfg, jax.random.key(0)),
                         DisplacementStats(np.zeros((68, 3), np.float32), np.full((68, 3), 0.003, np.float32)), [],
                         window=args.window)
     t = np.arange(int(16000 * args.seconds)) / 16000
     audio = (0.3 * np.sin(2 * np.pi * 170 * t) * (1 + np.sin(2 * np.pi * 3 * t))).astype(np.float32)
     key = jax.random.key(1)
-    ats_compile, ats_run = timed(lambda: ft.landmark_track(ats_fit, audio, "happy", 2.0, key, num_steps=args.ddim_steps),
+    ats_compile, ats_run = timed(lambda: ft.landmark_track(ats_fit, audio, "happy", 2.0, key, sample_steps=args.ddim_steps),
                                  args.repeats)
-    track = ft.landmark_track(ats_fit, audio, "happy", 2.0, key, num_steps=args.ddim_steps)
+    track = ft.landmark_track(ats_fit, audio, "happy", 2.0, key, sample_steps=args.ddim_steps)
     configs = {"small": STMConfig.small()} | ({"paper": STMConfig.paper()} if args.paper else {})
     rows = []
     face = builtin_face(0, resolution="low")
     for name, cfg in configs.items():
         tmpl = stm.prepare_mesh(np.asarray(face.template), np.asarray(face.faces), cfg)
-        stm_fit = FittedSTM(cfg, stm.init_stm(cfg, jax.random.key(2), tmpl))
+        stm_fit = FittedSTM(cfg, stm.init_params(cfg, jax.random.key(2), tmpl))
         for label, v, f in meshes():
             t0 = time.perf_counter()
             mesh = ft.prepare_user_mesh(stm_fit, (v, f))

@@ -28,7 +28,7 @@ WORKER = textwrap.dedent('''
         from jaxtalk.models import toktalk as tt
         cfg = tt.TokTalkConfig.tiny()
         params = tt.init_params(cfg, jax.random.key(0))
-        tokens = rng.normal(size=(1, int(minutes * 60 * cfg.token_rate), cfg.token_dim)).astype(np.float32)
+        tokens = rng.normal(size=(1, int(minutes * 60 * cfg.token_rate), cfg.speech_dim)).astype(np.float32)
         style = np.zeros((1, cfg.style_vector_dim), np.float32)
         fn = tt.sample if method == "whole" else tt.sample_long
         run = lambda: fn(params, cfg, tokens, style, jax.random.key(1))
@@ -38,9 +38,9 @@ WORKER = textwrap.dedent('''
         from jaxtalk.models.freetalk.config import ATSConfig
         from jaxtalk.models.freetalk.data import DisplacementStats
         from jaxtalk.models.freetalk.fit import FittedATS
-        cfg = ATSConfig.small(max_frames=300, num_layers=1, num_sampling_steps=2)
+        cfg = ATSConfig.small(max_frames=300, num_layers=1, sample_steps=2)
         stats = DisplacementStats(mean=np.zeros((68, 3), np.float32), std=np.full((68, 3), 0.004, np.float32))
-        fitted = FittedATS(cfg, ats.init_ats(cfg, jax.random.key(0)), stats, [], window=300)
+        fitted = FittedATS(cfg, ats.init_params(cfg, jax.random.key(0)), stats, [], window=300)
         audio = (0.1 * rng.normal(size=int(minutes * 60 * 16000))).astype(np.float32)
         per_call = 10**9 if method == "whole" else 8
         run = lambda: landmark_track(fitted, audio, "neutral", 1.0, jax.random.key(1), windows_per_call=per_call)

@@ -82,7 +82,7 @@ def main() -> None:
     key = jax.random.key(1)
     gt = test_w["displacements"]
     pred = sample_displacements(fitted, test_w["audio"], test_w["emotion"], test_w["intensity"], key,
-                                num_steps=args.ddim_steps)
+                                sample_steps=args.ddim_steps)
     face = corpus.face(0)
     oracle = []
     for c, s in zip(test_w["clip"], test_w["start"]):
@@ -104,7 +104,7 @@ def main() -> None:
 
     def upper_samples(emotion: str, level: float) -> np.ndarray:
         """(seeds, windows, frames, 22, 3) upper-face displacements, the same noise for every label."""
-        return np.stack([sample_displacements(fitted, audio, emotion, level, k, num_steps=args.ddim_steps)[:, :, UPPER]
+        return np.stack([sample_displacements(fitted, audio, emotion, level, k, sample_steps=args.ddim_steps)[:, :, UPPER]
                          for k in keys])
 
     neutral = upper_samples("neutral", 1.0)

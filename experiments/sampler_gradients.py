@@ -93,7 +93,7 @@ def ats_model(prepared, steps: int, path: str | None, seed: int = 0) -> tuple[Fi
     cfg = ATSConfig.small(max_frames=WINDOW, displacement_scale=1.0)
     stats = freetalk_recipe.fit_displacement_stats(prepared)
     if path and Path(path).is_file():
-        like = jax.eval_shape(lambda k: ats.init_ats(cfg, k), jax.random.key(0))
+        like = jax.eval_shape(lambda k: ats.init_params(cfg, k), jax.random.key(0))
         return FittedATS(cfg, _load(Path(path), like), stats, []), {"loaded": path}
     t0 = time.perf_counter()
     optim = OptimConfig(lr=1e-3, warmup_steps=min(100, steps // 10), total_steps=steps)
@@ -204,12 +204,12 @@ def timed(fn: Callable, *args, **kwargs):
     return out, time.perf_counter() - t0
 
 
-def style_inversion_rows(cfg, params, prob: dict[str, Any], num_steps: int) -> list[dict[str, Any]]:
+def style_inversion_rows(cfg, params, prob: dict[str, Any], sample_steps: int) -> list[dict[str, Any]]:
     """Known style (encoder estimate of clip i) -> target sample; invert from clip i+1's estimate."""
     tokens, noise, enc = prob["tokens"], prob["noise"], prob["encoded"]
     true_style = enc
     start = np.roll(enc, 1, axis=0)  # another clip's (another speaker's, mostly) estimate
-    target = np.asarray(tt.sample(params, cfg, tokens, true_style, noise=noise, num_steps=num_steps))
+    target = np.asarray(tt.sample(params, cfg, tokens, true_style, noise=noise, sample_steps=sample_steps))
     encoder_on_target = np.asarray(tt.encode_style(params, cfg, target))
     rows = []
 
@@ -224,33 +224,33 @@ def style_inversion_rows(cfg, params, prob: dict[str, Any], num_steps: int) -> l
 
     for solver in ("levenberg_marquardt", "bfgs"):
         # BFGS is capped low: on these ill-conditioned problems it needs many more steps than LM.
-        kwargs = dict(init=start, num_steps=num_steps, solver=solver, on_failure="return",
+        kwargs = dict(init=start, sample_steps=sample_steps, solver=solver, on_failure="return",
                       max_steps=100 if solver == "levenberg_marquardt" else 50)
         res, first = timed(invert_style, params, cfg, tokens, target, noise, **kwargs)
         rows.append(row("sampled target, other clip's style as start", res, first, true_style, solver)
                     | {"time_includes_compile": True})
     enc_err = np.linalg.norm(encoder_on_target - true_style, axis=1) / np.linalg.norm(true_style, axis=1)
-    enc_loss = np.asarray(style_loss(params, cfg, tokens, target, noise, encoder_on_target, num_steps=num_steps))
+    enc_loss = np.asarray(style_loss(params, cfg, tokens, target, noise, encoder_on_target, sample_steps=sample_steps))
     rows.append({"problem": "style (Euler+CFG)", "case": "sampled target: style encoder's estimate",
                  "solver": "encoder", "rel_err_mean": float(enc_err.mean()), "rel_err_max": float(enc_err.max()),
                  "final_loss": float(enc_loss.mean())})
     # Real clips: no true vector; does the inverted style reproduce the clip better than the encoder's?
-    res, seconds = timed(invert_style, params, cfg, tokens, prob["motion"], noise, num_steps=num_steps,
+    res, seconds = timed(invert_style, params, cfg, tokens, prob["motion"], noise, sample_steps=sample_steps,
                          on_failure="return", max_steps=30)
     rows.append(row("real clip, start = encoder", res, seconds, None, "levenberg_marquardt"))
     return rows
 
 
-def intensity_inversion_rows(fitted: FittedATS, prob: dict[str, Any], num_steps: int) -> list[dict[str, Any]]:
+def intensity_inversion_rows(fitted: FittedATS, prob: dict[str, Any], sample_steps: int) -> list[dict[str, Any]]:
     cfg, params = fitted.config, fitted.params
     b = prob["target"].shape[0]
     truth = np.linspace(1.0, float(cfg.num_intensities), b).astype(np.float32)
     cond_true = prob["cond"]._replace(intensity=jnp.asarray(truth))
-    target = np.asarray(sample_ats_from_noise(params, cfg, cond_true, prob["noise"], num_steps=num_steps))
+    target = np.asarray(sample_ats_from_noise(params, cfg, cond_true, prob["noise"], sample_steps=sample_steps))
     rows = []
-    res, first = timed(invert_intensity, params, cfg, prob["cond"], target, prob["noise"], num_steps=num_steps,
+    res, first = timed(invert_intensity, params, cfg, prob["cond"], target, prob["noise"], sample_steps=sample_steps,
                        on_failure="return")
-    res, second = timed(invert_intensity, params, cfg, prob["cond"], target, prob["noise"], num_steps=num_steps,
+    res, second = timed(invert_intensity, params, cfg, prob["cond"], target, prob["noise"], sample_steps=sample_steps,
                         on_failure="return")
     value = np.asarray(res.value)
     rows.append({"problem": "intensity (DDIM)", "case": "sampled target, segment-midpoint starts",
@@ -259,7 +259,7 @@ def intensity_inversion_rows(fitted: FittedATS, prob: dict[str, Any], num_steps:
                  "abs_err_max": float(np.max(np.abs(value - truth))),
                  "start_loss": float(np.mean(res.init_loss)), "final_loss": float(np.mean(res.loss))})
     res, seconds = timed(invert_intensity, params, cfg, prob["cond"], prob["target"], prob["noise"],
-                         num_steps=num_steps, on_failure="return")
+                         sample_steps=sample_steps, on_failure="return")
     value, labels = np.asarray(res.value), np.asarray(prob["labels"])
     corr = float(np.corrcoef(value, labels)[0, 1]) if np.std(labels) > 0 and np.std(value) > 0 else float("nan")
     rows.append({"problem": "intensity (DDIM)", "case": "real clips vs labelled level", "result": summary(res),
@@ -317,7 +317,7 @@ def main() -> None:
 
     def euler_loss(n: int, remat: bool):
         return lambda s: jnp.sum(style_loss(tparams, tcfg, ep["tokens"], ep["motion"], ep["noise"], s,
-                                            num_steps=n, remat=remat))
+                                            sample_steps=n, remat=remat))
 
     # DDIM: loss of the per-clip intensity between the integer levels (the embedding's kinks).
     dp = ddim_problem(corpus, fitted, args.batch)
@@ -327,7 +327,7 @@ def main() -> None:
 
     def ddim_loss(n: int, remat: bool):
         return lambda i: jnp.sum(intensity_loss(fitted.params, fitted.config, dp["cond"], dp["target"], dp["noise"],
-                                                i, num_steps=n, remat=remat))
+                                                i, sample_steps=n, remat=remat))
 
     payload = {
         "machine": machine_info(),

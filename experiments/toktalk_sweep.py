@@ -40,7 +40,7 @@ def _cell(cfg, params, corpus, clips, styles, chunk, n) -> dict:
     # Compile time of this cell's program (fresh shapes: the grid length is static).
     state = tt.init_stream(cfg, jax.random.key(0))
     ct = tt.tokens_per_chunk(cfg)
-    probe = jnp.zeros((1, ct, cfg.token_dim))
+    probe = jnp.zeros((1, ct, cfg.speech_dim))
     t0 = time.perf_counter()
     jax.block_until_ready(tt.stream_step(params, cfg, state, probe, styles[clips[0]], ts=ts)[1])
     compile_s = time.perf_counter() - t0

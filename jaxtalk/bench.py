@@ -119,7 +119,7 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     ct = tt.tokens_per_chunk(config)
     style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
     state = tt.init_stream(config, jax.random.key(0), batch=1, buffer_frames=2000)
-    chunk = jnp.asarray(rng.normal(size=(1, ct, config.token_dim)), jnp.float32)
+    chunk = jnp.asarray(rng.normal(size=(1, ct, config.speech_dim)), jnp.float32)
     ts = jnp.asarray(default_grid(config), jnp.float32)
     t0 = time.perf_counter()
     state, out = tt.stream_step(params, config, state, chunk, style, ts=ts)
@@ -132,13 +132,13 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     # One guided velocity evaluation (conditional + unconditional as a batch of 2) per Euler step.
     wf = config.window_frames
     cond = Condition(
-        tokens=jnp.zeros((2, wf, config.token_dim)), style=jnp.zeros((2, config.style_vector_dim)),
+        tokens=jnp.zeros((2, wf, config.speech_dim)), style=jnp.zeros((2, config.style_vector_dim)),
         known=jnp.zeros((2, wf, config.param_dim)), known_mask=jnp.zeros((2, wf), bool),
         keep=jnp.ones((2,)), mask=jnp.ones((2, wf), bool), chunked=jnp.ones((2,), bool),
     )
     x = jnp.zeros((2, wf, config.param_dim))
     per_eval = xla_flops(lambda p, x, c: velocity(p, config, x, jnp.full((2,), 0.5), c), params, x, cond)
-    flops = None if per_eval is None else per_eval * config.num_steps
+    flops = None if per_eval is None else per_eval * config.sample_steps
     duration = config.chunk_frames / config.fps
     return {
         "model": "TokTalk", "case": name, "window_frames": wf, "chunk_s": duration, "compile_s": compile_s,
@@ -165,7 +165,7 @@ def toktalk_window(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     params = random_params(lambda k: tt.init_params(config, k))
     rng = np.random.default_rng(0)
     w = config.window_frames
-    tokens = jnp.asarray(rng.normal(size=(1, tt.tokens_per_chunk(config, w), config.token_dim)), jnp.float32)
+    tokens = jnp.asarray(rng.normal(size=(1, tt.tokens_per_chunk(config, w), config.speech_dim)), jnp.float32)
     style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
     noise = jnp.asarray(rng.normal(size=(1, w, config.param_dim)), jnp.float32)
     known_mask = jnp.asarray(overlap_window_mask(config)[None])
@@ -204,7 +204,7 @@ def toktalk_growth(config: Any, chunks: int = 50, repeats: int = 10) -> dict[str
     state = tt.init_stream(config, jax.random.key(0), batch=1, buffer_frames=max(2000, 2 * chunks * config.chunk_frames))
     times = {}
     for i in range(1, chunks + 1):
-        chunk = jnp.asarray(rng.normal(size=(1, ct, config.token_dim)), jnp.float32)
+        chunk = jnp.asarray(rng.normal(size=(1, ct, config.speech_dim)), jnp.float32)
         if i in (2, chunks):
             times[i] = _median_time(lambda: tt.stream_step(params, config, state, chunk, style)[1], repeats)
         state, out = tt.stream_step(params, config, state, chunk, style)
@@ -240,7 +240,7 @@ def timar_stream(config: Any, *, context: int = 7, turns: int = 12, repeats: int
     import jax
 
     from jaxtalk.models.timar import init_params
-    from jaxtalk.models.timar.stream import stream_init, stream_step
+    from jaxtalk.models.timar.stream import init_stream, stream_step
 
     params = random_params(lambda k: init_params(config, k))
     f = config.frames_per_turn
@@ -248,7 +248,7 @@ def timar_stream(config: Any, *, context: int = 7, turns: int = 12, repeats: int
     per_turn: list[list[float]] = [[] for _ in range(turns)]
     first = 0.0
     for r in range(repeats + 1):
-        state = stream_init(config, 1, context)
+        state = init_stream(config, 1, context)
         for i in range(turns):
             sl = slice(i * f, (i + 1) * f)
             t0 = time.perf_counter()
@@ -264,7 +264,7 @@ def timar_stream(config: Any, *, context: int = 7, turns: int = 12, repeats: int
 
 
 def timar_turn(config: Any, name: str, *, context: int = 7, turn: int = 0, repeats: int = 3,
-               num_steps: int | None = None, count_flops: bool = True) -> dict[str, Any]:
+               sample_steps: int | None = None, count_flops: bool = True) -> dict[str, Any]:
     """One streamed turn of TIMAR with CFG (conditioning + DDIM): latency and FLOPs.
 
     ``turn <= context``: the window still fits (cached keys/values); ``turn > context``: the window
@@ -282,19 +282,19 @@ def timar_turn(config: Any, name: str, *, context: int = 7, turn: int = 0, repea
     from jaxtalk.models.timar import init_params
     from jaxtalk.models.timar.head import apply_head
     from jaxtalk.models.timar.sample import sample_frames
-    from jaxtalk.models.timar.stream import _condition, stream_init
+    from jaxtalk.models.timar.stream import _condition, init_stream
 
-    steps = config.sample_steps if num_steps is None else num_steps
+    steps = config.sample_steps if sample_steps is None else sample_steps
     params = random_params(lambda k: init_params(config, k))
     us, um, as_ = _timar_inputs(config, 1)
-    state = stream_init(config, 1, context)._replace(turn=jnp.asarray(turn, jnp.int32))
+    state = init_stream(config, 1, context)._replace(turn=jnp.asarray(turn, jnp.int32))
 
     def condition(p: Any, s: Any, a: Any, b: Any, c: Any) -> Any:
         return _condition(p, config, s, a, b, c, True)[1]  # traceable (the public one checks values)
 
     def step(p: Any, s: Any, a: Any, b: Any, c: Any, k: Any) -> Any:
         z = condition(p, s, a, b, c)
-        return sample_frames(p, config, z[:1], z[1:], k, cfg_scale=1.5, num_steps=steps)
+        return sample_frames(p, config, z[:1], z[1:], k, cfg_scale=1.5, sample_steps=steps)
 
     args = (params, state, us, um, as_, jax.random.key(0))
     timing = time_jitted(step, *args, repeats=repeats, warmup=1)
@@ -332,7 +332,7 @@ def timar_head(steps: int, repeats: int = 3, config: Any = None) -> dict[str, An
     z = jax.random.normal(jax.random.key(1), (1, cfg.frames_per_turn, cfg.width))
 
     def fn(p: Any, zc: Any, zu: Any, k: Any) -> Any:
-        return sample_frames(p, cfg, zc, zu, k, cfg_scale=1.5, num_steps=steps)
+        return sample_frames(p, cfg, zc, zu, k, cfg_scale=1.5, sample_steps=steps)
 
     t = time_jitted(fn, params, z, z * 0.5, jax.random.key(2), repeats=repeats, warmup=1)
     return {"model": "TIMAR head", "steps": steps, "compile_s": t.compile_s, "latency_s": t.run_median_s}
@@ -354,10 +354,10 @@ def ats_clip(config: Any, name: str, *, steps: int = 100, frames: int = 100, rep
     from jaxtalk.benchmarking import time_jitted, xla_flops
     from jaxtalk.models.freetalk import ats
 
-    params = random_params(lambda k: ats.init_ats(config, k))
-    audio = np.random.default_rng(0).normal(size=(1, frames, config.audio_dim)).astype(np.float32)
+    params = random_params(lambda k: ats.init_params(config, k))
+    audio = np.random.default_rng(0).normal(size=(1, frames, config.speech_dim)).astype(np.float32)
     cond = ats.make_condition(config, audio, "happy", 2.0)
-    sample = functools.partial(ats._sample, config=config, num_steps=steps, noise=None, remat=False)
+    sample = functools.partial(ats._sample, config=config, sample_steps=steps, noise=None, remat=False)
     timing = time_jitted(lambda p, c, k, e: sample(p, cond=c, key=k, eta=e), params, cond, jax.random.key(1),
                          jnp.float32(0.0), repeats=repeats, warmup=1)
     x = jnp.zeros((1, frames, config.motion_dim))
@@ -389,7 +389,7 @@ def stm_frames(config: Any, name: str, *, resolution: str = "high", frames: int 
     t0 = time.perf_counter()
     mesh = stm.prepare_mesh(np.asarray(face.template, np.float64), np.asarray(face.faces), config)
     operators_s = time.perf_counter() - t0
-    params = stm.init_stm(config, jax.random.key(0), mesh)
+    params = stm.init_params(config, jax.random.key(0), mesh)
     features_fn = functools.partial(stm._mesh_features, config=config)
     feat = time_jitted(lambda p, m: features_fn(p, mesh=m), params, mesh, repeats=repeats)
     features = stm.stm_mesh_features(params, config, mesh)

@@ -170,7 +170,7 @@ def train(
     set_: Annotated[
         list[str] | None,
         typer.Option("--set", help="Override a config field or training setting, KEY=VALUE (repeatable), e.g. "
-                                   "--set num_steps=5 --set lr=5e-4 --set ema_decay=0.999 --set window_frames=50."),
+                                   "--set sample_steps=5 --set lr=5e-4 --set ema_decay=0.999 --set window_frames=50."),
     ] = None,
     steps: Annotated[int, typer.Option(help="Train until this many optimiser steps in total.")] = 1000,
     seed: Annotated[int, typer.Option(help="Initialisation and data-order seed.")] = 0,
@@ -232,7 +232,7 @@ def _sample_options(run: Path, input_: Path, out: Path | None, style: Path | Non
     from jaxtalk.commands.inference import SampleOptions
 
     return SampleOptions(run_dir=run, input=input_, out=out, style=style, partner=partner, cfg_scale=cfg_scale,
-                         num_steps=steps, seed=seed, best=best)
+                         sample_steps=steps, seed=seed, best=best)
 
 
 _RUN = Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk or timar; ats with --stm).")]
@@ -315,7 +315,7 @@ def eval_(
     best: Annotated[bool, typer.Option(help="Evaluate the best-validated checkpoint (checkpoint/best).")] = False,
     sample_steps: Annotated[
         str | None, typer.Option(help="TokTalk: Euler step counts, comma separated (one row each; default the "
-                                      "run's num_steps), e.g. 1,10.")
+                                      "run's sample_steps), e.g. 1,10.")
     ] = None,
     offline: Annotated[bool, typer.Option(help="TokTalk: also sample whole clips offline (full attention).")] = False,
 ) -> None:

@@ -103,13 +103,13 @@ class DemoResult:
     wall_s: float
 
 
-def model_config(chunk_frames: int = 10, num_steps: int = 10):
+def model_config(chunk_frames: int = 10, sample_steps: int = 10):
     """The demo model's config at a chunk size (frames) and Euler step count (inference settings)."""
     from jaxtalk.models.toktalk import TokTalkConfig
 
     # Left context: two chunks (at least 20 frames), so latency is bounded whatever the chunk.
     return TokTalkConfig.small(chunk_frames=chunk_frames, context_frames=max(20, 2 * chunk_frames),
-                               num_steps=num_steps)
+                               sample_steps=sample_steps)
 
 
 def _pick_clips(corpus: Any) -> tuple[int, int]:
@@ -291,7 +291,7 @@ def _sweep(params: Any, corpus: Any, clip: int, style_clip: np.ndarray, echo: Ca
     for chunk_s in SWEEP_CHUNKS_S:
         chunk = int(round(chunk_s * 25))
         for steps in SWEEP_STEPS:
-            config = model_config(chunk_frames=chunk, num_steps=steps)
+            config = model_config(chunk_frames=chunk, sample_steps=steps)
             style_vec = encode_style(params, config, style_clip[None])
             pred, times = _stream_timed(params, config, tokens, style_vec, jax.random.key(1), gt.shape[0])
             boundaries = range(chunk, gt.shape[0] - 1, chunk)
@@ -330,7 +330,7 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
     stream = corpus.tokenizer("A").encode(audio)
     tokens = np.asarray(stream.embeddings, np.float32)
     frames = int(round(audio.shape[0] / 16000 * 25))
-    config = model_config(options.chunk_frames, num_steps=options.sample_steps)
+    config = model_config(options.chunk_frames, sample_steps=options.sample_steps)
     pred, times = _stream_timed(params, config, tokens, style_vec, jax.random.key(2), frames)
     stem = Path(options.audio).stem
     files["user_params"] = options.out_dir / f"{stem}_params.npz"
@@ -385,7 +385,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     files["run"] = out / "run.json"
     files["checkpoint"] = out / "checkpoint"
 
-    config = model_config(options.chunk_frames, num_steps=options.sample_steps)
+    config = model_config(options.chunk_frames, sample_steps=options.sample_steps)
     clip, style_ref = _pick_clips(corpus)
     gt = np.asarray(corpus.motion(clip), np.float32)
     tokens = np.asarray(corpus.tokens(clip, "A").embeddings, np.float32)
@@ -395,7 +395,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     steady = times[1:] or times
     latency = {
         "chunk_s": config.chunk_frames / config.fps,
-        "steps": config.num_steps,
+        "steps": config.sample_steps,
         "first_chunk_s_incl_compile": times[0],
         "median_chunk_ms": 1e3 * statistics.median(steady),
         "p90_chunk_ms": 1e3 * float(np.percentile(steady, 90)),
@@ -472,7 +472,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
         "LVE in mm^2 (max squared lip-vertex error per frame, mean over frames), MVE in mm, jitter = mean "
         "norm of the parameter second difference (all frames / within 2 frames of chunk boundaries).\n",
         _markdown_table(quality),
-        f"Streamed with {config.num_steps} Euler step(s) (`--sample-steps`); the sweep below compares 1-20.\n",
+        f"Streamed with {config.sample_steps} Euler step(s) (`--sample-steps`); the sweep below compares 1-20.\n",
         "## Streaming latency (this machine, compile excluded)\n",
         _markdown_table([latency]),
     ]

@@ -105,7 +105,7 @@ def stm_run(tmp_path_factory, prepared_tiny):
     out = tmp_path_factory.mktemp("stm_run")
     config = STMConfig.small(encoder_blocks=1, decoder_blocks=1, num_eigenpairs=16)
     fm = face_mesh(1, "decimated")
-    params = stm.init_stm(config, jax.random.key(0), stm.prepare_mesh(fm.vertices, fm.faces, config))
+    params = stm.init_params(config, jax.random.key(0), stm.prepare_mesh(fm.vertices, fm.faces, config))
     save_checkpoint(checkpoint_dir(out), create_train_state(params, optax.identity(), jax.random.key(0)))
     data = prepared_tiny
     RunRecord(model="stm", preset="small", items=[], config=dataclasses.asdict(config), train={}, optim={},

@@ -73,7 +73,7 @@ def toktalk_run(tmp_path_factory, prepared_tiny):
     from jaxtalk.models import toktalk
 
     m = prepared_tiny.manifest
-    config = toktalk.TokTalkConfig.tiny(num_mid_blocks=0, token_dim=m["token_dim"], token_rate=m["token_rate"])
+    config = toktalk.TokTalkConfig.tiny(num_mid_blocks=0, speech_dim=m["token_dim"], token_rate=m["token_rate"])
     return _step0_run(tmp_path_factory.mktemp("toktalk_run"), "toktalk", config,
                       toktalk.init_params(config, jax.random.key(0)), prepared_tiny)
 
@@ -83,9 +83,9 @@ def ats_run(tmp_path_factory, prepared_tiny):
     from jaxtalk.models.freetalk import ats
     from jaxtalk.models.freetalk.config import ATSConfig
 
-    config = ATSConfig.small(audio_dim=prepared_tiny.manifest["speech_dim"], num_layers=1)
+    config = ATSConfig.small(speech_dim=prepared_tiny.manifest["speech_dim"], num_layers=1)
     extra = {"window": 50, "stats": {"mean": [0.0] * 3, "std": [1.0] * 3}}
-    return _step0_run(tmp_path_factory.mktemp("ats_run"), "ats", config, ats.init_ats(config, jax.random.key(0)),
+    return _step0_run(tmp_path_factory.mktemp("ats_run"), "ats", config, ats.init_params(config, jax.random.key(0)),
                       prepared_tiny, extra)
 
 

@@ -51,7 +51,7 @@ def test_toktalk_table_rates_and_fraction_of_peak(monkeypatch, fast_compile):
     assert row["gflop_s"] == pytest.approx(row["gflops"] / row["latency_s"])
     assert row["of_peak"] == pytest.approx(row["gflop_s"] / 50.0)
     # At least the decoder's matmuls: 2 (CFG) x steps x window x channels^2 (one dense layer's worth).
-    floor = 2 * config.num_steps * row["window_frames"] * config.channels**2 * 2 / 1e9
+    floor = 2 * config.sample_steps * row["window_frames"] * config.width**2 * 2 / 1e9
     assert row["gflops"] > floor
 
 

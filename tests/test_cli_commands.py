@@ -80,13 +80,13 @@ def test_train_writes_run_and_resume_continues_the_step_count(run):
 def test_train_user_errors_are_one_line(run, tmp_path):
     out = str(tmp_path / "fresh")
     _user_error(["train", "toktalk", "--set", "nonsense=1", "--out", out], "nonsense: neither a TokTalkConfig field")
-    _user_error(["train", "toktalk", "--set", "num_steps=many", "--out", out], "expected int")
+    _user_error(["train", "toktalk", "--set", "sample_steps=many", "--out", out], "expected int")
     _user_error(["train", "toktalk", "--set", "chunk_frames=5", "--out", out], "chunk_frames=5 must be even")
     _user_error(["train", "toktalk", "--set", "channels", "--out", out], "expects key=value")
     _user_error(["train", "toktalk", "--preset", "huge", "--out", out], "no preset 'huge'")
     _user_error(["train", "waveglow", "--out", out], "unknown model 'waveglow'")
     _user_error(["train", "timar", "--out", str(run["dir"])], "holds a toktalk run")
-    _user_error(["train", "toktalk", "--set", "num_steps=5", "--out", str(run["dir"]), "--steps", "5"],
+    _user_error(["train", "toktalk", "--set", "sample_steps=5", "--out", str(run["dir"]), "--steps", "5"],
                 "resume it with the same settings")
     _user_error(["train", "toktalk", "--set", "lr=fast", "--out", out], "expected float")
     _user_error(["train", "toktalk", "--set", "speed=3", "--out", out], "neither a TokTalkConfig field nor a training setting")

@@ -32,7 +32,7 @@ SMALL = {
     "toktalk": ["--preset", "tiny", "--set", "num_mid_blocks=0", "--set", "batch_size=4"],
     "timar": [*TIMAR, "--set", "batch_size=2"],
     "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
-            "--set", "num_sampling_steps=4", "--set", "batch_size=2"],
+            "--set", "sample_steps=4", "--set", "batch_size=2"],
 }
 
 

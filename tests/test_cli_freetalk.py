@@ -21,7 +21,7 @@ from jaxtalk.cli import app
 
 runner = CliRunner()
 ATS_SMALL = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
-             "--set", "num_sampling_steps=4", "--set", "batch_size=2"]
+             "--set", "sample_steps=4", "--set", "batch_size=2"]
 
 
 def _ok(args: list) -> str:
@@ -136,7 +136,7 @@ def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path,
          "--set", "max_frames=25", "--set", "window_frames=25", "--set", "batch_size=2", "--steps", "1",
          "--no-progress", "--out", run])
     record = RunRecord.load(run)
-    assert record.preset == "paper" and record.config["audio_dim"] == 768 and record.config["width"] == 512
+    assert record.preset == "paper" and record.config["speech_dim"] == 768 and record.config["width"] == 512
     assert record.config["displacement_scale"] == 1.0
     out = tmp_path / "anim.npy"
     _ok(["sample", run, files["wav"], "--stm", stm_run, "--mesh", files["obj"], "--steps", "2", "--out", out])

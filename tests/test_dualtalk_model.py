@@ -181,7 +181,7 @@ def test_presets_small_matches_timar_small_budget_and_paper_has_dualtalk_sizes()
         timar.width, timar.num_layers, timar.num_heads, timar.speech_dim)
     assert (paper.feature_width, paper.width, paper.num_layers, paper.num_heads, paper.mlp_ratio * paper.width) == (
         256, 512, 3, 4, 2048)
-    assert (paper.decoder_layers, paper.lstm_layers, paper.dropout_rate, paper.feature_dropout, paper.speech_dim) == (
+    assert (paper.decoder_layers, paper.lstm_layers, paper.dropout, paper.feature_dropout, paper.speech_dim) == (
         1, 2, 0.1, 0.5, 1024)
     assert paper.max_turns * paper.frames_per_turn == 200  # DualTalk's 8-s training clips
     assert hash(small) == hash(DualTalkConfig.small())  # jit-static

@@ -4,7 +4,7 @@
   recovered from other starting points (untrained tiny models: the truth is whatever made the target).
 * The gradients the solvers use (reverse mode for BFGS, forward mode for Levenberg-Marquardt) equal
   central finite differences in float64, and ``jax.checkpoint`` on the sampler step does not change them.
-* ``sample_ats_from_noise`` reproduces ``sample_ats`` exactly; the reported losses are the loss
+* ``sample_ats_from_noise`` reproduces ``ats.sample`` exactly; the reported losses are the loss
   functions' values at the returned solution.
 * Non-convergence, unreachable targets and malformed input raise errors naming the problem.
 """
@@ -39,8 +39,8 @@ TT_CFG = tt.TokTalkConfig.tiny(num_mid_blocks=0)
 B, TOKENS, FRAMES = 2, 8, 16
 CFG_SCALE = 0.7
 # ATS: one narrow layer, 4 DDIM steps, 3 intensity levels.
-ATS_CFG = ATSConfig.small(width=16, num_layers=1, num_heads=2, ff_dim=32, max_frames=16, audio_dim=8,
-                          time_frequency_dim=16, num_sampling_steps=4)
+ATS_CFG = ATSConfig.small(width=16, num_layers=1, num_heads=2, ff_dim=32, max_frames=16, speech_dim=8,
+                          time_frequency_dim=16, sample_steps=4)
 AB, AT = 3, 12
 TRUE_INTENSITY = np.array([1.7, 2.4, 3.0], np.float32)  # one per segment, and one on the upper bound
 
@@ -58,7 +58,7 @@ def toktalk(toktalk_cache, fast_compile):
     if not hasattr(d, "params"):
         rng = np.random.default_rng(0)
         d.params = tt.init_params(TT_CFG, jax.random.key(0))
-        d.tokens = rng.normal(size=(B, TOKENS, TT_CFG.token_dim)).astype(np.float32)
+        d.tokens = rng.normal(size=(B, TOKENS, TT_CFG.speech_dim)).astype(np.float32)
         d.noise = rng.normal(size=(B, FRAMES, TT_CFG.param_dim)).astype(np.float32)
         d.style = rng.normal(size=(B, TT_CFG.style_vector_dim)).astype(np.float32)
     return d
@@ -82,9 +82,9 @@ def freetalk_cache():
 def freetalk(freetalk_cache, fast_compile):
     d = freetalk_cache
     if not hasattr(d, "target"):
-        audio = np.random.default_rng(1).normal(size=(AB, AT, ATS_CFG.audio_dim)).astype(np.float32)
+        audio = np.random.default_rng(1).normal(size=(AB, AT, ATS_CFG.speech_dim)).astype(np.float32)
         d.cond = ats.make_condition(ATS_CFG, audio, ["happy", "sad", "angry"], 1.0)
-        d.params = ats.init_ats(ATS_CFG, jax.random.key(0))
+        d.params = ats.init_params(ATS_CFG, jax.random.key(0))
         d.noise = ats_noise(ATS_CFG, d.cond, jax.random.key(1))
         # The clip sampled with the true intensities.
         truth = d.cond._replace(intensity=jnp.asarray(TRUE_INTENSITY))
@@ -162,7 +162,7 @@ def test_sample_ats_from_noise_reproduces_sample_ats(freetalk):
     d = freetalk
     key = jax.random.key(7)
     cond = d.cond._replace(intensity=jnp.asarray(TRUE_INTENSITY))
-    expected = ats.sample_ats(d.params, ATS_CFG, cond, key)
+    expected = ats.sample(d.params, ATS_CFG, cond, key)
     got = sample_ats_from_noise(d.params, ATS_CFG, cond, ats_noise(ATS_CFG, cond, key))
     np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-5, atol=1e-7)
 
@@ -269,7 +269,7 @@ def test_bad_input_raises_value_errors(toktalk, freetalk):
         (dict(noise=np.asarray(f.noise)[..., :3]), "noise must have shape"),
         (dict(init=0.5), r"must lie in \[1, 3\]"),
         (dict(init=[1.0, 2.0]), "init must be a scalar or have shape"),
-        (dict(num_steps=0), "num_steps must be an integer"),
+        (dict(sample_steps=0), "sample_steps must be an integer"),
         (dict(rtol=-1.0), "rtol must be a positive finite number"),
         (dict(on_failure="ignore"), "on_failure must be"),
     ]

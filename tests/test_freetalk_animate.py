@@ -32,13 +32,13 @@ REAL_SCAN = Path(__file__).resolve().parents[1] / ".cache" / "assets" / "james.o
 @pytest.fixture(scope="module")
 def models():
     """ATS and STM (small, initial parameters): ATS's statistics give centimetre-scale landmark motion."""
-    acfg = ATSConfig.small(width=32, num_layers=1, num_heads=2, ff_dim=32, max_frames=20, num_sampling_steps=2)
+    acfg = ATSConfig.small(width=32, num_layers=1, num_heads=2, ff_dim=32, max_frames=20, sample_steps=2)
     scfg = STMConfig.small(encoder_blocks=1, decoder_blocks=1, num_eigenpairs=16)
     face = builtin_face(0, resolution="low")
     tmpl = stm.prepare_mesh(np.asarray(face.template), np.asarray(face.faces), scfg)
     stats = DisplacementStats(mean=np.zeros((68, 3), np.float32), std=np.full((68, 3), 0.004, np.float32))
-    fitted_ats = FittedATS(acfg, ats.init_ats(acfg, jax.random.key(0)), stats, [], window=20)
-    return fitted_ats, FittedSTM(scfg, stm.init_stm(scfg, jax.random.key(1), tmpl))
+    fitted_ats = FittedATS(acfg, ats.init_params(acfg, jax.random.key(0)), stats, [], window=20)
+    return fitted_ats, FittedSTM(scfg, stm.init_params(scfg, jax.random.key(1), tmpl))
 
 
 def _face(identity: int = 0):
@@ -362,14 +362,14 @@ def test_emotion_vocabulary_is_a_config_setting():
         parse_vocabulary("happy,neutral")
     with pytest.raises(ValueError, match="repeated"):
         parse_vocabulary("neutral,happy,happy")
-    params = ats.init_ats(ATSConfig.small(emotions="mead", width=32, num_layers=1, num_heads=2, ff_dim=32,
+    params = ats.init_params(ATSConfig.small(emotions="mead", width=32, num_layers=1, num_heads=2, ff_dim=32,
                                           max_frames=8), jax.random.key(0))
     assert params["params"]["affect"]["emotion"].shape[0] == 8
 
 
 def test_presets_use_the_displacement_scale_training_accepts():
     assert ATSConfig.paper().displacement_scale == ATSConfig.small().displacement_scale == 1.0
-    assert ATSConfig.paper().audio_dim == 768 and ATSConfig.small().audio_dim == 320
+    assert ATSConfig.paper().speech_dim == 768 and ATSConfig.small().speech_dim == 320
 
 
 # ------------------------------------------------------------------------------ a real scan

@@ -20,7 +20,7 @@ AUDIO_DIM = 8
 
 
 def _config(**kw) -> ATSConfig:
-    base = dict(audio_dim=AUDIO_DIM, width=32, num_layers=1, num_heads=2, ff_dim=64, max_frames=32,
+    base = dict(speech_dim=AUDIO_DIM, width=32, num_layers=1, num_heads=2, ff_dim=64, max_frames=32,
                 time_frequency_dim=32)
     return ATSConfig(**{**base, **kw})
 
@@ -37,7 +37,7 @@ def _fast_compile():
 @pytest.fixture(scope="module")
 def model(_fast_compile):
     cfg = _config()
-    return cfg, ats.init_ats(cfg, jax.random.key(0))
+    return cfg, ats.init_params(cfg, jax.random.key(0))
 
 
 def _cond(cfg, audio, emotion="happy", intensity=2.0, **kw):
@@ -51,7 +51,7 @@ def _audio(seed=0, b=1, frames=T):
 def test_presets_and_config_errors():
     paper = ATSConfig.paper()
     assert (paper.width, paper.num_layers, paper.num_heads, paper.ff_dim) == (512, 6, 8, 2048)
-    assert (paper.num_timesteps, paper.num_sampling_steps, paper.band_radius) == (1000, 100, 2)
+    assert (paper.num_timesteps, paper.sample_steps, paper.band_radius) == (1000, 100, 2)
     assert (paper.velocity_weight, paper.acceleration_weight, paper.motion_dim) == (0.3, 0.1, 204)
     assert ATSConfig.small().width < paper.width
     with pytest.raises(ValueError, match="divisible"):
@@ -160,7 +160,7 @@ def test_one_ddim_step_is_the_denoiser_at_step_zero(model):
     cfg, params = model
     cond = _cond(cfg, _audio(3, b=2), ["angry", "neutral"], [1.0, 3.0])
     key = jax.random.key(7)
-    out = ats.sample_ats(params, cfg, cond, key, num_steps=1)
+    out = ats.sample(params, cfg, cond, key, sample_steps=1)
     noise = jax.random.normal(jax.random.split(key)[0], (2, T, cfg.motion_dim))
     ref = ats.ats_denoise(params, cfg, noise, jnp.zeros((2,)), cond) / cfg.displacement_scale
     np.testing.assert_allclose(out.reshape(2, T, -1), ref, rtol=1e-4, atol=1e-6)
@@ -170,45 +170,45 @@ def test_explicit_noise_and_remat_reproduce_the_keyed_sampler(model):
     cfg, params = model
     cond = _cond(cfg, _audio(6, b=2), ["sad", "happy"], [2.0, 1.0])
     key = jax.random.key(11)
-    keyed = ats.sample_ats(params, cfg, cond, key, num_steps=3)
+    keyed = ats.sample(params, cfg, cond, key, sample_steps=3)
     noise = jax.random.normal(jax.random.split(key)[0], (2, T, cfg.motion_dim))
-    np.testing.assert_array_equal(ats.sample_ats(params, cfg, cond, None, num_steps=3, noise=noise), keyed)
-    np.testing.assert_allclose(ats.sample_ats(params, cfg, cond, None, num_steps=3, noise=noise, remat=True),
+    np.testing.assert_array_equal(ats.sample(params, cfg, cond, None, sample_steps=3, noise=noise), keyed)
+    np.testing.assert_allclose(ats.sample(params, cfg, cond, None, sample_steps=3, noise=noise, remat=True),
                                keyed, rtol=1e-5, atol=1e-7)
     # The sample is a differentiable function of the starting noise (used by jaxtalk.fit's inversions).
-    grad = jax.grad(lambda n: jnp.sum(ats.sample_ats(params, cfg, cond, None, num_steps=3, noise=n, remat=True)))
+    grad = jax.grad(lambda n: jnp.sum(ats.sample(params, cfg, cond, None, sample_steps=3, noise=n, remat=True)))
     assert float(jnp.abs(grad(noise)).max()) > 0
     with pytest.raises(ValueError, match=r"noise must have shape \(2, 12, 204\)"):
-        ats.sample_ats(params, cfg, cond, None, noise=noise[:, :5])
+        ats.sample(params, cfg, cond, None, noise=noise[:, :5])
     with pytest.raises(ValueError, match="NaN or inf"):
-        ats.sample_ats(params, cfg, cond, None, noise=np.full((2, T, cfg.motion_dim), np.nan, np.float32))
+        ats.sample(params, cfg, cond, None, noise=np.full((2, T, cfg.motion_dim), np.nan, np.float32))
     with pytest.raises(ValueError, match="needs a key"):
-        ats.sample_ats(params, cfg, cond, None)
+        ats.sample(params, cfg, cond, None)
     with pytest.raises(ValueError, match="needs a key for eta > 0"):
-        ats.sample_ats(params, cfg, cond, None, noise=noise, eta=0.5)
+        ats.sample(params, cfg, cond, None, noise=noise, eta=0.5)
 
 
 def test_ddim_shapes_and_no_recompilation_for_traced_knobs(model):
     cfg, params = model
     cond = _cond(cfg, _audio(4, b=2), ["pleased", "ill"], 1.0)
     key = jax.random.key(0)
-    first = ats.sample_ats(params, cfg, cond, key, num_steps=4)
+    first = ats.sample(params, cfg, cond, key, sample_steps=4)
     assert first.shape == (2, T, 68, 3) and bool(jnp.all(jnp.isfinite(first)))
     size = ats._sample._cache_size()
     sweep = [
-        ats.sample_ats(params, cfg, cond._replace(intensity=jnp.asarray([i, 3.0], jnp.float32)), key,
-                       num_steps=4, eta=eta)
+        ats.sample(params, cfg, cond._replace(intensity=jnp.asarray([i, 3.0], jnp.float32)), key,
+                       sample_steps=4, eta=eta)
         for i, eta in [(1.5, 0.0), (3.0, 0.5), (2.0, 1.0)]
     ]
     assert ats._sample._cache_size() == size
     assert float(jnp.abs(sweep[0] - first).max()) > 0  # intensity reached the model
     assert float(jnp.abs(sweep[1] - sweep[2]).max()) > 0
     # Deterministic DDIM: same key, same result.
-    np.testing.assert_array_equal(ats.sample_ats(params, cfg, cond, key, num_steps=4), first)
-    with pytest.raises(ValueError, match="num_steps"):
-        ats.sample_ats(params, cfg, cond, key, num_steps=0)
+    np.testing.assert_array_equal(ats.sample(params, cfg, cond, key, sample_steps=4), first)
+    with pytest.raises(ValueError, match="sample_steps"):
+        ats.sample(params, cfg, cond, key, sample_steps=0)
     with pytest.raises(ValueError, match="eta"):
-        ats.sample_ats(params, cfg, cond, key, num_steps=4, eta=float("nan"))
+        ats.sample(params, cfg, cond, key, sample_steps=4, eta=float("nan"))
 
 
 def test_motion_loss_matches_a_brute_force_reference():
@@ -249,7 +249,7 @@ def test_loss_is_differentiable_and_masks_padding(model):
         "intensity": np.array([1.0, 3.0], np.float32),
         "mask": np.arange(T)[None].repeat(2, 0) < np.array([[T], [7]]),
     }
-    value_and_grad = jax.jit(jax.value_and_grad(ats.make_ats_loss(cfg), has_aux=True))
+    value_and_grad = jax.jit(jax.value_and_grad(ats.make_loss_fn(cfg), has_aux=True))
     key = jax.random.key(3)
     (loss, metrics), grads = value_and_grad(params, batch, key)
     assert np.isfinite(float(loss)) and set(metrics) == {"position", "velocity", "acceleration"}

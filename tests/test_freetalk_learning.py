@@ -40,7 +40,7 @@ def test_ats_beats_the_mean_pose_on_held_out_clips(corpus):
 
     baseline = lip_error(np.broadcast_to(fitted.stats.mean, gt.shape))
     sampled = sample_displacements(fitted, test_w["audio"], test_w["emotion"], test_w["intensity"],
-                                   jax.random.key(1), num_steps=10)
+                                   jax.random.key(1), sample_steps=10)
     # The denoiser's estimate from pure noise at the last training step is its posterior mean
     # E[x0 | audio, emotion, intensity]; it must use the audio to beat the unconditional mean.
     cond = ats.make_condition(cfg, test_w["audio"], test_w["emotion"], test_w["intensity"])
@@ -71,7 +71,7 @@ def test_stm_transfers_motion_to_an_unseen_topology_and_identity(corpus):
     assert mesh.num_vertices != train_mesh.num_vertices
     clip = corpus.split("test")[0]
     lms, gt, _ = data.mesh_motion(other, data.without_head_pose(corpus.motion(clip)), variant)
-    pred = np.asarray(stm.stm_apply(params, cfg, mesh, lms))
+    pred = np.asarray(stm.apply(params, cfg, mesh, lms))
     err = np.linalg.norm(pred - gt, axis=-1).mean()
     still = np.linalg.norm(gt, axis=-1).mean()  # the neutral mesh (zero displacement)
     # Measured here: about 0.65 of the neutral-mesh error after 120 steps on ONE training mesh.

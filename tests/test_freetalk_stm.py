@@ -42,7 +42,7 @@ def face():
 def model(face, _fast_compile):
     cfg = _config()
     mesh = stm.prepare_mesh(*face, cfg)
-    return cfg, mesh, stm.init_stm(cfg, jax.random.key(0), mesh)
+    return cfg, mesh, stm.init_params(cfg, jax.random.key(0), mesh)
 
 
 def _motion(frames=3, seed=0):
@@ -70,8 +70,8 @@ def test_outputs_permute_with_the_mesh_vertices(model, face):
     inverse = np.argsort(perm)
     permuted = stm.prepare_mesh(vertices[perm], inverse[faces], cfg)  # vertex i of the new mesh = perm[i]
     motion = _motion()
-    out = stm.stm_apply(params, cfg, mesh, motion)
-    out_p = stm.stm_apply(params, cfg, permuted, motion)
+    out = stm.apply(params, cfg, mesh, motion)
+    out_p = stm.apply(params, cfg, permuted, motion)
     # Operators are recomputed on the permuted mesh (its own eigensolve), so equality is up to the
     # solver's tolerance; the outputs are displacements of a few millimetres.
     scale = float(jnp.abs(out).max())
@@ -86,7 +86,7 @@ def test_runs_on_topologies_it_was_not_initialised_on(model, face):
         variant = make_variant(*face, kind, seed=0)
         other = stm.prepare_mesh(variant.vertices, variant.faces, cfg)
         assert other.num_vertices != mesh.num_vertices
-        out = stm.stm_apply(params, cfg, other, motion)
+        out = stm.apply(params, cfg, other, motion)
         assert out.shape == (2, other.num_vertices, 3) and bool(jnp.all(jnp.isfinite(out)))
 
 
@@ -96,7 +96,7 @@ def test_frames_are_decoded_independently_from_shared_features(model):
     features = stm.stm_mesh_features(params, cfg, mesh)
     assert features.shape == (mesh.num_vertices, cfg.mesh_feature_dim)
     together = stm.stm_decode(params, cfg, features, motion, mesh)
-    np.testing.assert_allclose(together, stm.stm_apply(params, cfg, mesh, motion), rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(together, stm.apply(params, cfg, mesh, motion), rtol=1e-5, atol=1e-8)
     # Frame 1 alone (as a 1-frame sequence padded with itself) gives the same field.
     alone = stm.stm_decode(params, cfg, features, np.repeat(motion[1:2], 3, axis=0), mesh)
     np.testing.assert_allclose(alone[0], together[1], rtol=1e-4, atol=1e-7)
@@ -147,8 +147,8 @@ def test_padding_vertices_do_not_change_real_vertices(model, face):
     padded = stm.prepare_mesh(*face, cfg, num_vertices=mesh.num_vertices + 37)
     assert not bool(padded.valid[-1]) and bool(padded.valid[mesh.num_vertices - 1])
     motion = _motion(2, seed=3)
-    out = stm.stm_apply(params, cfg, mesh, motion)
-    out_pad = stm.stm_apply(params, cfg, padded, motion)
+    out = stm.apply(params, cfg, mesh, motion)
+    out_pad = stm.apply(params, cfg, padded, motion)
     np.testing.assert_allclose(out_pad[:, : mesh.num_vertices], out, rtol=1e-4, atol=1e-7)
 
 
@@ -167,7 +167,7 @@ def test_loss_ignores_padding_rows_and_trains_all_parts(model, face):
         "landmarks": np.stack([_motion(4, 5), _motion(4, 6)]),
         "vertices": (0.003 * rng.normal(size=(2, 4, total, 3))).astype(np.float32),
     }
-    value_and_grad = jax.jit(jax.value_and_grad(stm.make_stm_loss(cfg, meshes), has_aux=True))
+    value_and_grad = jax.jit(jax.value_and_grad(stm.make_loss_fn(cfg, meshes), has_aux=True))
     (loss, parts), grads = value_and_grad(params, batch, jax.random.key(0))
     assert np.isfinite(float(loss))
     for name in ("encoder", "decoder", "landmarks", "cross_attention"):
@@ -182,25 +182,25 @@ def test_loss_ignores_padding_rows_and_trains_all_parts(model, face):
 def test_ablation_fusions_run(face, fusion):
     cfg = _config(fusion=fusion, num_eigenpairs=8)
     mesh = stm.prepare_mesh(*face, cfg)
-    params = stm.init_stm(cfg, jax.random.key(1), mesh)
+    params = stm.init_params(cfg, jax.random.key(1), mesh)
     assert ("cross_attention" in params["params"]) == (fusion != "concat")
     assert ("gcn_0" in params["params"].get("landmarks", {})) is False
-    out = stm.stm_apply(params, cfg, mesh, _motion(1))
+    out = stm.apply(params, cfg, mesh, _motion(1))
     assert out.shape == (1, mesh.num_vertices, 3)
 
 
 def test_bad_inputs_raise_clear_errors(model, face):
     cfg, mesh, params = model
     with pytest.raises(ValueError, match=r"shape \(frames, 68, 3\)"):
-        stm.stm_apply(params, cfg, mesh, np.zeros((3, 67, 3), np.float32))
+        stm.apply(params, cfg, mesh, np.zeros((3, 67, 3), np.float32))
     with pytest.raises(ValueError, match=r"shape \(frames, 68, 3\)"):
-        stm.stm_apply(params, cfg, mesh, np.zeros((3, 68), np.float32))
+        stm.apply(params, cfg, mesh, np.zeros((3, 68), np.float32))
     bad = _motion(2)
     bad[1, 4, 0] = np.inf
     with pytest.raises(ValueError, match="NaN/inf"):
-        stm.stm_apply(params, cfg, mesh, bad)
+        stm.apply(params, cfg, mesh, bad)
     with pytest.raises(ValueError, match="no frames"):
-        stm.stm_apply(params, cfg, mesh, np.zeros((0, 68, 3), np.float32))
+        stm.apply(params, cfg, mesh, np.zeros((0, 68, 3), np.float32))
     with pytest.raises(ValueError, match="features must have shape"):
         stm.stm_decode(params, cfg, jnp.zeros((10, cfg.mesh_feature_dim)), _motion(1), mesh)
     with pytest.raises(ValueError, match="num_eigenpairs"):

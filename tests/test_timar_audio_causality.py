@@ -37,7 +37,7 @@ def _agent_motion(features: AudioFeatures, speech_dim: int, user: np.ndarray, ag
     us, as_ = features.turn_speech(user, TURNS), features.turn_speech(agent, TURNS)
     assert us.shape == (TURNS * MOTION_FPS, speech_dim)
     um = jnp.zeros((1, TURNS * MOTION_FPS, 56))
-    out = stream_conversation(params, config, us[None], um, as_[None], jax.random.key(2), context=1, num_steps=3)
+    out = stream_conversation(params, config, us[None], um, as_[None], jax.random.key(2), context=1, sample_steps=3)
     return np.asarray(out)[0]
 
 

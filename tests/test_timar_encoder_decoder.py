@@ -16,7 +16,7 @@ from jaxtalk.models.timar import TimarConfig, encode_window, init_params, sample
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.models.timar.inputs import to_turns
 from jaxtalk.models.timar.sample import conditions
-from jaxtalk.models.timar.stream import stream_condition, stream_conversation, stream_init
+from jaxtalk.models.timar.stream import stream_condition, stream_conversation, init_stream
 from jaxtalk.models.timar.tokens import agent_token_mask, turn_layout
 from jaxtalk.nn import bias_from_mask
 
@@ -173,7 +173,7 @@ def test_encoder_decoder_stream_equals_whole_window_sample_and_sliding_window_re
     # Sliding (context 1 over 5 turns): every turn's conditions == recomputing its window offline.
     long = _streams(seed=3, n=5)
     long = (long["user_speech"], long["user_motion"], long["agent_speech"])
-    state = stream_init(CFG, B, 1)
+    state = init_stream(CFG, B, 1)
     for t in range(5):
         sl = slice(t * F, (t + 1) * F)
         state, z = stream_condition(params, CFG, state, *(x[:, sl] for x in long))

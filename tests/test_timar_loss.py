@@ -134,7 +134,7 @@ def test_diffusion_batch_mul_averages_draws_without_bias_and_cuts_the_loss_noise
     keys = jax.random.split(jax.random.key(1), 96)
 
     def losses(m):
-        cfg = TimarConfig.small(**{**CFG.__dict__, "diffusion_batch_mul": m, "cfg_prob": 0.0})
+        cfg = TimarConfig.small(**{**CFG.__dict__, "diffusion_batch_mul": m, "cfg_dropout": 0.0})
         return np.asarray(jax.jit(jax.vmap(lambda k: timar_loss(params, b, k, config=cfg)[0]))(keys))
 
     one, four = losses(1), losses(4)

@@ -193,7 +193,7 @@ def test_config_presets_training_settings_and_errors():
     _, small = recipe_for("timar", "small")
     assert (small.lr, small.batch_size, TimarConfig.small().sampler) == (1e-3, 16, "ddim")
     for bad in ({"width": 30, "num_heads": 4}, {"head": "x"}, {"attention": "causal"}, {"mask_ratio_min": 1.5},
-                {"cfg_prob": 1.0}, {"num_layers": 0}, {"sample_steps": 2000}, {"param_dim": 50}, {"sampler": "euler"}):
+                {"cfg_dropout": 1.0}, {"num_layers": 0}, {"sample_steps": 2000}, {"param_dim": 50}, {"sampler": "euler"}):
         with pytest.raises(ValueError):
             TimarConfig.small(**bad)
 

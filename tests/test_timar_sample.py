@@ -17,7 +17,7 @@ from jaxtalk.models.timar.sample import conditions as _conditions_eager
 from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
 
 conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
-sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("num_steps", "sampler", "precompute"))
+sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler", "precompute"))
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -84,7 +84,7 @@ def test_guided_sample_equals_eq9_applied_to_head_outputs_with_one_step(params):
     us, um, as_ = _streams()
     key = jax.random.key(5)
     omega = 1.7
-    got = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=omega, num_steps=1))
+    got = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=omega, sample_steps=1))
     zc, zu = conditions(params, CFG, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     k_noise, _ = jax.random.split(key)
     noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
@@ -119,7 +119,7 @@ def test_sampler_equals_a_python_loop_ddim_reference(params, learn_sigma):
         eps = (x - np.sqrt(abar) * x0) / np.sqrt(1 - abar)
         x = np.sqrt(abar_prev) * x0 + np.sqrt(1 - abar_prev) * eps
     assert np.abs(x).max() > 0.1
-    got = {pc: np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega, num_steps=steps, precompute=pc))
+    got = {pc: np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega, sample_steps=steps, precompute=pc))
            for pc in (True, False)}
     # float32 sampler vs the float64 reference: a few float32 ulps of the O(1) values.
     for pc in (True, False):
@@ -153,23 +153,23 @@ def test_paper_default_ddpm_reads_the_learned_variance_and_scales_each_steps_noi
         mean = sched.posterior_coef_x0[i] * x0 + sched.posterior_coef_xt[i] * x
         z = np.asarray(jax.random.normal(step_keys[j], x.shape, jnp.float32), np.float64)
         x = mean + (i > 0) * tau * np.exp(0.5 * log_var) * z
-    got = np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega, num_steps=steps, temperature=tau))
+    got = np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega, sample_steps=steps, temperature=tau))
     np.testing.assert_allclose(got, x, atol=5e-5, rtol=1e-5)
     # The temperature acts: 0 leaves only x_T's randomness, and a cooler chain differs from a warmer one.
-    cold = [np.asarray(sample_frames(p, cfg, zc, zu, k, cfg_scale=omega, num_steps=steps, temperature=0.0))
+    cold = [np.asarray(sample_frames(p, cfg, zc, zu, k, cfg_scale=omega, sample_steps=steps, temperature=0.0))
             for k in (key, jax.random.key(10))]
     assert np.abs(cold[0] - got).max() > 1e-3 and np.abs(cold[0] - cold[1]).max() > 1e-3
 
 
 def test_ddpm_and_step_counts_and_mlp_head(params):
     us, um, as_ = _streams()
-    x = sample(params, CFG, us, um, as_, jax.random.key(1), sampler="ddpm", num_steps=3)
+    x = sample(params, CFG, us, um, as_, jax.random.key(1), sampler="ddpm", sample_steps=3)
     assert x.shape == (B, N * F, 56) and np.all(np.isfinite(np.asarray(x)))
     mlp = TimarConfig.small(**{**CFG.__dict__, "head": "mlp"})
     pm = init_params(mlp, jax.random.key(0))
     y = sample(pm, mlp, us, um, as_, jax.random.key(1), cfg_scale=1.0)
     zc, _ = conditions(pm, mlp, *(to_turns(jnp.asarray(a), F) for a in (us, um, as_)), guidance=False)
-    ref = sample_frames(pm, mlp, zc, None, jax.random.key(0), cfg_scale=1.0, num_steps=1)
+    ref = sample_frames(pm, mlp, zc, None, jax.random.key(0), cfg_scale=1.0, sample_steps=1)
     np.testing.assert_allclose(np.asarray(y), np.asarray(ref).reshape(B, N * F, 56), atol=1e-5)
 
 
@@ -189,8 +189,8 @@ def test_sample_rejects_bad_input(params):
         sample(params, CFG, *long, key)
     with pytest.raises(ValueError, match="sampler"):
         sample(params, CFG, us, um, as_, key, sampler="euler")
-    with pytest.raises(ValueError, match="num_steps"):
-        sample(params, CFG, us, um, as_, key, num_steps=0)
+    with pytest.raises(ValueError, match="sample_steps"):
+        sample(params, CFG, us, um, as_, key, sample_steps=0)
     with pytest.raises(ValueError, match="scalar"):
         sample(params, CFG, us, um, as_, key, cfg_scale=jnp.ones(2))
 
@@ -200,9 +200,9 @@ def test_ddim_temperature_scales_the_initial_noise(params):
     zc, zu = conditions(params, CFG, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     k1, k2 = jax.random.key(1), jax.random.key(2)
     run = lambda k, tau, steps=4: np.asarray(  # noqa: E731
-        sample_frames(params, CFG, zc, zu, k, cfg_scale=1.5, num_steps=steps, temperature=tau))
+        sample_frames(params, CFG, zc, zu, k, cfg_scale=1.5, sample_steps=steps, temperature=tau))
     # 1 is the plain sampler; 0 is deterministic (DDIM, eta = 0: the initial noise is the only randomness).
-    np.testing.assert_array_equal(run(k1, 1.0), np.asarray(sample_frames(params, CFG, zc, zu, k1, cfg_scale=1.5, num_steps=4)))
+    np.testing.assert_array_equal(run(k1, 1.0), np.asarray(sample_frames(params, CFG, zc, zu, k1, cfg_scale=1.5, sample_steps=4)))
     np.testing.assert_array_equal(run(k1, 0.0), run(k2, 0.0))
     assert np.abs(run(k1, 1.0) - run(k2, 1.0)).max() > 1e-3
     # One step from x_T = 0 at t = 0 is the guided head output at x = 0 (sample(temperature=...) too).
@@ -210,7 +210,7 @@ def test_ddim_temperature_scales_the_initial_noise(params):
     zero = jnp.zeros(zc.shape[:-1] + (56,))
     oc, ou = apply_head(params["head"], CFG, zc, zero, t), apply_head(params["head"], CFG, zu, zero, t)
     np.testing.assert_allclose(run(k1, 0.0, steps=1), np.asarray(ou + 1.5 * (oc - ou)), atol=1e-5)
-    got = sample(params, CFG, us, um, as_, k2, cfg_scale=1.5, num_steps=1, temperature=0.0)
+    got = sample(params, CFG, us, um, as_, k2, cfg_scale=1.5, sample_steps=1, temperature=0.0)
     np.testing.assert_allclose(np.asarray(got), np.asarray(ou + 1.5 * (oc - ou)).reshape(B, N * F, 56), atol=1e-5)
     with pytest.raises(ValueError, match="temperature"):
         sample(params, CFG, us, um, as_, k1, temperature=-1.0)
@@ -228,7 +228,7 @@ def test_mean_sampler_is_the_guided_head_output_at_the_last_timestep(params):
     noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
     t = jnp.full(zc.shape[:-1], CFG.num_timesteps - 1.0)
     oc, ou = apply_head(params["head"], CFG, zc, noise, t), apply_head(params["head"], CFG, zu, noise, t)
-    got = sample_frames(params, CFG, zc, zu, key, cfg_scale=omega, num_steps=5, sampler="mean")
+    got = sample_frames(params, CFG, zc, zu, key, cfg_scale=omega, sample_steps=5, sampler="mean")
     np.testing.assert_allclose(np.asarray(got), np.asarray(ou + omega * (oc - ou)), atol=1e-5)
     cond = sample(params, CFG, us, um, as_, key, sampler="mean", guidance=False)
     np.testing.assert_allclose(np.asarray(cond), np.asarray(oc).reshape(B, N * F, 56), atol=1e-5)

@@ -12,10 +12,10 @@ from jaxtalk.models.timar import stream as stream_mod
 from jaxtalk.models.timar.inputs import to_turns
 from jaxtalk.models.timar.sample import conditions as _conditions_eager
 from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
-from jaxtalk.models.timar.stream import stream_condition, stream_conversation, stream_init, stream_step
+from jaxtalk.models.timar.stream import stream_condition, stream_conversation, init_stream, stream_step
 
 conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
-sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("num_steps", "sampler"))
+sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler"))
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -55,7 +55,7 @@ def _window_reference(config, params, s, lo, hi):
 @pytest.mark.parametrize("context", [0, 1, 3])
 def test_cached_stream_equals_recomputed_window(params, context):
     s = _streams(6)
-    state = stream_init(CFG, B, context)
+    state = init_stream(CFG, B, context)
     for t in range(6):
         sl = slice(t * F, (t + 1) * F)
         state, z = stream_condition(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl])
@@ -67,7 +67,7 @@ def test_cached_stream_equals_recomputed_window(params, context):
 def test_bidirectional_stream_recomputes_the_window(params):
     bi = TimarConfig.small(**{**CFG.__dict__, "attention": "bidirectional"})
     s = _streams(4)
-    state = stream_init(bi, B, 2)
+    state = init_stream(bi, B, 2)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
         state, z = stream_condition(params, bi, state, s[0][:, sl], s[1][:, sl], s[2][:, sl])
@@ -77,7 +77,7 @@ def test_bidirectional_stream_recomputes_the_window(params):
 def test_stream_step_samples_with_the_window_conditions_and_compiles_once(params):
     s = _streams(5)
     context = 2
-    state = stream_init(CFG, B, context)
+    state = init_stream(CFG, B, context)
     before = stream_mod._step._cache_size()
     for t in range(5):
         sl = slice(t * F, (t + 1) * F)
@@ -85,13 +85,13 @@ def test_stream_step_samples_with_the_window_conditions_and_compiles_once(params
         state, x = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], key, cfg_scale=1.0 + 0.3 * t)
         z = _window_reference(CFG, params, s, max(0, t - context), t)
         ref = sample_frames(params, CFG, jnp.asarray(z[:B]), jnp.asarray(z[B:]), key, cfg_scale=1.0 + 0.3 * t,
-                            num_steps=CFG.sample_steps)
+                            sample_steps=CFG.sample_steps)
         np.testing.assert_allclose(np.asarray(x), np.asarray(ref), atol=1e-4)
     # Two programs (filling, sliding) serve every turn and every scale: a second stream with new
     # scales compiles nothing.
     compiled = stream_mod._step._cache_size()
     assert compiled - before <= 2
-    state = stream_init(CFG, B, context)
+    state = init_stream(CFG, B, context)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
         state, _ = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], jax.random.key(t),
@@ -104,7 +104,7 @@ def test_stream_under_an_outer_jit_uses_one_program_with_the_same_outputs(params
     # host-dispatched filling/sliding programs on both kinds of turn.
     s = _streams(4)
     cond = jax.jit(lambda st, a, b, c: stream_mod._condition(params, CFG, st, a, b, c, True, "auto"))
-    state_h, state_j = stream_init(CFG, B, 1), stream_init(CFG, B, 1)
+    state_h, state_j = init_stream(CFG, B, 1), init_stream(CFG, B, 1)
     for t in range(4):
         sl = slice(t * F, (t + 1) * F)
         turn = tuple(jnp.asarray(x[:, sl]) for x in s)
@@ -132,10 +132,10 @@ def test_stream_causality_future_turn_does_not_change_past_outputs(params):
 def test_stream_rejects_bad_input(params):
     s = _streams(1)
     with pytest.raises(ValueError, match="max_turns"):
-        stream_init(CFG, B, 4)  # window of 5 turns > max_turns=4
+        init_stream(CFG, B, 4)  # window of 5 turns > max_turns=4
     with pytest.raises(ValueError, match="non-negative"):
-        stream_init(CFG, B, -1)
-    state = stream_init(CFG, B, 1)
+        init_stream(CFG, B, -1)
+    state = init_stream(CFG, B, 1)
     with pytest.raises(ValueError, match="one turn"):
         stream_step(params, CFG, state, s[0][:, :3], s[1][:, :3], s[2][:, :3], jax.random.key(0))
     with pytest.raises(ValueError, match="aligned|one turn"):

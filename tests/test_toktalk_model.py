@@ -24,7 +24,7 @@ def params():
 
 def _cond(rng, t=T, chunked=False, keep=1.0, mask=None):
     return tt.Condition(
-        tokens=jnp.asarray(rng.normal(size=(B, t, CFG.token_dim)), jnp.float32),
+        tokens=jnp.asarray(rng.normal(size=(B, t, CFG.speech_dim)), jnp.float32),
         style=jnp.asarray(rng.normal(size=(B, CFG.style_vector_dim)), jnp.float32),
         known=jnp.asarray(rng.normal(size=(B, t, CFG.param_dim)), jnp.float32),
         known_mask=jnp.asarray(np.arange(t)[None, :] < 3).repeat(B, 0),
@@ -40,16 +40,16 @@ _decoder_apply = jax.jit(lambda cfg, p, x, t, c: tt.Decoder(cfg).apply({"params"
 # ------------------------------------------------------------------------------------- config
 def test_presets_and_config_errors():
     paper, small = tt.TokTalkConfig.paper(), tt.TokTalkConfig.small()
-    assert (paper.channels, paper.num_mid_blocks, paper.transformer_blocks, paper.num_heads, paper.head_dim) == (
+    assert (paper.width, paper.num_mid_blocks, paper.transformer_blocks, paper.num_heads, paper.head_dim) == (
         256, 12, 4, 8, 64)
-    assert (paper.chunk_frames, paper.overlap_frames, paper.num_steps, paper.cfg_scale) == (10, 5, 10, 0.7)
-    assert small.channels < paper.channels and small.window_frames == 30
+    assert (paper.chunk_frames, paper.overlap_frames, paper.sample_steps, paper.cfg_scale) == (10, 5, 10, 0.7)
+    assert small.width < paper.width and small.window_frames == 30
     with pytest.raises(ValueError, match="chunk_frames=7 must be even"):
         tt.TokTalkConfig.small(chunk_frames=7)
     with pytest.raises(ValueError, match="context_frames=15"):
         tt.TokTalkConfig.small(context_frames=15)
-    with pytest.raises(ValueError, match="cond_dropout"):
-        tt.TokTalkConfig.small(cond_dropout=1.5)
+    with pytest.raises(ValueError, match="cfg_dropout"):
+        tt.TokTalkConfig.small(cfg_dropout=1.5)
 
 
 def test_paper_decoder_has_about_82m_parameters():
@@ -165,7 +165,7 @@ def test_adapter_maps_rate_and_width(params):
     rng = np.random.default_rng(4)
     src = jnp.asarray(rng.normal(size=(B, 16, 48)), jnp.float32)  # 25 Hz -> 8 tokens at 12.5 Hz
     out = tt.adapt_tokens(params, CFG, src, 25.0)
-    assert out.shape == (B, 8, CFG.token_dim)
+    assert out.shape == (B, 8, CFG.speech_dim)
     with pytest.raises(ValueError, match="width 40, expected 48"):
         tt.adapt_tokens(params, CFG, src[..., :40], 25.0)
     with pytest.raises(ValueError, match="no 'adapter'"):

@@ -26,7 +26,7 @@ def params():
 
 def _inputs(seed=0):
     rng = np.random.default_rng(seed)
-    tokens = rng.normal(size=(B, TT, CFG.token_dim)).astype(np.float32)
+    tokens = rng.normal(size=(B, TT, CFG.speech_dim)).astype(np.float32)
     style = rng.normal(size=(B, CFG.style_vector_dim)).astype(np.float32)
     noise = rng.normal(size=(B, 2 * TT, CFG.param_dim)).astype(np.float32)
     known = rng.normal(size=(B, 2 * TT, CFG.param_dim)).astype(np.float32)
@@ -71,7 +71,7 @@ def _reference(params, tokens, style, noise, known, known_mask, mask, ts, w):
 
 def test_sample_equals_python_loop_reference(params):
     tokens, style, noise, known, known_mask, mask = _inputs()
-    ts = cosine_grid(CFG.num_steps)
+    ts = cosine_grid(CFG.sample_steps)
     out = tt.sample(params, CFG, tokens, style, noise=noise, known=known, known_mask=known_mask, mask=mask,
                     cfg_scale=0.7)
     ref = _reference(params, tokens, style, noise, known, known_mask, mask, ts, 0.7)
@@ -86,7 +86,7 @@ def test_traced_knobs_do_not_recompile(params):
     tt.sample(params, CFG, tokens, style, noise=noise, cfg_scale=0.0)
     before = sample_mod._sample._cache_size()
     out_a = tt.sample(params, CFG, tokens, style, noise=noise, cfg_scale=1.5)
-    out_b = tt.sample(params, CFG, tokens, style * 2, noise=noise, ts=uniform_grid(CFG.num_steps), cfg_scale=0.3)
+    out_b = tt.sample(params, CFG, tokens, style * 2, noise=noise, ts=uniform_grid(CFG.sample_steps), cfg_scale=0.3)
     assert sample_mod._sample._cache_size() == before
     assert float(jnp.max(jnp.abs(out_a - out_b))) > 1e-4
     # A style clip is encoded to a vector first: same sampler program.
@@ -156,7 +156,7 @@ def test_sample_long_windows_equal_whole_sequence_sample_of_their_tokens_with_ea
     # 28 and 30 (the last moved back to end at frame 50, so it re-reads 18 known frames). Window k is exactly the whole-sequence sample of
     # its own tokens with the frames generated before it as known frames and fold_in(key, k) noise.
     rng = np.random.default_rng(7)
-    tokens = rng.normal(size=(1, 25, CFG.token_dim)).astype(np.float32)
+    tokens = rng.normal(size=(1, 25, CFG.speech_dim)).astype(np.float32)
     style = rng.normal(size=(1, CFG.style_vector_dim)).astype(np.float32)
     key = jax.random.key(5)
     out = tt.sample_long(params, CFG, tokens, style, key, window_frames=20, context_frames=6)
@@ -188,7 +188,7 @@ def test_sample_long_peak_memory_does_not_grow_from_150_s_to_10_minutes():
         style = np.zeros((1, cfg.style_vector_dim), np.float32)
         peaks = []
         for minutes in (2.5, 10):
-            tokens = np.ones((1, int(minutes * 60 * cfg.token_rate), cfg.token_dim), np.float32)
+            tokens = np.ones((1, int(minutes * 60 * cfg.token_rate), cfg.speech_dim), np.float32)
             out = tt.sample_long(params, cfg, tokens, style, jax.random.key(1))
             assert out.shape[1] == minutes * 60 * cfg.fps and np.isfinite(out).all()
             peaks.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)

@@ -33,7 +33,7 @@ def test_stream_compiles_once_and_keeps_fixed_state(params):
     assert ct == 2
     outs = []
     for i in range(6):
-        chunk = rng.normal(size=(B, ct, CFG.token_dim)).astype(np.float32)
+        chunk = rng.normal(size=(B, ct, CFG.speech_dim)).astype(np.float32)
         state, out = tt.stream_step(params, CFG, state, chunk, style, cfg_scale=0.5 + 0.1 * i)
         outs.append(np.asarray(out))
         if i == 0:
@@ -55,7 +55,7 @@ def test_stream_step_equals_offline_core_on_the_same_window(params):
     style = jnp.asarray(rng.normal(size=(B, CFG.style_vector_dim)), jnp.float32)
     ct, c, ctx = tt.tokens_per_chunk(CFG), CFG.chunk_frames, CFG.context_frames
     n_chunks = 2
-    tokens = rng.normal(size=(B, n_chunks * ct, CFG.token_dim)).astype(np.float32)
+    tokens = rng.normal(size=(B, n_chunks * ct, CFG.speech_dim)).astype(np.float32)
     state = tt.init_stream(CFG, jax.random.key(2), batch=B, buffer_frames=40)
     outs = []
     for i in range(n_chunks):
@@ -67,7 +67,7 @@ def test_stream_step_equals_offline_core_on_the_same_window(params):
     start = (n_chunks - 1) * c - ctx  # absolute frame of the window's first row (negative = padding)
     frames = start + np.arange(w)
     valid = frames >= 0
-    win_tokens = np.zeros((B, w // 2, CFG.token_dim), np.float32)
+    win_tokens = np.zeros((B, w // 2, CFG.speech_dim), np.float32)
     tok_idx = frames[::2] // 2
     win_tokens[:, valid[::2]] = tokens[:, tok_idx[valid[::2]]]
     known = np.zeros((B, w, 56), np.float32)
@@ -85,7 +85,7 @@ def test_stream_step_equals_offline_core_on_the_same_window(params):
 
 def test_stream_whole_sequence_and_errors(params):
     rng = np.random.default_rng(2)
-    tokens = rng.normal(size=(1, 7, CFG.token_dim)).astype(np.float32)  # 3.5 chunks
+    tokens = rng.normal(size=(1, 7, CFG.speech_dim)).astype(np.float32)  # 3.5 chunks
     out = tt.stream(params, CFG, tokens, np.zeros((1, CFG.style_vector_dim), np.float32), jax.random.key(0),
                     buffer_frames=32)
     assert out.shape == (1, 14, 56) and bool(jnp.all(jnp.isfinite(out)))
@@ -116,7 +116,7 @@ def _assert_causal(run, inputs, cut_input, cut_frame, rng):
 
 def test_stream_with_base_tokens_is_causal(params):
     rng = np.random.default_rng(3)
-    tokens = rng.normal(size=(B, 8, CFG.token_dim)).astype(np.float32)  # 4 chunks of 2 tokens
+    tokens = rng.normal(size=(B, 8, CFG.speech_dim)).astype(np.float32)  # 4 chunks of 2 tokens
     style = np.zeros((B, CFG.style_vector_dim), np.float32)
     run = lambda tok: tt.stream(params, CFG, tok, style, jax.random.key(0), buffer_frames=32)  # noqa: E731
     for chunk in (1, 2):
@@ -150,7 +150,7 @@ def test_stream_with_source_tokens_is_causal_and_equals_offline_adaptation(param
 
 def test_offline_sample_with_chunk_mask_is_causal(params):
     rng = np.random.default_rng(5)
-    tokens = rng.normal(size=(B, 8, CFG.token_dim)).astype(np.float32)
+    tokens = rng.normal(size=(B, 8, CFG.speech_dim)).astype(np.float32)
     style = np.zeros((B, CFG.style_vector_dim), np.float32)
     run = lambda tok: tt.sample(params, CFG, tok, style, jax.random.key(0), chunked=True)  # noqa: E731
     for chunk in (1, 3):
@@ -163,7 +163,7 @@ def test_stream_equals_offline_chunked_sample_when_the_window_holds_the_whole_pa
     cfg = tt.TokTalkConfig.tiny(overlap_frames=0, context_frames=12)
     p = tt.init_params(cfg, jax.random.key(3))
     rng = np.random.default_rng(6)
-    tokens = rng.normal(size=(B, 8, cfg.token_dim)).astype(np.float32)  # 16 frames
+    tokens = rng.normal(size=(B, 8, cfg.speech_dim)).astype(np.float32)  # 16 frames
     style = rng.normal(size=(B, cfg.style_vector_dim)).astype(np.float32)
     streamed = tt.stream(p, cfg, tokens, style, jax.random.key(4), buffer_frames=16)
     buffer = tt.init_stream(cfg, jax.random.key(4), batch=B, buffer_frames=16).noise

@@ -228,13 +228,13 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
         raise ValueError(f"{where} has no training split with motion; prepare it from data with 56-d motion")
     if record.model == "toktalk":
         if not m.get("token_dim"):
-            raise ValueError(f"{where} has no token stream, the TokTalk run needs tokens of width {cfg['token_dim']}")
-        if m["token_dim"] != cfg["token_dim"] or float(m["token_rate"]) != float(cfg["token_rate"]):
+            raise ValueError(f"{where} has no token stream, the TokTalk run needs tokens of width {cfg['speech_dim']}")
+        if m["token_dim"] != cfg["speech_dim"] or float(m["token_rate"]) != float(cfg["token_rate"]):
             raise ValueError(f"{where} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz, the run was "
-                             f"trained on width {cfg['token_dim']} at {cfg['token_rate']:g} Hz")
+                             f"trained on width {cfg['speech_dim']} at {cfg['token_rate']:g} Hz")
         return
     if record.model in ("timar", "dualtalk", "ats"):
-        key, width = ("speech_dim", cfg["audio_dim"]) if record.model == "ats" else ("turn_speech_dim", cfg["speech_dim"])
+        key, width = ("speech_dim", cfg["speech_dim"]) if record.model == "ats" else ("turn_speech_dim", cfg["speech_dim"])
         if m["settings"]["audio"] != features.get("audio") or m.get(key) != width:
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
@@ -319,7 +319,7 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
     mean_pose = np.asarray(norm["mean"] if "mean" in norm else data.motion_stats()["mean"], np.float32)
     key = jax.random.key(opts.seed)
     echo(f"streaming {len(chosen)} {split} clips of {data.root} with TokTalk (step {run.step})")
-    step_counts = tuple(opts.sample_steps) or (config.num_steps,)
+    step_counts = tuple(opts.sample_steps) or (config.sample_steps,)
     if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in step_counts):
         raise ValueError(f"sample steps must be positive integers, got {step_counts}")
     plural = lambda n: f"{n} step{'s' * (n > 1)}"  # noqa: E731

@@ -1,7 +1,7 @@
 """``jaxtalk sample`` and ``jaxtalk stream``: a trained run + speech -> 56-d head parameters (.npz).
 
 Inputs: an audio file (WAV/FLAC, any rate, mono or stereo) or, for TokTalk, a ``.npy`` of token
-embeddings ``(tokens, token_dim)`` at the model's token rate (e.g. your own audio-LLM tokens). Every
+embeddings ``(tokens, speech_dim)`` at the model's token rate (e.g. your own audio-LLM tokens). Every
 default comes from the run folder, never from a regenerated corpus: TokTalk turns audio into tokens
 with the tokenizer its data was prepared with and takes its default style clip from the run; TIMAR
 turns audio into per-turn speech features with the same front end as ``prepare`` and animates the agent (the partner is silent and still unless
@@ -42,7 +42,7 @@ class SampleOptions:
             training clip saved with the run.
         partner: TIMAR: the partner's audio (default: silence).
         cfg_scale: guidance weight (default: the config's).
-        num_steps: sampler steps (default: the config's).
+        sample_steps: sampler steps (default: the config's).
         seed: noise seed.
         best: use the run's best-validated checkpoint instead of its newest.
         mesh_options: FreeTalk-only options given (``"--emotion"``...), refused for other models.
@@ -54,7 +54,7 @@ class SampleOptions:
     style: Path | None = None
     partner: Path | None = None
     cfg_scale: float | None = None
-    num_steps: int | None = None
+    sample_steps: int | None = None
     seed: int = 0
     best: bool = False
     mesh_options: tuple[str, ...] = ()
@@ -112,8 +112,8 @@ def _check_options(opts: SampleOptions, model: str) -> None:
                          f"(it takes {', '.join(own)}, --steps, --seed)")
     if opts.cfg_scale is not None and not math.isfinite(opts.cfg_scale):
         raise ValueError(f"--cfg-scale must be a finite number, got {opts.cfg_scale}")
-    if opts.num_steps is not None and opts.num_steps < 1:
-        raise ValueError(f"--steps must be >= 1, got {opts.num_steps}")
+    if opts.sample_steps is not None and opts.sample_steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {opts.sample_steps}")
 
 
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
@@ -144,13 +144,13 @@ def _toktalk_inputs(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
         tokenizer = run.tokenizer()
         if tokenizer is None:
             raise ValueError(f"{run.run_dir} was trained on the data's own token files and has no tokenizer for "
-                             f"audio: pass a .npy of token embeddings ({config.token_dim} wide at {config.token_rate:g} Hz)")
+                             f"audio: pass a .npy of token embeddings ({config.speech_dim} wide at {config.token_rate:g} Hz)")
         audio = load_audio(opts.input)
         tokens = np.asarray(tokenizer.encode(audio).embeddings, np.float32)
     else:
         tokens = np.load(opts.input, allow_pickle=False)
-        if tokens.ndim != 2 or tokens.shape[1] != config.token_dim or tokens.shape[0] < 1:
-            raise ValueError(f"{str(opts.input)!r}: token embeddings must have shape (tokens, {config.token_dim}) "
+        if tokens.ndim != 2 or tokens.shape[1] != config.speech_dim or tokens.shape[0] < 1:
+            raise ValueError(f"{str(opts.input)!r}: token embeddings must have shape (tokens, {config.speech_dim}) "
                              f"at {config.token_rate:g} Hz, got {tokens.shape}")
         if not np.all(np.isfinite(tokens)):
             raise ValueError(f"{str(opts.input)!r}: token embeddings contain NaN or inf")
@@ -244,7 +244,7 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         tokens, style, audio = _toktalk_inputs(run, opts, kind)
         # Window by window past a minute: the decoder's attention is O(frames^2) in memory.
         motion = toktalk.sample_long(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
-                                     num_steps=opts.num_steps)[:, :_toktalk_frames(run.config, tokens, audio)]
+                                     sample_steps=opts.sample_steps)[:, :_toktalk_frames(run.config, tokens, audio)]
     else:
         from jaxtalk.models.timar.data import Normalizer
         from jaxtalk.models.timar.stream import stream_conversation
@@ -253,7 +253,7 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         context = max(run.record.extra.get("num_turns", run.config.max_turns) - 1, 0)
         motion = stream_conversation(run.params, run.config, streams["user_speech"], streams["user_motion"],
                                      streams["agent_speech"], key, context=context, cfg_scale=opts.cfg_scale,
-                                     num_steps=opts.num_steps)
+                                     sample_steps=opts.sample_steps)
         motion = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(motion)
     params = np.asarray(motion, np.float32)[0]
     return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=[], chunk_s=None)
@@ -292,7 +292,7 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
         n = -(-tokens.shape[0] // ct)
         tokens = np.concatenate([tokens, np.repeat(tokens[-1:], n * ct - tokens.shape[0], axis=0)], axis=0)
         style_vec = toktalk.encode_style(run.params, config, style)
-        ts = None if opts.num_steps is None else jnp.asarray(cosine_grid(opts.num_steps), jnp.float32)
+        ts = None if opts.sample_steps is None else jnp.asarray(cosine_grid(opts.sample_steps), jnp.float32)
         # Committed like the restored parameters: an uncommitted first state would compile twice.
         state = jax.device_put(toktalk.init_stream(config, key), jax.devices()[0])
         chunk_s = config.chunk_frames / config.fps
@@ -305,18 +305,18 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
         params = np.concatenate(outs)[:frames]
     else:
         from jaxtalk.models.timar.data import Normalizer
-        from jaxtalk.models.timar.stream import stream_init, stream_step
+        from jaxtalk.models.timar.stream import init_stream, stream_step
 
         streams, audio, turns = _timar_inputs(run, opts)
         f = config.frames_per_turn
         context = max(run.record.extra.get("num_turns", config.max_turns) - 1, 0)
-        state = jax.device_put(stream_init(config, 1, context), jax.devices()[0])
+        state = jax.device_put(init_stream(config, 1, context), jax.devices()[0])
         for i in range(turns):
             sl = slice(i * f, (i + 1) * f)
             t0 = time.perf_counter()
             state, out = stream_step(run.params, config, state, streams["user_speech"][:, sl],
                                      streams["user_motion"][:, sl], streams["agent_speech"][:, sl],
-                                     jax.random.fold_in(key, i), cfg_scale=opts.cfg_scale, num_steps=opts.num_steps)
+                                     jax.random.fold_in(key, i), cfg_scale=opts.cfg_scale, sample_steps=opts.sample_steps)
             outs.append(np.asarray(jax.block_until_ready(out))[0])
             report(i, turns, time.perf_counter() - t0, f / 25)
         params = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(np.concatenate(outs))
@@ -395,7 +395,7 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
          f"the template by {c.method} (scale {c.fitted_scale:.3f}, mean distance {c.residual * 1000:.1f} mm) in "
          f"{time.perf_counter() - t0:.1f} s")
     verts = animate(ats, stm, audio, mesh_opts.emotion, mesh_opts.intensity, mesh, key=jax.random.key(opts.seed),
-                    num_steps=opts.num_steps)
+                    sample_steps=opts.sample_steps)
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(out) as tmp:
         np.save(tmp, verts)

@@ -160,10 +160,10 @@ def _data_fields(model: str, data: Any, explicit: dict[str, Any]) -> list[str]:
     """Config overrides that make the model's input widths match the data (unless set explicitly)."""
     m = data.manifest
     wanted = {
-        "toktalk": {"token_dim": m.get("token_dim"), "token_rate": m.get("token_rate")},
+        "toktalk": {"speech_dim": m.get("token_dim"), "token_rate": m.get("token_rate")},
         "timar": {"speech_dim": m.get("turn_speech_dim")},
         "dualtalk": {"speech_dim": m.get("turn_speech_dim")},
-        "ats": {"audio_dim": m.get("speech_dim")},
+        "ats": {"speech_dim": m.get("speech_dim")},
     }.get(model, {})
     return [f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in wanted.items()
             if v is not None and k not in explicit]

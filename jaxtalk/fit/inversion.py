@@ -46,7 +46,8 @@ import optimistix as optx
 from jaxtalk.audio.framerate import default_num_frames
 from jaxtalk.fit.face_fit import _check_finite, _float_array, result_name
 from jaxtalk.models import toktalk as tt
-from jaxtalk.models.freetalk.ats import ATSCondition, sample_ats
+from jaxtalk.models.freetalk import ats
+from jaxtalk.models.freetalk.ats import ATSCondition
 from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray, Shaped
 
@@ -203,9 +204,9 @@ def _compute_dtype() -> Any:
 # ---- TokTalk style --------------------------------------------------------------------------------
 
 
-def _style_data(style, params, tokens, target, noise, mask, cfg_scale, *, config, num_steps, remat):
+def _style_data(style, params, tokens, target, noise, mask, cfg_scale, *, config, sample_steps, remat):
     """Weighted residuals ``(B, T, D)`` whose per-example sum of squares is the MSE (the data term)."""
-    x = tt.sample(params, config, tokens, style, noise=noise, num_steps=num_steps, cfg_scale=cfg_scale,
+    x = tt.sample(params, config, tokens, style, noise=noise, sample_steps=sample_steps, cfg_scale=cfg_scale,
                   mask=mask, remat=remat)
     w = _frame_weights(mask, x.shape[-1], x.dtype)
     return (x - target) * w[..., None]
@@ -215,10 +216,10 @@ def _per_example(residual: Array) -> Array:
     return jnp.sum(jnp.square(residual.reshape(residual.shape[0], -1)), axis=1)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "remat"))
-def _style_loss(params, tokens, target, noise, style, mask, cfg_scale, *, config, num_steps, remat):
+@functools.partial(jax.jit, static_argnames=("config", "sample_steps", "remat"))
+def _style_loss(params, tokens, target, noise, style, mask, cfg_scale, *, config, sample_steps, remat):
     return _per_example(_style_data(style, params, tokens, target, noise, mask, cfg_scale, config=config,
-                                    num_steps=num_steps, remat=remat))
+                                    sample_steps=sample_steps, remat=remat))
 
 
 def style_loss(
@@ -230,24 +231,24 @@ def style_loss(
     style: Float[ArrayLike, "batch style"],
     *,
     cfg_scale: Float[ArrayLike, ""] | float | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     mask: Bool[ArrayLike, "batch frames"] | None = None,
     remat: bool = True,
 ) -> Float[Array, " batch"]:
     """Per-example MSE between the TokTalk sample for ``style`` (fixed noise) and a target clip.
 
     The data term :func:`invert_style` minimises (the same code path), differentiable in ``style``
-    and every other array argument; jitted (``config``, ``num_steps``, ``remat`` static). No
+    and every other array argument; jitted (``config``, ``sample_steps``, ``remat`` static). No
     validation beyond :func:`jaxtalk.models.toktalk.sample`'s.
 
     Args:
         params, config: the TokTalk model.
-        tokens: ``(B, Tt, token_dim)`` base-space token embeddings.
+        tokens: ``(B, Tt, speech_dim)`` base-space token embeddings.
         target: ``(B, T, param_dim)`` target motion (raw FLAME units).
         noise: ``(B, T, param_dim)`` the sampler's starting noise.
         style: ``(B, style_vector_dim)`` style vectors.
         cfg_scale: guidance weight (traced; default ``config.cfg_scale``).
-        num_steps: Euler steps (default ``config.num_steps``).
+        sample_steps: Euler steps (default ``config.sample_steps``).
         mask: ``(B, T)`` real frames, passed to the sampler and scoring only those (None: all).
         remat: checkpoint each Euler step (memory of the gradient O(1) in the step count).
 
@@ -257,23 +258,23 @@ def style_loss(
     m = jnp.ones(jnp.shape(target)[:2], bool) if mask is None else mask
     w = config.cfg_scale if cfg_scale is None else cfg_scale
     return _style_loss(params, tokens, target, noise, style, m, jnp.asarray(w, jnp.result_type(noise)),
-                       config=config, num_steps=num_steps, remat=bool(remat))
+                       config=config, sample_steps=sample_steps, remat=bool(remat))
 
 
-def _style_residuals(style, args, *, config, num_steps, remat):
+def _style_residuals(style, args, *, config, sample_steps, remat):
     params, tokens, target, noise, mask, cfg_scale, prior = args
     data = _style_data(style, params, tokens, target, noise, mask, cfg_scale, config=config,
-                       num_steps=num_steps, remat=remat)
+                       sample_steps=sample_steps, remat=remat)
     # The per-example data loss rides along as aux: the solver hands it back at its solution.
     return {"data": data, "prior": jnp.sqrt(prior) * style}, _per_example(data)
 
 
 @functools.partial(
-    jax.jit, static_argnames=("config", "num_steps", "solver", "rtol", "atol", "max_steps", "remat")
+    jax.jit, static_argnames=("config", "sample_steps", "solver", "rtol", "atol", "max_steps", "remat")
 )
-def _invert_style_core(params, tokens, target, noise, mask, init, cfg_scale, prior, *, config, num_steps,
+def _invert_style_core(params, tokens, target, noise, mask, init, cfg_scale, prior, *, config, sample_steps,
                        solver, rtol, atol, max_steps, remat):
-    fn = functools.partial(_style_residuals, config=config, num_steps=num_steps, remat=remat)
+    fn = functools.partial(_style_residuals, config=config, sample_steps=sample_steps, remat=remat)
 
     # One problem per example, vmapped: a joint problem would make Levenberg-Marquardt build a
     # block-diagonal (B style_vector_dim)-column Jacobian, B times the forward-mode passes needed.
@@ -295,7 +296,7 @@ def invert_style(
     init: Sequence[float] | Float[ArrayLike, "..."] | None = None,
     mask: Shaped[ArrayLike, "..."] | None = None,
     cfg_scale: float | Float[ArrayLike, ""] | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     prior: float | Float[ArrayLike, ""] = 0.0,
     solver: str = "levenberg_marquardt",
     rtol: float | None = None,
@@ -313,7 +314,7 @@ def invert_style(
 
     Args:
         params, config: a TokTalk model.
-        tokens: ``(B, Tt, token_dim)`` base-space token embeddings at ``config.token_rate``, covering
+        tokens: ``(B, Tt, speech_dim)`` base-space token embeddings at ``config.token_rate``, covering
             ``T`` frames.
         target: ``(B, T, param_dim)`` target motion in raw FLAME units; NaN allowed only on frames
             outside ``mask``.
@@ -322,7 +323,7 @@ def invert_style(
             estimate for the target clip (needs ``T >= config.style_min_frames``).
         mask: ``(B, T)`` bool, real frames (given to the sampler, and only they are scored).
         cfg_scale: guidance weight (default ``config.cfg_scale``).
-        num_steps: Euler steps (static; default ``config.num_steps``).
+        sample_steps: Euler steps (static; default ``config.sample_steps``).
         prior: L2 weight on the style vector (>= 0; regularises directions the clip does not see).
         solver: ``"levenberg_marquardt"`` (default) or ``"bfgs"`` (see the module docstring).
         rtol, atol: optimistix Cauchy termination tolerances (``None``: 1e-5 / 1e-7 in float32,
@@ -349,8 +350,8 @@ def invert_style(
         raise ValueError(f"target must have shape (B >= 1, T >= 1, {config.param_dim}), got {target_arr.shape}")
     batch, frames = target_arr.shape[:2]
     tok = _float_array(tokens, "tokens", dtype)
-    if tok.ndim != 3 or tok.shape[0] != batch or tok.shape[2] != config.token_dim or tok.shape[1] == 0:
-        raise ValueError(f"tokens must have shape ({batch}, Tt >= 1, {config.token_dim}), got {tok.shape}")
+    if tok.ndim != 3 or tok.shape[0] != batch or tok.shape[2] != config.speech_dim or tok.shape[1] == 0:
+        raise ValueError(f"tokens must have shape ({batch}, Tt >= 1, {config.speech_dim}), got {tok.shape}")
     covered = default_num_frames(tok.shape[1], config.token_rate, config.fps)
     if covered != frames:
         raise ValueError(
@@ -392,7 +393,7 @@ def invert_style(
     out = _invert_style_core(
         params, jnp.asarray(tok), jnp.asarray(target_arr), jnp.asarray(noise_arr), jnp.asarray(mask_arr),
         jnp.asarray(np.ascontiguousarray(init_arr)), jnp.asarray(w_arr), jnp.asarray(prior_arr),
-        config=config, num_steps=num_steps, solver=solver, rtol=rtol_, atol=atol_, max_steps=int(max_steps),
+        config=config, sample_steps=sample_steps, solver=solver, rtol=rtol_, atol=atol_, max_steps=int(max_steps),
         remat=bool(remat),
     )
     return _finish("style", *out, int(max_steps), max_loss, on_failure)
@@ -421,22 +422,22 @@ def _check_observed_finite(target: np.ndarray, mask: np.ndarray) -> None:
 # ---- FreeTalk ATS intensity -----------------------------------------------------------------------
 
 
-def _resolve_steps(config: ATSConfig, num_steps: Any) -> int:
-    steps = config.num_sampling_steps if num_steps is None else num_steps
+def _resolve_steps(config: ATSConfig, sample_steps: Any) -> int:
+    steps = config.sample_steps if sample_steps is None else sample_steps
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= config.num_timesteps:
-        raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
+        raise ValueError(f"sample_steps must be an integer in [1, {config.num_timesteps}], got {sample_steps!r}")
     return int(steps)
 
 
 def ats_noise(config: ATSConfig, cond: ATSCondition, key: PRNGKeyArray) -> Float[Array, "batch frames motion"]:
-    """The starting noise :func:`~jaxtalk.models.freetalk.ats.sample_ats` draws from ``key``.
+    """The starting noise :func:`~jaxtalk.models.freetalk.ats.sample` draws from ``key``.
 
-    With it, :func:`sample_ats_from_noise` reproduces ``sample_ats(..., key, eta=0)`` exactly.
+    With it, :func:`sample_ats_from_noise` reproduces ``ats.sample(..., key, eta=0)`` exactly.
 
     Args:
         config: ATS configuration.
         cond: the condition (its ``mask`` sets the batch and frame count).
-        key: the key that would be given to ``sample_ats``.
+        key: the key that would be given to ``ats.sample``.
 
     Returns:
         ``(B, T, 3N)`` standard normal noise (model units).
@@ -452,12 +453,12 @@ def sample_ats_from_noise(
     cond: ATSCondition,
     noise: Float[ArrayLike, "batch frames motion"],
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     remat: bool = False,
 ) -> Float[Array, "batch frames landmarks 3"]:
-    """Deterministic DDIM sampling of ATS from explicit starting noise (``sample_ats`` with ``eta = 0``).
+    """Deterministic DDIM sampling of ATS from explicit starting noise (``ats.sample`` with ``eta = 0``).
 
-    ``sample_ats(params, config, cond, None, noise=noise, remat=remat)``: the noise is an argument
+    ``ats.sample(params, config, cond, None, noise=noise, remat=remat)``: the noise is an argument
     (held fixed and differentiable), with ``jax.checkpoint`` on the DDIM step available.
 
     Args:
@@ -465,31 +466,31 @@ def sample_ats_from_noise(
         config: ATS configuration.
         cond: from :func:`~jaxtalk.models.freetalk.ats.make_condition`.
         noise: ``(B, T, 3N)`` starting noise (model units), e.g. :func:`ats_noise`.
-        num_steps: DDIM steps (static; default ``config.num_sampling_steps``).
+        sample_steps: DDIM steps (static; default ``config.sample_steps``).
         remat: checkpoint each DDIM step.
 
     Returns:
-        ``(B, T, N, 3)`` displacements in ``sample_ats``'s units (model units / ``displacement_scale``).
+        ``(B, T, N, 3)`` displacements in ``ats.sample``'s units (model units / ``displacement_scale``).
 
     Raises:
         ValueError: a bad step count, or noise of the wrong shape or with NaN/inf.
     """
-    return sample_ats(params, config, cond, None, num_steps=num_steps, noise=noise, remat=remat)
+    return ats.sample(params, config, cond, None, sample_steps=sample_steps, noise=noise, remat=remat)
 
 
-def _intensity_data(intensity, params, cond, target, noise, *, config, num_steps, remat):
+def _intensity_data(intensity, params, cond, target, noise, *, config, sample_steps, remat):
     """Weighted residuals ``(B, T, 3N)`` (model units) whose per-example sum of squares is the MSE."""
     b, frames = cond.mask.shape
-    x = sample_ats(params, config, cond._replace(intensity=intensity), None, num_steps=num_steps, noise=noise,
+    x = ats.sample(params, config, cond._replace(intensity=intensity), None, sample_steps=sample_steps, noise=noise,
                    remat=remat).reshape(b, frames, -1)
     w = _frame_weights(cond.mask, config.motion_dim, x.dtype)
     return config.displacement_scale * (x - target.reshape(b, frames, -1)) * w[..., None]
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "remat"))
-def _intensity_loss(params, cond, target, noise, intensity, *, config, num_steps, remat):
+@functools.partial(jax.jit, static_argnames=("config", "sample_steps", "remat"))
+def _intensity_loss(params, cond, target, noise, intensity, *, config, sample_steps, remat):
     return _per_example(_intensity_data(intensity, params, cond, target, noise, config=config,
-                                        num_steps=num_steps, remat=remat))
+                                        sample_steps=sample_steps, remat=remat))
 
 
 def intensity_loss(
@@ -500,32 +501,32 @@ def intensity_loss(
     noise: Float[ArrayLike, "batch frames motion"],
     intensity: Float[ArrayLike, " batch"],
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     remat: bool = True,
 ) -> Float[Array, " batch"]:
     """Per-example MSE (model units) between the ATS sample for ``intensity`` (fixed noise) and a target.
 
     The data term :func:`invert_intensity` minimises (the same code path), differentiable in
-    ``intensity``; jitted (``config``, ``num_steps``, ``remat`` static).
+    ``intensity``; jitted (``config``, ``sample_steps``, ``remat`` static).
 
     Args:
         params, config: the ATS model.
         cond: condition (audio, emotion, masks; its intensity is replaced by ``intensity``).
-        target: ``(B, T, N, 3)`` target displacements in ``sample_ats``'s units.
+        target: ``(B, T, N, 3)`` target displacements in ``ats.sample``'s units.
         noise: ``(B, T, 3N)`` fixed starting noise.
         intensity: ``(B,)`` intensities (meaningful in ``[1, num_intensities]``; ATS clips them).
-        num_steps: DDIM steps (default ``config.num_sampling_steps``).
+        sample_steps: DDIM steps (default ``config.sample_steps``).
         remat: checkpoint each DDIM step.
 
     Returns:
         ``(B,)`` mean over real frames and the ``3N`` coordinates of the squared error, in model units
-        (``displacement_scale`` x ``sample_ats``'s units).
+        (``displacement_scale`` x ``ats.sample``'s units).
 
     Raises:
         ValueError: a bad step count.
     """
-    steps = _resolve_steps(config, num_steps)
-    return _intensity_loss(params, cond, target, noise, intensity, config=config, num_steps=steps,
+    steps = _resolve_steps(config, sample_steps)
+    return _intensity_loss(params, cond, target, noise, intensity, config=config, sample_steps=steps,
                            remat=bool(remat))
 
 
@@ -544,19 +545,19 @@ def _latent_from_intensity(intensity: np.ndarray, levels: int) -> np.ndarray:
     return np.clip((intensity - 1.0) / (levels - 1.0), 0.01, 0.99)
 
 
-def _intensity_residuals(z, args, *, config, num_steps, remat):
+def _intensity_residuals(z, args, *, config, sample_steps, remat):
     params, cond, target, noise = args
     intensity = _intensity_from_latent(z, config.num_intensities)
-    data = _intensity_data(intensity, params, cond, target, noise, config=config, num_steps=num_steps, remat=remat)
+    data = _intensity_data(intensity, params, cond, target, noise, config=config, sample_steps=sample_steps, remat=remat)
     return data, _per_example(data)
 
 
 @functools.partial(
-    jax.jit, static_argnames=("config", "num_steps", "solver", "rtol", "atol", "max_steps", "remat")
+    jax.jit, static_argnames=("config", "sample_steps", "solver", "rtol", "atol", "max_steps", "remat")
 )
-def _invert_intensity_core(params, cond, target, noise, z0, *, config, num_steps, solver, rtol, atol, max_steps,
+def _invert_intensity_core(params, cond, target, noise, z0, *, config, sample_steps, solver, rtol, atol, max_steps,
                            remat):
-    fn = functools.partial(_intensity_residuals, config=config, num_steps=num_steps, remat=remat)
+    fn = functools.partial(_intensity_residuals, config=config, sample_steps=sample_steps, remat=remat)
 
     def one(c, tgt, nz, z_init):  # one problem per example, vmapped (see _invert_style_core)
         args = (params, jax.tree.map(lambda a: a[None], c), tgt[None], nz[None])
@@ -587,7 +588,7 @@ def invert_intensity(
     noise: Float[ArrayLike, "..."],
     *,
     init: float | Sequence[float] | Float[ArrayLike, "..."] | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     solver: str = "levenberg_marquardt",
     rtol: float | None = None,
     atol: float | None = None,
@@ -609,13 +610,13 @@ def invert_intensity(
     Args:
         params, config: an ATS model.
         cond: from :func:`~jaxtalk.models.freetalk.ats.make_condition` (its intensity is ignored).
-        target: ``(B, T, N, 3)`` target displacements in ``sample_ats``'s units (metres for a model
+        target: ``(B, T, N, 3)`` target displacements in ``ats.sample``'s units (metres for a model
             with ``displacement_scale`` 100; standardised units for a ``fit_ats`` model); NaN allowed
             only on frames outside ``cond.mask``.
         noise: ``(B, T, 3N)`` the fixed starting noise (model units), e.g. :func:`ats_noise`.
         init: starting intensity, scalar or ``(B,)`` in ``[1, L]`` (one run; a start within 1 % of the
             range from a bound is moved 1 % inside). ``None``: one run per segment midpoint.
-        num_steps: DDIM steps (static; default ``config.num_sampling_steps``).
+        sample_steps: DDIM steps (static; default ``config.sample_steps``).
         solver: ``"levenberg_marquardt"`` (default: one forward-mode pass per example and step, and
             Gauss-Newton steps land on the kinks of the piecewise-linear embedding) or ``"bfgs"``.
         rtol, atol, max_steps, remat, max_loss, on_failure: as :func:`invert_style`.
@@ -636,7 +637,7 @@ def invert_intensity(
     levels = config.num_intensities
     if levels < 2:
         raise ValueError(f"config.num_intensities={levels}: a single intensity level leaves nothing to invert")
-    steps = _resolve_steps(config, num_steps)
+    steps = _resolve_steps(config, sample_steps)
     dtype = _compute_dtype()
     if not isinstance(cond, ATSCondition):
         raise ValueError(f"cond must be an ATSCondition (see ats.make_condition), got {type(cond).__name__}")
@@ -670,7 +671,7 @@ def invert_intensity(
         _invert_intensity_core(
             params, cond, jnp.asarray(target_arr), jnp.asarray(noise_arr),
             jnp.asarray(_latent_from_intensity(start, levels), dtype),
-            config=config, num_steps=steps, solver=solver, rtol=rtol_, atol=atol_, max_steps=int(max_steps),
+            config=config, sample_steps=steps, solver=solver, rtol=rtol_, atol=atol_, max_steps=int(max_steps),
             remat=bool(remat),
         )
         for start in starts

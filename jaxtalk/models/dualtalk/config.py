@@ -37,7 +37,7 @@ class DualTalkConfig:
         frames_per_turn: motion frames per turn (1 s at 25 fps): windows are whole turns, as TIMAR's.
         max_turns: the longest window in turns: the training window (8 turns = DualTalk's 200-frame
             clips); longer windows are refused, the model never saw them.
-        dropout_rate: dropout inside the transformer blocks (residual branches, feed-forward).
+        dropout: dropout inside the transformer blocks (residual branches, feed-forward).
         feature_dropout: dropout on the interaction encoder's output, before the synthesis decoder.
         velocity_weight: weight of the frame-to-frame velocity MSE next to the per-group MSE.
     """
@@ -52,7 +52,7 @@ class DualTalkConfig:
     param_dim: int = PARAM_DIM
     frames_per_turn: int = MOTION_FPS
     max_turns: int = 8
-    dropout_rate: float = 0.0
+    dropout: float = 0.0
     feature_dropout: float = 0.0
     velocity_weight: float = 1.0
 
@@ -73,7 +73,7 @@ class DualTalkConfig:
             raise ValueError(f"DualTalkConfig.param_dim must be {PARAM_DIM} (exp 50 | jaw 3 | neck 3), got {self.param_dim}")
         if not (self.mlp_ratio > 0 and math.isfinite(self.mlp_ratio)):
             raise ValueError(f"DualTalkConfig.mlp_ratio must be positive, got {self.mlp_ratio}")
-        for name in ("dropout_rate", "feature_dropout"):
+        for name in ("dropout", "feature_dropout"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"DualTalkConfig.{name} must lie in [0, 1), got {getattr(self, name)}")
         if not (self.velocity_weight >= 0 and math.isfinite(self.velocity_weight)):
@@ -98,7 +98,7 @@ class DualTalkConfig:
             The config.
         """
         base = dict(width=512, num_layers=3, num_heads=4, mlp_ratio=4.0, decoder_layers=1, lstm_layers=2,
-                    speech_dim=1024, dropout_rate=0.1, feature_dropout=0.5)
+                    speech_dim=1024, dropout=0.1, feature_dropout=0.5)
         return cls(**(base | overrides))
 
     @classmethod
@@ -114,5 +114,5 @@ class DualTalkConfig:
             The config.
         """
         base = dict(width=128, num_layers=4, num_heads=4, decoder_layers=1, lstm_layers=2, speech_dim=80,
-                    dropout_rate=0.0, feature_dropout=0.0)
+                    dropout=0.0, feature_dropout=0.0)
         return cls(**(base | overrides))

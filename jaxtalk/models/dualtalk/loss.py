@@ -75,7 +75,7 @@ def dualtalk_loss(
     check_streams(config, {k: batch[k] for k in STREAMS}, max_turns=config.max_turns)
     # No cast: the loader's float32 stays float32, and a float64 batch (gradient checks) stays float64.
     us, um, as_, am = (jnp.asarray(batch[k]) for k in STREAMS)
-    dropout = config.dropout_rate > 0 or config.feature_dropout > 0
+    dropout = config.dropout > 0 or config.feature_dropout > 0
     pred = apply(params, config, us, um, as_, dropout_key=key if dropout else None)
     return regression_loss(pred, am, config.velocity_weight)
 

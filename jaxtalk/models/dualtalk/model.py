@@ -54,7 +54,7 @@ class DualTalkNet(nn.Module):
         c = self.config
         # ReLU feed-forward as DualTalk's PyTorch transformer layers.
         return dict(num_heads=c.num_heads, head_dim=c.width // c.num_heads, mlp_ratio=c.mlp_ratio,
-                    dropout_rate=c.dropout_rate, activation=nn.relu)
+                    dropout_rate=c.dropout, activation=nn.relu)
 
     @nn.compact
     def __call__(

@@ -205,7 +205,7 @@ def landmark_track(
     intensity: float,
     key: PRNGKeyArray,
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     windows_per_call: int = ATS_WINDOWS_PER_CALL,
 ) -> Float[np.ndarray, "frames 68 3"]:
     """ATS's landmark displacements (metres, template frame) for a whole 16 kHz utterance of any length.
@@ -237,7 +237,7 @@ def landmark_track(
         group += [group[-1]] * (batch - len(group))
         noise = np.stack([_window_noise(key, w, length, ats.config.motion_dim) for w in group])
         chunks = np.stack([feats[starts[w]:starts[w] + length] for w in group])
-        disp = sample_displacements(ats, chunks, emotion, intensity, key, num_steps=num_steps, noise=noise)
+        disp = sample_displacements(ats, chunks, emotion, intensity, key, sample_steps=sample_steps, noise=noise)
         for w, d in zip(dict.fromkeys(group), disp):
             ramp = _ramp(w, starts, length)
             out[starts[w]:starts[w] + length] += ramp[:, None, None] * d
@@ -263,7 +263,7 @@ def animate(
     mesh: UserMesh | str | os.PathLike[str] | tuple[Any, Any],
     *,
     key: PRNGKeyArray,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     units: str | None = None,
     landmarks: Float[np.ndarray, "points 3"] | None = None,
 ) -> Float[np.ndarray, "frames verts 3"]:
@@ -277,7 +277,7 @@ def animate(
         intensity: emotion intensity, continuous in ``[1, num_intensities]``.
         mesh: a :class:`UserMesh` (prepared once, reused), a mesh file, or ``(vertices, faces)``.
         key: PRNG key of the DDIM starting noise.
-        num_steps: DDIM steps (default the ATS config's).
+        sample_steps: DDIM steps (default the ATS config's).
         units, landmarks: for a mesh that is not prepared yet (see :func:`prepare_user_mesh`).
 
     Returns:
@@ -295,7 +295,7 @@ def animate(
         from jaxtalk.audio import load_audio
 
         audio = load_audio(audio)
-    track = landmark_track(ats, audio, emotion, intensity, key, num_steps=num_steps)
+    track = landmark_track(ats, audio, emotion, intensity, key, sample_steps=sample_steps)
     return displace(stm, mesh, track)
 
 

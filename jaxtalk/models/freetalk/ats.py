@@ -38,12 +38,12 @@ from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 __all__ = [
     "ATSCondition",
     "ATSDenoiser",
-    "init_ats",
+    "init_params",
     "make_condition",
     "ats_denoise",
     "ats_loss",
-    "make_ats_loss",
-    "sample_ats",
+    "make_loss_fn",
+    "sample",
     "cross_attention_mask",
 ]
 
@@ -54,14 +54,14 @@ class ATSCondition(NamedTuple):
     """What the denoiser is conditioned on; every leaf has the batch as its leading axis.
 
     Attributes:
-        audio: ``(B, Ta, audio_dim)`` audio features (``Ta = T * audio_frames_per_frame``).
+        audio: ``(B, Ta, speech_dim)`` audio features (``Ta = T * audio_frames_per_frame``).
         emotion: ``(B,)`` int32 emotion ids (see :data:`~jaxtalk.models.freetalk.emotions.EMOTIONS`).
         intensity: ``(B,)`` float32 intensities in ``[1, num_intensities]``.
         mask: ``(B, T)`` True on real motion frames.
         audio_mask: ``(B, Ta)`` True on real audio frames.
     """
 
-    audio: Float[Array, "batch audio_frames audio_dim"]
+    audio: Float[Array, "batch audio_frames speech_dim"]
     emotion: Int[Array, " batch"]
     intensity: Float[Array, " batch"]
     mask: Bool[Array, "batch frames"]
@@ -178,7 +178,7 @@ class ATSDenoiser(nn.Module):
 def _dummy(config: ATSConfig, frames: int) -> tuple[Array, Array, ATSCondition]:
     ta = max(1, int(round(frames * config.audio_frames_per_frame)))
     cond = ATSCondition(
-        audio=jnp.zeros((1, ta, config.audio_dim)),
+        audio=jnp.zeros((1, ta, config.speech_dim)),
         emotion=jnp.zeros((1,), jnp.int32),
         intensity=jnp.ones((1,)),
         mask=jnp.ones((1, frames), bool),
@@ -187,7 +187,7 @@ def _dummy(config: ATSConfig, frames: int) -> tuple[Array, Array, ATSCondition]:
     return jnp.zeros((1, frames, config.motion_dim)), jnp.zeros((1,)), cond
 
 
-def init_ats(config: ATSConfig, key: PRNGKeyArray) -> PyTree:
+def init_params(config: ATSConfig, key: PRNGKeyArray) -> PyTree:
     """Initial ATS parameters.
 
     Args:
@@ -213,7 +213,7 @@ def _init(config: ATSConfig, key: PRNGKeyArray) -> PyTree:
 
 def make_condition(
     config: ATSConfig,
-    audio: Float[Array, "batch audio_frames audio_dim"] | Float[np.ndarray, "batch audio_frames audio_dim"],
+    audio: Float[Array, "batch audio_frames speech_dim"] | Float[np.ndarray, "batch audio_frames speech_dim"],
     emotion: Any,
     intensity: Any = 1.0,
     *,
@@ -225,7 +225,7 @@ def make_condition(
 
     Args:
         config: ATS configuration.
-        audio: ``(B, Ta, audio_dim)`` features.
+        audio: ``(B, Ta, speech_dim)`` features.
         emotion: emotion names, or ids, one per example (a single name broadcasts to the batch).
         intensity: scalar or ``(B,)`` intensities in ``[1, num_intensities]``.
         mask: ``(B, T)`` real motion frames (default all).
@@ -239,8 +239,8 @@ def make_condition(
         ValueError: wrong audio width or rank, NaN/inf audio, unknown emotion, intensity out of range,
             masks of the wrong shape, or T beyond ``config.max_frames``.
     """
-    if audio.ndim != 3 or audio.shape[-1] != config.audio_dim:
-        raise ValueError(f"audio features must have shape (batch, frames, {config.audio_dim}), got {audio.shape}")
+    if audio.ndim != 3 or audio.shape[-1] != config.speech_dim:
+        raise ValueError(f"audio features must have shape (batch, frames, {config.speech_dim}), got {audio.shape}")
     b, ta, _ = audio.shape
     if ta == 0:
         raise ValueError("audio features are empty (0 frames)")
@@ -330,7 +330,7 @@ def ats_loss(
     Args:
         params: ATS variables.
         config: static configuration.
-        batch: ``"displacements"`` ``(B, T, N, 3)`` metres, ``"audio"`` ``(B, Ta, audio_dim)``,
+        batch: ``"displacements"`` ``(B, T, N, 3)`` metres, ``"audio"`` ``(B, Ta, speech_dim)``,
             ``"emotion"`` ``(B,)`` int, ``"intensity"`` ``(B,)`` float, optional ``"mask"`` ``(B, T)``
             and ``"audio_mask"`` ``(B, Ta)`` bool.
         key: PRNG key (step, noise, dropout).
@@ -370,7 +370,7 @@ def ats_loss(
     )
 
 
-def make_ats_loss(config: ATSConfig):
+def make_loss_fn(config: ATSConfig):
     """``loss_fn(params, batch, key) -> (loss, metrics)`` for :func:`jaxtalk.train.train`.
 
     Args:
@@ -392,8 +392,8 @@ def _bound_loss(config: ATSConfig, params: PyTree, batch: dict[str, Any], key: P
 
 
 @functools.lru_cache(maxsize=16)
-def _respaced(num_timesteps: int, num_steps: int):
-    return respace(make_schedule("linear", num_timesteps), num_steps)
+def _respaced(num_timesteps: int, sample_steps: int):
+    return respace(make_schedule("linear", num_timesteps), sample_steps)
 
 
 def _apply_denoiser(config: ATSConfig, params: PyTree, x: Array, t: Array, cond: tuple[Array, ATSCondition]) -> Array:
@@ -401,8 +401,8 @@ def _apply_denoiser(config: ATSConfig, params: PyTree, x: Array, t: Array, cond:
     return nn.apply(lambda m: m(x, t, memory, rest), ATSDenoiser(config))(params)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "remat"))
-def _sample(params, config: ATSConfig, cond: ATSCondition, key, eta, noise, num_steps: int, remat: bool):
+@functools.partial(jax.jit, static_argnames=("config", "sample_steps", "remat"))
+def _sample(params, config: ATSConfig, cond: ATSCondition, key, eta, noise, sample_steps: int, remat: bool):
     b, frames = cond.mask.shape
     # The audio memory does not depend on the diffusion step: encode it once, outside the scan.
     memory = nn.apply(lambda m: m.encode_memory(cond.audio), ATSDenoiser(config))(params)
@@ -413,26 +413,26 @@ def _sample(params, config: ATSConfig, cond: ATSCondition, key, eta, noise, num_
     if noise is None:
         noise = jax.random.normal(k_noise, (b, frames, config.motion_dim))
     x0 = sample_ddim(
-        apply_fn, noise, (memory, cond), _respaced(config.num_timesteps, num_steps), k_steps,
+        apply_fn, noise, (memory, cond), _respaced(config.num_timesteps, sample_steps), k_steps,
         eta=eta, prediction="x0", remat=remat,
     )
     return x0.reshape(b, frames, config.num_landmarks, 3) / config.displacement_scale
 
 
-def sample_ats(
+def sample(
     params: PyTree,
     config: ATSConfig,
     cond: ATSCondition,
     key: PRNGKeyArray | None,
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     eta: Float[Array, ""] | float = 0.0,
     noise: Float[Array, "batch frames motion"] | Float[np.ndarray, "batch frames motion"] | None = None,
     remat: bool = False,
 ) -> Float[Array, "batch frames landmarks 3"]:
     """Generate landmark displacement sequences with DDIM (one jitted program per shape and step count).
 
-    Static: ``config``, ``num_steps``, ``remat``, whether ``noise`` is given, and the shapes in
+    Static: ``config``, ``sample_steps``, ``remat``, whether ``noise`` is given, and the shapes in
     ``cond``. Traced: ``params``, ``eta``, ``noise``, the emotion ids and intensities, the audio and
     masks (so an intensity or eta sweep never recompiles, and the output is differentiable in all
     of them).
@@ -444,7 +444,7 @@ def sample_ats(
         key: PRNG key: the starting noise is drawn from ``split(key)[0]`` unless ``noise`` is given;
             with ``eta > 0`` the per-step noise comes from ``split(key)[1]``. May be None when
             ``noise`` is given and ``eta = 0`` (deterministic DDIM).
-        num_steps: DDIM steps (default ``config.num_sampling_steps``; any count in
+        sample_steps: DDIM steps (default ``config.sample_steps``; any count in
             ``[1, num_timesteps]``).
         eta: DDIM stochasticity (0 = deterministic).
         noise: ``(B, T, 3N)`` explicit starting noise in model units (e.g. held fixed while an input
@@ -459,9 +459,9 @@ def sample_ats(
         ValueError: a bad step count, a non-scalar / non-finite eta, noise of the wrong shape or with
             NaN/inf, or no key where one is needed.
     """
-    steps = config.num_sampling_steps if num_steps is None else num_steps
+    steps = config.sample_steps if sample_steps is None else sample_steps
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not 1 <= steps <= config.num_timesteps:
-        raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
+        raise ValueError(f"sample_steps must be an integer in [1, {config.num_timesteps}], got {sample_steps!r}")
     if np.ndim(eta) != 0:
         raise ValueError(f"eta must be a scalar, got shape {np.shape(eta)}")
     # Inspect the value as given: inside someone else's jit even a Python float becomes a tracer
@@ -479,9 +479,9 @@ def sample_ats(
         noise = jnp.asarray(noise)
     if key is None:
         if noise is None:
-            raise ValueError("sample_ats needs a key to draw the starting noise (or an explicit noise=)")
+            raise ValueError("sample needs a key to draw the starting noise (or an explicit noise=)")
         if not concrete_eta or float(np.asarray(eta)) != 0.0:
-            raise ValueError("sample_ats needs a key for eta > 0 (the per-step noise); got key=None")
+            raise ValueError("sample needs a key for eta > 0 (the per-step noise); got key=None")
         # Deterministic DDIM never reads its step keys: any fixed key gives the same program.
         key = jax.random.key(0)
     return _sample(params, config, cond, key, eta_arr, noise, int(steps), bool(remat))

@@ -43,7 +43,7 @@ class ATSConfig:
 
     Attributes:
         num_landmarks: N (68); the motion width is ``3 N``.
-        audio_dim: width of the per-frame audio features (HuBERT-base 768 in the paper preset;
+        speech_dim: width of the per-frame audio features (HuBERT-base 768 in the paper preset;
             jaxtalk's log-mel stack 320 in the small one).
         audio_frames_per_frame: audio feature frames per motion frame (1.0 once resampled to the
             motion rate, as in the paper; 2.0 for raw 50 Hz HuBERT against 25 fps).
@@ -58,7 +58,7 @@ class ATSConfig:
             ``emotions.MEAD_EMOTIONS``, ``--set emotions=mead``); row e of the emotion table.
         time_frequency_dim: sinusoidal features of the diffusion step.
         num_timesteps: DDPM training steps (1000, linear betas 1e-4 .. 0.02).
-        num_sampling_steps: default DDIM steps at inference (100).
+        sample_steps: default DDIM steps at inference (100).
         displacement_scale: the model sees ``scale * displacement``. The training recipe feeds
             standardised displacements (unit variance per coordinate, what the unit-variance noise
             schedule assumes), so every preset uses 1; 100 (metres -> centimetres) suits raw
@@ -68,7 +68,7 @@ class ATSConfig:
     """
 
     num_landmarks: int = NUM_LANDMARKS
-    audio_dim: int = 320
+    speech_dim: int = 320
     audio_frames_per_frame: float = 1.0
     width: int = 512
     num_layers: int = 6
@@ -81,16 +81,16 @@ class ATSConfig:
     emotions: tuple[str, ...] | list[str] | str = EMOTIONS
     time_frequency_dim: int = 256
     num_timesteps: int = 1000
-    num_sampling_steps: int = 100
+    sample_steps: int = 100
     displacement_scale: float = 1.0
     velocity_weight: float = 0.3
     acceleration_weight: float = 0.1
     dropout: float = 0.0
 
     def __post_init__(self) -> None:
-        _positive_ints(self, ("num_landmarks", "audio_dim", "width", "num_layers", "num_heads", "ff_dim",
+        _positive_ints(self, ("num_landmarks", "speech_dim", "width", "num_layers", "num_heads", "ff_dim",
                               "max_frames", "num_intensities", "time_frequency_dim",
-                              "num_timesteps", "num_sampling_steps"))
+                              "num_timesteps", "sample_steps"))
         _positive_float(self, "audio_frames_per_frame")
         _positive_float(self, "displacement_scale")
         # A list (from run.json) or a name / comma-separated string (from --set) becomes the tuple.
@@ -99,9 +99,9 @@ class ATSConfig:
             raise ValueError(f"ATSConfig.width={self.width} must be divisible by num_heads={self.num_heads}")
         if isinstance(self.band_radius, bool) or not isinstance(self.band_radius, int) or self.band_radius < 0:
             raise ValueError(f"ATSConfig.band_radius must be an integer >= 0, got {self.band_radius!r}")
-        if self.num_sampling_steps > self.num_timesteps:
+        if self.sample_steps > self.num_timesteps:
             raise ValueError(
-                f"ATSConfig.num_sampling_steps={self.num_sampling_steps} exceeds num_timesteps={self.num_timesteps}"
+                f"ATSConfig.sample_steps={self.sample_steps} exceeds num_timesteps={self.num_timesteps}"
             )
         for name in ("velocity_weight", "acceleration_weight", "dropout"):
             value = getattr(self, name)
@@ -131,7 +131,7 @@ class ATSConfig:
     def paper(cls, **overrides) -> ATSConfig:
         """The supplement's sizes: d 512, 6 layers, 8 heads, FF 2048, 1000 steps, 100 DDIM steps, on
         768-d HuBERT-base features at the motion rate (``prepare --features hubert:PATH``)."""
-        return cls(**{"audio_dim": 768, **overrides})
+        return cls(**{"speech_dim": 768, **overrides})
 
     @classmethod
     def small(cls, **overrides) -> ATSConfig:

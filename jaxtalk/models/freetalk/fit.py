@@ -66,17 +66,17 @@ class FittedATS:
         return min(self.window or self.config.max_frames, self.config.max_frames)
 
     def audio_features(self, audio: np.ndarray, num_frames: int) -> np.ndarray:
-        """``(num_frames, audio_dim)`` features of 16 kHz ``audio`` with the run's front end.
+        """``(num_frames, speech_dim)`` features of 16 kHz ``audio`` with the run's front end.
 
         Raises:
-            ValueError: features of another width than the model's ``audio_dim``.
+            ValueError: features of another width than the model's ``speech_dim``.
         """
         from jaxtalk.data.features import parse_audio_features
 
         feats = parse_audio_features(self.features).speech(np.asarray(audio, np.float32), num_frames)
-        if feats.shape[-1] != self.config.audio_dim:
+        if feats.shape[-1] != self.config.speech_dim:
             raise ValueError(f"the {self.features} front end gives {feats.shape[-1]}-d features but this ATS "
-                             f"expects audio_dim={self.config.audio_dim}")
+                             f"expects speech_dim={self.config.speech_dim}")
         return feats
 
     @classmethod
@@ -173,9 +173,9 @@ def fit_ats(
         "intensity": np.asarray(windows["intensity"], np.float32),
     }
     k_init, k_train = jax.random.split(key)
-    params = ats.init_ats(config, k_init)
+    params = ats.init_params(config, k_init)
     it = BatchIterator(data, batch_size, seed=int(jax.random.randint(k_init, (), 0, 2**30)))
-    result = train(ats.make_ats_loss(config), params, it, optim, key=k_train, progress=progress,
+    result = train(ats.make_loss_fn(config), params, it, optim, key=k_train, progress=progress,
                    log_every=max(1, optim.total_steps // 20), ckpt_dir=ckpt_dir, save_every=save_every,
                    max_steps=max_steps, metadata={"model": "freetalk_ats", "model_config": dataclasses.asdict(config)})
     return FittedATS(config, result.state.eval_params, stats, result.history)
@@ -188,7 +188,7 @@ def sample_displacements(
     intensity: Any,
     key: PRNGKeyArray,
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     eta: float = 0.0,
     noise: np.ndarray | None = None,
 ) -> np.ndarray:
@@ -196,11 +196,11 @@ def sample_displacements(
 
     Args:
         fitted: from :func:`fit_ats`.
-        audio: ``(B, T, audio_dim)`` features.
+        audio: ``(B, T, speech_dim)`` features.
         emotion: names or ids (one per example, or one for all).
         intensity: scalar or ``(B,)``.
         key: PRNG key.
-        num_steps: DDIM steps (default the config's).
+        sample_steps: DDIM steps (default the config's).
         eta: DDIM eta.
         noise: ``(B, T, 3N)`` starting noise (default: drawn from ``key``), see :func:`ats.sample_ats`.
 
@@ -208,7 +208,7 @@ def sample_displacements(
         ``(B, T, N, 3)`` displacements in metres.
     """
     cond = ats.make_condition(fitted.config, audio, emotion, intensity)
-    out = ats.sample_ats(fitted.params, fitted.config, cond, key, num_steps=num_steps, eta=eta, noise=noise)
+    out = ats.sample(fitted.params, fitted.config, cond, key, sample_steps=sample_steps, eta=eta, noise=noise)
     return np.asarray(fitted.stats.denormalize(np.asarray(out)))
 
 
@@ -252,9 +252,9 @@ def fit_stm(
         raise ValueError(f"windows name meshes {sorted(set(idx.tolist()))} but {len(meshes)} meshes were given")
     stacked = stm.stack_meshes(list(meshes))
     k_init, k_train = jax.random.split(key)
-    params = stm.init_stm(config, k_init, meshes[0])
+    params = stm.init_params(config, k_init, meshes[0])
     it = BatchIterator(dict(windows), batch_size, seed=int(jax.random.randint(k_init, (), 0, 2**30)))
-    result = train(stm.make_stm_loss(config, stacked), params, it, optim, key=k_train, progress=progress,
+    result = train(stm.make_loss_fn(config, stacked), params, it, optim, key=k_train, progress=progress,
                    log_every=max(1, optim.total_steps // 20), ckpt_dir=ckpt_dir, save_every=save_every,
                    max_steps=max_steps, metadata={"model": "freetalk_stm", "model_config": dataclasses.asdict(config)})
     return result.state.eval_params, result.history

@@ -102,16 +102,16 @@ def train_ats(
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the window and the statistics.
 
     Raises:
-        ValueError: ``displacement_scale != 1``, or speech features of another width than ``audio_dim``.
+        ValueError: ``displacement_scale != 1``, or speech features of another width than ``speech_dim``.
     """
     from jaxtalk.models.freetalk import ats
 
     if config.displacement_scale != 1.0:
         raise ValueError(f"ATS trains on standardised displacements: displacement_scale must be 1.0, "
                          f"got {config.displacement_scale}")
-    if data.manifest["speech_dim"] != config.audio_dim:
+    if data.manifest["speech_dim"] != config.speech_dim:
         raise ValueError(f"{data.root} has {data.manifest['speech_dim']}-d speech features but the model expects "
-                         f"audio_dim={config.audio_dim} (--set audio_dim=...)")
+                         f"speech_dim={config.speech_dim} (--set speech_dim=...)")
     labels = sorted({c["emotion"] for c in data.clips if c["emotion"]} - set(config.emotions))
     if labels:
         raise ValueError(f"{data.root} has emotion labels {labels} outside the model's vocabulary "
@@ -120,9 +120,9 @@ def train_ats(
     stats = fit_displacement_stats(data)
     recipe = ATSWindows(window_frames or min(config.max_frames, 50), stats, config.emotions)
     k_init, k_train, k_eval = jax.random.split(key, 3)
-    params = ats.init_ats(config, k_init) if params is None else params
+    params = ats.init_params(config, k_init) if params is None else params
     extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}
-    return fit_recipe(recipe, data, ats.make_ats_loss(config), params, optim, key=k_train, eval_key=k_eval,
+    return fit_recipe(recipe, data, ats.make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
                       steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra, **loop_kwargs)
 
 
@@ -186,8 +186,8 @@ def train_stm(
     prepared = stm.prepare_meshes([(m.vertices, m.faces) for m in faces], config)
     recipe = STMWindows(faces, max(p.num_vertices for p in prepared))
     k_init, k_train, k_eval = jax.random.split(key, 3)
-    params = stm.init_stm(config, k_init, prepared[0]) if params is None else params
+    params = stm.init_params(config, k_init, prepared[0]) if params is None else params
     extra = {"meshes": [list(m) for m in meshes], "resolution": resolution, "window": recipe.window}
-    return fit_recipe(recipe, data, stm.make_stm_loss(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
+    return fit_recipe(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
                       eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
                       **loop_kwargs)

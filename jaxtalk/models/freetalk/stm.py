@@ -52,12 +52,12 @@ __all__ = [
     "prepare_meshes",
     "stack_meshes",
     "check_landmark_motion",
-    "init_stm",
+    "init_params",
     "stm_mesh_features",
     "stm_decode",
-    "stm_apply",
+    "apply",
     "stm_loss",
-    "make_stm_loss",
+    "make_loss_fn",
 ]
 
 PyTree = Any
@@ -359,7 +359,7 @@ class SparseToMesh(nn.Module):
         return self.decode_frame(self.mesh_features(vertices, normals, ops), disp, ops)
 
 
-def init_stm(config: STMConfig, key: PRNGKeyArray, mesh: STMMesh) -> PyTree:
+def init_params(config: STMConfig, key: PRNGKeyArray, mesh: STMMesh) -> PyTree:
     """Initial STM parameters (their shapes do not depend on the mesh, which only drives the trace).
 
     Args:
@@ -466,7 +466,7 @@ def stm_decode(
     return _decode_jit(params, config, features, disp, mesh.ops)
 
 
-def stm_apply(
+def apply(
     params: PyTree, config: STMConfig, mesh: STMMesh, displacements: Any
 ) -> Float[Array, "frames verts 3"]:
     """Mesh features then per-frame decoding: ``STM(M, (Delta L_t)_t) = (Delta V_t)_t``.
@@ -529,7 +529,7 @@ def stm_loss(
     )
 
 
-def make_stm_loss(config: STMConfig, meshes: STMMesh):
+def make_loss_fn(config: STMConfig, meshes: STMMesh):
     """``loss_fn(params, batch, key)`` for :func:`jaxtalk.train.train` with the meshes bound.
 
     Args:

@@ -77,13 +77,13 @@ class TimarConfig:
         mask_ratio_min: lower end of the truncated normal of the mask ratio (upper end 1); 1.0
             masks every agent frame (the ``small`` preset: training then matches inference).
         mask_ratio_std: its standard deviation (mean 1.0).
-        cfg_prob: probability that an example's user tokens are all replaced by the fake token.
+        cfg_dropout: probability that an example's user tokens are all replaced by the fake token.
         sample_steps: default respaced sampling steps.
         sampler: default sampler, one of :data:`SAMPLERS` (``paper``: ``"ddpm"`` as MAR samples,
             reading the learned variance; ``small``: ``"ddim"``).
         cfg_scale: default guidance scale omega (paper's convention: 0 = unconditional,
             1 = conditional, > 1 = guided).
-        dropout_rate: dropout in the encoder (residual branches and attention).
+        dropout: dropout in the encoder (residual branches and attention).
     """
 
     width: int = 128
@@ -107,11 +107,11 @@ class TimarConfig:
     diffusion_batch_mul: int = 1
     mask_ratio_min: float = 0.7
     mask_ratio_std: float = 0.25
-    cfg_prob: float = 0.1
+    cfg_dropout: float = 0.1
     sample_steps: int = 5
     sampler: str = "ddim"
     cfg_scale: float = 1.5
-    dropout_rate: float = 0.0
+    dropout: float = 0.0
 
     def __post_init__(self) -> None:
         positive = ("width", "num_layers", "num_heads", "speech_dim", "param_dim", "frames_per_turn",
@@ -137,14 +137,14 @@ class TimarConfig:
             raise ValueError(f"TimarConfig.mask_ratio_min must lie in [0, 1], got {self.mask_ratio_min}")
         if not (self.mask_ratio_std > 0 and math.isfinite(self.mask_ratio_std)):
             raise ValueError(f"TimarConfig.mask_ratio_std must be positive, got {self.mask_ratio_std}")
-        if not 0.0 <= self.cfg_prob < 1.0:
-            raise ValueError(f"TimarConfig.cfg_prob must lie in [0, 1), got {self.cfg_prob}")
+        if not 0.0 <= self.cfg_dropout < 1.0:
+            raise ValueError(f"TimarConfig.cfg_dropout must lie in [0, 1), got {self.cfg_dropout}")
         if self.sample_steps > self.num_timesteps:
             raise ValueError(f"TimarConfig.sample_steps {self.sample_steps} exceeds num_timesteps {self.num_timesteps}")
         if self.sampler not in SAMPLERS:
             raise ValueError(f"TimarConfig.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
-        if not 0.0 <= self.dropout_rate < 1.0:
-            raise ValueError(f"TimarConfig.dropout_rate must lie in [0, 1), got {self.dropout_rate}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"TimarConfig.dropout must lie in [0, 1), got {self.dropout}")
 
     @property
     def tokens_per_turn(self) -> int:

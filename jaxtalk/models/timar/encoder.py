@@ -120,7 +120,7 @@ class TimarEncoder(nn.Module):
         c = self.config
         return [
             TransformerBlock(num_heads=c.num_heads, head_dim=c.width // c.num_heads, mlp_ratio=c.mlp_ratio,
-                             dropout_rate=c.dropout_rate, attention_dropout_rate=c.dropout_rate, name=f"{prefix}_{i}")
+                             dropout_rate=c.dropout, attention_dropout_rate=c.dropout, name=f"{prefix}_{i}")
             for i in range(depth)
         ]
 

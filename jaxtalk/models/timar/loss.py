@@ -5,7 +5,7 @@ Per batch (Sec. 3.4 and the public code):
 1. a mask ratio ``r`` is drawn from a normal with mean 1 and std 0.25 truncated to
    ``[mask_ratio_min, 1]``; in every example exactly ``ceil(r L)`` of the ``L = N F`` agent-motion
    tokens, chosen uniformly at random, are replaced by the learned mask token (MAR's recipe);
-2. with probability ``cfg_prob`` all of an example's user tokens become the learned fake token;
+2. with probability ``cfg_dropout`` all of an example's user tokens become the learned fake token;
 3. every frame gets its own timesteps ``t ~ U{0..T-1}`` and noises (``diffusion_batch_mul`` draws,
    MAR's recipe, sharing the frame's one encoder feature); the head predicts x0 from
    ``x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) eps`` and the encoder feature of that frame;
@@ -180,7 +180,7 @@ def timar_loss(
     k_ratio, k_mask, k_drop, k_rest = jax.random.split(key, 4)
     ratio = sample_mask_ratio(config, k_ratio)
     mask = random_agent_mask(k_mask, ratio, b, n * f).reshape(b, n, f)
-    user_drop = jax.random.bernoulli(k_drop, config.cfg_prob, (b,))
+    user_drop = jax.random.bernoulli(k_drop, config.cfg_dropout, (b,))
     loss, metrics = masked_loss(params, config, (us, um, as_, am), am, mask, user_drop, k_rest)
     metrics["mask_ratio"] = ratio
     return loss, metrics
@@ -215,7 +215,7 @@ def masked_loss(
     k_t, k_noise, k_dropout = jax.random.split(key, 3)
     z = encode_window(
         params, config, us, um, as_, am, mask, user_drop,
-        dropout_key=k_dropout if config.dropout_rate > 0 else None,
+        dropout_key=k_dropout if config.dropout > 0 else None,
     )
     metrics: dict[str, Array] = {}
     weight = mask.astype(jnp.float32)

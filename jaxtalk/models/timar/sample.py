@@ -2,7 +2,7 @@
 
 The encoder runs once (conditional and unconditional windows stacked as one batch); the diffusion
 head then denoises all frames in parallel with :func:`jaxtalk.samplers.sample_ddim` /
-:func:`~jaxtalk.samplers.sample_ddpm` (x0-prediction, ``num_steps`` respaced steps of the 1000-step
+:func:`~jaxtalk.samplers.sample_ddpm` (x0-prediction, ``sample_steps`` respaced steps of the 1000-step
 schedule). Everything in the head that does not see the noisy frame is hoisted out of the step loop:
 ``Dense(z)`` once per frame and, since the respaced timesteps are known before the loop, every
 adaLN modulation of every (step, frame) pair in one batched matmul per layer (2/3 of the head's
@@ -59,18 +59,18 @@ MODULATION_TABLE_BYTES = 512 * 2**20
 
 
 @functools.lru_cache(maxsize=32)
-def respaced_schedule(schedule: str, num_timesteps: int, num_steps: int) -> RespacedSchedule:
+def respaced_schedule(schedule: str, num_timesteps: int, sample_steps: int) -> RespacedSchedule:
     """The float64 respaced tables (cached: built once per step count).
 
     Args:
         schedule: ``"cosine"`` or ``"linear"``.
         num_timesteps: training steps T.
-        num_steps: sampling steps N (1 <= N <= T).
+        sample_steps: sampling steps N (1 <= N <= T).
 
     Returns:
         :class:`~jaxtalk.samplers.schedules.RespacedSchedule`.
     """
-    return respace(make_schedule(schedule, num_timesteps), num_steps)
+    return respace(make_schedule(schedule, num_timesteps), sample_steps)
 
 
 @functools.lru_cache(maxsize=16)
@@ -141,7 +141,7 @@ def sample_frames(
     key: PRNGKeyArray,
     *,
     cfg_scale: Float[Array, ""] | float,
-    num_steps: int,
+    sample_steps: int,
     sampler: str | None = None,
     eta: Float[Array, ""] | float = 0.0,
     temperature: Float[Array, ""] | float = 1.0,
@@ -156,7 +156,7 @@ def sample_frames(
         z_uncond: unconditional conditions of the same shape, or None (no guidance).
         key: PRNG key (initial noise and, for DDPM / eta > 0, the step noise).
         cfg_scale: ``()`` omega (traced); ignored without ``z_uncond``.
-        num_steps: respaced steps (static).
+        sample_steps: respaced steps (static).
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"`` (static; None: ``config.sampler``). ``"ddpm"``
             takes MAR's ancestral steps over the respaced schedule, with the learned variance when
             the config learns it (else the clipped posterior variance). ``"mean"`` evaluates the head once, at
@@ -190,12 +190,12 @@ def sample_frames(
         noise = noise * tau
     if sampler == "mean":
         return _guided(lambda z: _head_at_last_timestep(config, hp, z, noise), z_cond, z_uncond, omega)
-    schedule = respaced_schedule(config.schedule, config.num_timesteps, num_steps)
+    schedule = respaced_schedule(config.schedule, config.num_timesteps, sample_steps)
     # Hoisted out of the step loop: the head's projection of the condition (both CFG branches).
     cz = head_condition(hp, config, z_cond)
     cz_u = None if z_uncond is None else head_condition(hp, config, z_uncond)
     rows = cz if cz_u is None else jnp.concatenate([cz, cz_u], axis=0)  # guided_apply's batch order
-    table_bytes = num_steps * rows.size * (3 * config.head_blocks + 2) * rows.dtype.itemsize
+    table_bytes = sample_steps * rows.size * (3 * config.head_blocks + 2) * rows.dtype.itemsize
     if precompute is None:
         precompute = table_bytes <= MODULATION_TABLE_BYTES
     if precompute:
@@ -264,11 +264,11 @@ def check_temperature(temperature: Any) -> Array:
     return tau
 
 
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance"))
-def _sample(params, config, us, um, as_, key, cfg_scale, eta, temperature, num_steps, sampler, guidance):
+@functools.partial(jax.jit, static_argnames=("config", "sample_steps", "sampler", "guidance"))
+def _sample(params, config, us, um, as_, key, cfg_scale, eta, temperature, sample_steps, sampler, guidance):
     f = config.frames_per_turn
     z_c, z_u = conditions(params, config, to_turns(us, f), to_turns(um, f), to_turns(as_, f), guidance=guidance)
-    x = sample_frames(params, config, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta,
+    x = sample_frames(params, config, z_c, z_u, key, cfg_scale=cfg_scale, sample_steps=sample_steps, sampler=sampler, eta=eta,
                       temperature=temperature)
     return from_turns(x)
 
@@ -282,7 +282,7 @@ def sample(
     key: PRNGKeyArray,
     *,
     cfg_scale: Shaped[Array, "..."] | float | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     sampler: str | None = None,
     eta: Float[Array, ""] | float = 0.0,
     temperature: Shaped[Array, "..."] | float = 1.0,
@@ -300,7 +300,7 @@ def sample(
         user_motion: ``(B, N F, 56)`` the user's (normalised) head motion.
         key: PRNG key.
         cfg_scale: ``()`` guidance omega (traced; default ``config.cfg_scale``).
-        num_steps: respaced diffusion steps (static; default ``config.sample_steps``).
+        sample_steps: respaced diffusion steps (static; default ``config.sample_steps``).
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"`` (the guided posterior mean); None: the
             config's (see :func:`sample_frames`).
         eta: DDIM stochasticity (traced).
@@ -320,9 +320,9 @@ def sample(
         max_turns=config.max_turns,
     )
     sampler = resolve_sampler(config, sampler)
-    num_steps = config.sample_steps if num_steps is None else num_steps
-    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= config.num_timesteps:
-        raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
+    sample_steps = config.sample_steps if sample_steps is None else sample_steps
+    if isinstance(sample_steps, bool) or not isinstance(sample_steps, int) or not 1 <= sample_steps <= config.num_timesteps:
+        raise ValueError(f"sample_steps must be an integer in [1, {config.num_timesteps}], got {sample_steps!r}")
     cfg = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, jnp.float32)
     if cfg.ndim:
         raise ValueError(f"cfg_scale must be a scalar (vmap over it for a sweep), got shape {cfg.shape}")
@@ -330,7 +330,7 @@ def sample(
         params, config,
         jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32),
-        check_temperature(temperature), num_steps, sampler, bool(guidance),
+        check_temperature(temperature), sample_steps, sampler, bool(guidance),
     )
 
 

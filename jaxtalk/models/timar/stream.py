@@ -43,7 +43,7 @@ from jaxtalk.types import Array, Float, Shaped, Int, PRNGKeyArray
 # Public entry points validate shapes themselves (naming the stream), so the annotation is loose.
 StreamLike = Shaped[Array, "..."] | Shaped[np.ndarray, "..."]
 
-__all__ = ["StreamState", "stream_init", "stream_condition", "stream_step", "stream_conversation"]
+__all__ = ["StreamState", "init_stream", "stream_condition", "stream_step", "stream_conversation"]
 
 
 class StreamState(NamedTuple):
@@ -75,7 +75,7 @@ def _check_context(config: TimarConfig, context: int) -> int:
     return int(context)
 
 
-def stream_init(config: TimarConfig, batch: int, context: int, *, guidance: bool = True) -> StreamState:
+def init_stream(config: TimarConfig, batch: int, context: int, *, guidance: bool = True) -> StreamState:
     """An empty stream.
 
     Args:
@@ -217,7 +217,7 @@ def _check_turn(config: TimarConfig, state: StreamState, us: Any, um: Any, as_: 
     if np.shape(us)[0] != b or (guidance and s % 2):
         raise ValueError(
             f"turn batch {np.shape(us)[0]} does not match the stream state (batch {b}, guidance={guidance}); "
-            "create the state with stream_init(config, batch, context, guidance=...)"
+            "create the state with init_stream(config, batch, context, guidance=...)"
         )
 
 
@@ -239,7 +239,7 @@ def stream_condition(
         state: current :class:`StreamState`.
         user_speech, agent_speech: ``(B, F, speech_dim)`` this turn's speech features.
         user_motion: ``(B, F, 56)`` this turn's user motion.
-        guidance: must match the state (``stream_init(..., guidance=)``).
+        guidance: must match the state (``init_stream(..., guidance=)``).
 
     Returns:
         ``(new_state, z)`` with ``z: (S, F, width)``: conditional rows first, then (with
@@ -257,13 +257,13 @@ def stream_condition(
 
 
 @functools.partial(
-    jax.jit, static_argnames=("config", "num_steps", "sampler", "guidance", "mode"), donate_argnums=(2,)
+    jax.jit, static_argnames=("config", "sample_steps", "sampler", "guidance", "mode"), donate_argnums=(2,)
 )
-def _step(params, config, state, us, um, as_, key, cfg_scale, eta, temperature, num_steps, sampler, guidance, mode):
+def _step(params, config, state, us, um, as_, key, cfg_scale, eta, temperature, sample_steps, sampler, guidance, mode):
     state, z = _condition(params, config, state, us, um, as_, guidance, mode)
     b = us.shape[0]
     z_c, z_u = (z[:b], z[b:]) if guidance else (z, None)
-    x = sample_frames(params, config, z_c, z_u, key, cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler, eta=eta,
+    x = sample_frames(params, config, z_c, z_u, key, cfg_scale=cfg_scale, sample_steps=sample_steps, sampler=sampler, eta=eta,
                       temperature=temperature)
     return state, x
 
@@ -278,7 +278,7 @@ def stream_step(
     key: PRNGKeyArray,
     *,
     cfg_scale: Shaped[Array, "..."] | float | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     sampler: str | None = None,
     eta: Float[Array, ""] | float = 0.0,
     temperature: Shaped[Array, "..."] | float = 1.0,
@@ -296,7 +296,7 @@ def stream_step(
         user_motion: ``(B, F, 56)`` this turn's user motion.
         key: PRNG key of this turn.
         cfg_scale: ``()`` omega (traced; default ``config.cfg_scale``).
-        num_steps: respaced diffusion steps (static; default ``config.sample_steps``).
+        sample_steps: respaced diffusion steps (static; default ``config.sample_steps``).
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"``; None: the config's (see
             :func:`~jaxtalk.models.timar.sample.sample_frames`).
         eta: DDIM stochasticity (traced).
@@ -311,16 +311,16 @@ def stream_step(
     """
     _check_turn(config, state, user_speech, user_motion, agent_speech, guidance)
     sampler = resolve_sampler(config, sampler)
-    num_steps = config.sample_steps if num_steps is None else num_steps
-    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or not 1 <= num_steps <= config.num_timesteps:
-        raise ValueError(f"num_steps must be an integer in [1, {config.num_timesteps}], got {num_steps!r}")
+    sample_steps = config.sample_steps if sample_steps is None else sample_steps
+    if isinstance(sample_steps, bool) or not isinstance(sample_steps, int) or not 1 <= sample_steps <= config.num_timesteps:
+        raise ValueError(f"sample_steps must be an integer in [1, {config.num_timesteps}], got {sample_steps!r}")
     cfg = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, jnp.float32)
     if cfg.ndim:
         raise ValueError(f"cfg_scale must be a scalar, got shape {cfg.shape}")
     return _step(
         params, config, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature),
-        num_steps, sampler,
+        sample_steps, sampler,
         bool(guidance), _mode(config, state),
     )
 
@@ -335,7 +335,7 @@ def stream_conversation(
     *,
     context: int,
     cfg_scale: Shaped[Array, "..."] | float | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     sampler: str | None = None,
     temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
@@ -352,7 +352,7 @@ def stream_conversation(
         user_motion: ``(B, N F, 56)``.
         key: PRNG key.
         context: n previous turns in the window.
-        cfg_scale, num_steps, sampler, temperature, guidance: see :func:`stream_step`.
+        cfg_scale, sample_steps, sampler, temperature, guidance: see :func:`stream_step`.
 
     Returns:
         ``(B, N F, 56)`` agent motion.
@@ -362,13 +362,13 @@ def stream_conversation(
     """
     turns = check_streams(config, {"user_speech": user_speech, "user_motion": user_motion, "agent_speech": agent_speech})
     f = config.frames_per_turn
-    state = stream_init(config, int(np.shape(user_speech)[0]), context, guidance=guidance)
+    state = init_stream(config, int(np.shape(user_speech)[0]), context, guidance=guidance)
     out = []
     for i in range(turns):  # host loop: one turn arrives at a time in a stream
         sl = slice(i * f, (i + 1) * f)
         state, x = stream_step(
             params, config, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl],
-            jax.random.fold_in(key, i), cfg_scale=cfg_scale, num_steps=num_steps, sampler=sampler,
+            jax.random.fold_in(key, i), cfg_scale=cfg_scale, sample_steps=sample_steps, sampler=sampler,
             temperature=temperature, guidance=guidance,
         )
         out.append(x)

@@ -3,7 +3,7 @@
 The source stream is first resampled to the base token rate by time overlap (outside this module, see
 :func:`jaxtalk.models.toktalk.model.adapter_forward`: every source token counts, none is dropped); then
 a 1-D convolution to ``adapter_width``, a sinusoidal positional embedding, ``adapter_layers`` pre-LN
-transformer encoder blocks and a final LayerNorm + Dense map it to ``token_dim``. Trained in stage 2
+transformer encoder blocks and a final LayerNorm + Dense map it to ``speech_dim``. Trained in stage 2
 with the base model frozen.
 
 With ``config.causal`` (the streaming model) the convolution is causal and each attention query sees
@@ -36,7 +36,7 @@ def receptive_field(config: TokTalkConfig) -> int:
 
 
 class Adapter(nn.Module):
-    """``(B, Tt, src_dim)`` source embeddings at the base rate -> ``(B, Tt, token_dim)``.
+    """``(B, Tt, src_dim)`` source embeddings at the base rate -> ``(B, Tt, speech_dim)``.
 
     Attributes:
         config: static model settings.
@@ -62,7 +62,7 @@ class Adapter(nn.Module):
             positions: ``(Tt,)`` absolute token positions (None: ``0 .. Tt-1``).
 
         Returns:
-            ``(B, Tt, token_dim)``, zero on padded tokens.
+            ``(B, Tt, speech_dim)``, zero on padded tokens.
         """
         cfg = self.config
         t = src.shape[1]
@@ -88,4 +88,4 @@ class Adapter(nn.Module):
                 name=f"transformer_{i}",
             )(h, bias=bias, deterministic=deterministic)
         h = nn.LayerNorm(name="norm")(h)
-        return nn.Dense(cfg.token_dim, name="out")(h) * maskf
+        return nn.Dense(cfg.speech_dim, name="out")(h) * maskf

@@ -30,13 +30,13 @@ class TokTalkConfig:
         param_dim: motion width (56: ``[exp 50 | jaw 3 | neck 3]``).
         fps: motion frame rate.
         token_rate: base token stream rate in Hz (Mimi / SynthTalk stream "A": 12.5).
-        token_dim: base token embedding width (SynthTalk stream "A": 64).
-        channels: width of every U-Net stage (the reference decoder: 256). Keep it well above
+        speech_dim: base token embedding width (SynthTalk stream "A": 64).
+        width: width of every U-Net stage (the reference decoder: 256). Keep it well above
             ``param_dim``: the velocity's noise part is a near-identity map of the input.
         num_mid_blocks: middle stages (reference: 12).
         transformer_blocks: transformer blocks per stage (reference: 4).
         num_heads, head_dim: attention heads and their width (reference: 8 x 64).
-        mlp_ratio: feed-forward width / channels (4).
+        mlp_ratio: feed-forward width / width (4).
         time_frequency_dim: sinusoidal time features (320) fed to the time MLP.
         time_embed_dim: time embedding width (1024).
         num_groups: group-norm groups in the ResNet blocks (8).
@@ -74,10 +74,10 @@ class TokTalkConfig:
             SynthTalk full (3,000 steps, 8 test clips) ``overlap_frames=0`` streamed at LVE 69 vs 122
             (1 step) and 139 vs 157 (10 steps), with slightly lower chunk-boundary jitter.
         context_frames: bounded left context of the streaming window (a multiple of chunk_frames).
-        num_steps: Euler steps at inference.
+        sample_steps: Euler steps at inference.
         cfg_scale: default classifier-free guidance weight w (traced at sampling time).
         sigma_min: minimum noise of the CFM path.
-        cond_dropout: probability of dropping audio, style and known frames together (CFG training).
+        cfg_dropout: probability of dropping audio, style and known frames together (CFG training).
         known_prob: probability that a training example gets a known-frames segment.
         known_max_fraction: longest known segment as a fraction of the example's length.
         chunk_mask_prob: probability that a training batch uses the chunk mask (else the full mask).
@@ -98,8 +98,8 @@ class TokTalkConfig:
     param_dim: int = PARAM_DIM
     fps: int = MOTION_FPS
     token_rate: float = 12.5
-    token_dim: int = 64
-    channels: int = 256
+    speech_dim: int = 64
+    width: int = 256
     num_mid_blocks: int = 12
     transformer_blocks: int = 4
     num_heads: int = 8
@@ -124,10 +124,10 @@ class TokTalkConfig:
     chunk_frames: int = 10
     overlap_frames: int = 5
     context_frames: int = 40
-    num_steps: int = 10
+    sample_steps: int = 10
     cfg_scale: float = 0.7
     sigma_min: float = 1e-6
-    cond_dropout: float = 0.2
+    cfg_dropout: float = 0.2
     known_prob: float = 0.5
     known_max_fraction: float = 0.3
     chunk_mask_prob: float = 0.5
@@ -138,10 +138,10 @@ class TokTalkConfig:
 
     def __post_init__(self) -> None:
         positive = (
-            "param_dim", "fps", "token_dim", "channels", "transformer_blocks", "num_heads", "head_dim",
+            "param_dim", "fps", "speech_dim", "width", "transformer_blocks", "num_heads", "head_dim",
             "time_frequency_dim", "time_embed_dim", "num_groups", "style_dim", "style_hidden",
             "style_heads", "style_frames", "style_min_frames", "adapter_width", "adapter_layers",
-            "adapter_heads", "adapter_kernel", "adapter_context", "chunk_frames", "num_steps",
+            "adapter_heads", "adapter_kernel", "adapter_context", "chunk_frames", "sample_steps",
         )
         for name in positive:
             value = getattr(self, name)
@@ -149,7 +149,7 @@ class TokTalkConfig:
         _check("num_mid_blocks", isinstance(self.num_mid_blocks, int) and self.num_mid_blocks >= 0,
                self.num_mid_blocks)
         _check("token_rate", math.isfinite(self.token_rate) and self.token_rate > 0, self.token_rate)
-        _check("channels", self.channels % self.num_groups == 0, (self.channels, self.num_groups))
+        _check("width", self.width % self.num_groups == 0, (self.width, self.num_groups))
         _check("style_hidden", self.style_hidden % self.style_heads == 0, (self.style_hidden, self.style_heads))
         _check("adapter_width", self.adapter_width % self.adapter_heads == 0,
                (self.adapter_width, self.adapter_heads))
@@ -165,7 +165,7 @@ class TokTalkConfig:
                 f"chunk_frames={self.chunk_frames} (the streaming window is whole chunks)"
             )
         _check("style_min_frames", self.style_min_frames <= self.style_frames, self.style_min_frames)
-        for name in ("cond_dropout", "known_prob", "known_max_fraction", "chunk_mask_prob", "dropout"):
+        for name in ("cfg_dropout", "known_prob", "known_max_fraction", "chunk_mask_prob", "dropout"):
             value = getattr(self, name)
             _check(name, 0.0 <= value <= 1.0, value)
         _check("sigma_min", 0.0 <= self.sigma_min < 1.0, self.sigma_min)
@@ -185,7 +185,7 @@ class TokTalkConfig:
         # Width 64 is enough once the decoder is preconditioned (``precondition``): the skip carries
         # the near-identity noise part of the velocity that a 64-wide U-Net alone learned ~20x slower.
         base = cls(
-            channels=64,
+            width=64,
             num_mid_blocks=2,
             transformer_blocks=1,
             num_heads=4,
@@ -206,7 +206,7 @@ class TokTalkConfig:
     def tiny(cls, **overrides: object) -> TokTalkConfig:
         """Smallest sensible sizes, for fast unit tests (compile time dominates)."""
         base = cls(
-            channels=16,
+            width=16,
             num_mid_blocks=1,
             transformer_blocks=1,
             num_heads=2,
@@ -226,7 +226,7 @@ class TokTalkConfig:
             chunk_frames=4,
             overlap_frames=2,
             context_frames=8,
-            num_steps=3,
+            sample_steps=3,
         )
         return dataclasses.replace(base, **overrides)
 

@@ -70,7 +70,7 @@ class _Stage(nn.Module):
     @nn.compact
     def __call__(self, h: Array, mask: Array, temb: Array, bias: Array, deterministic: bool) -> Array:
         cfg = self.config
-        h = ResnetBlock1D(cfg.channels, causal=cfg.causal, num_groups=cfg.num_groups, name="resnet")(
+        h = ResnetBlock1D(cfg.width, causal=cfg.causal, num_groups=cfg.num_groups, name="resnet")(
             h, mask, temb
         )
         for i in range(cfg.transformer_blocks):
@@ -113,7 +113,7 @@ class Decoder(nn.Module):
         Args:
             x: ``(B, T, param_dim)`` noisy motion at time ``t``.
             t: ``(B,)`` flow times in [0, 1].
-            tokens: ``(B, T, token_dim)`` token embeddings already at the motion frame rate.
+            tokens: ``(B, T, speech_dim)`` token embeddings already at the motion frame rate.
             style: ``(B, style_vector_dim)`` style vectors.
             known: ``(B, T, param_dim)`` known frames (values elsewhere are ignored).
             known_mask: ``(B, T)`` True on known frames.
@@ -153,21 +153,21 @@ class Decoder(nn.Module):
         # Down stage 1 (full rate) then the stride-2 downsample.
         h = _Stage(cfg, name="down_0")(h, maskf, temb, bias_full, deterministic)
         skip_full = h
-        h = Downsample1D(cfg.channels, causal=cfg.causal, name="downsample")(h, maskf)
+        h = Downsample1D(cfg.width, causal=cfg.causal, name="downsample")(h, maskf)
         # Down stage 2 (half rate), ending in a plain k3 conv as in the reference.
         h = _Stage(cfg, name="down_1")(h, mask_half_f, temb, bias_half, deterministic)
         skip_half = h
-        h = Conv1d(cfg.channels, 3, causal=cfg.causal, name="down_1_conv")(h * mask_half_f[..., None])
+        h = Conv1d(cfg.width, 3, causal=cfg.causal, name="down_1_conv")(h * mask_half_f[..., None])
         for i in range(cfg.num_mid_blocks):
             h = _Stage(cfg, name=f"mid_{i}")(h, mask_half_f, temb, bias_half, deterministic)
         # Up stages on [x | skip]; the transposed conv doubles the half length (crop to the skip).
         h = jnp.concatenate([h[:, : skip_half.shape[1]], skip_half], axis=-1)
         h = _Stage(cfg, name="up_0")(h, mask_half_f, temb, bias_half, deterministic)
-        h = Upsample1D(cfg.channels, causal=cfg.causal, name="upsample")(h, mask_half_f)
+        h = Upsample1D(cfg.width, causal=cfg.causal, name="upsample")(h, mask_half_f)
         h = jnp.concatenate([h[:, :full_len], skip_full], axis=-1)
         h = _Stage(cfg, name="up_1")(h, maskf, temb, bias_full, deterministic)
-        h = Conv1d(cfg.channels, 3, causal=cfg.causal, name="up_1_conv")(h * maskf[..., None])
-        h = Conv1dBlock(cfg.channels, causal=cfg.causal, num_groups=cfg.num_groups, name="final_block")(
+        h = Conv1d(cfg.width, 3, causal=cfg.causal, name="up_1_conv")(h * maskf[..., None])
+        h = Conv1dBlock(cfg.width, causal=cfg.causal, num_groups=cfg.num_groups, name="final_block")(
             h, maskf
         )
         out = Conv1d(cfg.param_dim, 1, name="final_proj")(h * maskf[..., None])

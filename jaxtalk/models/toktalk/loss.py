@@ -2,14 +2,14 @@
 
 CFM (``papers/NOTES.md``): ``t ~ U(0, 1)``, ``z ~ N(0, I)``, ``x_t = (1 - (1 - sigma_min) t) z + t x1``,
 target ``u = x1 - (1 - sigma_min) z``; the loss is the squared error summed over real frames and
-channels divided by (real frames x channels). Per example, with probability ``cond_dropout`` the
+channels divided by (real frames x channels). Per example, with probability ``cfg_dropout`` the
 tokens, style and known frames are dropped together (CFG); with probability ``known_prob`` a random
 contiguous segment of up to ``known_max_fraction`` of the real frames is given as known frames (the
 reference uses a prefix; a segment anywhere also covers the streaming window, whose known overlap
 sits just before the new chunk). Per batch, the chunk mask is used with probability
 ``chunk_mask_prob`` (else full attention), so one model serves streaming and offline.
 
-Batches are dicts: ``motion (B, T, D)``, ``tokens (B, Tt, token_dim)`` at the base token rate,
+Batches are dicts: ``motion (B, T, D)``, ``tokens (B, Tt, speech_dim)`` at the base token rate,
 ``style (B, S, D)`` reference clips, ``mask (B, T)`` bool; stage 2 adds ``src_tokens (B, Ts, src_dim)``.
 
 With ``config.style_anchor`` the flow runs in coordinates centred on the reference clip's mean pose
@@ -102,8 +102,8 @@ def _check_batch(batch: dict[str, Any], config: TokTalkConfig) -> None:
         raise ValueError(f"batch['motion'] must be (B, T, {config.param_dim}), got {motion.shape}")
     if mask.shape != motion.shape[:2]:
         raise ValueError(f"batch['mask'] must be (B, T) = {motion.shape[:2]}, got {mask.shape}")
-    if tokens.ndim != 3 or tokens.shape[-1] != config.token_dim:
-        raise ValueError(f"batch['tokens'] must be (B, Tt, {config.token_dim}), got {tokens.shape}")
+    if tokens.ndim != 3 or tokens.shape[-1] != config.speech_dim:
+        raise ValueError(f"batch['tokens'] must be (B, Tt, {config.speech_dim}), got {tokens.shape}")
     expected = motion.shape[1] * config.token_rate / config.fps
     if abs(tokens.shape[1] - expected) > 0.5:
         raise ValueError(
@@ -134,7 +134,7 @@ def _flow_loss(
     x_t, u = flow_matching_terms(x1, z, times, config.sigma_min)
 
     known_mask = random_known_mask(k_known, valid, config.known_prob, config.known_max_fraction)
-    keep = jax.random.bernoulli(k_drop, 1.0 - config.cond_dropout, (b,)).astype(x1.dtype)
+    keep = jax.random.bernoulli(k_drop, 1.0 - config.cfg_dropout, (b,)).astype(x1.dtype)
     chunked = jnp.broadcast_to(jax.random.bernoulli(k_chunk, config.chunk_mask_prob), (b,))
     cond = Condition(
         tokens=interpolate_tokens(tokens, config.token_rate, config.fps, t, config.token_alignment),

@@ -51,7 +51,7 @@ class Condition(NamedTuple):
     """Everything the decoder is conditioned on; every leaf has the batch as its leading axis.
 
     Attributes:
-        tokens: ``(B, T, token_dim)`` token embeddings at the motion frame rate.
+        tokens: ``(B, T, speech_dim)`` token embeddings at the motion frame rate.
         style: ``(B, style_vector_dim)`` style vectors.
         known: ``(B, T, param_dim)`` known frames (values elsewhere ignored).
         known_mask: ``(B, T)`` True on known frames.
@@ -120,7 +120,7 @@ def check_tokens(
     if len(shape) != 3:
         raise ValueError(f"{name} must have shape (batch, tokens, {width}), got {shape}")
     if shape[2] != width:
-        raise ValueError(f"{name} have width {shape[2]}, expected {width} (token_dim of this stream)")
+        raise ValueError(f"{name} have width {shape[2]}, expected {width} (speech_dim of this stream)")
     if shape[0] == 0 or shape[1] == 0:
         raise ValueError(f"{name} are empty: shape {shape}")
     check_finite(name, tokens)
@@ -192,7 +192,7 @@ def _init_params(key: PRNGKeyArray, config: TokTalkConfig, adapter_src_dim: int 
     b, t = 1, 2 * config.chunk_frames
     z = jnp.zeros((b, t, config.param_dim))
     cond = Condition(
-        tokens=jnp.zeros((b, t, config.token_dim)),
+        tokens=jnp.zeros((b, t, config.speech_dim)),
         style=jnp.zeros((b, config.style_vector_dim)),
         known=z,
         known_mask=jnp.zeros((b, t), bool),
@@ -533,7 +533,7 @@ def adapt_tokens(
         src_rate: their rate in Hz.
 
     Returns:
-        ``(B, Tt, token_dim)`` base-space embeddings at ``config.token_rate``.
+        ``(B, Tt, speech_dim)`` base-space embeddings at ``config.token_rate``.
 
     Raises:
         ValueError: no adapter in ``params``, a source width the adapter was not trained for,

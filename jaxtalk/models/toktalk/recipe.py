@@ -47,10 +47,10 @@ def check_data(config: TokTalkConfig, data: PreparedData) -> None:
     m = data.manifest
     if not m.get("token_dim"):
         raise ValueError(f"{data.root} has no token stream: prepare it with --tokens vq (or clip token files)")
-    if m["token_dim"] != config.token_dim or float(m["token_rate"]) != float(config.token_rate):
+    if m["token_dim"] != config.speech_dim or float(m["token_rate"]) != float(config.token_rate):
         raise ValueError(
             f"{data.root} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz but the model expects "
-            f"{config.token_dim} at {config.token_rate:g} Hz (--set token_dim=... token_rate=...)"
+            f"{config.speech_dim} at {config.token_rate:g} Hz (--set speech_dim=... token_rate=...)"
         )
 
 

@@ -43,9 +43,9 @@ LONG_CONTEXT_FRAMES = 50
 PyTree = Any
 
 
-def default_grid(config: TokTalkConfig, num_steps: int | None = None) -> np.ndarray:
-    """The cosine time grid ``t_k = 1 - cos(k / N * pi / 2)`` with ``N = num_steps or config.num_steps``."""
-    return cosine_grid(config.num_steps if num_steps is None else num_steps)
+def default_grid(config: TokTalkConfig, sample_steps: int | None = None) -> np.ndarray:
+    """The cosine time grid ``t_k = 1 - cos(k / N * pi / 2)`` with ``N = sample_steps or config.sample_steps``."""
+    return cosine_grid(config.sample_steps if sample_steps is None else sample_steps)
 
 
 def resolve_style(params: PyTree, config: TokTalkConfig, style: Any, batch: int) -> Array:
@@ -90,7 +90,7 @@ def sample(
     key: PRNGKeyArray | None = None,
     *,
     num_frames: int | None = None,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     ts: Any = None,
     cfg_scale: Float[Array, ""] | float | None = None,
     known: Any = None,
@@ -105,11 +105,11 @@ def sample(
     Args:
         params: model parameters.
         config: model settings.
-        tokens: ``(B, Tt, token_dim)`` base-space token embeddings at ``config.token_rate``.
+        tokens: ``(B, Tt, speech_dim)`` base-space token embeddings at ``config.token_rate``.
         style: ``(B, style_vector_dim)`` style vector(s) or a ``(B, S, param_dim)`` reference clip.
         key: PRNG key for the starting noise (required unless ``noise`` is given).
         num_frames: expected number of frames (checked against the token count and rate).
-        num_steps: Euler steps (default ``config.num_steps``; static).
+        sample_steps: Euler steps (default ``config.sample_steps``; static).
         ts: explicit ``(N + 1,)`` time grid (traced values); default: the cosine grid.
         cfg_scale: guidance weight w (traced; default ``config.cfg_scale``).
         known: ``(B, T, param_dim)`` frames to inpaint, with ``known_mask`` ``(B, T)`` bool.
@@ -127,12 +127,12 @@ def sample(
             neither ``key`` nor ``noise``.
     """
     batch = int(np.shape(tokens)[0]) if np.ndim(tokens) == 3 else 0
-    frames = check_tokens(tokens, width=config.token_dim, rate=config.token_rate, fps=config.fps,
+    frames = check_tokens(tokens, width=config.speech_dim, rate=config.token_rate, fps=config.fps,
                           num_frames=num_frames)
     style_vec = resolve_style(params, config, style, batch)
     motion_shape = (batch, frames, config.param_dim)
     if ts is None:
-        ts = default_grid(config, num_steps)
+        ts = default_grid(config, sample_steps)
     ts = jnp.asarray(ts)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"ts must be a 1-D time grid with at least 2 entries, got shape {ts.shape}")
@@ -180,7 +180,7 @@ def sample_long(
     style: Any,
     key: PRNGKeyArray,
     *,
-    num_steps: int | None = None,
+    sample_steps: int | None = None,
     cfg_scale: Float[Array, ""] | float | None = None,
     window_frames: int = LONG_WINDOW_FRAMES,
     context_frames: int = LONG_CONTEXT_FRAMES,
@@ -200,7 +200,7 @@ def sample_long(
     Memory is O(window^2) for attention plus O(T) for the tokens and the output.
 
     Args:
-        params, config, tokens, style, key, num_steps, cfg_scale: as :func:`sample` (batch of any size).
+        params, config, tokens, style, key, sample_steps, cfg_scale: as :func:`sample` (batch of any size).
         window_frames: frames per window (rounded down to whole tokens).
         context_frames: known frames re-read at the start of each later window (rounded down to whole
             tokens; less than ``window_frames``).
@@ -211,9 +211,9 @@ def sample_long(
     Raises:
         ValueError: as :func:`sample`; a window not longer than its context.
     """
-    frames = check_tokens(tokens, width=config.token_dim, rate=config.token_rate, fps=config.fps)
+    frames = check_tokens(tokens, width=config.speech_dim, rate=config.token_rate, fps=config.fps)
     if frames <= window_frames:
-        return np.asarray(sample(params, config, tokens, style, key, num_steps=num_steps, cfg_scale=cfg_scale))
+        return np.asarray(sample(params, config, tokens, style, key, sample_steps=sample_steps, cfg_scale=cfg_scale))
     # Windows start on tokens whose first frame is a whole frame: q tokens span p frames exactly.
     per_token = Fraction(config.fps) / Fraction(str(float(config.token_rate)))
     p, q = per_token.numerator, per_token.denominator
@@ -235,7 +235,7 @@ def sample_long(
         known_mask = np.zeros((batch, win_f), bool)
         known_mask[:, :known_f] = True
         motion = sample(params, config, tokens[:, start_t:stop_t], style_vec,
-                        key if k == 0 else jax.random.fold_in(key, k), num_steps=num_steps, cfg_scale=cfg_scale,
+                        key if k == 0 else jax.random.fold_in(key, k), sample_steps=sample_steps, cfg_scale=cfg_scale,
                         known=out[:, start_f:start_f + win_f], known_mask=known_mask)
         out[:, start_f + known_f:start_f + win_f] = np.asarray(motion)[:, known_f:]
         done_t, k = stop_t, k + 1
@@ -269,7 +269,7 @@ def generate_frames(
 
     Args:
         params, config: the model.
-        tokens: ``(B, Tt, token_dim)`` at the base rate; interpolated to ``T = noise.shape[1]`` frames.
+        tokens: ``(B, Tt, speech_dim)`` at the base rate; interpolated to ``T = noise.shape[1]`` frames.
         style_vec: ``(B, style_vector_dim)``.
         noise: ``(B, T, param_dim)`` starting noise (in the flow's coordinates, see
             :func:`~jaxtalk.models.toktalk.model.to_flow_space`).

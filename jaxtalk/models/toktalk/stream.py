@@ -79,7 +79,7 @@ class StreamState(NamedTuple):
     """Carried state of the streaming engine (a pytree; fixed shapes).
 
     Attributes:
-        tokens: ``(B, Wt, token_dim)`` tokens of the current window (left context + last chunk).
+        tokens: ``(B, Wt, speech_dim)`` tokens of the current window (left context + last chunk).
         motion: ``(B, W, param_dim)`` emitted motion in the window (zeros where none yet).
         valid: ``(B, W)`` True on window frames that exist (False: padding before the utterance).
         noise: ``(B, N, param_dim)`` the fixed noise buffer; frame ``f`` uses row ``f mod N``.
@@ -180,7 +180,7 @@ def init_stream(
     tokens_per_chunk(config)
     wt = tokens_per_chunk(config, w)
     state = StreamState(
-        tokens=jnp.zeros((batch, wt, config.token_dim), dtype),
+        tokens=jnp.zeros((batch, wt, config.speech_dim), dtype),
         motion=jnp.zeros((batch, w, config.param_dim), dtype),
         valid=jnp.zeros((batch, w), bool),
         noise=cyclic_prior_noise(key, (batch, buffer_frames, config.param_dim), config.noise_frames, dtype),
@@ -214,7 +214,7 @@ def stream_step(
         params: model parameters.
         config: model settings.
         state: the carried :class:`StreamState`.
-        chunk_tokens: ``(B, tokens_per_chunk, token_dim)`` base-space tokens of the new chunk, or, for a
+        chunk_tokens: ``(B, tokens_per_chunk, speech_dim)`` base-space tokens of the new chunk, or, for a
             state made with ``source_dim``, ``(B, source_tokens_per_chunk, source_dim)`` source-space
             tokens at ``src_rate`` (adapted on the way in).
         style: ``(B, style_vector_dim)`` style vector or a ``(B, S, param_dim)`` reference clip (encoding a
@@ -235,7 +235,7 @@ def stream_step(
     if state.adapter is None:
         if src_rate is not None:
             raise ValueError("src_rate given but the stream takes base tokens: init_stream(..., source_dim=...)")
-        ct, width, rate, name = tokens_per_chunk(config), config.token_dim, config.token_rate, "chunk tokens"
+        ct, width, rate, name = tokens_per_chunk(config), config.speech_dim, config.token_rate, "chunk tokens"
     else:
         if src_rate is None:
             raise ValueError("this stream takes source-space tokens: pass their rate, src_rate=...")
@@ -320,7 +320,7 @@ def stream(
 
     Args:
         params, config: the model.
-        tokens: ``(B, Tt, token_dim)`` base-space tokens, or with ``src_rate`` ``(B, Ts, src_dim)``
+        tokens: ``(B, Tt, speech_dim)`` base-space tokens, or with ``src_rate`` ``(B, Ts, src_dim)``
             source-space tokens, adapted chunk by chunk by the streaming adaptation layer.
         style: style vector or reference clip (encoded once).
         key: PRNG key of the noise buffer.
@@ -338,7 +338,7 @@ def stream(
     _require_causal(config)
     source_dim = None
     if src_rate is None:
-        frames = check_tokens(tokens, width=config.token_dim, rate=config.token_rate, fps=config.fps)
+        frames = check_tokens(tokens, width=config.speech_dim, rate=config.token_rate, fps=config.fps)
         ct = tokens_per_chunk(config)
     else:
         source_dim = adapter_source_dim(params)

@@ -63,12 +63,12 @@ def make_windows(
         seed: seed of the style-clip crops.
 
     Returns:
-        Dict of stacked arrays: ``motion (N, T, D)``, ``tokens (N, Tt, token_dim)``, ``style (N, S, D)``,
+        Dict of stacked arrays: ``motion (N, T, D)``, ``tokens (N, Tt, speech_dim)``, ``style (N, S, D)``,
         ``mask (N, T)`` bool, ``clip (N,)`` and ``start (N,)``, plus ``src_tokens`` when asked.
 
     Raises:
         ValueError: empty ``clips``, a window that is not a whole number of tokens, or a stream whose
-            width differs from ``config.token_dim``.
+            width differs from ``config.speech_dim``.
     """
     if len(clips) == 0:
         raise ValueError("make_windows needs at least one clip")
@@ -92,8 +92,8 @@ def make_windows(
     for i in clips:
         motion = np.asarray(corpus.motion(i), np.float32)
         tokens = np.asarray(corpus.tokens(i, "A").embeddings, np.float32)
-        if tokens.shape[1] != config.token_dim:
-            raise ValueError(f"stream A has width {tokens.shape[1]}, config.token_dim={config.token_dim}")
+        if tokens.shape[1] != config.speech_dim:
+            raise ValueError(f"stream A has width {tokens.shape[1]}, config.speech_dim={config.speech_dim}")
         src = None
         if src_stream is not None:
             stream = corpus.tokens(i, src_stream)
