@@ -7,6 +7,7 @@ a malformed input) end with one clear line on stderr and exit code 2, never a tr
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import sys
 import time
@@ -175,8 +176,9 @@ def _echo_table(rows: list[dict[str, Any]], title: str) -> None:
 def train(
     model: Annotated[str, typer.Argument(help=_MODEL_HELP)],
     data: Annotated[
-        str, typer.Option(help="Prepared dataset folder (`jaxtalk prepare`), or synthtalk:SIZE[:SEED].")
-    ] = "synthtalk:tiny",
+        str | None, typer.Option(help="Prepared dataset folder (`jaxtalk prepare`), or synthtalk:SIZE[:SEED]. "
+                                      "Default synthtalk:tiny, or the run's own when resuming.")
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="Run folder (run.json + checkpoint/); default runs/MODEL.")] = None,
     preset: Annotated[
         str | None, typer.Option(help="Config preset: small, paper (tiny for toktalk). Default small, or the run's own.")
@@ -265,6 +267,11 @@ _SEED = Annotated[int, typer.Option(help="Noise seed.")]
 _BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest validation loss).")]
 
 
+def _frames(count: int) -> str:
+    """``"126 frames (5.04 s)"``: the duration of the frames written, at 25 fps."""
+    return f"{count} frames ({count / 25:.2f} s)"
+
+
 @app.command()
 @_user_errors
 def sample(
@@ -272,8 +279,8 @@ def sample(
     cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, seed: _SEED = 0, best: _BEST = False, overwrite: _OVERWRITE = False,
     stm: Annotated[Path | None, typer.Option(help="FreeTalk: the STM run that maps an ATS run's landmarks onto --mesh.")] = None,
     mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).")] = None,
-    emotion: Annotated[str, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary.")] = "neutral",
-    intensity: Annotated[float, typer.Option(help="FreeTalk: emotion intensity, continuous in [1, levels].")] = 1.0,
+    emotion: Annotated[str | None, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary (default neutral).")] = None,
+    intensity: Annotated[float | None, typer.Option(help="FreeTalk: emotion intensity, continuous in [1, levels] (default 1).")] = None,
     units: Annotated[str | None, typer.Option(help="FreeTalk: the mesh's units, m|cm|mm|um (default: from its size).")] = None,
     landmarks: Annotated[Path | None, typer.Option(help="FreeTalk: the mesh's 68 landmarks, (68, 3) positions or (68,) "
                                                         "vertex indices (.npy/.txt), to guide the alignment.")] = None,
@@ -283,17 +290,17 @@ def sample(
     from jaxtalk.commands.inference import MeshOptions, animate_run, sample_run
 
     opts = _sample_options(run, input_, out, style, partner, cfg_scale, sample_steps, seed, best, overwrite)
+    freetalk = {"--emotion": emotion, "--intensity": intensity, "--units": units, "--landmarks": landmarks}
     if stm is not None or mesh is not None:
         if stm is None or mesh is None:
             raise ValueError("FreeTalk needs both --stm RUN_STM and --mesh FILE")
-        result = animate_run(opts, MeshOptions(stm_run=stm, mesh=mesh, emotion=emotion, intensity=intensity,
-                                               units=units, landmarks=landmarks), echo=typer.echo)
-        frames = result.params.shape[0]
-        typer.echo(f"{frames} frames ({frames / 25:.1f} s) of {result.params.shape[1]} vertices written to {result.path}; "
+        given = {k.lstrip("-"): v for k, v in freetalk.items() if v is not None}
+        result = animate_run(opts, MeshOptions(stm_run=stm, mesh=mesh, **given), echo=typer.echo)
+        typer.echo(f"{_frames(result.params.shape[0])} of {result.params.shape[1]} vertices written to {result.path}; "
                    f"render: jaxtalk render {result.path} --faces {mesh} --audio {input_}")
         return
-    result = sample_run(opts)
-    typer.echo(f"{result.params.shape[0]} frames ({result.params.shape[0] / 25:.1f} s) written to {result.path}")
+    result = sample_run(dataclasses.replace(opts, mesh_options=tuple(k for k, v in freetalk.items() if v is not None)))
+    typer.echo(f"{_frames(result.params.shape[0])} written to {result.path}")
 
 
 @app.command()
@@ -306,7 +313,7 @@ def stream(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, pa
 
     result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, sample_steps, seed, best, overwrite),
                         echo=typer.echo)
-    typer.echo(f"{result.params.shape[0]} frames written to {result.path}")
+    typer.echo(f"{_frames(result.params.shape[0])} written to {result.path}")
 
 
 @app.command(name="eval")

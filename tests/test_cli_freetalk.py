@@ -87,14 +87,14 @@ def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, st
 
 def test_sample_onto_a_mesh_user_errors_are_one_line(ats_run, stm_run, files, tmp_path):
     base = ["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh"]
-    _user_error([*base, files["ply"], "--emotion", "elated"], "unknown emotion name(s) ['elated']")
+    _user_error([*base, files["ply"], "--emotion", "elated"], "--emotion elated: not an emotion of this run")
     _user_error([*base, files["ply"], "--intensity", "4"], "intensity must lie in [1, 3]")
     _user_error([*base, files["cloud"]], "is a point cloud")
     _user_error([*base, tmp_path / "missing.obj"], "mesh file not found")
-    _user_error([*base, files["ply"], "--units", "inch"], "unknown units 'inch'")
+    _user_error([*base, files["ply"], "--units", "inch"], "--units must be one of m, cm, mm, um, got 'inch'")
     _user_error([*base, files["ply"], "--units", "m"], "check the units")
     _user_error([*base, files["ply"], "--out", tmp_path / "x.npz"], "must end in .npy")
-    _user_error([*base, files["ply"], "--cfg-scale", "2"], "--cfg-scale: not FreeTalk options")
+    _user_error([*base, files["ply"], "--cfg-scale", "2"], "--cfg-scale: not an option of a FreeTalk run")
     _user_error(["sample", ats_run, files["wav"], "--stm", stm_run], "needs both --stm RUN_STM and --mesh FILE")
     _user_error(["sample", ats_run, files["wav"]], "sample it onto a mesh with --stm RUN_STM --mesh FILE")
     _user_error(["sample", stm_run, files["wav"], "--stm", stm_run, "--mesh", files["ply"]], "is a stm run")

@@ -320,6 +320,34 @@ def test_landmark_track_of_a_long_clip_has_one_frame_per_40_ms(models):
     assert track.shape == (55, 68, 3) and np.all(np.isfinite(track))
 
 
+def test_landmark_track_is_the_same_whatever_number_of_windows_each_call_samples(models):
+    # 6 s = 150 frames = 9 windows of 20: one call of all 9 (the unbounded batch), groups of 2, one by one.
+    fitted_ats, _ = models
+    audio, key = _speech(6.0), jax.random.key(4)
+    whole = ft.landmark_track(fitted_ats, audio, "happy", 2.0, key, windows_per_call=16)
+    for per_call in (1, 2):
+        np.testing.assert_allclose(ft.landmark_track(fitted_ats, audio, "happy", 2.0, key, windows_per_call=per_call),
+                                   whole, atol=1e-5)
+
+
+def test_landmark_track_cross_fades_each_window_by_its_normalised_ramp(models):
+    # The track equals the old construction: every window sampled (own noise), weighted by _crossfade.
+    from jaxtalk.models.freetalk.fit import sample_displacements
+
+    fitted_ats, _ = models
+    audio, key = _speech(2.2), jax.random.key(5)
+    track = ft.landmark_track(fitted_ats, audio, "sad", 1.0, key)
+    starts = ft._window_starts(55, 20)
+    feats = fitted_ats.audio_features(audio, 55)
+    weights = ft._crossfade(55, 20, starts)
+    want = np.zeros_like(track, dtype=np.float64)
+    for w, s in enumerate(starts):
+        noise = ft._window_noise(key, w, 20, fitted_ats.config.motion_dim)[None]
+        d = sample_displacements(fitted_ats, feats[None, s:s + 20], "sad", 1.0, key, noise=noise)[0]
+        want[s:s + 20] += weights[w, s:s + 20, None, None] * d
+    np.testing.assert_allclose(track, want, atol=1e-5)
+
+
 # ------------------------------------------------------------------------------ vocabularies
 
 

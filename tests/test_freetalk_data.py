@@ -113,3 +113,13 @@ def test_face_mesh_regions():
     assert {tuple(np.round(p, 6)) for p in shuffled.vertices[shuffled.region("lips")]} == lips_pos
     with pytest.raises(ValueError, match="unknown region"):
         base.region("tail")
+
+
+def test_audio_features_of_a_long_clip_in_pieces_equal_the_one_call_frames(monkeypatch):
+    # Pieces of 50 mel frames (0.5 s) stand for the 60-s pieces of a long clip: 3 s cross 6 of them.
+    x = (0.1 * np.random.default_rng(0).normal(size=16000 * 3 + 77)).astype(np.float32)
+    from jaxtalk.audio import speech
+
+    whole = speech.audio_features(x, 75)
+    monkeypatch.setattr(speech, "_CHUNK_MEL_FRAMES", 50)
+    np.testing.assert_allclose(speech.audio_features(x, 75), whole, atol=1e-5)

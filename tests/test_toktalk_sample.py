@@ -139,3 +139,62 @@ def test_sample_bad_input_errors(params):
         tt.sample(params, CFG, tokens, np.zeros((B, 3, 56), np.float32), jax.random.key(0))
     with pytest.raises(ValueError, match="PRNG key"):
         tt.sample(params, CFG, tokens, style)
+
+
+# ------------------------------------------------------------------ sample_long (issue 32, item 1)
+
+
+def test_sample_long_is_bitwise_sample_when_the_input_fits_one_window(params):
+    tokens, style, *_ = _inputs()
+    key = jax.random.key(3)
+    whole = np.asarray(tt.sample(params, CFG, tokens, style, key))
+    np.testing.assert_array_equal(tt.sample_long(params, CFG, tokens, style, key, window_frames=2 * TT), whole)
+
+
+def test_sample_long_windows_equal_whole_sequence_sample_of_their_tokens_with_earlier_frames_known(params):
+    # 25 tokens = 50 frames in 20-frame windows with 6 frames of context: windows start at frames 0, 14,
+    # 28 and 30 (the last moved back to end at frame 50, so it re-reads 18 known frames). Window k is exactly the whole-sequence sample of
+    # its own tokens with the frames generated before it as known frames and fold_in(key, k) noise.
+    rng = np.random.default_rng(7)
+    tokens = rng.normal(size=(1, 25, CFG.speech_dim)).astype(np.float32)
+    style = rng.normal(size=(1, CFG.style_vector_dim)).astype(np.float32)
+    key = jax.random.key(5)
+    out = tt.sample_long(params, CFG, tokens, style, key, window_frames=20, context_frames=6)
+    assert out.shape == (1, 50, CFG.param_dim)
+    ref = np.zeros_like(out)
+    ref[:, :20] = np.asarray(tt.sample(params, CFG, tokens[:, :10], style, key))
+    for k, (start, done) in enumerate([(14, 20), (28, 34), (30, 48)], start=1):
+        known_mask = np.zeros((1, 20), bool)
+        known_mask[:, : done - start] = True
+        win = tt.sample(params, CFG, tokens[:, start // 2:start // 2 + 10], style, jax.random.fold_in(key, k),
+                        known=ref[:, start:start + 20], known_mask=known_mask)
+        ref[:, done:start + 20] = np.asarray(win)[:, done - start:]
+    np.testing.assert_allclose(out, ref, atol=1e-5)
+    assert np.all(np.abs(out).sum(-1) > 0)  # every frame generated
+
+
+def test_sample_long_peak_memory_does_not_grow_from_150_s_to_10_minutes():
+    # Whole-sequence sample at this preset peaked at 1.6 GB for 150 s and 4.5 GB for 300 s (O(T^2)
+    # attention; experiments/bench_long_sample.py); windowed, 10 minutes must fit in what 150 s took.
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent('''
+        import resource, jax, numpy as np
+        from jaxtalk.models import toktalk as tt
+        cfg = tt.TokTalkConfig.tiny()
+        params = tt.init_params(cfg, jax.random.key(0))
+        style = np.zeros((1, cfg.style_vector_dim), np.float32)
+        peaks = []
+        for minutes in (2.5, 10):
+            tokens = np.ones((1, int(minutes * 60 * cfg.token_rate), cfg.speech_dim), np.float32)
+            out = tt.sample_long(params, cfg, tokens, style, jax.random.key(1))
+            assert out.shape[1] == minutes * 60 * cfg.fps and np.isfinite(out).all()
+            peaks.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+        print(peaks[0], peaks[1])
+    ''')
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    short_mb, long_mb = map(float, proc.stdout.split())
+    assert long_mb - short_mb < 100, (short_mb, long_mb)

@@ -97,3 +97,17 @@ def test_a_folder_without_exports_is_refused(tmp_path, cached_three):
         start_server(tmp_path, cache_dir=cached_three)
     with pytest.raises(NotADirectoryError):
         start_server(tmp_path / "missing", cache_dir=cached_three)
+
+
+def test_server_refuses_a_host_other_than_this_machine_and_serves_local_names(folder, cached_three):
+    # DNS rebinding: a page on evil.example whose name now resolves to 127.0.0.1 sends its own Host.
+    server = start_server(folder, port=0, cache_dir=cached_three)
+    try:
+        port = server.httpd.server_address[1]
+        for host in ("evil.example", f"evil.example:{port}", f"127.0.0.1.evil.example:{port}", "127.0.0.1:1"):
+            assert get(f"{server.url}clips.json", {"Host": host})[0] == 403, host
+        for host in (f"127.0.0.1:{port}", f"localhost:{port}", "localhost", f"[::1]:{port}"):
+            status, _, body = get(f"{server.url}clips.json", {"Host": host})
+            assert status == 200 and json.loads(body)[0]["name"] == "a", host
+    finally:
+        server.close()

@@ -132,8 +132,7 @@ def check_audio(
         peak = float(np.max(np.abs(audio)))
         if peak <= _SILENCE_PEAK:
             raise ValueError(
-                f"{name}: audio is silent (peak |x| = {peak:.3g} <= {_SILENCE_PEAK:g}); "
-                "pass allow_silence=True to accept it"
+                f"{name}: audio is silent (peak |x| = {peak:.3g} <= {_SILENCE_PEAK:g}): no speech to animate"
             )
 
 

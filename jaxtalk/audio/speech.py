@@ -34,6 +34,36 @@ TURN_SPEECH_DIM = 80
 _MEL_RATE = 100
 
 
+# Mel frames per log-mel call (60 s): a longer clip is computed in pieces, so memory stays bounded.
+_CHUNK_MEL_FRAMES = 6000
+_HALF_WINDOW = 200  # n_fft // 2 of log_mel's default 400-sample (25 ms) frames
+
+
+def _log_mel_frames(x: np.ndarray) -> np.ndarray:
+    """``(1 + samples // 160, n_mels)`` centred log-mel frames of ``x`` (zeros beyond its ends).
+
+    Frame ``f`` reads samples ``[160 f - 200, 160 f + 200)`` only, so a long clip is cut into pieces
+    of :data:`_CHUNK_MEL_FRAMES` frames, each computed uncentred from its own samples plus 200 on
+    either side: the same frames as one call, in bounded memory.
+    """
+    frames = 1 + x.size // _HOP
+    if frames <= _CHUNK_MEL_FRAMES:
+        # Zero-pad to a whole bucket so clips of many lengths share one compiled log-mel program. The
+        # STFT pads with zeros anyway (pad_mode "constant"), so frames of the real signal are unchanged.
+        total = -(-x.size // _BUCKET_SAMPLES) * _BUCKET_SAMPLES
+        return np.asarray(log_mel(np.pad(x, (0, total - x.size))))[:frames]
+    piece = (_CHUNK_MEL_FRAMES - 1) * _HOP + 2 * _HALF_WINDOW  # samples of one piece: one compiled program
+    padded = np.pad(x, (_HALF_WINDOW, _HALF_WINDOW + _CHUNK_MEL_FRAMES * _HOP))
+    out = None
+    for f0 in range(0, frames, _CHUNK_MEL_FRAMES):
+        mel = np.asarray(log_mel(padded[f0 * _HOP:f0 * _HOP + piece], center=False))
+        if out is None:
+            out = np.empty((frames, mel.shape[1]), np.float32)
+        n = min(_CHUNK_MEL_FRAMES, frames - f0)
+        out[f0:f0 + n] = mel[:n]
+    return out
+
+
 def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Float[np.ndarray, "frames 320"]:
     """Per-motion-frame audio features: four 10 ms log-mel frames stacked per 40 ms motion frame.
 
@@ -55,10 +85,7 @@ def audio_features(audio: Float[np.ndarray, " samples"], num_frames: int) -> Flo
     x = np.asarray(audio, np.float32)
     if x.ndim != 1 or x.size == 0:
         raise ValueError(f"audio must be a non-empty 1-D signal, got shape {x.shape}")
-    # Zero-pad to a whole bucket so clips of many lengths share one compiled log-mel program. The
-    # STFT pads with zeros anyway (pad_mode "constant"), so frames of the real signal are unchanged.
-    total = -(-x.size // _BUCKET_SAMPLES) * _BUCKET_SAMPLES
-    mel = np.asarray(log_mel(np.pad(x, (0, total - x.size))))[: 1 + x.size // _HOP]
+    mel = _log_mel_frames(x)
     need = num_frames * MEL_FRAMES_PER_FRAME
     if mel.shape[0] < need:
         mel = np.concatenate([mel, np.repeat(mel[-1:], need - mel.shape[0], axis=0)])

@@ -12,10 +12,12 @@ turns audio into per-turn speech features with the same front end as ``prepare``
 from __future__ import annotations
 
 import dataclasses
+import math
 import statistics
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,6 +47,7 @@ class SampleOptions:
         seed: noise seed.
         best: use the run's best-validated checkpoint instead of its newest.
         overwrite: let the default output name replace an existing file.
+        mesh_options: FreeTalk-only options given (``"--emotion"``...), refused for other models.
     """
 
     run_dir: Path
@@ -57,6 +60,7 @@ class SampleOptions:
     seed: int = 0
     best: bool = False
     overwrite: bool = False
+    mesh_options: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass
@@ -105,6 +109,30 @@ def _claim_output(opts: SampleOptions, suffix: str, default_suffix: str, *, extr
     return out
 
 
+# The options of ``jaxtalk sample``/``stream`` each model takes (``--out``, ``--seed``, ``--best`` and
+# ``--sample-steps`` apply to all); any other one given is refused rather than ignored.
+_MODEL_OPTIONS = {
+    "toktalk": ("TokTalk", ("--style", "--cfg-scale")),
+    "timar": ("TIMAR", ("--partner", "--cfg-scale")),
+    "ats": ("FreeTalk", ("--stm", "--mesh", "--emotion", "--intensity", "--units", "--landmarks")),
+}
+
+
+def _check_options(opts: SampleOptions, model: str) -> None:
+    """Every option before any work: values in range, none that ``model`` does not take."""
+    name, own = _MODEL_OPTIONS[model]
+    given = [flag for flag, value in (("--style", opts.style), ("--partner", opts.partner),
+                                      ("--cfg-scale", opts.cfg_scale)) if value is not None]
+    unused = [flag for flag in (*given, *opts.mesh_options) if flag not in own]
+    if unused:
+        raise ValueError(f"{', '.join(unused)}: not {'an option' if len(unused) == 1 else 'options'} of a {name} run "
+                         f"(it takes {', '.join(own)}, --sample-steps, --seed)")
+    if opts.cfg_scale is not None and not math.isfinite(opts.cfg_scale):
+        raise ValueError(f"--cfg-scale must be a finite number, got {opts.cfg_scale}")
+    if opts.sample_steps is not None and opts.sample_steps < 1:
+        raise ValueError(f"--sample-steps must be >= 1, got {opts.sample_steps}")
+
+
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
     record = RunRecord.load(opts.run_dir)
     if record.model == "ats":
@@ -118,9 +146,8 @@ def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
             f"{opts.run_dir} is a {record.model} run; sample/stream animate speech with toktalk, timar or (with "
             "--stm and --mesh) ats runs; an stm run goes after an ats run: jaxtalk sample RUN_ATS AUDIO --stm RUN_STM"
         )
+    _check_options(opts, record.model)
     kind = _check_input(opts, record.model)
-    if opts.sample_steps is not None and opts.sample_steps < 1:
-        raise ValueError(f"--sample-steps must be >= 1, got {opts.sample_steps}")
     _claim_output(opts, ".npz", "_params.npz")
     return load_run(opts.run_dir, best=opts.best), kind
 
@@ -156,6 +183,17 @@ def _toktalk_inputs(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
     if style.shape[0] < config.style_min_frames:
         raise ValueError(f"style clip {opts.style} has {style.shape[0]} frames, fewer than {config.style_min_frames}")
     return tokens, style[None, :s], audio
+
+
+def _toktalk_frames(config: Any, tokens: np.ndarray, audio: np.ndarray | None) -> int:
+    """Frames to keep: the tokens' span, but no longer than the audio (the tokenizer may round the
+    token count up: 5.0 s of audio gave 126 frames)."""
+    from jaxtalk.types import AUDIO_SAMPLE_RATE
+
+    frames = int(round(tokens.shape[0] * config.fps / config.token_rate))
+    if audio is not None:
+        frames = min(frames, int(round(audio.shape[0] / AUDIO_SAMPLE_RATE * config.fps)))
+    return frames
 
 
 def _timar_inputs(run: LoadedRun, opts: SampleOptions) -> tuple[dict[str, np.ndarray], np.ndarray, int]:
@@ -200,8 +238,9 @@ def _write(opts: SampleOptions, params: np.ndarray, audio: np.ndarray | None) ->
 
 
 def sample_run(opts: SampleOptions) -> SampleResult:
-    """Animate ``opts.input`` offline (TokTalk: the whole sequence in one sampler call; TIMAR: turn by
-    turn, its only mode).
+    """Animate ``opts.input`` offline (TokTalk: the whole sequence in one sampler call, or minute-long
+    windows for longer inputs, :func:`~jaxtalk.models.toktalk.sample_long`; TIMAR: turn by turn, its
+    only mode).
 
     Returns:
         :class:`SampleResult`.
@@ -218,8 +257,9 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         from jaxtalk.models import toktalk
 
         tokens, style, audio = _toktalk_inputs(run, opts, kind)
-        motion = toktalk.sample(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
-                                sample_steps=opts.sample_steps)
+        # Window by window past a minute: the decoder's attention is O(frames^2) in memory.
+        motion = toktalk.sample_long(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
+                                     sample_steps=opts.sample_steps)[:, :_toktalk_frames(run.config, tokens, audio)]
     else:
         from jaxtalk.models.timar.data import Normalizer
         from jaxtalk.models.timar.stream import stream
@@ -247,8 +287,6 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
     import jax
     import jax.numpy as jnp
 
-    from jaxtalk.types import AUDIO_SAMPLE_RATE
-
     run, kind = _load(opts)
     key = jax.random.key(opts.seed)
     config = run.config
@@ -265,9 +303,7 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
 
         tokens, style, audio = _toktalk_inputs(run, opts, kind)
         ct = toktalk.tokens_per_chunk(config)
-        frames = int(round(tokens.shape[0] * config.fps / config.token_rate))
-        if audio is not None:  # the tokenizer may round the token count up
-            frames = min(frames, int(round(audio.shape[0] / AUDIO_SAMPLE_RATE * config.fps)))
+        frames = _toktalk_frames(config, tokens, audio)
         n = -(-tokens.shape[0] // ct)
         tokens = np.concatenate([tokens, np.repeat(tokens[-1:], n * ct - tokens.shape[0], axis=0)], axis=0)
         style_vec = toktalk.encode_style(run.params, config, style)
@@ -344,20 +380,24 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     import jax
 
     from jaxtalk.audio import load_audio
-    from jaxtalk.geometry.canonical import load_mesh
+    from jaxtalk.geometry.canonical import UNITS, load_mesh
     from jaxtalk.models.freetalk.animate import animate, prepare_user_mesh, read_landmarks
     from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM
     from jaxtalk.files import atomic_save_npy
 
-    unused = [name for name, value in (("--style", opts.style), ("--partner", opts.partner),
-                                       ("--cfg-scale", opts.cfg_scale)) if value is not None]
-    if unused:
-        raise ValueError(f"{', '.join(unused)}: not FreeTalk options (it takes --emotion, --intensity, --sample-steps, --seed)")
+    _check_options(opts, "ats")
     path = Path(opts.input)
     _check_input(opts, "ats")
+    if mesh_opts.units is not None and mesh_opts.units not in UNITS:
+        raise ValueError(f"--units must be one of {', '.join(UNITS)}, got {mesh_opts.units!r}")
     stm_files = [p for p in Path(mesh_opts.stm_run).iterdir() if p.is_file()] if Path(mesh_opts.stm_run).is_dir() else []
     out = _claim_output(opts, ".npy", "_vertices.npy", extra_inputs=[mesh_opts.mesh, mesh_opts.landmarks, *stm_files])
     ats = FittedATS.from_run(opts.run_dir, best=opts.best)
+    emotions, levels = ats.config.emotions, ats.config.num_intensities
+    if mesh_opts.emotion not in emotions:
+        raise ValueError(f"--emotion {mesh_opts.emotion}: not an emotion of this run; it knows: {', '.join(emotions)}")
+    if not (math.isfinite(mesh_opts.intensity) and 1 <= mesh_opts.intensity <= levels):
+        raise ValueError(f"--intensity must lie in [1, {levels}] for this run, got {mesh_opts.intensity:g}")
     stm = FittedSTM.from_run(mesh_opts.stm_run, best=opts.best)
     audio = load_audio(path)
     vertices, faces = load_mesh(mesh_opts.mesh)

@@ -171,6 +171,9 @@ def load_motion(path: str | Path, *, faces: str | Path | None = None, flame: str
     if suffix != ".npy":
         raise ValueError(f"{str(path)!r}: expected .npz parameters or .npy vertices, got {suffix or 'no suffix'!r}")
     verts = np.load(path, allow_pickle=False)
+    if verts.ndim == 2 and verts.shape[1] == 3:  # (points, 3): one mesh's positions, not frames of 1 vertex
+        raise ValueError(f"{str(path)!r} holds a {verts.shape} array: one set of 3-D points, not a (frames, vertices, 3) "
+                         "animation; save the frames stacked as (frames, vertices, 3)")
     if verts.ndim == 2 and verts.shape[1] % 3 == 0:
         verts = verts.reshape(verts.shape[0], -1, 3)
     if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] < 1:

@@ -40,7 +40,10 @@ from jaxtalk.runs import (
     preset_names,
 )
 
-__all__ = ["TrainOptions", "TrainSummary", "train_run", "recipe_for", "split_overrides"]
+DEFAULT_DATA = "synthtalk:tiny"
+# What the loop says when a resumed run's schedule is stretched to the new --steps (intended).
+
+__all__ = ["DEFAULT_DATA", "TrainOptions", "TrainSummary", "train_run", "recipe_for", "split_overrides"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,7 +53,9 @@ class TrainOptions:
     Attributes:
         model: ``toktalk``, ``ats``, ``stm``, ``timar`` or ``dualtalk``.
         out_dir: run folder (``run.json`` + ``checkpoint/``).
-        data: a prepared dataset folder (``jaxtalk prepare``) or ``synthtalk:SIZE[:SEED]``.
+        data: a prepared dataset folder (``jaxtalk prepare``) or ``synthtalk:SIZE[:SEED]``; None (not
+            given): :data:`DEFAULT_DATA` for a new run, the run's own data when resuming (any other
+            value is refused when resuming).
         preset: config preset (``small``, ``paper``; ``tiny`` for TokTalk); None: ``small`` for a new
             run, the run's own preset when resuming.
         overrides: ``key=value`` overrides of the config or the training settings.
@@ -70,7 +75,7 @@ class TrainOptions:
 
     model: str
     out_dir: Path
-    data: str = "synthtalk:tiny"
+    data: str | None = None
     preset: str | None = None
     overrides: tuple[str, ...] = ()
     steps: int = 1000
@@ -188,10 +193,13 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         if opts.preset not in (None, existing.preset) or (opts.overrides and tuple(opts.overrides) != tuple(existing.items)):
             raise ValueError(f"{out} was trained with preset {existing.preset!r} and --set {list(existing.items)}; "
                              "resume it with the same settings or choose another --out")
-        if opts.data not in (existing.data["spec"], TrainOptions.data):
-            raise ValueError(f"{out} was trained on {existing.data['spec']!r}; resume it on the same data")
+        if opts.data is not None and not _same_data(opts.data, existing.data):
+            raise ValueError(f"{out} was trained on --data {existing.data['spec']}, not {opts.data}: resume it with "
+                             f"--data {existing.data['spec']} (or no --data), or choose another --out")
         opts = dataclasses.replace(opts, preset=existing.preset, overrides=tuple(existing.items),
                                    data=existing.data["spec"], seed=existing.seed)
+    if opts.data is None:
+        opts = dataclasses.replace(opts, data=DEFAULT_DATA)
     # A run made from Python with a config that equals no preset resumes with None (its config is on record).
     preset = existing.preset if existing is not None else opts.preset or "small"
     train_fn, defaults = recipe_for(opts.model, preset or "small")
@@ -254,6 +262,13 @@ def _check_run_folder(out: Path) -> None:
     if out.is_dir() and not (out / "run.json").is_file() and not checkpoint_dir(out).is_dir() and any(
             p.is_file() for p in out.iterdir()):
         raise OutputError(f"--out {str(out)!r} holds files but no jaxtalk run; train into a new or empty folder")
+
+
+def _same_data(spec: str, recorded: dict[str, Any]) -> bool:
+    """Whether ``--data spec`` names the data a run recorded (its spec, or the same prepared folder)."""
+    if spec == recorded["spec"]:
+        return True
+    return not spec.startswith("synthtalk:") and Path(spec).resolve() == Path(recorded["path"]).resolve()
 
 
 def _open_data_once(opts: TrainOptions, prepared: str | None = None) -> Any:

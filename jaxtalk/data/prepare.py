@@ -305,7 +305,7 @@ def _fit_tokenizer(entries: Sequence[ClipEntry], splits: dict[str, str], setting
         pieces += list(usable.reshape(-1, piece))
         total += usable.size / AUDIO_SAMPLE_RATE
     if not pieces:
-        raise ValueError("no training clip has 4 s of readable audio to fit the VQ tokenizer on")
+        return None
     tok = VQTokenizer.fit(pieces, rate=settings.vq_rate, num_codes=min(settings.vq_codes, len(pieces) * int(4 * settings.vq_rate)),
                           width=settings.vq_width, seed=settings.split_seed)
     tok.save(path)
@@ -394,6 +394,20 @@ def prepare(
     names = {e.name for e in src.entries}
     done = _existing(shard_dir, digest)
     tokenizer = _fit_tokenizer(src.entries, splits, settings, names, out, digest) if tokens_mode == "vq" else None
+    if tokens_mode == "vq" and tokenizer is None:
+        # Say first whether the clips are bad at all: a folder of unreadable clips is not a tokenizer problem.
+        skipped = []
+        for entry in src.entries:
+            try:
+                _read_checked(entry, settings, names)
+            except BadClip as err:
+                skipped.append((str(entry.files[0]) if entry.files else entry.name, str(err)))
+        _write_report(out, skipped)
+        if len(skipped) == len(src.entries):
+            raise ValueError(_rejected_message(src, skipped, out))
+        raise ValueError(f"no training clip has 4 s of readable audio to fit the VQ tokenizer on ({len(skipped)} of "
+                         f"{len(src.entries)} clips rejected, listed in {out / REPORT}); add longer clips, or pass "
+                         "--tokens none to prepare without TokTalk tokens")
     if tokens_mode == "clip" and src.tokenizer is not None:
         # The tokenizer that made the clips' tokens: kept so a trained model can tokenise new audio.
         src.tokenizer().save(out / TOKENIZER)
@@ -447,7 +461,7 @@ def prepare(
     _write_report(out, skipped)
     n = len(manifest["clips"])
     if n == 0:
-        raise ValueError(f"no usable clip in {src.spec} ({len(skipped)} skipped; see {out / REPORT})")
+        raise ValueError(_rejected_message(src, skipped, out))
     result = PrepareResult(out=out, clips=n, new=new, skipped=skipped, seconds=time.perf_counter() - start)
     counts = {s: len(v) for s, v in manifest["splits"].items() if v}
     echo(f"prepared {n} clips ({new} new, {n - new} kept) in {result.seconds:.1f} s -> {out}; splits {counts}")
@@ -458,6 +472,21 @@ def prepare(
         if len(skipped) > 10:
             echo(f"  ... and {len(skipped) - 10} more")
     return result
+
+
+def _rejected_message(src: Source, skipped: list[tuple[str, str]], out: Path) -> str:
+    """One line for a dataset none of whose clips is usable: how many, the commonest reason, and the
+    layout the folder looks like when that explains it."""
+    from collections import Counter
+
+    from jaxtalk.data.sources import layout_hint
+
+    if not skipped:
+        return f"no usable clip in {src.spec}"
+    reason, count = Counter(why for _, why in skipped).most_common(1)[0]
+    hint = layout_hint(src.spec) if src.layout != "synthtalk" else None
+    return (f"every clip of {src.spec} was rejected ({len(skipped)} read as the {src.layout} layout; {count} of "
+            f"them: {reason}; all listed in {out / REPORT})" + (f"; {hint}" if hint else ""))
 
 
 def _drop_partnerless(entries: Sequence[ClipEntry], good: dict[str, str], skipped: list[tuple[str, str]],

@@ -173,8 +173,8 @@ def detect_units(vertices: Float[np.ndarray, "verts 3"]) -> str:
     sizes = ", ".join(f"{extent * m:.3g} m if {u}" for u, m in UNITS.items())
     raise ValueError(
         f"the mesh's largest side is {extent:.4g} units, which is not the size of a face or a head "
-        f"({lo * 100:.0f}-{hi * 100:.0f} cm) in any unit ({sizes}); pass the units explicitly "
-        "(units='mm', --units mm) if it really is a face"
+        f"({lo * 100:.0f}-{hi * 100:.0f} cm) in any unit ({sizes}); give its units "
+        "(--units m, cm, mm or um) if it really is a face"
     )
 
 

@@ -227,15 +227,13 @@ def train(
                 )
             if "batch_spec" in saved_meta:
                 spec = BatchSpec.from_json(saved_meta["batch_spec"])
-            saved_config = dict(saved_meta.get("config") or {})
+            was, now = dict(saved_meta.get("config") or {}), meta["config"]
             # Another schedule length is how a run is continued for longer (`jaxtalk train --steps`
             # stretches the schedule, its warm-up capped to a tenth of the run); other changes surprise.
-            length = {"total_steps": config.total_steps, "warmup_steps": config.warmup_steps}
-            if {**saved_config, **length} != meta["config"]:
-                warnings.warn(
-                    f"optimiser config differs from the checkpoint's: {saved_meta.get('config')} -> {meta['config']}",
-                    stacklevel=2,
-                )
+            changes = ", ".join(f"{k} {was.get(k)} -> {now.get(k)}" for k in sorted({*was, *now})
+                                if was.get(k) != now.get(k) and k not in ("total_steps", "warmup_steps"))
+            if changes:
+                warnings.warn(f"optimiser settings differ from the checkpoint's: {changes}", stacklevel=2)
         history_file = None
         if write_history and jax.process_index() == 0:  # one writer per run, as for orbax's files
             history_file = _HistoryFile(Path(ckpt_dir) / HISTORY_FILE, start_step=int(state.step))

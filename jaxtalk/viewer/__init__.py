@@ -5,7 +5,9 @@ installed from the npm registry by ``npm ci`` against ``web/package-lock.json`` 
 (once per lock file), and served from there. Without Node.js and npm, :func:`install_web_dependencies`
 says so in one line.
 
-The server answers only on 127.0.0.1 and serves only: the page, the installed three.js, ``clips.json``
+The server answers only on 127.0.0.1, only to requests whose ``Host`` is this machine (``localhost``,
+``127.0.0.1`` or ``[::1]``, with the server's port or none: a page on another site whose name was
+rebound to 127.0.0.1 gets 403), and serves only: the page, the installed three.js, ``clips.json``
 (the folder's ``.glb`` files and the ``.wav`` beside each) and those files themselves (with byte ranges,
 so the audio element can seek).
 """
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import hashlib
 import json
 import mimetypes
@@ -116,6 +119,21 @@ class ViewerServer:
         self.thread.join()
 
 
+_LOCAL_NAMES = ("localhost", "127.0.0.1", "[::1]")
+
+
+def _local_host(host: str | None, port: int) -> bool:
+    """Whether a request's ``Host`` header names this machine (with ``port`` or no port). A request
+    without one (HTTP/1.0) is not a browser's and passes; DNS rebinding always sends the attacker's name."""
+    if host is None:
+        return True
+    host = host.strip().lower()
+    end = host.rfind("]") + 1 if host.startswith("[") else 0
+    rest, _, given = host[end:].partition(":")
+    name = host[:end] + rest
+    return name in _LOCAL_NAMES and given in ("", str(port))
+
+
 def _handler(folder: Path, modules: Path) -> type[BaseHTTPRequestHandler]:
     three = (modules / "three").resolve()
 
@@ -150,6 +168,9 @@ def _handler(folder: Path, modules: Path) -> type[BaseHTTPRequestHandler]:
                 self.wfile.write(f.read(end - start + 1))
 
         def do_GET(self) -> None:  # noqa: N802  (http.server's name)
+            if not _local_host(self.headers.get("Host"), self.server.server_address[1]):
+                self.send_error(HTTPStatus.FORBIDDEN, "jaxtalk view answers only to localhost")
+                return None
             route = unquote(urlparse(self.path).path)
             if route in _PAGE_FILES:
                 return self._file(WEB_DIR / _PAGE_FILES[route])
@@ -182,8 +203,7 @@ def start_server(folder: str | os.PathLike, *, port: int = 8000, cache_dir: str 
     Raises:
         NotADirectoryError: ``folder`` is not a folder.
         ValueError: it holds no ``.glb`` file.
-        ViewerError: see :func:`install_web_dependencies`.
-        OSError: the port is taken.
+        ViewerError: see :func:`install_web_dependencies`; the port is taken (checked first).
     """
     folder = Path(folder).resolve()
     if not folder.is_dir():
@@ -191,8 +211,18 @@ def start_server(folder: str | os.PathLike, *, port: int = 8000, cache_dir: str 
     if not clips(folder):
         raise ValueError(f"{str(folder)!r} holds no .glb file: write one with `jaxtalk export INPUT --out "
                          f"{folder}/anim.glb`")
-    modules = install_web_dependencies(cache_dir, npm=npm)
-    httpd = ThreadingHTTPServer(("127.0.0.1", port), _handler(folder, modules))
+    try:  # bound before installing anything; the handler is set once three.js is there
+        httpd = ThreadingHTTPServer(("127.0.0.1", port), BaseHTTPRequestHandler)
+    except OSError as err:
+        if err.errno != errno.EADDRINUSE:
+            raise
+        raise ViewerError(f"port {port} on 127.0.0.1 is in use: pass --port 0 for any free port, or another "
+                          "--port") from None
+    try:
+        httpd.RequestHandlerClass = _handler(folder, install_web_dependencies(cache_dir, npm=npm))
+    except BaseException:
+        httpd.server_close()
+        raise
     thread = threading.Thread(target=httpd.serve_forever, name="jaxtalk-view", daemon=True)
     thread.start()
     return ViewerServer(httpd, thread)

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxtalk.data.sources.clip import MAX_SKEW_SECONDS, BadClip, ClipEntry, RawClip, check_clip
-from jaxtalk.data.sources.dualtalk import dualtalk_entries, is_dualtalk
+from jaxtalk.data.sources.dualtalk import dualtalk_entries, is_dualtalk, is_flat_dualtalk
 from jaxtalk.data.sources.generic import TOKENIZER_FILE, generic_entries, is_generic
 from jaxtalk.data.sources.synthtalk import export_dualtalk, export_generic, generic_export_names, synthtalk_entries
 from jaxtalk.data.sources.vocaset import is_vocaset, vocaset_entries
@@ -23,6 +23,7 @@ __all__ = [
     "LAYOUTS",
     "Source",
     "open_source",
+    "layout_hint",
     "BadClip",
     "ClipEntry",
     "RawClip",
@@ -70,6 +71,16 @@ def _synthtalk(spec: str, cache_dir: str | Path | None) -> Source:
     corpus = synthtalk.generate(parts[1], seed=seed, cache_dir=cache_dir)
     return Source(spec=f"synthtalk:{parts[1]}:{seed}", layout="synthtalk", entries=tuple(synthtalk_entries(corpus)),
                   tokenizer=lambda: corpus.tokenizer("A"))
+
+
+def layout_hint(spec: str | Path) -> str | None:
+    """What to change when a folder's clips were all rejected and the folder looks like a known
+    layout laid out differently (None: nothing recognisable)."""
+    root = Path(spec)
+    if root.is_dir() and is_flat_dualtalk(root):
+        return (f"{str(root)!r} holds DualTalk files (*_speaker1.wav, *_speaker2.npz...) without split folders: put "
+                "them under train/ and test/ in it, as DualTalk's release does, and run jaxtalk prepare again")
+    return None
 
 
 def open_source(spec: str | Path, *, layout: str | None = None, cache_dir: str | Path | None = None) -> Source:

@@ -30,6 +30,12 @@ def is_dualtalk(root: Path) -> bool:
     return any((root / s).is_dir() and any((root / s).glob("*_speaker[12].wav")) for s in SPLIT_FOLDERS)
 
 
+def is_flat_dualtalk(root: Path) -> bool:
+    """DualTalk's ``*_speaker1.wav`` / ``*_speaker2.wav`` files lying in ``root`` itself, without the
+    split folders (``train/``, ``test/``) that :func:`is_dualtalk` looks for."""
+    return not is_dualtalk(root) and any(root.glob("*_speaker[12].wav"))
+
+
 def _read(npz: Path | None, wav: Path) -> RawClip:
     from jaxtalk.audio.io import load_audio
     from jaxtalk.data.formats import dualtalk_to_params56

@@ -161,21 +161,22 @@ def prepare_user_mesh(
                     weights=weights)
 
 
-def _crossfade(num_frames: int, window: int, starts: list[int]) -> np.ndarray:
-    """``(W, frames)`` weights of each window's frames, summing to 1 at every output frame: a linear
-    ramp over the overlap where a window meets its neighbour, flat elsewhere."""
-    length = min(window, num_frames)
-    weights = np.zeros((len(starts), num_frames))
-    for w, s in enumerate(starts):
-        ramp = np.ones(length)
-        if w > 0:  # fade in over the overlap with the previous window
-            over = starts[w - 1] + length - s
-            ramp[:over] = np.minimum(ramp[:over], (np.arange(over) + 1) / (over + 1))
-        if w < len(starts) - 1:  # fade out over the overlap with the next window
-            over = s + length - starts[w + 1]
-            ramp[length - over:] = np.minimum(ramp[length - over:], (over - np.arange(over)) / (over + 1))
-        weights[w, s:s + length] = ramp
-    return weights / weights.sum(axis=0, keepdims=True)
+def _ramp(w: int, starts: list[int], length: int) -> np.ndarray:
+    """``(length,)`` unnormalised weight of window ``w``'s frames: a linear ramp over the overlap where
+    it meets a neighbour, flat elsewhere."""
+    ramp = np.ones(length)
+    if w > 0:  # fade in over the overlap with the previous window
+        over = starts[w - 1] + length - starts[w]
+        ramp[:over] = np.minimum(ramp[:over], (np.arange(over) + 1) / (over + 1))
+    if w < len(starts) - 1:  # fade out over the overlap with the next window
+        over = starts[w] + length - starts[w + 1]
+        ramp[length - over:] = np.minimum(ramp[length - over:], (over - np.arange(over)) / (over + 1))
+    return ramp
+
+
+# Windows ATS samples per call: a long clip is sampled this many windows at a time (bounded memory),
+# each window with its own noise, so the result does not depend on how the windows are grouped.
+ATS_WINDOWS_PER_CALL = 8
 
 
 def landmark_track(
@@ -186,11 +187,14 @@ def landmark_track(
     key: PRNGKeyArray,
     *,
     sample_steps: int | None = None,
+    windows_per_call: int = ATS_WINDOWS_PER_CALL,
 ) -> Float[np.ndarray, "frames 68 3"]:
     """ATS's landmark displacements (metres, template frame) for a whole 16 kHz utterance of any length.
 
-    Windows of the run's training length overlap by a quarter window, are sampled in one batch (the
-    batch padded to a power of two, so lengths share compiled programs) and cross-faded.
+    Windows of the run's training length overlap by a quarter window, are sampled ``windows_per_call``
+    at a time (each batch padded to a power of two, so lengths share compiled programs; memory bounded
+    whatever the length) and cross-faded. Window ``w`` starts from its own noise (see
+    :func:`_window_noise`), so the grouping changes nothing but rounding.
 
     Raises:
         ValueError: bad audio (empty, NaN, silent), an emotion outside the model's vocabulary or an
@@ -205,14 +209,30 @@ def landmark_track(
     window = ats.window_frames
     starts = window_starts(frames, window, max(window - window // 4, 1))  # a quarter overlap, cross-faded
     length = min(window, frames)
-    batch = 1 << (len(starts) - 1).bit_length()
-    chunks = np.stack([feats[s:s + length] for s in starts] + [feats[starts[-1]:starts[-1] + length]] * (batch - len(starts)))
-    disp = sample_displacements(ats, chunks, emotion, intensity, key, sample_steps=sample_steps)[: len(starts)]
-    weights = _crossfade(frames, window, starts)
-    out = np.zeros((frames, *disp.shape[2:]), np.float64)
-    for w, s in enumerate(starts):
-        out[s:s + length] += weights[w, s:s + length, None, None] * disp[w]
-    return out.astype(np.float32)
+    out = np.zeros((frames, ats.config.num_landmarks, 3), np.float64)
+    total = np.zeros(frames)
+    for first in range(0, len(starts), windows_per_call):
+        group = list(range(first, min(first + windows_per_call, len(starts))))
+        # Padded to a power of two (at most windows_per_call), so lengths share compiled programs.
+        batch = 1 << (len(group) - 1).bit_length()
+        group += [group[-1]] * (batch - len(group))
+        noise = np.stack([_window_noise(key, w, length, ats.config.motion_dim) for w in group])
+        chunks = np.stack([feats[starts[w]:starts[w] + length] for w in group])
+        disp = sample_displacements(ats, chunks, emotion, intensity, key, sample_steps=sample_steps, noise=noise)
+        for w, d in zip(dict.fromkeys(group), disp):
+            ramp = _ramp(w, starts, length)
+            out[starts[w]:starts[w] + length] += ramp[:, None, None] * d
+            total[starts[w]:starts[w] + length] += ramp
+    return (out / total[:, None, None]).astype(np.float32)
+
+
+def _window_noise(key: PRNGKeyArray, w: int, length: int, dim: int) -> np.ndarray:
+    """Window ``w``'s DDIM starting noise: what ``ats.sample`` draws from ``key`` for a batch of one
+    (window 0), from ``fold_in(key, w)`` for the others."""
+    import jax
+
+    k = key if w == 0 else jax.random.fold_in(key, w)
+    return np.asarray(jax.random.normal(jax.random.split(k)[0], (1, length, dim)))[0]
 
 
 def animate(
@@ -274,14 +294,17 @@ def displace(stm: FittedSTM, mesh: UserMesh, landmark_disp: Float[np.ndarray, "f
         raise ValueError(f"landmark displacements must be one sequence (frames, {stm.config.num_landmarks}, 3), "
                          f"got {disp.shape}")
     frames = disp.shape[0]
-    total = -(-frames // STM_CHUNK) * STM_CHUNK
-    padded = np.concatenate([disp, np.repeat(disp[-1:], total - frames, axis=0)])
-    chunks = [np.asarray(stm_decode(stm.params, stm.config, mesh.features, padded[s:s + STM_CHUNK], mesh.stm_mesh))
-              for s in range(0, total, STM_CHUNK)]
-    canon = np.concatenate(chunks)[:frames] * mesh.weights[None, :, None]  # (T, V', 3) metres, template frame
-    user = mesh.canonical.displacements_to_user(canon)
     vmap = mesh.cleaned.vertex_map
-    out = np.zeros((frames, mesh.num_vertices, 3), np.float64)
     kept = vmap >= 0
-    out[:, kept] = user[:, vmap[kept]]
-    return (mesh.vertices[None] + out).astype(np.float32)
+    # Filled STM_CHUNK frames at a time: the only whole-clip array is the float32 result.
+    out = np.empty((frames, mesh.num_vertices, 3), np.float32)
+    for s in range(0, frames, STM_CHUNK):
+        chunk = disp[s:s + STM_CHUNK]
+        n = chunk.shape[0]
+        padded = np.concatenate([chunk, np.repeat(chunk[-1:], STM_CHUNK - n, axis=0)])  # one program for all
+        canon = np.asarray(stm_decode(stm.params, stm.config, mesh.features, padded, mesh.stm_mesh))[:n]
+        user = mesh.canonical.displacements_to_user(canon * mesh.weights[None, :, None])  # metres, template frame
+        moved = np.zeros((n, mesh.num_vertices, 3), np.float64)
+        moved[:, kept] = user[:, vmap[kept]]
+        out[s:s + n] = mesh.vertices[None] + moved
+    return out

@@ -190,6 +190,7 @@ def sample_displacements(
     *,
     sample_steps: int | None = None,
     eta: float = 0.0,
+    noise: np.ndarray | None = None,
 ) -> np.ndarray:
     """Sample landmark displacements (metres) from a fitted ATS.
 
@@ -201,12 +202,13 @@ def sample_displacements(
         key: PRNG key.
         sample_steps: DDIM steps (default the config's).
         eta: DDIM eta.
+        noise: ``(B, T, 3N)`` starting noise (default: drawn from ``key``), see :func:`ats.sample_ats`.
 
     Returns:
         ``(B, T, N, 3)`` displacements in metres.
     """
     cond = ats.make_condition(fitted.config, audio, emotion, intensity)
-    out = ats.sample(fitted.params, fitted.config, cond, key, sample_steps=sample_steps, eta=eta)
+    out = ats.sample(fitted.params, fitted.config, cond, key, sample_steps=sample_steps, eta=eta, noise=noise)
     return np.asarray(fitted.stats.denormalize(np.asarray(out)))
 
 

@@ -3,7 +3,7 @@
 * :class:`TokTalkConfig` (``paper``, ``small``, ``tiny`` presets) and :func:`init_params`.
 * Model pieces: :class:`Decoder` (1-D U-Net transformer), :class:`StyleEncoder`, :class:`Adapter`.
 * Losses: :func:`loss` (stage 1) and :func:`adapter_loss` (stage 2).
-* Inference: :func:`sample` (offline), :func:`init_stream` / :func:`stream_step` / :func:`stream`
+* Inference: :func:`sample` (offline), :func:`sample_long` (offline, any length in bounded memory), :func:`init_stream` / :func:`stream_step` / :func:`stream`
   (streaming engine with an explicit carried state), :func:`encode_style`, :func:`adapt_tokens`.
 * Training: :mod:`jaxtalk.models.toktalk.train` (two stages with the shared loop).
 """
@@ -25,7 +25,7 @@ from jaxtalk.models.toktalk.model import (
     to_flow_space,
     velocity,
 )
-from jaxtalk.models.toktalk.sample import sample
+from jaxtalk.models.toktalk.sample import sample, sample_long
 from jaxtalk.models.toktalk.stream import (
     AdapterState,
     StreamState,
@@ -61,6 +61,7 @@ __all__ = [
     "make_loss_fn",
     "adapter_loss",
     "sample",
+    "sample_long",
     "StreamState",
     "init_stream",
     "AdapterState",

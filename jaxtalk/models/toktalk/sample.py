@@ -8,6 +8,7 @@ is a ``lax.scan`` over the grid and is differentiable end to end (w.r.t. style v
 from __future__ import annotations
 
 import functools
+from fractions import Fraction
 from typing import Any
 
 import jax
@@ -30,7 +31,14 @@ from jaxtalk.models.toktalk.noise import prior_noise
 from jaxtalk.samplers import cosine_grid, sample_euler
 from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 
-__all__ = ["sample", "resolve_style", "default_grid"]
+__all__ = ["sample", "sample_long", "resolve_style", "default_grid", "LONG_WINDOW_FRAMES", "LONG_CONTEXT_FRAMES"]
+
+# Offline sampling of an input longer than this runs window by window (:func:`sample_long`). The
+# decoder's attention is O(T^2) in memory (a 20-minute clip asked for 45 GB); 1,500 frames (60 s at
+# 25 fps) keep one window's attention under ~0.5 GB at the paper preset.
+LONG_WINDOW_FRAMES = 1500
+# Frames of already generated motion each later window re-reads as inpainted known frames (2 s).
+LONG_CONTEXT_FRAMES = 50
 
 PyTree = Any
 
@@ -163,6 +171,75 @@ def sample(
         config,
         bool(remat),
     )
+
+
+def sample_long(
+    params: PyTree,
+    config: TokTalkConfig,
+    tokens: Float[np.ndarray, "batch tokens width"],
+    style: Any,
+    key: PRNGKeyArray,
+    *,
+    sample_steps: int | None = None,
+    cfg_scale: Float[Array, ""] | float | None = None,
+    window_frames: int = LONG_WINDOW_FRAMES,
+    context_frames: int = LONG_CONTEXT_FRAMES,
+) -> Float[np.ndarray, "batch frames param"]:
+    """:func:`sample` of any length in bounded memory: window by window for long inputs.
+
+    An input of at most ``window_frames`` frames is one :func:`sample` call (bitwise the same result).
+    A longer one is cut into windows of exactly ``window_frames`` frames (one compiled program): window
+    ``k > 0`` starts ``context_frames`` before the first frame not yet generated and holds the frames
+    already generated as known (inpainted) frames, as the streaming engine continues a chunk; the last
+    window is moved back to end at the last frame, so it holds more known frames rather than another
+    shape. Window ``k`` draws its noise from ``fold_in(key, k)``.
+
+    Why windows and not an exact split: the offline decoder's attention is full (every frame attends
+    to every frame, and even the chunk mask has an unbounded past), so no frame's output depends on a
+    bounded stretch of input and no split reproduces the whole-sequence computation beyond one window.
+    Memory is O(window^2) for attention plus O(T) for the tokens and the output.
+
+    Args:
+        params, config, tokens, style, key, sample_steps, cfg_scale: as :func:`sample` (batch of any size).
+        window_frames: frames per window (rounded down to whole tokens).
+        context_frames: known frames re-read at the start of each later window (rounded down to whole
+            tokens; less than ``window_frames``).
+
+    Returns:
+        ``(B, T, param_dim)`` NumPy motion, ``T`` as :func:`sample` gives for these tokens.
+
+    Raises:
+        ValueError: as :func:`sample`; a window not longer than its context.
+    """
+    frames = check_tokens(tokens, width=config.speech_dim, rate=config.token_rate, fps=config.fps)
+    if frames <= window_frames:
+        return np.asarray(sample(params, config, tokens, style, key, sample_steps=sample_steps, cfg_scale=cfg_scale))
+    # Windows start on tokens whose first frame is a whole frame: q tokens span p frames exactly.
+    per_token = Fraction(config.fps) / Fraction(str(float(config.token_rate)))
+    p, q = per_token.numerator, per_token.denominator
+    win_t = (window_frames // p) * q
+    ctx_t = (context_frames // p) * q
+    if ctx_t >= win_t or win_t == 0:
+        raise ValueError(f"window_frames={window_frames} must exceed context_frames={context_frames} by whole tokens")
+    tokens = np.asarray(tokens, np.float32)
+    batch, num_tokens = tokens.shape[:2]
+    style_vec = resolve_style(params, config, style, batch)
+    out = np.zeros((batch, frames, config.param_dim), np.float32)
+    done_t, k = 0, 0  # tokens whose frames are generated; window index
+    while done_t < num_tokens:
+        start_t = 0 if k == 0 else min(done_t - ctx_t, (num_tokens - win_t) // q * q)
+        stop_t = start_t + win_t if start_t + win_t + q <= num_tokens else num_tokens  # the last takes the rest
+        start_f = start_t * p // q
+        win_f = (frames if stop_t == num_tokens else stop_t * p // q) - start_f
+        known_f = done_t * p // q - start_f  # frames of this window generated already
+        known_mask = np.zeros((batch, win_f), bool)
+        known_mask[:, :known_f] = True
+        motion = sample(params, config, tokens[:, start_t:stop_t], style_vec,
+                        key if k == 0 else jax.random.fold_in(key, k), sample_steps=sample_steps, cfg_scale=cfg_scale,
+                        known=out[:, start_f:start_f + win_f], known_mask=known_mask)
+        out[:, start_f + known_f:start_f + win_f] = np.asarray(motion)[:, known_f:]
+        done_t, k = stop_t, k + 1
+    return out
 
 
 @functools.partial(jax.jit, static_argnames=("config", "remat"))
