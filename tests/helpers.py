@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from pathlib import Path
 
@@ -114,3 +115,33 @@ def dualtalk_folder(root, source: str, corpus=None) -> dict[str, tuple[str, int]
         npz.unlink()
         convs[split] = (npz.name[: -len(f"_speaker{3 - with_motion}.npz")], with_motion)
     return convs
+
+
+@contextlib.contextmanager
+def most_optimizations_off():
+    """XLA's optimisations off while inside (tests dominated by compile time: tiny models, few steps)."""
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", previous)
+
+
+def crashing_batches(crash_at: int, *args, **kw):
+    """A :class:`jaxtalk.data.batching.BatchIterator` whose process 'dies' (KeyboardInterrupt) when asked
+    for batch number ``crash_at`` (1-based): a training run killed mid-way, for resume tests."""
+    from jaxtalk.data.batching import BatchIterator
+
+    class Crashing(BatchIterator):
+        def __init__(self):
+            super().__init__(*args, **kw)
+            self.served = 0
+
+        def __next__(self):
+            self.served += 1
+            if self.served == crash_at:
+                raise KeyboardInterrupt("simulated kill")
+            return super().__next__()
+
+    return Crashing()

@@ -15,13 +15,12 @@ import pickle
 import shutil
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from jaxtalk.cli import app
-from helpers import DUALTALK_SOURCES, dualtalk_folder
+from helpers import DUALTALK_SOURCES, dualtalk_folder, most_optimizations_off
 
 runner = CliRunner()
 
@@ -66,10 +65,8 @@ def _table(output: str, title: str) -> tuple[list[str], dict[str, list[str]]]:
 
 @pytest.fixture(scope="module", autouse=True)
 def _fast_compile():
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)  # compile time dominates these tiny runs
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+    with most_optimizations_off():
+        yield
 
 
 @pytest.fixture(scope="module")

@@ -14,11 +14,11 @@ import re
 import shutil
 from pathlib import Path
 
-import jax
 import pytest
 from typer.testing import CliRunner
 
 from jaxtalk.cli import app
+from helpers import most_optimizations_off
 
 runner = CliRunner()
 
@@ -40,10 +40,8 @@ def _train(model: str, data: Path, out: Path, steps: int) -> tuple[str, dict]:
 
 @pytest.fixture(scope="module", autouse=True)
 def _fast_compile():
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+    with most_optimizations_off():
+        yield
 
 
 @pytest.fixture(scope="module")

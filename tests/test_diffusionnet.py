@@ -10,6 +10,7 @@ import trimesh
 
 from jaxtalk.geometry import diffusionnet as dn
 from jaxtalk.geometry.operators import compute_operators
+from helpers import most_optimizations_off
 
 
 def bumpy_sphere(subdivisions: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -21,10 +22,8 @@ def bumpy_sphere(subdivisions: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module", autouse=True)
 def _fast_compile_module():
     """XLA optimisations off for this module: these tiny programs are compile-time bound."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+    with most_optimizations_off():
+        yield
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.models.freetalk.emotions import EMOTIONS, check_intensity, emotion_ids
 from jaxtalk.models.freetalk.loss import motion_loss
 from jaxtalk.samplers.schedules import make_schedule
+from helpers import most_optimizations_off
 
 T = 12
 AUDIO_DIM = 8
@@ -28,10 +29,8 @@ def _config(**kw) -> ATSConfig:
 @pytest.fixture(scope="module", autouse=True)
 def _fast_compile():
     # Compile time dominates these tiny models on a shared CPU; XLA optimisations do not pay off.
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+    with most_optimizations_off():
+        yield
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ from jaxtalk.face import builtin_face
 from jaxtalk.geometry.topology import make_variant
 from jaxtalk.models.freetalk import stm
 from jaxtalk.models.freetalk.config import FUSIONS, STMConfig
+from helpers import most_optimizations_off
 
 K = 12
 
@@ -20,10 +21,8 @@ K = 12
 @pytest.fixture(scope="module", autouse=True)
 def _fast_compile():
     # Compile time dominates these tiny models on a shared CPU; XLA optimisations do not pay off.
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+    with most_optimizations_off():
+        yield
 
 
 def _config(**kw) -> STMConfig:

@@ -23,6 +23,8 @@ from jaxtalk.train import (
     train,
 )
 
+from helpers import crashing_batches
+
 # Compile time dominates these tiny programs; all runs compared within a test share the setting.
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -72,20 +74,6 @@ def _run(tmp_path, name, **kw):
     return train(_mlp_loss, _mlp_params(jax.random.key(1)), it, CFG, **opts)
 
 
-class _Crashing(BatchIterator):
-    """A BatchIterator whose process 'dies' when asked for batch number ``crash_at`` (1-based)."""
-
-    def __init__(self, *args, crash_at, **kw):
-        super().__init__(*args, **kw)
-        self.crash_at, self.served = crash_at, 0
-
-    def __next__(self):
-        self.served += 1
-        if self.served == self.crash_at:
-            raise KeyboardInterrupt("simulated kill")
-        return super().__next__()
-
-
 # ---------------------------------------------------------------- behaviour
 
 
@@ -128,7 +116,7 @@ def test_crash_mid_run_resumes_from_last_checkpoint_bitwise(tmp_path):
     straight = _run(tmp_path, "straight")
     data, _, _ = _regression_data()
     with pytest.raises(KeyboardInterrupt):
-        _run(tmp_path, "crashed", save_every=3, data_iter=_Crashing(data, 8, seed=4, crash_at=8))
+        _run(tmp_path, "crashed", save_every=3, data_iter=crashing_batches(8, data, 8, seed=4))
     assert sorted(p.name for p in (tmp_path / "crashed").iterdir()) == ["3", "6"]
     resumed = _run(tmp_path, "crashed", save_every=3)
     assert resumed.history[0]["step"] == 7
@@ -260,7 +248,7 @@ def test_crash_after_a_best_save_resumes_without_duplicate_history(tmp_path):
     values = {s: 10.0 - s if s <= 7 else 20.0 for s in range(1, 13)}  # improves at every step up to 7
     opts = dict(eval_fn=_scripted(values), eval_every=1, save_every=3, best_metric="val")
     with pytest.raises(KeyboardInterrupt):
-        _run(tmp_path, "run", data_iter=_Crashing(data, 8, seed=4, crash_at=8), **opts)
+        _run(tmp_path, "run", data_iter=crashing_batches(8, data, 8, seed=4), **opts)
     run = tmp_path / "run"
     # Killed during step 8: regular checkpoints at 3 and 6, the best (and history rows) reach step 7.
     assert read_best(run)["step"] == 7 and Checkpointer(run, read_only=True).all_steps() == [3, 6]

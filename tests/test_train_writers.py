@@ -22,7 +22,7 @@ from jaxtalk.data.batching import BatchIterator
 from jaxtalk.train import Checkpointer, OptimConfig, make_schedule, read_history, read_metrics, save_checkpoint, train
 from jaxtalk.train.recipes import usable_batch_size
 from jaxtalk.train.writers import METRICS_FILE, RunMetrics
-from helpers import event_files, read_event_file, scalars
+from helpers import event_files, read_event_file, scalars, crashing_batches
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -49,20 +49,6 @@ def _loss(p, batch, key):
 
 def _eval(params, ema, step):
     return {"val_loss": 1.0 / step, "val_w": float(jnp.sum(params["w"]))}
-
-
-class _Crashing(BatchIterator):
-    """Dies (KeyboardInterrupt) when asked for batch number ``crash_at`` (1-based)."""
-
-    def __init__(self, *args, crash_at, **kw):
-        super().__init__(*args, **kw)
-        self.crash_at, self.served = crash_at, 0
-
-    def __next__(self):
-        self.served += 1
-        if self.served == self.crash_at:
-            raise KeyboardInterrupt("simulated kill")
-        return super().__next__()
 
 
 def _train(run_dir, data_iter=None, **kw):
@@ -119,7 +105,7 @@ def test_event_file_holds_the_same_scalars_as_metrics_jsonl(tmp_path):
 def test_resume_after_a_kill_drops_what_followed_the_last_checkpoint_from_both_files(tmp_path):
     run = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
-        _train(run, _Crashing(_data(), 8, seed=1, crash_at=11))  # steps 1..10 done, checkpoints at 4 and 8
+        _train(run, crashing_batches(11, _data(), 8, seed=1))  # steps 1..10 done, checkpoints at 4 and 8
     assert [r["step"] for r in read_metrics(run)] == [2, 4, 6, 8, 10]
     killed_file = event_files(run)[0]
     assert max(e.step for e in read_event_file(killed_file)) == 10

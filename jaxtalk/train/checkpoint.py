@@ -445,23 +445,39 @@ def read_history(directory: str | os.PathLike) -> list[dict[str, Any]]:
     Raises:
         ValueError: a line other than the last is not a JSON object (names the file and line).
     """
-    path = Path(directory) / HISTORY_FILE
+    return [_nan_from_null(row) for row in read_jsonl_rows(Path(directory) / HISTORY_FILE, "history row")]
+
+
+def read_jsonl_rows(path: str | os.PathLike, what: str, *, required: tuple[str, ...] = ()) -> list[dict[str, Any]]:
+    """The JSON objects of a log a run appends to, one per line (empty when the file is missing).
+
+    A torn last line (a run killed while appending) is skipped; a bad line elsewhere is an error.
+
+    Args:
+        path: the ``.jsonl`` file.
+        what: what a row is, for the error message.
+        required: keys every row must have.
+
+    Raises:
+        ValueError: a line other than the last is not such an object (names the file and line).
+    """
+    path = Path(path)
     if not path.is_file():
         return []
-    lines = path.read_text().splitlines()
+    lines = path.read_text(encoding="utf-8").splitlines()
     rows = []
     for number, line in enumerate(lines, start=1):
         if not line.strip():
             continue
         try:
             row = json.loads(line)
-            if not isinstance(row, dict):
-                raise ValueError("not a JSON object")
+            if not isinstance(row, dict) or any(k not in row for k in required):
+                raise ValueError("not a JSON object" + (f" with {', '.join(required)}" if required else ""))
         except ValueError as err:
             if number == len(lines):
                 break  # torn final append
-            raise ValueError(f"{path}:{number} is not a history row: {err}") from None
-        rows.append(_nan_from_null(row))
+            raise ValueError(f"{path}:{number} is not a {what}: {err}") from None
+        rows.append(row)
     return rows
 
 

@@ -160,24 +160,10 @@ def read_metrics(run_dir: str | os.PathLike) -> list[dict[str, Any]]:
     Raises:
         ValueError: a line other than the last is not a JSON object with a ``step`` (names the line).
     """
-    path = Path(run_dir) / METRICS_FILE
-    if not path.is_file():
-        return []
-    lines = path.read_text(encoding="utf-8").splitlines()
-    rows = []
-    for number, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        try:
-            row = json.loads(line)
-            if not isinstance(row, dict) or "step" not in row:
-                raise ValueError("not a JSON object with a step")
-        except ValueError as err:
-            if number == len(lines):
-                break  # torn final append
-            raise ValueError(f"{path}:{number} is not a metrics row: {err}") from None
-        rows.append({k: math.nan if v is None else v for k, v in row.items()})
-    return rows
+    from jaxtalk.train.checkpoint import read_jsonl_rows
+
+    rows = read_jsonl_rows(Path(run_dir) / METRICS_FILE, "metrics row", required=("step",))
+    return [{k: math.nan if v is None else v for k, v in row.items()} for row in rows]
 
 
 def json_line(row: Mapping[str, Any]) -> str:
