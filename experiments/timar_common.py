@@ -26,6 +26,7 @@ from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar import TimarConfig
 from jaxtalk.models.timar.data import Normalizer, conversations, fit_normalizer, monologues, windows
 from jaxtalk.models.timar.stream import stream
+from jaxtalk.train.recipes import TrainSettings
 
 
 def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None:
@@ -81,21 +82,20 @@ def train_model(args, corpus, config: TimarConfig, *, ckpt_dir=None, max_steps: 
     Returns:
         ``(loop result, normaliser, training windows)``.
     """
+    optim = TrainSettings(lr=args.lr, warmup_steps=args.warmup, final_lr_ratio=0.1).optim(args.steps)
     if uses_recipe(args):
         from jaxtalk.data.loader import open_data
         from jaxtalk.models.timar import recipe
-        from jaxtalk.train.recipes import TrainSettings
 
         data = open_data(f"synthtalk:{args.size}", cache_dir=args.cache_dir)
-        optim = TrainSettings(lr=args.lr, warmup_steps=args.warmup, final_lr_ratio=0.1).optim(args.steps)
         result = recipe.train(config, data, optim, steps=max_steps or args.steps, key=jax.random.key(seed),
                               batch_size=args.batch, seed=seed, ckpt_dir=ckpt_dir, progress=True)
         return result, Normalizer.from_dict(result.extra["normalizer"]), result.windows
     from jaxtalk.models.timar.train import train_timar
 
     norm, windows_ = training_setup(args, corpus)
-    result = train_timar(config, windows_, steps=args.steps, batch_size=args.batch, lr=args.lr,
-                         warmup_steps=args.warmup, seed=seed, progress=True, ckpt_dir=ckpt_dir, max_steps=max_steps)
+    result = train_timar(config, windows_, optim, key=jax.random.key(seed), batch_size=args.batch, seed=seed,
+                         progress=True, ckpt_dir=ckpt_dir, max_steps=max_steps)
     return result, norm, int(windows_["agent_motion"].shape[0])
 
 

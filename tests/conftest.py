@@ -8,7 +8,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
+from pathlib import Path
 
 # Keep CPU tests deterministic and avoid oversubscribing the 2 CI cores.
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
@@ -47,12 +50,35 @@ def key():
     return jax.random.key(0)
 
 
+def _session_shared(tmp_path_factory, name: str) -> Path:
+    """A folder every xdist worker of this test session shares (one session's worker folders share a
+    parent); without xdist, this session's own temporary folder."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    folder = root / name
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+@contextlib.contextmanager
+def _exclusive(folder: Path):
+    """Holds an exclusive lock on ``folder`` across processes: one worker builds, the others wait and
+    then find it built."""
+    with open(folder / ".lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 @pytest.fixture(scope="session")
 def synthtalk_tiny(tmp_path_factory):
-    """The tiny SynthTalk corpus (seed 0), generated once per test session into a shared cache."""
+    """The tiny SynthTalk corpus (seed 0), generated once per test session into a cache all workers
+    share (byte-identical from its seed; its files are written atomically)."""
     from jaxtalk.data import synthtalk
 
-    return synthtalk.generate("tiny", seed=0, cache_dir=tmp_path_factory.mktemp("synthtalk_tiny"))
+    return synthtalk.generate("tiny", seed=0, cache_dir=_session_shared(tmp_path_factory, "synthtalk_tiny"))
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -73,16 +99,19 @@ def prepared_tiny(tmp_path_factory, synthtalk_tiny):
     """The tiny SynthTalk corpus prepared (``jaxtalk prepare``) once per test session.
 
     It lies where ``--data synthtalk:tiny --cache-dir <prepared_tiny.root.parent>`` finds it, so CLI
-    tests train on it without preparing again.
+    tests train on it without preparing again. The xdist workers share it: the first prepares it under
+    a file lock, the others read it (tests only read a prepared folder).
     """
     from jaxtalk.data.loader import PreparedData
     from jaxtalk.data.prepare import prepare
     from jaxtalk.data.sources import Source, synthtalk_entries
 
-    cache = tmp_path_factory.mktemp("prepared")
-    source = Source("synthtalk:tiny:0", "synthtalk", tuple(synthtalk_entries(synthtalk_tiny)),
-                    tokenizer=lambda: synthtalk_tiny.tokenizer("A"))
-    prepare(source, cache / "synthtalk-tiny-seed0", progress=False, echo=lambda line: None)
+    cache = _session_shared(tmp_path_factory, "prepared")
+    with _exclusive(cache):  # prepared once per session, by the first worker that needs it
+        if not (cache / "synthtalk-tiny-seed0" / "manifest.json").is_file():
+            source = Source("synthtalk:tiny:0", "synthtalk", tuple(synthtalk_entries(synthtalk_tiny)),
+                            tokenizer=lambda: synthtalk_tiny.tokenizer("A"))
+            prepare(source, cache / "synthtalk-tiny-seed0", progress=False, echo=lambda line: None)
     return PreparedData(cache / "synthtalk-tiny-seed0")
 
 

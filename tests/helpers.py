@@ -145,3 +145,29 @@ def crashing_batches(crash_at: int, *args, **kw):
             return super().__next__()
 
     return Crashing()
+
+
+def cli_ok(args: list) -> str:
+    """Run ``jaxtalk ARGS`` in-process (typer's runner); it must succeed. Returns its output."""
+    from typer.testing import CliRunner
+
+    from jaxtalk.cli import app
+
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def cli_error(args: list, *words: str) -> str:
+    """Run ``jaxtalk ARGS``; it must be refused as a user error: exit 2, exactly one ``error:`` line
+    (holding every one of ``words``) and no traceback. Returns that line."""
+    from typer.testing import CliRunner
+
+    from jaxtalk.cli import app
+
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and all(w in errors[0] for w in words), result.output
+    assert "Traceback" not in result.output
+    return errors[0]

@@ -19,28 +19,11 @@ import numpy as np
 import optax
 import pytest
 import soundfile as sf
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
+from helpers import cli_ok as _ok, cli_error as _error
 
-runner = CliRunner()
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
 pytestmark = pytest.mark.usefixtures("fast_compile")
-
-
-def _ok(args: list[str]) -> str:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, result.output
-    return result.output
-
-
-def _error(args: list[str]) -> str:
-    """The one ``error:`` line of a refused command (exit 2, no traceback)."""
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 2, result.output
-    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1 and "Traceback" not in result.output, result.output
-    return errors[0]
 
 
 def _speech(path: Path, seconds: float, *, silent: bool = False) -> Path:

@@ -12,27 +12,11 @@ import jax
 import numpy as np
 import pytest
 import soundfile as sf
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
+from helpers import cli_ok as _ok, cli_error as _user_error
 
-runner = CliRunner()
 
 COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render", "export", "view"]
-
-
-def _ok(args: list[str]) -> str:
-    result = runner.invoke(app, args)
-    assert result.exit_code == 0, result.output
-    return result.output
-
-
-def _user_error(args: list[str], message: str) -> None:
-    result = runner.invoke(app, args)
-    assert result.exit_code == 2, result.output
-    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1 and message in errors[0], result.output
-    assert "Traceback" not in result.output
 
 
 @pytest.mark.parametrize("command", COMMANDS)

@@ -17,12 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
-from helpers import DUALTALK_SOURCES, dualtalk_folder, most_optimizations_off
-
-runner = CliRunner()
+from helpers import DUALTALK_SOURCES, dualtalk_folder, most_optimizations_off, cli_ok as _ok, cli_error as _user_error
 
 
 TIMAR = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
@@ -33,20 +29,6 @@ SMALL = {
     "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
             "--set", "sample_steps=4", "--set", "batch_size=2"],
 }
-
-
-def _ok(args: list[str]) -> str:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, result.output
-    return result.output
-
-
-def _user_error(args: list[str], message: str) -> None:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 2, result.output
-    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1 and message in errors[0], result.output
-    assert "Traceback" not in result.output
 
 
 def _table(output: str, title: str) -> tuple[list[str], dict[str, list[str]]]:
@@ -131,7 +113,6 @@ def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path)
     for key in ("MSE", "LVE_mm2", "MVE_mm", "MOD_mm"):
         assert rows["oracle"][key] < rows["mean pose"][key], key
     assert rows["ground truth"]["MSE"] is None and rows["ground truth"]["jitter_mm"] > 0
-
 
 
 def test_toktalk_eval_rows_per_step_count_streamed_and_offline(runs, tmp_path):

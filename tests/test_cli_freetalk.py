@@ -15,27 +15,11 @@ import numpy as np
 import pytest
 import soundfile as sf
 from scipy.spatial.transform import Rotation
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
+from helpers import cli_ok as _ok, cli_error as _user_error
 
-runner = CliRunner()
 ATS_SMALL = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
              "--set", "sample_steps=4", "--set", "batch_size=2"]
-
-
-def _ok(args: list) -> str:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, result.output
-    return result.output
-
-
-def _user_error(args: list, message: str) -> None:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 2, result.output
-    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1 and message in errors[0], result.output
-    assert "Traceback" not in result.output
 
 
 @pytest.fixture(scope="module")

@@ -17,27 +17,10 @@ import numpy as np
 import pygltflib
 import pytest
 import soundfile
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
 from jaxtalk.data.formats import MotionClip, save_npz
 
-runner = CliRunner()
-
-
-def _ok(args: list[str]) -> str:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 0, result.output
-    return result.output
-
-
-def _refused(args: list[str], *words: str) -> str:
-    result = runner.invoke(app, [str(a) for a in args])
-    assert result.exit_code == 2, result.output
-    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1 and all(w in errors[0] for w in words), result.output
-    assert "Traceback" not in result.output
-    return errors[0]
+from helpers import cli_ok as _ok, cli_error as _refused
 
 
 def _hashes(folder: Path) -> dict[str, str]:

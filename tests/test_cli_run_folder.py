@@ -15,23 +15,14 @@ import jax
 import numpy as np
 import pytest
 import soundfile as sf
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
 from jaxtalk.train import read_metrics
-from helpers import event_files, read_event_file, scalars
+from helpers import event_files, read_event_file, scalars, cli_ok as _ok
 
-runner = CliRunner()
 
 STEPS, EVERY = 6, 2
 TINY = ["--preset", "tiny", "--set", "num_mid_blocks=0", "--set", "batch_size=2"]
 TRAIN_SCALARS = {"train/loss", "train/lr", "train/grad_norm", "train/steps_per_s"}
-
-
-def _ok(args: list[str]) -> str:
-    result = runner.invoke(app, args)
-    assert result.exit_code == 0, result.output
-    return result.output
 
 
 def _no_warnings(output: str, caplog, capfd) -> None:

@@ -15,22 +15,13 @@ import shutil
 from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
-from helpers import most_optimizations_off
+from helpers import most_optimizations_off, cli_ok as _ok
 
-runner = CliRunner()
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
 WARNING = "warning: the training split has {n} windows, fewer than batch_size=16: training with the largest " \
           "batch it allows (--set batch_size={n})"
-
-
-def _ok(args: list[str]) -> str:
-    result = runner.invoke(app, args)
-    assert result.exit_code == 0, result.output
-    return result.output
 
 
 def _train(model: str, data: Path, out: Path, steps: int) -> tuple[str, dict]:

@@ -13,20 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
+from helpers import cli_ok as _ok
 
 pytest.importorskip("safetensors")
-runner = CliRunner()
 # wav2vec 2.0's conv stack (hop 320 samples: 50 frames/s), narrow: long clips stay cheap to encode.
 REAL_HOP = dict(conv_dim=(16,) * 7, conv_kernel=(10, 3, 3, 3, 3, 2, 2), conv_stride=(5, 2, 2, 2, 2, 2, 2))
-
-
-def _ok(args: list[str]) -> str:
-    result = runner.invoke(app, args)
-    assert result.exit_code == 0, result.output
-    return result.output
 
 
 def _keep_conversations(folder, splits):

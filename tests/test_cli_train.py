@@ -12,11 +12,9 @@ import json
 import jax
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from jaxtalk.cli import app
+from helpers import cli_ok as _ok
 
-runner = CliRunner()
 
 # The smallest graphs of each model (compile time dominates two-step runs).
 SMALL = {
@@ -26,12 +24,6 @@ SMALL = {
     "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32"],
     "stm": [],
 }
-
-
-def _ok(args: list[str]) -> str:
-    result = runner.invoke(app, args)
-    assert result.exit_code == 0, result.output
-    return result.output
 
 
 @pytest.fixture(scope="module")
