@@ -271,7 +271,8 @@ def _to_json(value: Any) -> Any:
 
 
 def write_json(path: str | os.PathLike[str], payload: dict[str, Any]) -> Path:
-    """Write ``payload`` plus ``machine_info`` as indented JSON, creating parent directories.
+    """Write ``payload`` plus ``machine_info`` and ``recorded`` (UTC date and the command line) as
+    indented JSON, atomically, creating parent directories.
 
     Args:
         path: output file.
@@ -286,8 +287,15 @@ def write_json(path: str | os.PathLike[str], payload: dict[str, Any]) -> Path:
     """
     if not isinstance(payload, dict):
         raise ValueError(f"payload must be a dict, got {type(payload).__name__}")
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    import datetime
+    import shlex
+    import sys
+
+    from jaxtalk.files import atomic_write_text
+
+    # When and by which command the numbers were made, so a figure quoted elsewhere can be traced.
+    recorded = {"date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])}
     full = {"machine_info": machine_info(), **payload} if "machine_info" not in payload else payload
-    out.write_text(json.dumps(full, indent=2, default=_to_json) + "\n")
-    return out
+    full = {"recorded": recorded, **full} if "recorded" not in full else full
+    return atomic_write_text(path, json.dumps(full, indent=2, default=_to_json) + "\n")

@@ -81,7 +81,7 @@ def test_print_table(capsys):
     assert capsys.readouterr().out == "T\na\n-\n1\n"
 
 
-def test_write_json_creates_dirs_and_adds_machine_info(tmp_path):
+def test_write_json_creates_dirs_and_adds_machine_info_date_and_command(tmp_path):
     timing = bm.Timing(compile_s=1.0, lower_s=0.5, run_median_s=0.2, run_min_s=0.1, runs=(0.1, 0.2, 0.3))
     path = tmp_path / "a" / "b" / "out.json"
     written = bm.write_json(
@@ -95,3 +95,10 @@ def test_write_json_creates_dirs_and_adds_machine_info(tmp_path):
     info = data["machine_info"]
     assert info["jax"] == jax.__version__ and info["backend"] == jax.default_backend()
     assert info["cpu_cores"] >= 1 and isinstance(info["cpu_model"], str)
+    import datetime
+    import pathlib
+    import sys
+
+    recorded = data["recorded"]
+    assert datetime.datetime.fromisoformat(recorded["date_utc"]).tzinfo is not None
+    assert recorded["command"].split()[0] == pathlib.Path(sys.argv[0]).name
