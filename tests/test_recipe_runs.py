@@ -99,7 +99,7 @@ def test_recipe_called_from_python_writes_a_run_that_load_run_restores(runs, pre
 @pytest.mark.parametrize("model", ["toktalk", "timar"])
 def test_jaxtalk_sample_opens_a_speech_model_run_made_from_python(runs, wav, tmp_path, model):
     out = tmp_path / "motion.npz"
-    code, output = _invoke(["sample", runs[model], wav, "--out", out, "--steps", "2"])
+    code, output = _invoke(["sample", runs[model], wav, "--out", out, "--sample-steps", "2"])
     assert code == 0, output
     params = np.load(out)["params"]
     assert params.shape[1] == 56 and params.shape[0] >= 25 and np.isfinite(params).all()

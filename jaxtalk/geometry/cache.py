@@ -101,4 +101,5 @@ def save(cache_dir: str | os.PathLike[str], key: str, ops: Operators) -> str:
         arrays[f"{name}_data"] = mat.data
         arrays[f"{name}_indices"] = mat.indices
         arrays[f"{name}_indptr"] = mat.indptr
-    return atomic_savez(path, **arrays)
+    atomic_savez(path, **arrays)
+    return path

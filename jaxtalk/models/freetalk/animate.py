@@ -174,6 +174,17 @@ def _ramp(w: int, starts: list[int], length: int) -> np.ndarray:
     return ramp
 
 
+def _crossfade(num_frames: int, window: int, starts: list[int]) -> np.ndarray:
+    """``(W, frames)`` weights of each window's frames, summing to 1 at every output frame (the ramps
+    of :func:`_ramp`, normalised): the whole-clip form of what :func:`landmark_track` accumulates
+    window by window."""
+    length = min(window, num_frames)
+    weights = np.zeros((len(starts), num_frames))
+    for w, s in enumerate(starts):
+        weights[w, s:s + length] = _ramp(w, starts, length)
+    return weights / weights.sum(axis=0, keepdims=True)
+
+
 # Windows ATS samples per call: a long clip is sampled this many windows at a time (bounded memory),
 # each window with its own noise, so the result does not depend on how the windows are grouped.
 ATS_WINDOWS_PER_CALL = 8
