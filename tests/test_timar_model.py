@@ -210,5 +210,5 @@ def test_train_timar_runs_a_two_step_schedule_and_rejects_missing_streams():
                          batch_size=2)
     assert len(result.history) >= 1 and np.isfinite(result.history[-1]["loss"])
     with pytest.raises(ValueError, match="missing streams"):
-        train_timar(cfg, {k: v for k, v in data.items() if k != "user_motion"}, OptimConfig(total_steps=2),
+        train_timar(cfg, {k: v for k, v in data.items() if k != "user_motion"}, OptimConfig(warmup_steps=0, total_steps=2),
                     key=jax.random.key(0))
