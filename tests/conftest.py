@@ -20,29 +20,23 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 import jax
 import pytest
 
+from helpers import jax_flag
+
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
 @pytest.fixture
 def float64():
     """Enable 64-bit JAX arrays for the duration of one test."""
-    previous = jax.config.read("jax_enable_x64")
-    jax.config.update("jax_enable_x64", True)
-    try:
+    with jax_flag("jax_enable_x64", True):
         yield
-    finally:
-        jax.config.update("jax_enable_x64", previous)
 
 
 @pytest.fixture
 def fast_compile():
     """Disable most XLA optimisations for one test (compile time dominates small programs)."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    try:
+    with jax_flag("jax_disable_most_optimizations", True):
         yield
-    finally:
-        jax.config.update("jax_disable_most_optimizations", previous)
 
 
 @pytest.fixture

@@ -118,14 +118,19 @@ def dualtalk_folder(root, source: str, corpus=None) -> dict[str, tuple[str, int]
 
 
 @contextlib.contextmanager
-def most_optimizations_off():
-    """XLA's optimisations off while inside (tests dominated by compile time: tiny models, few steps)."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
+def jax_flag(name: str, value: bool):
+    """The JAX config flag ``name`` set to ``value`` while inside, restored after."""
+    previous = jax.config.read(name)
+    jax.config.update(name, value)
     try:
         yield
     finally:
-        jax.config.update("jax_disable_most_optimizations", previous)
+        jax.config.update(name, previous)
+
+
+def most_optimizations_off():
+    """XLA's optimisations off while inside (tests dominated by compile time: tiny models, few steps)."""
+    return jax_flag("jax_disable_most_optimizations", True)
 
 
 def crashing_batches(crash_at: int, *args, **kw):
