@@ -471,15 +471,9 @@ def _restore_state(directory: Path, step: int | None) -> tuple[dict[str, Any], i
     A template would have to repeat each model's training-time structure (TokTalk's data-dependent
     normalisation entry, the optimiser's frozen-parameter mask); the checkpoint already knows it.
     """
-    import logging
-
     from jaxtalk.train import Checkpointer
 
-    # Orbax logs a warning for every read-only open ("Given directory is read only"): expected here,
-    # and noise before every line a user reads, so absl's logger is quiet while the run is read.
-    absl_logger = logging.getLogger("absl")
-    level = absl_logger.level
-    absl_logger.setLevel(logging.ERROR)
+    # Orbax's notes on a read-only open are filtered by the Checkpointer itself.
     try:
         with Checkpointer(directory, read_only=True) as ckpt:
             return ckpt.restore_saved(step)
@@ -487,8 +481,6 @@ def _restore_state(directory: Path, step: int | None) -> tuple[dict[str, Any], i
         if "no complete checkpoint" in str(err):  # nothing trained yet: tell the user what to do
             raise FileNotFoundError(f"{err} (train first: `jaxtalk train`)") from err
         raise
-    finally:
-        absl_logger.setLevel(level)
 
 
 def load_run(run_dir: str | Path, *, step: int | None = None, best: bool = False) -> LoadedRun:
