@@ -118,7 +118,7 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     rng = np.random.default_rng(0)
     ct = tt.tokens_per_chunk(config)
     style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
-    state = tt.init_stream(config, jax.random.key(0), batch=1, buffer_frames=2000)
+    state = tt.init_stream(config, jax.random.key(0), batch=1)
     chunk = jnp.asarray(rng.normal(size=(1, ct, config.speech_dim)), jnp.float32)
     ts = jnp.asarray(default_grid(config), jnp.float32)
     t0 = time.perf_counter()
@@ -201,7 +201,7 @@ def toktalk_growth(config: Any, chunks: int = 50, repeats: int = 10) -> dict[str
     rng = np.random.default_rng(1)
     ct = tt.tokens_per_chunk(config)
     style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
-    state = tt.init_stream(config, jax.random.key(0), batch=1, buffer_frames=max(2000, 2 * chunks * config.chunk_frames))
+    state = tt.init_stream(config, jax.random.key(0), batch=1)
     times = {}
     for i in range(1, chunks + 1):
         chunk = jnp.asarray(rng.normal(size=(1, ct, config.speech_dim)), jnp.float32)

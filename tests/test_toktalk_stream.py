@@ -27,7 +27,7 @@ def params():
 def test_stream_compiles_once_and_keeps_fixed_state(params):
     rng = np.random.default_rng(0)
     style = rng.normal(size=(B, CFG.style_vector_dim)).astype(np.float32)
-    state = tt.init_stream(CFG, jax.random.key(1), batch=B, buffer_frames=64)
+    state = tt.init_stream(CFG, jax.random.key(1), batch=B)
     shapes = jax.tree.map(jnp.shape, state)
     ct = tt.tokens_per_chunk(CFG)
     assert ct == 2
@@ -56,7 +56,7 @@ def test_stream_step_equals_offline_core_on_the_same_window(params):
     ct, c, ctx = tt.tokens_per_chunk(CFG), CFG.chunk_frames, CFG.context_frames
     n_chunks = 2
     tokens = rng.normal(size=(B, n_chunks * ct, CFG.speech_dim)).astype(np.float32)
-    state = tt.init_stream(CFG, jax.random.key(2), batch=B, buffer_frames=40)
+    state = tt.init_stream(CFG, jax.random.key(2), batch=B)
     outs = []
     for i in range(n_chunks):
         state, out = tt.stream_step(params, CFG, state, tokens[:, i * ct : (i + 1) * ct], style)
@@ -73,7 +73,7 @@ def test_stream_step_equals_offline_core_on_the_same_window(params):
     known = np.zeros((B, w, 56), np.float32)
     known[:, valid & (frames < (n_chunks - 1) * c)] = emitted[:, frames[valid & (frames < (n_chunks - 1) * c)]]
     known_mask = valid & (np.arange(w) >= ctx - CFG.overlap_frames) & (np.arange(w) < ctx)
-    noise = np.asarray(state.noise)[:, np.mod(frames, 40)]
+    noise = np.asarray(tt.stream_noise(CFG, jax.random.key(2), w, batch=B, first_frame=start))
     expect = generate_frames(
         params, CFG, jnp.asarray(win_tokens), style, jnp.asarray(noise), jnp.asarray(default_grid(CFG)),
         jnp.asarray(CFG.cfg_scale), known=jnp.asarray(known),
@@ -86,14 +86,11 @@ def test_stream_step_equals_offline_core_on_the_same_window(params):
 def test_stream_whole_sequence_and_errors(params):
     rng = np.random.default_rng(2)
     tokens = rng.normal(size=(1, 7, CFG.speech_dim)).astype(np.float32)  # 3.5 chunks
-    out = tt.stream(params, CFG, tokens, np.zeros((1, CFG.style_vector_dim), np.float32), jax.random.key(0),
-                    buffer_frames=32)
+    out = tt.stream(params, CFG, tokens, np.zeros((1, CFG.style_vector_dim), np.float32), jax.random.key(0))
     assert out.shape == (1, 14, 56) and bool(jnp.all(jnp.isfinite(out)))
-    state = tt.init_stream(CFG, jax.random.key(0), batch=1, buffer_frames=32)
+    state = tt.init_stream(CFG, jax.random.key(0), batch=1)
     with pytest.raises(ValueError, match="one chunk of 4 frames"):
         tt.stream_step(params, CFG, state, tokens[:, :3], np.zeros((1, CFG.style_vector_dim), np.float32))
-    with pytest.raises(ValueError, match="buffer_frames=4"):
-        tt.init_stream(CFG, jax.random.key(0), buffer_frames=4)
     with pytest.raises(ValueError, match="not a whole number of tokens"):
         tt.init_stream(tt.TokTalkConfig.tiny(token_rate=10.0), jax.random.key(0))
 
@@ -118,7 +115,7 @@ def test_stream_with_base_tokens_is_causal(params):
     rng = np.random.default_rng(3)
     tokens = rng.normal(size=(B, 8, CFG.speech_dim)).astype(np.float32)  # 4 chunks of 2 tokens
     style = np.zeros((B, CFG.style_vector_dim), np.float32)
-    run = lambda tok: tt.stream(params, CFG, tok, style, jax.random.key(0), buffer_frames=32)  # noqa: E731
+    run = lambda tok: tt.stream(params, CFG, tok, style, jax.random.key(0))  # noqa: E731
     for chunk in (1, 2):
         _assert_causal(run, tokens, chunk * 2, chunk * CFG.chunk_frames, rng)
 
@@ -128,17 +125,16 @@ def test_stream_with_source_tokens_is_causal_and_equals_offline_adaptation(param
     src = rng.normal(size=(B, 16, 48)).astype(np.float32)  # 25 Hz: 4 chunks of 4 source tokens
     assert tt.source_tokens_per_chunk(CFG, 25.0) == 4
     style = rng.normal(size=(B, CFG.style_vector_dim)).astype(np.float32)
-    run = lambda s: tt.stream(params, CFG, s, style, jax.random.key(0), buffer_frames=32, src_rate=25.0)  # noqa: E731
+    run = lambda s: tt.stream(params, CFG, s, style, jax.random.key(0), src_rate=25.0)  # noqa: E731
     for chunk in (1, 3):
         _assert_causal(run, src, chunk * 4, chunk * CFG.chunk_frames, rng)
     # The streaming adapter (carried buffer, continuing positions) computes the offline adapter.
     streamed = run(src)
-    offline = tt.stream(params, CFG, tt.adapt_tokens(params, CFG, src, 25.0), style, jax.random.key(0),
-                        buffer_frames=32)
+    offline = tt.stream(params, CFG, tt.adapt_tokens(params, CFG, src, 25.0), style, jax.random.key(0))
     np.testing.assert_allclose(np.asarray(streamed), np.asarray(offline), atol=1e-5)
     # A long stream keeps its adapter state fixed and reproduces the offline adapter past the buffer.
     long_src = rng.normal(size=(1, 4 * 12, 48)).astype(np.float32)
-    state = tt.init_stream(CFG, jax.random.key(1), batch=1, buffer_frames=32, source_dim=48)
+    state = tt.init_stream(CFG, jax.random.key(1), batch=1, source_dim=48)
     adapted = []
     for i in range(12):
         state, _ = tt.stream_step(params, CFG, state, long_src[:, 4 * i : 4 * i + 4], style[:1], src_rate=25.0)
@@ -165,9 +161,9 @@ def test_stream_equals_offline_chunked_sample_when_the_window_holds_the_whole_pa
     rng = np.random.default_rng(6)
     tokens = rng.normal(size=(B, 8, cfg.speech_dim)).astype(np.float32)  # 16 frames
     style = rng.normal(size=(B, cfg.style_vector_dim)).astype(np.float32)
-    streamed = tt.stream(p, cfg, tokens, style, jax.random.key(4), buffer_frames=16)
-    buffer = tt.init_stream(cfg, jax.random.key(4), batch=B, buffer_frames=16).noise
-    offline = tt.sample(p, cfg, tokens, style, noise=buffer, chunked=True)
+    streamed = tt.stream(p, cfg, tokens, style, jax.random.key(4))
+    noise = tt.stream_noise(cfg, jax.random.key(4), 16, batch=B)
+    offline = tt.sample(p, cfg, tokens, style, noise=noise, chunked=True)
     np.testing.assert_allclose(np.asarray(streamed), np.asarray(offline), atol=2e-5)
 
 
@@ -180,16 +176,16 @@ def test_offline_model_refuses_to_stream():
 def test_source_token_stream_bad_input_errors(params):
     style = np.zeros((1, CFG.style_vector_dim), np.float32)
     src_chunk = np.zeros((1, 4, 48), np.float32)
-    base = tt.init_stream(CFG, jax.random.key(0), batch=1, buffer_frames=32)
+    base = tt.init_stream(CFG, jax.random.key(0), batch=1)
     with pytest.raises(ValueError, match="src_rate given but the stream takes base tokens"):
         tt.stream_step(params, CFG, base, src_chunk, style, src_rate=25.0)
-    source = tt.init_stream(CFG, jax.random.key(0), batch=1, buffer_frames=32, source_dim=48)
+    source = tt.init_stream(CFG, jax.random.key(0), batch=1, source_dim=48)
     with pytest.raises(ValueError, match="pass their rate, src_rate"):
         tt.stream_step(params, CFG, source, src_chunk, style)
     with pytest.raises(ValueError, match=r"must have shape \(1, 4, 48\)"):
         tt.stream_step(params, CFG, source, src_chunk[:, :3], style, src_rate=25.0)
     with pytest.raises(ValueError, match="made for 40-d source tokens"):
-        tt.stream_step(params, CFG, tt.init_stream(CFG, jax.random.key(0), buffer_frames=32, source_dim=40),
+        tt.stream_step(params, CFG, tt.init_stream(CFG, jax.random.key(0), source_dim=40),
                        src_chunk[..., :40], style, src_rate=25.0)
     with pytest.raises(ValueError, match="no 'adapter'"):
         tt.stream({k: params[k] for k in ("decoder", "style", "norm")}, CFG, src_chunk, style, jax.random.key(0),

@@ -32,6 +32,7 @@ from jaxtalk.models.toktalk.stream import (
     init_stream,
     source_tokens_per_chunk,
     stream,
+    stream_noise,
     stream_step,
     tokens_per_chunk,
 )
@@ -69,4 +70,5 @@ __all__ = [
     "stream_step",
     "stream",
     "tokens_per_chunk",
+    "stream_noise",
 ]

@@ -10,8 +10,11 @@ standard deviation ``s`` frames and rescaled to unit variance per frame, so ever
 (``corr(lag) = exp(-lag^2 / (4 s^2))``) and leftover noise is smooth motion rather than jitter.
 
 Offline noise is drawn with ``3 s`` extra frames of white noise on each side, so it is stationary up to
-the edges; the streaming engine's fixed buffer is smoothed cyclically, so that frame ``f``'s noise is
-``buffer[f mod N]`` with the same statistics everywhere.
+the edges. The streaming engine needs the noise of an absolute frame to be the same whenever that frame
+is regenerated as left context, for utterances of any length: :func:`frame_noise` draws the white noise
+of frame ``f`` from ``fold_in(key, f)`` and smooths it over its neighbours' draws, so the noise is a
+fixed function of ``(key, f)`` that never repeats (a buffer read at ``f mod N`` would repeat every
+``N`` frames, 40 s for a 1,000-frame buffer).
 """
 
 from __future__ import annotations
@@ -22,9 +25,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.types import Array, Float, PRNGKeyArray
+from jaxtalk.types import Array, Float, Int, PRNGKeyArray
 
-__all__ = ["noise_kernel", "prior_noise", "cyclic_prior_noise"]
+__all__ = ["noise_kernel", "prior_noise", "frame_noise"]
 
 
 def noise_kernel(frames: float) -> Float[np.ndarray, " taps"]:
@@ -57,17 +60,39 @@ def prior_noise(
     return _smooth(jax.random.normal(key, (b, t + 2 * r, d), dtype), kernel)
 
 
-def cyclic_prior_noise(
-    key: PRNGKeyArray, shape: tuple[int, int, int], frames: float, dtype=jnp.float32
+def frame_noise(
+    key: PRNGKeyArray,
+    first_frame: Int[Array, ""] | int,
+    frames: int,
+    batch: int,
+    dim: int,
+    noise_frames: float,
+    dtype=jnp.float32,
 ) -> Float[Array, "batch time dim"]:
-    """Like :func:`prior_noise` but smoothed circularly: row ``T - 1`` is followed by row 0 with the
-    same correlation, for a buffer read at ``f mod T``."""
-    kernel = noise_kernel(frames)
-    white = jax.random.normal(key, shape, dtype)
-    if kernel.shape[0] == 1:
-        return white
+    """The starting noise of absolute frames ``first_frame .. first_frame + frames - 1`` of a stream.
+
+    Frame ``f``'s white noise is ``normal(fold_in(key, f), (batch, dim))``; with ``noise_frames > 0``
+    it is smoothed over the white noise of frames ``f - r .. f + r`` as :func:`prior_noise` does. The
+    result depends only on ``key`` and the absolute frame, never on which window asks for it, so the
+    same frame gets the same noise in every window and the sequence never repeats. Frames before the
+    utterance (negative indices) get noise too (the stream masks them out).
+
+    Args:
+        key: the stream's noise key.
+        first_frame: absolute index of the first frame (may be traced).
+        frames: number of frames (static).
+        batch: parallel streams (each its own noise).
+        dim: the motion width.
+        noise_frames: the correlation length (``TokTalkConfig.noise_frames``; 0: white).
+        dtype: floating dtype.
+
+    Returns:
+        ``(batch, frames, dim)`` noise, ``N(0, 1)`` per frame.
+    """
+    kernel = noise_kernel(noise_frames)
     r = (kernel.shape[0] - 1) // 2
-    if r > shape[1]:
-        raise ValueError(f"a noise buffer of {shape[1]} frames is shorter than the noise kernel's reach ({r})")
-    wrapped = jnp.concatenate([white[:, -r:], white, white[:, :r]], axis=1)
-    return _smooth(wrapped, kernel)
+    index = jnp.asarray(first_frame, jnp.int32) - r + jnp.arange(frames + 2 * r, dtype=jnp.int32)
+    # fold_in takes 32-bit data: negative frames map to distinct large values (two's complement).
+    draw = lambda f: jax.random.normal(jax.random.fold_in(key, f.astype(jnp.uint32)), (batch, dim), dtype)  # noqa: E731
+    white = jax.vmap(draw, out_axes=1)(index)
+    return white if r == 0 else _smooth(white, kernel)

@@ -5,8 +5,9 @@ sampler on a FIXED window of ``context_frames + chunk_frames`` frames: the bound
 (earlier tokens, padded at the start of the utterance and masked out) followed by the new chunk, with
 the block-causal chunk mask. The last ``overlap_frames`` of already emitted output before the chunk
 are known frames (inpainted at every step), so the new chunk continues the old one. The starting noise
-of absolute frame ``f`` is ``buffer[f mod N]`` from a fixed buffer drawn once, so a frame regenerated
-as left context sees the same noise as when it was first generated.
+of absolute frame ``f`` is a fixed function of the stream's key and ``f``
+(:func:`~jaxtalk.models.toktalk.noise.frame_noise`), so a frame regenerated as left context sees the
+same noise as when it was first generated, and the noise never repeats however long the stream runs.
 
 Because the window never grows, every chunk after the first reuses one compiled program and the
 per-chunk cost does not depend on how long the utterance already is (the reference recomputes the
@@ -42,7 +43,7 @@ from jaxtalk.models.toktalk.model import (
     frames_for_tokens,
     source_to_base_rate,
 )
-from jaxtalk.models.toktalk.noise import cyclic_prior_noise
+from jaxtalk.models.toktalk.noise import frame_noise
 from jaxtalk.models.toktalk.sample import default_grid, generate_frames, resolve_style
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 
@@ -55,6 +56,7 @@ __all__ = [
     "tokens_per_chunk",
     "source_tokens_per_chunk",
     "overlap_window_mask",
+    "stream_noise",
 ]
 
 PyTree = Any
@@ -82,7 +84,7 @@ class StreamState(NamedTuple):
         tokens: ``(B, Wt, speech_dim)`` tokens of the current window (left context + last chunk).
         motion: ``(B, W, param_dim)`` emitted motion in the window (zeros where none yet).
         valid: ``(B, W)`` True on window frames that exist (False: padding before the utterance).
-        noise: ``(B, N, param_dim)`` the fixed noise buffer; frame ``f`` uses row ``f mod N``.
+        noise_key: the key of the starting noise (:func:`stream_noise`).
         position: ``()`` absolute index of the first frame of the next chunk.
         step: ``()`` chunks generated so far.
         adapter: the adaptation layer's state when the stream takes source-space tokens, else None.
@@ -91,7 +93,7 @@ class StreamState(NamedTuple):
     tokens: Float[Array, "batch window_tokens token"]
     motion: Float[Array, "batch window param"]
     valid: Bool[Array, "batch window"]
-    noise: Float[Array, "batch buffer param"]
+    noise_key: PRNGKeyArray
     position: Int[Array, ""]
     step: Int[Array, ""]
     adapter: AdapterState | None = None
@@ -132,6 +134,16 @@ def overlap_window_mask(config: TokTalkConfig) -> np.ndarray:
     return (frames >= ctx - config.overlap_frames) & (frames < ctx)
 
 
+def stream_noise(
+    config: TokTalkConfig, key: PRNGKeyArray, frames: int, *, batch: int = 1, first_frame: int = 0,
+    dtype: Any = jnp.float32,
+) -> Float[Array, "batch frames param"]:
+    """The starting noise a stream made with ``init_stream(config, key, batch=batch)`` uses for absolute
+    frames ``first_frame .. first_frame + frames - 1``: pass it to ``sample(..., noise=...)`` to
+    reproduce a stream offline."""
+    return frame_noise(key, first_frame, frames, batch, config.param_dim, config.noise_frames, dtype)
+
+
 def _require_causal(config: TokTalkConfig) -> None:
     if not config.causal:
         raise ValueError(
@@ -147,17 +159,15 @@ def init_stream(
     key: PRNGKeyArray,
     *,
     batch: int = 1,
-    buffer_frames: int = 1000,
     dtype: Any = jnp.float32,
     source_dim: int | None = None,
 ) -> StreamState:
-    """Empty state before the first chunk, with the noise buffer drawn from ``key``.
+    """Empty state before the first chunk; ``key`` fixes the starting noise of every frame.
 
     Args:
         config: model settings (chunk, context and overlap sizes).
-        key: PRNG key of the noise buffer.
+        key: PRNG key of the starting noise (:func:`stream_noise`).
         batch: number of parallel streams.
-        buffer_frames: rows of the noise buffer (reused cyclically; >= the window).
         dtype: floating dtype of the state.
         source_dim: width of source-space tokens to stream through the adaptation layer (None: the
             stream takes base-space tokens).
@@ -167,7 +177,7 @@ def init_stream(
 
     Raises:
         ValueError: the offline (non-causal) model, chunk or context frames that do not span whole
-            tokens, a buffer shorter than the window, a non-positive batch or source width.
+            tokens, a non-positive batch or source width.
     """
     _require_causal(config)
     if source_dim is not None and (isinstance(source_dim, bool) or int(source_dim) < 1):
@@ -175,15 +185,13 @@ def init_stream(
     if batch < 1:
         raise ValueError(f"batch must be >= 1, got {batch}")
     w = config.window_frames
-    if buffer_frames < w:
-        raise ValueError(f"buffer_frames={buffer_frames} must be at least the window ({w} frames)")
     tokens_per_chunk(config)
     wt = tokens_per_chunk(config, w)
     state = StreamState(
         tokens=jnp.zeros((batch, wt, config.speech_dim), dtype),
         motion=jnp.zeros((batch, w, config.param_dim), dtype),
         valid=jnp.zeros((batch, w), bool),
-        noise=cyclic_prior_noise(key, (batch, buffer_frames, config.param_dim), config.noise_frames, dtype),
+        noise_key=key,
         position=jnp.zeros((), jnp.int32),
         step=jnp.zeros((), jnp.int32),
         adapter=None if source_dim is None else AdapterState(
@@ -286,9 +294,8 @@ def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, ts, config, 
     motion = jnp.concatenate([state.motion[:, c:], jnp.zeros((batch, c, config.param_dim), state.motion.dtype)], axis=1)
     frames = jnp.arange(w)
     known_mask = valid & overlap_window_mask(config)[None, :]
-    n = state.noise.shape[1]
-    rows = jnp.mod(state.position - ctx + frames, n)
-    noise = jnp.take(state.noise, rows, axis=1)
+    noise = frame_noise(state.noise_key, state.position - ctx, w, batch, config.param_dim, config.noise_frames,
+                        state.motion.dtype)
     x = generate_frames(
         params, config, tokens, style_vec, noise, ts, cfg_scale,
         known=motion, known_mask=known_mask, mask=valid, chunked=jnp.ones((), bool),
@@ -296,7 +303,7 @@ def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, ts, config, 
     out = x[:, ctx:]
     motion = jnp.concatenate([motion[:, :ctx], out], axis=1)
     new_state = StreamState(
-        tokens=tokens, motion=motion, valid=valid, noise=state.noise,
+        tokens=tokens, motion=motion, valid=valid, noise_key=state.noise_key,
         position=state.position + c, step=state.step + 1, adapter=adapter,
     )
     return new_state, out
@@ -311,7 +318,6 @@ def stream(
     *,
     cfg_scale: Float[Array, ""] | float | None = None,
     ts: Any = None,
-    buffer_frames: int = 1000,
     src_rate: float | int | None = None,
 ) -> Float[Array, "batch frames param"]:
     """Runs the streaming engine over a whole token sequence, chunk by chunk (as a live stream would).
@@ -323,9 +329,8 @@ def stream(
         tokens: ``(B, Tt, speech_dim)`` base-space tokens, or with ``src_rate`` ``(B, Ts, src_dim)``
             source-space tokens, adapted chunk by chunk by the streaming adaptation layer.
         style: style vector or reference clip (encoded once).
-        key: PRNG key of the noise buffer.
+        key: PRNG key of the starting noise (:func:`stream_noise`).
         cfg_scale, ts: see :func:`stream_step`.
-        buffer_frames: noise buffer rows.
         src_rate: the rate of source-space ``tokens`` (None: base-space tokens).
 
     Returns:
@@ -353,7 +358,7 @@ def stream(
     pad = num_chunks * ct - tokens.shape[1]
     if pad:
         tokens = jnp.concatenate([tokens, jnp.repeat(tokens[:, -1:], pad, axis=1)], axis=1)
-    state = init_stream(config, key, batch=batch, buffer_frames=buffer_frames, dtype=tokens.dtype,
+    state = init_stream(config, key, batch=batch, dtype=tokens.dtype,
                         source_dim=source_dim)
     outs = []
     for i in range(num_chunks):  # one host call per chunk, exactly as chunks would arrive live
