@@ -150,6 +150,38 @@ def test_adapter_loss_alignment_term_is_analytic(params):
         float(metrics["flow"]) + CFG.kl_weight * float(metrics["kl"])), rtol=1e-5)
 
 
+def test_adapter_training_positions_are_contiguous_windows_spread_over_the_stream_range():
+    from jaxtalk.models.toktalk.loss import adapter_positions
+
+    cfg = dataclasses.replace(CFG, adapter_max_position=1000)
+    starts = []
+    for i in range(300):
+        pos = np.asarray(adapter_positions(cfg, jax.random.key(i), 8))
+        np.testing.assert_array_equal(pos, pos[0] + np.arange(8))
+        assert 0 <= pos[0] and pos[-1] < 1000
+        starts.append(pos[0])
+    # Uniform starts in [0, 992]: 300 draws reach both ends of the range (P(miss 10%) < 1e-13).
+    assert min(starts) < 100 and max(starts) > 892
+    # A window longer than the range starts at 0.
+    np.testing.assert_array_equal(np.asarray(adapter_positions(cfg, jax.random.key(0), 1200)), np.arange(1200))
+
+
+def test_adapter_loss_aligns_the_adapter_output_at_its_training_positions(params):
+    from jaxtalk.models.toktalk.loss import adapter_positions
+    from jaxtalk.models.toktalk.model import adapter_forward
+
+    batch = jax.tree.map(jnp.asarray, _batch(3))
+    key = jax.random.key(7)
+    _, metrics = tt.adapter_loss(params, CFG, batch, key, src_rate=25.0, flow_weight=0.0)
+    positions = adapter_positions(CFG, jax.random.fold_in(key, 2), batch["tokens"].shape[1])
+    assert int(positions[0]) > 0  # this key places the window away from the start
+    tok_valid = np.asarray(batch["mask"])[:, ::2][..., None]
+    for at, same in ((positions, True), (None, False)):
+        adapted = np.asarray(adapter_forward(params, CFG, batch["src_tokens"], 25.0, positions=at))
+        align = np.sum(np.square(adapted - np.asarray(batch["tokens"])) * tok_valid) / (tok_valid.sum() * 64)
+        assert np.isclose(float(metrics["align"]), align, rtol=1e-5) == same
+
+
 def test_bad_batches_raise(params):
     batch = _batch(0)
     with pytest.raises(ValueError, match="tokens for 16 frames"):

@@ -144,6 +144,22 @@ def test_stream_with_source_tokens_is_causal_and_equals_offline_adaptation(param
     assert int(state.adapter.position) == 24
 
 
+def test_a_sixty_second_source_token_stream_adapts_exactly_as_offline_adaptation(params):
+    # 60 s at 25 Hz: the stream's adapter positions run to 750 base tokens, counted from the start as
+    # offline adaptation counts them.
+    rng = np.random.default_rng(8)
+    src = rng.normal(size=(1, 1500, 48)).astype(np.float32)
+    style = np.zeros((1, CFG.style_vector_dim), np.float32)
+    state = tt.init_stream(CFG, jax.random.key(1), batch=1, source_dim=48)
+    adapted = []
+    for i in range(1500 // 4):
+        state, _ = tt.stream_step(params, CFG, state, src[:, 4 * i : 4 * i + 4], style, src_rate=25.0)
+        adapted.append(np.asarray(state.tokens[:, -2:]))
+    assert int(state.adapter.position) == 750
+    np.testing.assert_allclose(np.concatenate(adapted, axis=1),
+                               np.asarray(tt.adapt_tokens(params, CFG, src, 25.0)), atol=1e-5)
+
+
 def test_offline_sample_with_chunk_mask_is_causal(params):
     rng = np.random.default_rng(5)
     tokens = rng.normal(size=(B, 8, CFG.speech_dim)).astype(np.float32)

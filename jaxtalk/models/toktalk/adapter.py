@@ -10,7 +10,8 @@ With ``config.causal`` (the streaming model) the convolution is causal and each 
 only itself and the ``adapter_context - 1`` tokens before it, so token ``i``'s output depends on the
 inputs ``i - receptive_field(config) .. i`` alone and the streaming adapter
 (:mod:`jaxtalk.models.toktalk.stream`) reproduces the offline one from a fixed-size buffer of past
-inputs. Positions are absolute (``positions``), so a stream's positions continue across chunks.
+inputs. Positions are absolute (``positions``), so a stream's positions continue across chunks; stage-2
+training places its windows at random starts up to ``adapter_max_position`` so those positions are trained.
 """
 
 from __future__ import annotations

@@ -67,6 +67,10 @@ class TokTalkConfig:
         adapter_context: with ``causal``, the tokens each adapter attention query sees (itself and the
             ``adapter_context - 1`` before it, at the base rate): a bounded past, so the streaming
             adapter carries a fixed-size state.
+        adapter_max_position: the adaptation layer's positions are counted from the start of the
+            utterance, so a stream reaches positions far past a training window; stage-2 training
+            places each batch's window at a random start in ``[0, adapter_max_position - window)`` so
+            that every position up to this one (15,000 tokens: 10 min at 25 Hz) is one it was trained at.
         chunk_frames: streaming chunk (even: one stride-2 down/up pair halves it).
         overlap_frames: frames of previous output re-used as known frames for the next chunk (the
             paper's overlap inpainting; 5 from its notes). With the causal decoder the left context
@@ -121,6 +125,7 @@ class TokTalkConfig:
     adapter_heads: int = 4
     adapter_kernel: int = 3
     adapter_context: int = 16
+    adapter_max_position: int = 15000
     chunk_frames: int = 10
     overlap_frames: int = 5
     context_frames: int = 40
@@ -141,7 +146,7 @@ class TokTalkConfig:
             "param_dim", "fps", "speech_dim", "width", "transformer_blocks", "num_heads", "head_dim",
             "time_frequency_dim", "time_embed_dim", "num_groups", "style_dim", "style_hidden",
             "style_heads", "style_frames", "style_min_frames", "adapter_width", "adapter_layers",
-            "adapter_heads", "adapter_kernel", "adapter_context", "chunk_frames", "sample_steps",
+            "adapter_heads", "adapter_kernel", "adapter_context", "adapter_max_position", "chunk_frames", "sample_steps",
         )
         for name in positive:
             value = getattr(self, name)

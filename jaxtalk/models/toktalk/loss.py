@@ -40,9 +40,9 @@ from jaxtalk.models.toktalk.model import (
     velocity,
 )
 from jaxtalk.models.toktalk.style import kl_divergence
-from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
+from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 
-__all__ = ["loss", "make_loss_fn", "adapter_loss", "random_known_mask", "flow_matching_terms"]
+__all__ = ["loss", "make_loss_fn", "adapter_loss", "adapter_positions", "random_known_mask", "flow_matching_terms"]
 
 PyTree = Any
 
@@ -186,6 +186,18 @@ def _bound_loss(config: TokTalkConfig, params: PyTree, batch: dict[str, Any], ke
     return loss(params, config, batch, key)
 
 
+def adapter_positions(config: TokTalkConfig, key: PRNGKeyArray, tokens: int) -> Int[Array, " tokens"]:
+    """The absolute positions a stage-2 training window of ``tokens`` base tokens is placed at.
+
+    Streams and whole utterances number the adapter's tokens from the start of the utterance, so they
+    reach positions far beyond a training window; training at positions ``0 .. tokens-1`` only would
+    leave every later position untrained. The window starts uniformly in
+    ``[0, adapter_max_position - tokens]`` instead.
+    """
+    start = jax.random.randint(key, (), 0, max(config.adapter_max_position - tokens, 0) + 1)
+    return start + jnp.arange(tokens, dtype=jnp.int32)
+
+
 def adapter_loss(
     params: PyTree,
     config: TokTalkConfig,
@@ -198,7 +210,8 @@ def adapter_loss(
     """Stage-2 loss: ``||A(e_src) - e_base||^2 + flow_weight * L_CFM(frozen base on A(e_src))``.
 
     The alignment term is the mean squared error over real tokens and channels (a token is real when
-    the frame it starts on is). Freeze everything but ``params["adapter"]`` in the train loop.
+    the frame it starts on is). The window is placed at :func:`adapter_positions` (a random start), so
+    the adapter is trained at the positions a stream counts from the start of the utterance. Freeze everything but ``params["adapter"]`` in the train loop.
 
     Args:
         params: ``{"decoder", "style", "adapter"}``.
@@ -214,7 +227,8 @@ def adapter_loss(
     _check_batch(batch, config)
     base = batch["tokens"]
     k_ad, k_flow = jax.random.split(key)
-    adapted = adapter_forward(params, config, batch["src_tokens"], src_rate,
+    positions = adapter_positions(config, jax.random.fold_in(key, 2), base.shape[1])
+    adapted = adapter_forward(params, config, batch["src_tokens"], src_rate, positions=positions,
                               dropout_key=k_ad if config.dropout > 0 else None)
     if adapted.shape != base.shape:
         raise ValueError(

@@ -483,10 +483,13 @@ def adapter_forward(
     src: Float[Array, "batch src_tokens src"],
     src_rate: float | int,
     *,
+    positions: Array | None = None,
     dropout_key: PRNGKeyArray | None = None,
 ) -> Float[Array, "batch tokens token"]:
-    """Source tokens -> base-space tokens at the base rate (no validation; jit-friendly)."""
-    return adapter_apply(params, config, source_to_base_rate(src, src_rate, config), dropout_key=dropout_key)
+    """Source tokens -> base-space tokens at the base rate (no validation; jit-friendly); ``positions``:
+    the base tokens' absolute positions (None: ``0 .. Tt-1``)."""
+    return adapter_apply(params, config, source_to_base_rate(src, src_rate, config), positions=positions,
+                         dropout_key=dropout_key)
 
 
 def adapter_source_dim(params: dict[str, PyTree]) -> int:
