@@ -76,6 +76,29 @@ def test_toktalk_batches_have_the_recipes_shapes_and_equal_its_examples(data):
             np.testing.assert_array_equal(batch[key][k], value)
 
 
+def test_toktalk_reference_clips_shorter_than_style_frames_are_zero_padded_and_masked(data):
+    import jax.numpy as jnp
+
+    from jaxtalk.models.toktalk.config import TokTalkConfig
+    from jaxtalk.models.toktalk.model import anchor_pose
+    from jaxtalk.models.toktalk.recipe import TokTalkWindows
+
+    longest = max(c["frames"] for c in data.clips)
+    recipe = TokTalkWindows(TokTalkConfig(style_frames=longest + 7), 100)
+    for row in recipe.table(data, "train")[:6]:
+        example = recipe.example(data, row)
+        ref, r0 = int(row[2]), int(row[3])
+        clip = data.record(ref, ("motion",))["motion"][r0:]
+        n = len(clip)
+        assert n < longest + 7
+        np.testing.assert_array_equal(example["style_mask"], np.arange(longest + 7) < n)
+        np.testing.assert_array_equal(example["style"][:n], clip)
+        assert not example["style"][n:].any()
+        # The anchor pose of the masked clip is the mean of its real frames only.
+        anchor = anchor_pose({}, jnp.asarray(example["style"][None]), jnp.asarray(example["style_mask"][None]))
+        np.testing.assert_allclose(np.asarray(anchor)[0], clip.mean(axis=0), rtol=1e-5, atol=1e-6)
+
+
 def test_timar_batches_have_the_recipes_shapes(data):
     from jaxtalk.models.timar.config import TimarConfig
     from jaxtalk.models.timar.recipe import make_windows

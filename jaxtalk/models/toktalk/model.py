@@ -372,6 +372,8 @@ def fit_flow_scale(
     mask: Bool[np.ndarray, "n frames"],
     style: Float[np.ndarray, "n style_frames param"],
     floor: float = 0.05,
+    *,
+    style_mask: Bool[np.ndarray, "n style_frames"] | None = None,
 ) -> Float[np.ndarray, " param"]:
     """Per-channel RMS of the anchored, standardised training motion (floored), for ``norm["flow_scale"]``.
 
@@ -383,8 +385,9 @@ def fit_flow_scale(
     Args:
         params: parameters with the fitted ``norm`` (``mean``, ``std``).
         config: model settings.
-        motion, mask, style: training windows (:func:`~jaxtalk.models.toktalk.train.make_windows`).
+        motion, mask, style: training windows (the recipe's examples).
         floor: smallest scale (a channel that never moves is not blown up).
+        style_mask: True on the style clips' real frames (None: all real).
 
     Returns:
         ``(param_dim,)`` float32.
@@ -392,7 +395,8 @@ def fit_flow_scale(
     # The model's own standardisation and anchor (what to_flow_space subtracts), not a re-derivation.
     z = np.asarray(standardize(params["norm"], jnp.asarray(motion, jnp.float32)), np.float64)
     if config.style_anchor:
-        z = z - np.asarray(anchor_pose(params, jnp.asarray(style, jnp.float32)), np.float64)[:, None, :]
+        smask = None if style_mask is None else jnp.asarray(style_mask, bool)
+        z = z - np.asarray(anchor_pose(params, jnp.asarray(style, jnp.float32), smask), np.float64)[:, None, :]
     z = z[np.asarray(mask, bool)]
     if z.shape[0] == 0:
         raise ValueError("fit_flow_scale needs at least one real frame")

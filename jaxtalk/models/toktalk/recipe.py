@@ -111,11 +111,16 @@ class TokTalkWindows:
         length = min(w, motion.shape[0] - st)
         seg = np.zeros((w, motion.shape[1]), np.float32)
         seg[:length] = motion[st:st + length]
-        style = data.record(ref, ("motion",))["motion"] if ref != i else motion
+        style = (data.record(ref, ("motion",))["motion"] if ref != i else motion)[r0:r0 + self.config.style_frames]
+        # A reference clip shorter than style_frames is zero-padded and masked: edge-padding would
+        # repeat its last pose and weight the anchor pose (the clip's mean) towards it.
+        style_clip = np.zeros((self.config.style_frames, motion.shape[1]), np.float32)
+        style_clip[:len(style)] = style
         return {
             "motion": seg,
             "tokens": _fit_length(tokens[st // self.per_token:], w // self.per_token),
-            "style": _fit_length(style[r0:], self.config.style_frames).astype(np.float32),
+            "style": style_clip,
+            "style_mask": np.arange(self.config.style_frames) < len(style),
             "mask": np.arange(w) < length,
         }
 
@@ -174,8 +179,9 @@ def train(
         params["norm"] = {k: np.asarray(v) for k, v in data.motion_stats().items()}
         table = recipe.table(data, "train")
         first = [recipe.example(data, table[j]) for j in spread(len(table), 256)]
-        stacked = {k: np.stack([e[k] for e in first]) for k in ("motion", "mask", "style")}
-        params["norm"]["flow_scale"] = fit_flow_scale(params, config, stacked["motion"], stacked["mask"], stacked["style"])
+        stacked = {k: np.stack([e[k] for e in first]) for k in ("motion", "mask", "style", "style_mask")}
+        params["norm"]["flow_scale"] = fit_flow_scale(params, config, stacked["motion"], stacked["mask"], stacked["style"],
+                                                      style_mask=stacked["style_mask"])
     return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
                       metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames,
