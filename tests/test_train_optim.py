@@ -207,3 +207,13 @@ def test_create_train_state_validates(key):
         create_train_state({"w": jnp.array([1, 2])}, tx, key)
     with pytest.raises(ValueError, match="typed PRNG key"):
         create_train_state({"w": jnp.ones(2)}, tx, jax.random.PRNGKey(0))
+
+
+def test_recipe_warmup_is_whole_from_ten_warmups_on_and_a_capped_one_is_stated():
+    from jaxtalk.train.recipes import TrainSettings
+
+    settings = TrainSettings(lr=1e-4, warmup_steps=100)
+    assert settings.optim(1000).warmup_steps == 100 and settings.optim(50_000).warmup_steps == 100
+    assert settings.describe(1000) == "learning rate 0.0001, warm-up 100 steps"
+    assert settings.optim(400).warmup_steps == 40
+    assert settings.describe(400) == "learning rate 0.0001, warm-up 40 steps (capped from 100 at a tenth of this 400-step run)"

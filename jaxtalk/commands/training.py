@@ -223,6 +223,8 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         raise ValueError(f"window_frames is not a {opts.model} setting ({opts.model} windows are {spec.windows})")
     echo(f"{'resuming' if done else 'training'} {opts.model} ({preset or 'custom config'}) from step {done} to {opts.steps} on {data}; "
          f"checkpoints in {checkpoint_dir(out)}")
+    optim = settings.optim(opts.steps)
+    echo(settings.describe(opts.steps))
     mesh = None
     if opts.data_parallel or opts.distributed:
         from jaxtalk.train import make_mesh
@@ -237,7 +239,7 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         # The library's warnings (a smaller batch than asked, ...) as one line each, not Python's
         # two-line "file:line: UserWarning" form.
         warnings.showwarning = lambda message, *_args, **_kw: echo(f"warning: {message}")
-        result = train_fn(config, data, settings.optim(opts.steps), steps=opts.steps, key=jax.random.key(opts.seed),
+        result = train_fn(config, data, optim, steps=opts.steps, key=jax.random.key(opts.seed),
                           batch_size=settings.batch_size, seed=opts.seed, run_dir=out, run_info=info, mesh=mesh,
                           eval_every=settings.period(opts.steps), progress=opts.progress,
                           save_every=opts.save_every or max(opts.steps // 5, 1), **kw)

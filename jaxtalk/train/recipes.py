@@ -36,7 +36,8 @@ class TrainSettings:
     Attributes:
         lr: peak learning rate (AdamW, linear warm-up then cosine decay).
         weight_decay: decoupled weight decay.
-        warmup_steps: warm-up length (capped at a tenth of the run so short runs keep a decay phase).
+        warmup_steps: warm-up length (capped at a tenth of the run so short runs keep a decay phase;
+            see :meth:`optim`).
         final_lr_ratio: learning rate at the end as a fraction of ``lr``.
         clip_norm: global gradient-norm clip.
         ema_decay: decay of the (bias-corrected) EMA of the weights used for sampling; None: off.
@@ -62,12 +63,26 @@ class TrainSettings:
             raise ValueError(f"eval_every must be >= 1 or None, got {self.eval_every}")
 
     def optim(self, steps: int) -> Any:
-        """The :class:`~jaxtalk.train.OptimConfig` of a ``steps``-long run."""
+        """The :class:`~jaxtalk.train.OptimConfig` of a ``steps``-long run.
+
+        The warm-up is capped at a tenth of the run so that a short run keeps its decay phase: a run of
+        at least ``10 * warmup_steps`` steps gets the whole warm-up (the ``paper`` presets' 100 steps
+        from 1,000 steps on). ``jaxtalk train`` prints the warm-up it uses and the cap when it binds, and
+        the run records the warm-up it trained with.
+        """
         from jaxtalk.train.optim import OptimConfig
 
         return OptimConfig(lr=self.lr, weight_decay=self.weight_decay, warmup_steps=min(self.warmup_steps, steps // 10),
                            total_steps=steps, clip_norm=self.clip_norm, ema_decay=self.ema_decay,
                            final_lr_ratio=self.final_lr_ratio)
+
+    def describe(self, steps: int) -> str:
+        """One line on the schedule of a ``steps``-long run: the learning rate and the warm-up it uses,
+        with the cap when it binds (what ``jaxtalk train`` prints)."""
+        warmup = self.optim(steps).warmup_steps
+        capped = (f" (capped from {self.warmup_steps} at a tenth of this {steps}-step run)"
+                  if warmup < self.warmup_steps else "")
+        return f"learning rate {self.lr:g}, warm-up {warmup} steps{capped}"
 
     @classmethod
     def of_run(cls, optim: Any, *, batch_size: int, window_frames: int | None = None,
