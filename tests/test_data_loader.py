@@ -76,6 +76,18 @@ def test_toktalk_batches_have_the_recipes_shapes_and_equal_its_examples(data):
             np.testing.assert_array_equal(batch[key][k], value)
 
 
+def test_toktalk_reference_clip_is_another_clip_of_the_speaker_or_the_target_as_configured(data):
+    from jaxtalk.models.toktalk.config import TokTalkConfig
+    from jaxtalk.models.toktalk.recipe import TokTalkWindows
+
+    other = TokTalkWindows(TokTalkConfig(), 100).table(data, "train")
+    speaker = {i: c["speaker"] for i, c in enumerate(data.clips)}
+    assert all(speaker[int(r[2])] == speaker[int(r[0])] for r in other)
+    assert (other[:, 2] != other[:, 0]).mean() > 0.9  # the tiny corpus has several clips per speaker
+    target = TokTalkWindows(TokTalkConfig(style_source="target"), 100).table(data, "train")
+    np.testing.assert_array_equal(target[:, 2], target[:, 0])
+
+
 def test_toktalk_reference_clips_shorter_than_style_frames_are_zero_padded_and_masked(data):
     import jax.numpy as jnp
 

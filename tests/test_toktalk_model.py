@@ -44,12 +44,18 @@ def test_presets_and_config_errors():
         256, 12, 4, 8, 64)
     assert (paper.chunk_frames, paper.overlap_frames, paper.sample_steps, paper.cfg_scale) == (10, 5, 10, 0.7)
     assert small.width < paper.width and small.window_frames == 30
+    # The paper preset is the paper's objective; the small one keeps jaxtalk's named departures.
+    assert (paper.noise_frames, paper.style_anchor, paper.style_source) == (0.0, False, "target")
+    assert (small.noise_frames, small.style_anchor, small.style_source) == (2.0, True, "other_clip")
+    assert tt.TokTalkConfig.paper(noise_frames=2.0).noise_frames == 2.0
     with pytest.raises(ValueError, match="chunk_frames=7 must be even"):
         tt.TokTalkConfig.small(chunk_frames=7)
     with pytest.raises(ValueError, match="context_frames=15"):
         tt.TokTalkConfig.small(context_frames=15)
     with pytest.raises(ValueError, match="cfg_dropout"):
         tt.TokTalkConfig.small(cfg_dropout=1.5)
+    with pytest.raises(ValueError, match="style_source"):
+        tt.TokTalkConfig.small(style_source="another")
 
 
 def test_paper_decoder_has_about_82m_parameters():

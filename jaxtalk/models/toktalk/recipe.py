@@ -1,9 +1,10 @@
 """TokTalk's recipe: windows of a prepared dataset, and the one way the base model is trained.
 
 A window is ``window_frames`` motion frames (a whole number of base tokens) with the aligned tokens,
-its padding mask, and a reference style clip: a crop of ANOTHER clip of the same speaker in the same
-split when there is one (the paper crops the target itself, which lets the style vector copy the
-target; another clip measures real style transfer). The CLI, the demo and the experiments train
+its padding mask, and a reference style clip (``TokTalkConfig.style_source``): a crop of the target
+clip itself (the paper's, and the ``paper`` preset's) or of ANOTHER clip of the same speaker in the
+same split when there is one (the other presets': the style vector cannot copy the target, so training
+measures real style transfer). The CLI, the demo and the experiments train
 through :func:`train`.
 """
 
@@ -95,7 +96,10 @@ class TokTalkWindows:
         rows = []
         s = self.config.style_frames
         for i in clips:
-            others = [j for j in by_speaker[data.clips[i]["speaker"]] if j != i] or [i]
+            if self.config.style_source == "target":
+                others = [i]
+            else:
+                others = [j for j in by_speaker[data.clips[i]["speaker"]] if j != i] or [i]
             for st in window_starts(data.clips[i]["frames"], self.window_frames, self.hop_frames or self.window_frames // 2,
                                     align=self.per_token):
                 ref = others[int(rng.integers(len(others)))]
