@@ -186,20 +186,35 @@ def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
     tables = {t["title"].split(", ")[1].split(" ")[0]: _rows(t) for t in report["tables"]}
     assert all(v is not None for rows in tables.values() for row in rows.values() for v in row.values())
 
-    # The mean pose is the run's normaliser mean; MSE per side over its whole turns, then averaged.
+    # The mean pose is the run's normaliser mean; MSE per side over the whole side (the frames after
+    # its last whole turn included: TIMAR's protocol pads them with the last prediction), then averaged.
     data = prepared_tiny
     norm = Normalizer.from_dict(RunRecord.load(runs["timar"]).extra["normalizer"])
     per_side = {"exp": [], "jaw": [], "pose": []}
+    totals = []
     for i, j in agent_sides(data, "test")[:2]:
-        agent, user = data.record(i, ("turn_speech", "motion")), data.record(j, ("turn_speech",))
-        usable = min(agent["turn_speech"].shape[0], user["turn_speech"].shape[0]) // 25 * 25
-        err = (agent["motion"][:usable] - norm.motion_mean) ** 2
+        agent, user = data.record(i, ("motion",)), data.record(j, ("motion",))
+        total = min(agent["motion"].shape[0], user["motion"].shape[0])
+        totals.append(total)
+        err = (agent["motion"][:total] - norm.motion_mean) ** 2
         for group, sl in (("exp", slice(0, 50)), ("jaw", slice(50, 53)), ("pose", slice(53, 56))):
             per_side[group].append(err[:, sl].mean())
+    assert any(t % 25 for t in totals) and "repeat the last prediction" in output  # a partial last turn
     for group, scale in (("exp", 10.0), ("jaw", 1e3), ("pose", 1e2)):
+        assert tables[group]["timar (streamed)"]["frames"] == sum(totals)
         assert tables[group]["mean pose"]["MSE"] == pytest.approx(scale * np.mean(per_side[group]), rel=1e-4)
         assert tables[group]["oracle"]["MSE"] < tables[group]["mean pose"]["MSE"]
         assert tables[group]["mean pose"]["SID"] == pytest.approx(0.0, abs=1e-5)  # one pose, one cluster
+
+
+def test_pad_with_last_repeats_the_last_predicted_frame_to_the_side_length():
+    from jaxtalk.commands.evaluation import pad_with_last
+
+    pred = np.arange(12, dtype=np.float32).reshape(4, 3)
+    padded = pad_with_last(pred, 7)
+    np.testing.assert_array_equal(padded[:4], pred)
+    np.testing.assert_array_equal(padded[4:], np.repeat(pred[-1:], 3, axis=0))
+    np.testing.assert_array_equal(pad_with_last(pred, 4), pred)
 
 
 # ---------------------------------------------------------------------------------------------- ATS
@@ -322,13 +337,15 @@ def test_dualtalk_demo_layout_timar_and_toktalk_eval(source, tmp_path, request):
     assert report["items"] == 1 and len(report["tables"]) == 3
     data = PreparedData(prepared)
     agent, partner = (data.index(f"{test_conv}_speaker{k}") for k in (test_k, 3 - test_k))
-    turns = min(data.clips[agent]["frames"], data.clips[partner]["frames"]) // 25  # real: the partner's 29.95 s, 29
+    # The partner has no motion: the agent's whole side is scored, the frames after its last whole turn
+    # (the partner's speech ends first: real, 29.95 s) repeating the last prediction.
+    frames = data.clips[agent]["frames"]
     for group, table in zip(("exp", "jaw", "pose"), report["tables"]):
         assert f", {group}" in table["title"]
         columns, printed = _table(output, table["title"])
         assert columns == ["method", "sides", "frames", "FD", "P-FD", "MSE", "SID", "rPCC"]
         assert list(printed) == ["timar (streamed)", "mean pose"]  # real data: no oracle
-        assert all(row["frames"] == 25 * turns and all(row[k] is not None for k in columns[3:]) for row in table["rows"])
+        assert all(row["frames"] == frames and all(row[k] is not None for k in columns[3:]) for row in table["rows"])
     _user_error(["eval", run, "--split", "ood"], "has no conversation side")
     # TokTalk on the same folder: DualTalk has no audio-LLM tokens, so prepare fitted a VQ tokenizer
     # on the training split, which the run keeps for new audio.

@@ -366,6 +366,14 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
 _GROUP_COLUMNS = ("FD", "P-FD", "MSE", "SID", "rPCC")
 
 
+def pad_with_last(pred: np.ndarray, frames: int) -> np.ndarray:
+    """``pred`` extended to ``frames`` rows by repeating its last row (TIMAR's evaluation protocol for
+    the frames after the last whole turn); ``pred`` itself when it is already that long."""
+    if pred.shape[0] >= frames:
+        return pred[:frames]
+    return np.concatenate([pred, np.repeat(pred[-1:], frames - pred.shape[0], axis=0)], axis=0)
+
+
 def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
     import jax
 
@@ -391,18 +399,23 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     chosen = sides[: opts.max_clips]
     echo(f"{'predicting' if baseline else 'streaming'} {len(chosen)} {split} conversation sides of {data.root} "
          f"with {title} (step {run.step})")
-    preds, gts, partners, oracles, still_partners = [], [], [], [], 0
+    preds, gts, partners, oracles, still_partners, padded_frames = [], [], [], [], 0, 0
     for n, (i, j) in enumerate(chosen):
         agent = data.record(i, ("turn_speech", "motion", "oracle"))
         user = data.record(j, ("turn_speech", "motion"))
-        usable = min(agent["turn_speech"].shape[0], user["turn_speech"].shape[0], agent["motion"].shape[0]) // f * f
+        # Scored over the agent's whole side (as far as the partner's motion goes); the model predicts
+        # whole turns, and the frames after the last whole one repeat its last prediction (the paper's
+        # protocol, TIMAR Sec. 4.4).
+        total = agent["motion"].shape[0] if "motion" not in user else min(agent["motion"].shape[0], user["motion"].shape[0])
+        usable = min(agent["turn_speech"].shape[0], user["turn_speech"].shape[0], total) // f * f
         if usable == 0:
             continue
         if "motion" in user:
-            user_motion = np.asarray(user["motion"], np.float32)[:usable]
+            user_motion = np.asarray(user["motion"], np.float32)[:total]
         else:
-            user_motion, still_partners = np.broadcast_to(still, (usable, still.shape[0])).copy(), still_partners + 1
-        streams = (norm.speech(user["turn_speech"][:usable])[None], norm.motion(user_motion)[None],
+            user_motion, still_partners = np.broadcast_to(still, (total, still.shape[0])).copy(), still_partners + 1
+        padded_frames += total - usable
+        streams = (norm.speech(user["turn_speech"][:usable])[None], norm.motion(user_motion[:usable])[None],
                    norm.speech(agent["turn_speech"][:usable])[None])
         if baseline:
             from jaxtalk.models.dualtalk import predict_turns
@@ -410,12 +423,15 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
             out = predict_turns(run.params, config, *streams, context=context)
         else:
             out = stream(run.params, config, *streams, jax.random.fold_in(key, n), context=context)
-        preds.append(norm.unmotion(np.asarray(out)[0]))
-        gts.append(np.asarray(agent["motion"], np.float32)[:usable])
+        preds.append(pad_with_last(norm.unmotion(np.asarray(out)[0]), total))
+        gts.append(np.asarray(agent["motion"], np.float32)[:total])
         partners.append(user_motion)
-        oracles.append(np.asarray(agent["oracle"], np.float32)[:usable] if "oracle" in agent else None)
+        oracles.append(np.asarray(agent["oracle"], np.float32)[:total] if "oracle" in agent else None)
     if not preds:
         raise ValueError(f"split {split!r} of {data.root} has no conversation side of a whole {f}-frame turn")
+    if padded_frames:
+        echo(f"note: {padded_frames} frames after the sides' last whole {f}-frame turns repeat the last prediction "
+             "(TIMAR's protocol)")
     if still_partners:
         echo(f"note: {still_partners} of {len(preds)} partners have no tracked motion; P-FD and rPCC use the run's "
              "still pose for them (as training did)")
