@@ -199,3 +199,18 @@ def test_token_stream_from_npy(tmp_path):
         TokenStream.from_npy(tmp_path / "nan.npy", rate=12.5)
     with pytest.raises(ValueError, match="rate"):
         TokenStream.from_npy(tmp_path / "llm.npy", rate=0)
+
+
+def test_a_token_reads_audio_up_to_its_lookahead_past_its_window_and_no_further(tokenizer):
+    # 25 Hz tokens: token 4's window is [0.16, 0.20) s; its last mel frame is centred at sample 3040 and
+    # its 400-sample STFT ends at 3240: 40 samples (2.5 ms) past the window.
+    assert tokenizer.lookahead_s == pytest.approx(0.0025)
+    audio = _noise(1.0, seed=3)
+    end = int(SR * 0.20)
+    base = tokenizer.features(audio)
+    inside = audio.copy()
+    inside[end + 30 : end + 38] += 1.0  # within the look-ahead: token 4 changes
+    beyond = audio.copy()
+    beyond[end + int(SR * tokenizer.lookahead_s) :] += 1.0  # past it: tokens 0..4 do not
+    assert not np.allclose(tokenizer.features(inside)[4], base[4])
+    np.testing.assert_array_equal(tokenizer.features(beyond)[:5], base[:5])

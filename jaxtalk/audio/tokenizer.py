@@ -249,6 +249,22 @@ class VQTokenizer:
         _check_layout(self.rate, self.sample_rate, self.hop_length, self.stack)
 
     @property
+    def lookahead_s(self) -> float:
+        """Audio a token reads past the end of its own window, in seconds (the worst token).
+
+        A token pools the log-mel frames centred inside its window; the last of them is centred up to
+        a hop before the window's end, and its centred ``n_fft``-sample STFT reaches ``n_fft / 2``
+        samples past its centre (2.5 ms at 25 or 12.5 Hz with the defaults: the last centre sits 160
+        samples before the end, the STFT reaches 200 past it). A live stream can emit token ``k`` only
+        once that much audio after ``(k + 1) / rate`` has arrived, so it adds to the chunk latency.
+        """
+        frames_per_token = Fraction(self.sample_rate) / _as_fraction(self.rate, "rate") / self.hop_length
+        reach = Fraction(self.n_fft, 2 * self.hop_length)  # frames past the last centre
+        worst = max((math.ceil((k + 1) * frames_per_token) - 1) + reach - (k + 1) * frames_per_token
+                    for k in range(frames_per_token.denominator))
+        return float(max(worst, 0) * self.hop_length / self.sample_rate)
+
+    @property
     def num_codes(self) -> int:
         """Codebook size."""
         return int(self.codebook.shape[0])

@@ -308,6 +308,10 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
         tokens = np.concatenate([tokens, np.repeat(tokens[-1:], n * ct - tokens.shape[0], axis=0)], axis=0)
         style_vec = toktalk.encode_style(run.params, config, style)
         ts = None if opts.sample_steps is None else jnp.asarray(cosine_grid(opts.sample_steps), jnp.float32)
+        if kind == "audio":
+            # The times below are compute; a live stream also waits for the tokenizer's look-ahead.
+            echo(f"note: each token reads {1e3 * run.tokenizer().lookahead_s:.1f} ms of audio past its window "
+                 "(the tokenizer's centred STFT): a live chunk's latency is that plus the times below")
         # Committed like the restored parameters: an uncommitted first state would compile twice.
         state = jax.device_put(toktalk.init_stream(config, key), jax.devices()[0])
         chunk_s = config.chunk_frames / config.fps
