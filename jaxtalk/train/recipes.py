@@ -23,7 +23,7 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "fit_recipe", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "merged_eval", "fit_recipe", "VAL_WINDOWS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
@@ -215,14 +215,51 @@ def split_validation(data: Any, recipe: Any, loss_fn: Any, batch_size: int, key:
     return validation_eval(loss_fn, fixed_batches(examples, batch_size), key)
 
 
-def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any) -> dict[str, Any]:
+def merged_eval(*eval_fns: Callable[[Any, Any, int], dict[str, float]] | None
+                ) -> Callable[[Any, Any, int], dict[str, float]] | None:
+    """One ``eval_fn`` returning the metrics of every given one (None entries skipped; None if none)."""
+    fns = [f for f in eval_fns if f is not None]
+    if not fns:
+        return None
+
+    def eval_fn(params: Any, ema_params: Any, step: int) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for f in fns:
+            out.update(f(params, ema_params, step))
+        return out
+
+    return eval_fn
+
+
+def _saved_best_metric(ckpt_dir: Any) -> str | None:
+    """The metric an existing run's best checkpoint was chosen by (None: no best checkpoint yet)."""
+    from jaxtalk.train.checkpoint import Checkpointer, best_checkpoint_dir
+
+    directory = best_checkpoint_dir(ckpt_dir)
+    if not directory.is_dir():
+        return None
+    with Checkpointer(directory, read_only=True) as ckpt:
+        if ckpt.latest_step() is None:
+            return None
+        record = ckpt.read_metadata().get("best")
+    return record.get("metric") if isinstance(record, dict) else None
+
+
+def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any, best_metric: str = "val_loss") -> dict[str, Any]:
     """The loop's evaluation arguments: validate every ``eval_every`` steps and, with checkpoints, keep
-    the state of the lowest validation loss in ``<ckpt_dir>/best`` (nothing when there is no
-    validation split)."""
+    the state of the lowest ``best_metric`` in ``<ckpt_dir>/best`` (nothing when there is no
+    validation split). A resumed run whose best checkpoint was chosen by another metric (a run
+    started before its model selected by sampling) keeps selecting by that one, with a warning."""
     if eval_fn is None:
         return {}
+    if ckpt_dir is not None:
+        saved = _saved_best_metric(ckpt_dir)
+        if saved is not None and saved != best_metric:
+            warnings.warn(f"this run's best checkpoint was chosen by {saved!r}; it keeps selecting by it rather "
+                          f"than {best_metric!r}", stacklevel=3)
+            best_metric = saved
     return {"eval_fn": eval_fn, "eval_every": eval_every,
-            "best_metric": "val_loss" if ckpt_dir is not None else None}
+            "best_metric": best_metric if ckpt_dir is not None else None}
 
 
 def fit_recipe(
@@ -246,6 +283,8 @@ def fit_recipe(
     run_dir: Any = None,
     run_info: Any = None,
     window_frames: int | None = None,
+    sample_eval: Callable[[Any, Any, int], dict[str, float]] | None = None,
+    best_metric: str | None = None,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """What every recipe does once its windows, loss and initial parameters are set: the grain loader
@@ -270,6 +309,10 @@ def fit_recipe(
             says otherwise), or None.
         run_info: how the run was asked for (:class:`jaxtalk.runs.RunInfo`; None: a Python call).
         window_frames: the window setting the recipe was given (recorded with the run).
+        sample_eval: a validation that samples the model as users do (its metrics join the loss's at
+            every evaluation), or None.
+        best_metric: the evaluation metric the best checkpoint is chosen by (lower is better); None:
+            the validation loss. Falls back to the validation loss when ``sample_eval`` is None.
         **loop_kwargs: passed to :func:`jaxtalk.train.train`.
 
     Returns:
@@ -290,11 +333,12 @@ def fit_recipe(
     if run_dir is not None and ckpt_dir is None:
         ckpt_dir = checkpoint_dir(run_dir)
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
-    eval_fn = split_validation(data, recipe, loss_fn, batch_size, eval_key)
+    eval_fn = merged_eval(split_validation(data, recipe, loss_fn, batch_size, eval_key), sample_eval)
+    selection = best_metric if sample_eval is not None and best_metric is not None else "val_loss"
     if ckpt_dir is not None:  # the run folder of the run layout: <run>/checkpoint is the checkpoint directory
         loop_kwargs.setdefault("log_dir", Path(ckpt_dir).parent)
     result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
-                   mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir), **loop_kwargs)
+                   mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir, selection), **loop_kwargs)
     if run_info is not None and run_info.settings is not None:  # the run records the batch it trained with
         run_info = dataclasses.replace(run_info, settings=dataclasses.replace(run_info.settings, batch_size=batch_size))
     if run_dir is not None and jax.process_index() == 0:  # every process checkpoints; one writes the record

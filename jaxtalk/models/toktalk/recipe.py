@@ -145,6 +145,7 @@ def train(
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
+    val_clips: int = 8,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train the base model (decoder + style encoder) on ``data``'s training split with the CFM loss.
@@ -164,8 +165,12 @@ def train(
         run_info: how the run was asked for (the CLI's preset, ``--set`` items and settings), or None.
         ckpt_dir: checkpoint folder (exact resume; default ``run_dir/checkpoint``), or None.
         mesh: device mesh for data parallelism, or None.
-        eval_every: validation-loss period in steps (default: at the end); the loss is on up to
-            :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of the ``val`` split when it has any.
+        eval_every: validation period in steps (default: at the end). Each evaluation computes the loss
+            on up to :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of the ``val`` split and
+            streams ``val_clips`` of its clips at 1 and ``config.sample_steps`` steps
+            (:func:`~jaxtalk.models.toktalk.validation.streamed_validation`: LVE, MVE, jitter); the best
+            checkpoint is the one of the lowest streamed LVE (the validation loss when nothing streams).
+        val_clips: clips streamed at each evaluation (0: the validation loss only).
         **loop_kwargs: passed to :func:`jaxtalk.train.train` (``progress``, ``save_every``, ...).
 
     Returns:
@@ -186,7 +191,12 @@ def train(
         stacked = {k: np.stack([e[k] for e in first]) for k in ("motion", "mask", "style", "style_mask")}
         params["norm"]["flow_scale"] = fit_flow_scale(params, config, stacked["motion"], stacked["mask"], stacked["style"],
                                                       style_mask=stacked["style_mask"])
-    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
+    from jaxtalk.models.toktalk.validation import SELECTION_METRIC, streamed_validation
+
+    # The best checkpoint is the one users would pick: the lowest streamed lip error on val clips.
+    sample_eval = streamed_validation(config, data, "val", key=jax.random.fold_in(k_eval, 1), clips=val_clips)
+    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
+                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
                       metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames,
                       trainable=base_trainable, **loop_kwargs)
