@@ -119,9 +119,11 @@ REGISTRY: dict[str, ModelSpec] = {
                   # TokTalk runs recorded before noise_frames existed were trained on white noise.
                   legacy_fields=(("noise_frames", 0.0),)),
         ModelSpec("ats", "jaxtalk.models.freetalk.config:ATSConfig", "jaxtalk.models.freetalk.recipe:train_ats",
-                  "jaxtalk.models.freetalk.recipe:DEFAULTS", data_fields=(("speech_dim", "speech_dim"),)),
+                  "jaxtalk.models.freetalk.recipe:DEFAULTS", "jaxtalk.models.freetalk.recipe:ATS_PRESET_DEFAULTS",
+                  data_fields=(("speech_dim", "speech_dim"),)),
         ModelSpec("stm", "jaxtalk.models.freetalk.config:STMConfig", "jaxtalk.models.freetalk.recipe:train_stm",
-                  "jaxtalk.models.freetalk.recipe:DEFAULTS", windows="16 frames"),
+                  "jaxtalk.models.freetalk.recipe:DEFAULTS", "jaxtalk.models.freetalk.recipe:STM_PRESET_DEFAULTS",
+                  windows="16 frames"),
         ModelSpec("timar", "jaxtalk.models.timar.config:TimarConfig", "jaxtalk.models.timar.recipe:train",
                   "jaxtalk.models.timar.recipe:DEFAULTS", "jaxtalk.models.timar.recipe:PRESET_DEFAULTS",
                   data_fields=_TURN_SPEECH, windows="whole turns (max_turns)"),

@@ -246,6 +246,23 @@ def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_
     assert rows["ats (sampled)"]["jitter_mm"] > 0
 
 
+@pytest.mark.slow
+def test_ats_trained_on_whole_clips_is_scored_on_whole_clips(prepared_tiny, tmp_path):
+    from jaxtalk.runs import RunRecord
+
+    run = tmp_path / "ats-whole"
+    _ok(["train", "ats", "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent, "--steps", "2",
+         *SMALL["ats"], "--set", "window_frames=0", "--no-progress", "--out", run])
+    assert RunRecord.load(run).extra["window"] == 0
+    output = _ok(["eval", run, "--max-clips", "2", "--json", tmp_path / "r.json"])
+    assert "whole clips (at most 300 frames)" in output
+    rows = _rows(_report(tmp_path / "r.json")["tables"][0])
+    clips = prepared_tiny.split("test")[:2]
+    lengths = [min(prepared_tiny.clips[i]["frames"], 300) for i in clips]  # tiny clips are under 300 frames
+    assert all(prepared_tiny.clips[i]["frames"] <= 300 for i in clips)
+    assert rows["ats (sampled)"]["windows"] == 2 and rows["ats (sampled)"]["frames"] == sum(lengths)
+
+
 # ---------------------------------------------------------------------------------------------- STM
 
 

@@ -111,6 +111,30 @@ def test_toktalk_reference_clips_shorter_than_style_frames_are_zero_padded_and_m
         np.testing.assert_allclose(np.asarray(anchor)[0], clip.mean(axis=0), rtol=1e-5, atol=1e-6)
 
 
+def test_ats_whole_clip_examples_are_zero_padded_to_the_longest_clip_and_masked(data):
+    from jaxtalk.models.freetalk.recipe import ATSWindows, fit_displacement_stats
+
+    stats = fit_displacement_stats(data)
+    longest = max(data.clips[i]["frames"] for i in data.split("train"))
+    recipe = ATSWindows(0, stats, pad_to=longest)
+    table = recipe.table(data, "train")
+    assert sorted(int(r[0]) for r in table) == sorted(data.split("train")) and not table[:, 1].any()
+    for row in table[:3]:
+        example = recipe.example(data, row)
+        rec = data.record(int(row[0]), ("landmarks", "speech"))
+        n = rec["landmarks"].shape[0]
+        assert example["displacements"].shape[0] == example["audio"].shape[0] == longest
+        np.testing.assert_array_equal(example["mask"], np.arange(longest) < n)
+        np.testing.assert_array_equal(example["audio_mask"], example["mask"])
+        np.testing.assert_allclose(example["displacements"][:n], stats.normalize(rec["landmarks"]), rtol=1e-6)
+        assert not example["displacements"][n:].any() and not example["audio"][n:].any()
+    # A clip longer than pad_to is cut into pad_to-frame pieces.
+    short = ATSWindows(0, stats, pad_to=40)
+    i = data.split("train")[0]
+    starts = [int(r[1]) for r in short.table(data, "train") if int(r[0]) == i]
+    assert starts == list(range(0, data.clips[i]["frames"], 40))
+
+
 def test_timar_batches_have_the_recipes_shapes(data):
     from jaxtalk.models.timar.config import TimarConfig
     from jaxtalk.models.timar.recipe import make_windows

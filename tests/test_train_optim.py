@@ -217,3 +217,13 @@ def test_recipe_warmup_is_whole_from_ten_warmups_on_and_a_capped_one_is_stated()
     assert settings.describe(1000) == "learning rate 0.0001, warm-up 100 steps"
     assert settings.optim(400).warmup_steps == 40
     assert settings.describe(400) == "learning rate 0.0001, warm-up 40 steps (capped from 100 at a tenth of this 400-step run)"
+
+
+def test_freetalk_paper_presets_train_with_the_papers_optimiser_and_ats_on_whole_clips():
+    from jaxtalk.runs import REGISTRY
+
+    ats, stm = REGISTRY["ats"].settings("paper"), REGISTRY["stm"].settings("paper")
+    for s in (ats, stm):  # AdamW 1e-4, weight decay 1e-2, constant rate (no schedule is stated)
+        assert (s.lr, s.weight_decay, s.warmup_steps, s.final_lr_ratio) == (1e-4, 1e-2, 0, 1.0)
+    assert ats.window_frames == 0 and ats.batch_size == 16 and ats.clip_norm == 1.0
+    assert REGISTRY["ats"].settings("small").window_frames is None

@@ -475,8 +475,11 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
     extra = run.record.extra
     stats = DisplacementStats(mean=np.asarray(extra["stats"]["mean"], np.float32),
                               std=np.asarray(extra["stats"]["std"], np.float32))
-    window = int(extra["window"])
-    clips = [i for i in data.split(split) if data.clips[i]["frames"] >= window]
+    # A run trained on whole clips (window 0) is scored on whole clips, sampled one at a time (each up to
+    # max_frames long: a longer clip in max_frames pieces); a windowed run on windows of its length.
+    whole = int(extra["window"]) == 0
+    window = run.config.max_frames if whole else int(extra["window"])
+    clips = [i for i in data.split(split) if whole or data.clips[i]["frames"] >= window]
     if not clips:
         raise ValueError(f"split {split!r} of {data.root} has no clip of at least {window} frames (the run's window)")
     chosen = clips[: opts.max_clips]
@@ -490,32 +493,36 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
         if "oracle" in rec:
             rec["oracle_landmarks"] = landmark_motion(face, without_head_pose(rec.pop("oracle")))
         recs.append(rec)
-        items += [(n, st) for st in window_starts(rec["landmarks"].shape[0], window, window, pad_short=False)]
-    echo(f"sampling {len(items)} windows of {window} frames from {len(chosen)} {split} clips of {data.root} "
-         f"with ATS (step {run.step})")
+        frames = rec["landmarks"].shape[0]
+        items += ([(n, st) for st in range(0, frames, window)] if whole
+                  else [(n, st) for st in window_starts(frames, window, window, pad_short=False)])
+    lengths = [min(window, recs[n]["landmarks"].shape[0] - st, recs[n]["speech"].shape[0] - st) for n, st in items]
+    echo(f"sampling {len(items)} {'whole clips (at most ' if whole else 'windows of '}{window} frames"
+         f"{')' if whole else ''} from {len(chosen)} {split} clips of {data.root} with ATS (step {run.step})")
     key = jax.random.key(opts.seed)
     preds = []
-    for b in range(0, len(items), _ATS_BATCH):
-        batch = items[b:b + _ATS_BATCH]
-        batch = batch + [batch[-1]] * (_ATS_BATCH - len(batch))  # one compiled shape
-        audio = np.stack([recs[n]["speech"][st:st + window] for n, st in batch]).astype(np.float32)
+    per_call = 1 if whole else _ATS_BATCH  # whole clips differ in length: one call each
+    for b in range(0, len(items), per_call):
+        batch = items[b:b + per_call]
+        batch = batch + [batch[-1]] * (per_call - len(batch))  # one compiled shape
+        audio = np.stack([recs[n]["speech"][st:st + lengths[b]] for n, st in batch]).astype(np.float32)
         emotion = np.concatenate([emotion_ids(data.clips[chosen[n]]["emotion"] or NEUTRAL, run.config.emotions) for n, _ in batch])
         intensity = np.asarray([data.clips[chosen[n]]["intensity"] if data.clips[chosen[n]]["intensity"] is not None
                                 else 1.0 for n, _ in batch], np.float32)
         out = sample_displacements(fitted, audio, emotion, intensity, jax.random.fold_in(key, b))
-        preds += list(np.asarray(out, np.float32)[: min(_ATS_BATCH, len(items) - b)])
+        preds += list(np.asarray(out, np.float32)[: min(per_call, len(items) - b)])
     per: dict[str, list[dict[str, float | None]]] = {"ats (sampled)": [], "mean pose": [], "neutral": [], "oracle": [],
                                                      "ground truth": []}
     with_oracle = all("oracle_landmarks" in r for r in recs)
-    for (n, st), pred in zip(items, preds):
-        gt = recs[n]["landmarks"][st:st + window].astype(np.float32)
+    for (n, st), pred, length in zip(items, preds, lengths):
+        gt = recs[n]["landmarks"][st:st + length].astype(np.float32)
         per["ats (sampled)"].append(landmark_metrics(pred, gt))
         per["mean pose"].append(landmark_metrics(np.broadcast_to(stats.mean, gt.shape).copy(), gt))
         per["neutral"].append(landmark_metrics(np.zeros_like(gt), gt))
         if with_oracle:
-            per["oracle"].append(landmark_metrics(recs[n]["oracle_landmarks"][st:st + window], gt))
+            per["oracle"].append(landmark_metrics(recs[n]["oracle_landmarks"][st:st + length], gt))
         per["ground truth"].append({"LVE_mm2": None, "LE_mm": None, "jitter_mm": landmark_metrics(gt, gt)["jitter_mm"]})
-    rows = _rows(per, [window] * len(items), count="windows")
+    rows = _rows(per, lengths, count="windows")
     return len(chosen), [EvalTable(f"ATS on {split} ({data.root.name}, {len(chosen)} clips), 68 landmarks on the "
                                    "built-in face (head pose removed); LVE over the mouth landmarks 48-67", rows)]
 

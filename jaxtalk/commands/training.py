@@ -233,7 +233,7 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         local = jax.local_device_count()
         if settings.batch_size % local:
             raise ValueError(f"batch_size {settings.batch_size} must divide by the {local} local devices")
-    kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames else {}
+    kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames is not None else {}
     info = RunInfo(preset=preset, items=tuple(opts.overrides), data_spec=opts.data, settings=settings)
     with warnings.catch_warnings():
         # The library's warnings (a smaller batch than asked, ...) as one line each, not Python's

@@ -42,7 +42,8 @@ class TrainSettings:
         clip_norm: global gradient-norm clip.
         ema_decay: decay of the (bias-corrected) EMA of the weights used for sampling; None: off.
         batch_size: windows per step on each process.
-        window_frames: frames per training window (None: the model's default).
+        window_frames: frames per training window (None: the model's default; 0: whole clips, padded
+            and masked: ATS's ``paper`` preset).
         eval_every: validation period in steps (None: five evaluations per run).
     """
 
@@ -57,8 +58,8 @@ class TrainSettings:
     eval_every: int | None = None
 
     def __post_init__(self) -> None:
-        if self.batch_size < 1 or self.warmup_steps < 0 or (self.window_frames is not None and self.window_frames < 1):
-            raise ValueError(f"batch_size and window_frames must be >= 1 and warmup_steps >= 0: {self}")
+        if self.batch_size < 1 or self.warmup_steps < 0 or (self.window_frames is not None and self.window_frames < 0):
+            raise ValueError(f"batch_size must be >= 1, window_frames >= 0 and warmup_steps >= 0: {self}")
         if self.eval_every is not None and self.eval_every < 1:
             raise ValueError(f"eval_every must be >= 1 or None, got {self.eval_every}")
 

@@ -29,7 +29,7 @@ from jaxtalk.data.batching import window_starts
 from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT", "fit_displacement_stats", "train_ats",
+__all__ = ["DEFAULTS", "ATS_PRESET_DEFAULTS", "STM_PRESET_DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT", "fit_displacement_stats", "train_ats",
            "train_stm"]
 
 # Three face identities on three mesh topologies (FreeTalk's seen meshes). Windows are padded to the
@@ -39,6 +39,13 @@ STM_MESHES = ((0, "base"), (1, "decimated"), (2, "retriangulated"))
 STM_HELD_OUT = ((0, "subdivided"), (3, "base"), (3, "retriangulated"))
 # ATS and STM on 2 CPU cores.
 DEFAULTS = TrainSettings(lr=1e-3, warmup_steps=100)
+# The paper's optimiser (AdamW 1e-4, weight decay 1e-2, clip 1.0, batch 16; no schedule is stated, so a
+# constant rate) and, for ATS, whole clips rather than 50-frame windows (window_frames=0).
+ATS_PRESET_DEFAULTS: dict[str, TrainSettings] = {
+    "paper": TrainSettings(lr=1e-4, weight_decay=1e-2, warmup_steps=0, final_lr_ratio=1.0, clip_norm=1.0,
+                           batch_size=16, window_frames=0)}
+STM_PRESET_DEFAULTS: dict[str, TrainSettings] = {
+    "paper": TrainSettings(lr=1e-4, weight_decay=1e-2, warmup_steps=0, final_lr_ratio=1.0)}
 
 
 def fit_displacement_stats(data: PreparedData) -> DisplacementStats:
@@ -56,16 +63,35 @@ def fit_displacement_stats(data: PreparedData) -> DisplacementStats:
 
 @dataclasses.dataclass(frozen=True)
 class ATSWindows:
-    """ATS's window recipe (see the module docstring); ``emotions`` is the model's vocabulary."""
+    """ATS's window recipe (see the module docstring); ``emotions`` is the model's vocabulary.
+
+    Attributes:
+        window: frames per window; 0 trains on WHOLE clips (the paper's): each example is a clip
+            (a clip longer than ``pad_to`` is cut into ``pad_to``-frame pieces) zero-padded to
+            ``pad_to`` frames with a padding ``mask`` (and ``audio_mask``) that the loss and the
+            attention honour.
+        stats: the displacement standardisation.
+        emotions: the model's emotion vocabulary.
+        pad_to: with ``window == 0``, the length every example is padded to (the longest clip, at
+            most the model's ``max_frames``).
+    """
 
     window: int
     stats: DisplacementStats
     emotions: tuple[str, ...] = EMOTIONS
+    pad_to: int = 0
+
+    @property
+    def whole(self) -> bool:
+        return self.window == 0
 
     def table(self, data: PreparedData, split: str) -> np.ndarray:
-        """Rows ``(clip, start)``; clips shorter than a window give none."""
-        rows = [(i, s) for i in data.split(split) if data.clips[i]["frames"] >= self.window
-                for s in window_starts(data.clips[i]["frames"], self.window, max(self.window // 4, 1))]
+        """Rows ``(clip, start)``; clips shorter than a window give none (whole clips: every clip)."""
+        if self.whole:
+            rows = [(i, s) for i in data.split(split) for s in range(0, data.clips[i]["frames"], self.pad_to)]
+        else:
+            rows = [(i, s) for i in data.split(split) if data.clips[i]["frames"] >= self.window
+                    for s in window_starts(data.clips[i]["frames"], self.window, max(self.window // 4, 1))]
         return np.asarray(rows, np.int64).reshape(-1, 2)
 
     def example(self, data: PreparedData, row: np.ndarray) -> dict[str, np.ndarray]:
@@ -74,11 +100,19 @@ class ATSWindows:
         i, s = (int(v) for v in row)
         rec = data.record(i, ("landmarks", "speech"))
         clip = data.clips[i]
-        sl = slice(s, s + self.window)
-        return {"displacements": np.asarray(self.stats.normalize(rec["landmarks"][sl]), np.float32),
-                "audio": rec["speech"][sl].astype(np.float32),
-                "emotion": np.asarray(emotion_ids(clip["emotion"] or NEUTRAL, self.emotions)[0], np.int32),
-                "intensity": np.asarray(clip["intensity"] if clip["intensity"] is not None else 1.0, np.float32)}
+        sl = slice(s, s + (self.pad_to if self.whole else self.window))
+        example = {"displacements": np.asarray(self.stats.normalize(rec["landmarks"][sl]), np.float32),
+                   "audio": rec["speech"][sl].astype(np.float32),
+                   "emotion": np.asarray(emotion_ids(clip["emotion"] or NEUTRAL, self.emotions)[0], np.int32),
+                   "intensity": np.asarray(clip["intensity"] if clip["intensity"] is not None else 1.0, np.float32)}
+        if self.whole:
+            n = min(example["displacements"].shape[0], example["audio"].shape[0])
+            for name in ("displacements", "audio"):
+                padded = np.zeros((self.pad_to, *example[name].shape[1:]), np.float32)
+                padded[:n] = example[name][:n]
+                example[name] = padded
+            example["mask"] = example["audio_mask"] = np.arange(self.pad_to) < n
+        return example
 
 
 def train_ats(
@@ -123,7 +157,14 @@ def train_ats(
                          f"({', '.join(config.emotions)}): set emotions to the data's (--set emotions=mead, or a "
                          "comma-separated list starting with neutral)")
     stats = fit_displacement_stats(data)
-    recipe = ATSWindows(window_frames or min(config.max_frames, 50), stats, config.emotions)
+    if window_frames == 0:  # whole clips, padded to the longest (at most max_frames) and masked
+        if config.audio_frames_per_frame != 1:
+            raise ValueError("whole-clip ATS training (window_frames=0) needs speech features at the motion rate "
+                             f"(audio_frames_per_frame=1, got {config.audio_frames_per_frame})")
+        longest = max(data.clips[i]["frames"] for i in data.split("train")) if data.split("train") else 1
+        recipe = ATSWindows(0, stats, config.emotions, pad_to=min(longest, config.max_frames))
+    else:
+        recipe = ATSWindows(window_frames or min(config.max_frames, 50), stats, config.emotions)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = ats.init_params(config, k_init) if params is None else params
     extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}
