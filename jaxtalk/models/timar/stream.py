@@ -20,7 +20,9 @@ recomputation costs.
 The state is an explicit pytree. :func:`stream_step` compiles two programs, filling and sliding,
 and picks one on the host from the turn counter (under an outer ``jit`` the counter is abstract and
 one program with a ``lax.cond`` is used instead). CFG stacks the conditional and the unconditional
-window (user tokens -> fake token) along the batch axis.
+window (user tokens -> fake token) along the batch axis; with ``guidance_drop="current_turn"`` (the
+public code's choice) the unconditional rows drop the current turn's user tokens only and keep the
+conditional rows' past turns.
 """
 
 from __future__ import annotations
@@ -144,10 +146,16 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
         us, um, as_ = two(us), two(um), two(as_)
         drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
     tok = _encoder_call(params, config, "embed", us, um, as_, None, None, drop)  # (S, 1, tpt, w)
+    # What later turns see of this one: with guidance_drop="current_turn" the unconditional rows keep
+    # the REAL user tokens of past turns (only the current turn's are dropped), so they store, and
+    # cache the keys/values of, the conditional rows' tokens.
+    per_turn = guidance and config.guidance_drop == "current_turn"
+    keep_rows = (lambda x: jnp.concatenate([x[:b], x[:b]], axis=0)) if per_turn else (lambda x: x)  # noqa: E731
+    tok_kept = keep_rows(tok)
     t = state.turn
     slot = jnp.minimum(t, n)
-    written = jax.lax.dynamic_update_slice_in_dim(state.tokens, tok, slot, axis=1)
-    shifted = jnp.concatenate([state.tokens[:, 1:], tok], axis=1)
+    written = jax.lax.dynamic_update_slice_in_dim(state.tokens, tok_kept, slot, axis=1)
+    shifted = jnp.concatenate([state.tokens[:, 1:], tok_kept], axis=1)
     causal = config.attention == "turn_causal"
     layout = turn_layout(config.frames_per_turn)
 
@@ -155,12 +163,14 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
         # Bidirectional: past turns attend to the current one, nothing can be cached; encoder-decoder:
         # recomputed (see the module docstring); n = 0: the window is the current turn alone.
         tokens = jnp.where(t > n, shifted, written)
+        # The pass itself sees this turn's own tokens (the fake user tokens on unconditional rows).
+        current = jax.lax.dynamic_update_slice_in_dim(tokens, tok, slot, axis=1) if per_turn else tokens
         static_mask = jnp.asarray(layout.attention_mask(n + 1, causal=causal))
         key_slot = jnp.asarray(np.repeat(np.arange(n + 1), tpt))
         visible = static_mask & (key_slot <= slot)[None, :]
         # Every agent frame is masked at inference, past ones included (outputs are never fed back).
         masked = jnp.ones(tokens.shape[:2] + (config.frames_per_turn,), bool)
-        z = _encoder_call(params, config, "fuse", tokens, masked, visible)
+        z = _encoder_call(params, config, "fuse", current, masked, visible)
         z = jax.lax.dynamic_index_in_dim(z, slot, axis=1, keepdims=False)
         return StreamState(tokens, state.keys, state.values, t + 1, state.rng), z
 
@@ -195,11 +205,11 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
     # never read again (later turns rebuild it from the slid window), so it is left as is.
     fill = t < n
     new_k = tuple(
-        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(k_old, k_all[:, n * tpt:], t * tpt, axis=1), k_old)
+        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(k_old, keep_rows(k_all[:, n * tpt:]), t * tpt, axis=1), k_old)
         for k_old, (k_all, _) in zip(state.keys, kvs)
     )
     new_v = tuple(
-        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(v_old, v_all[:, n * tpt:], t * tpt, axis=1), v_old)
+        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(v_old, keep_rows(v_all[:, n * tpt:]), t * tpt, axis=1), v_old)
         for v_old, (_, v_all) in zip(state.values, kvs)
     )
     return StreamState(tokens, new_k, new_v, t + 1, state.rng), z
