@@ -273,13 +273,14 @@ def stream_condition(
 @functools.partial(
     jax.jit, static_argnames=("config", "sample_steps", "sampler", "guidance", "mode"), donate_argnums=(2,)
 )
-def _step(params, config, state, us, um, as_, cfg_scale, eta, temperature, sample_steps, sampler, guidance, mode):
+def _step(params, config, state, us, um, as_, cfg_scale, eta, temperature, sample_steps, sampler, guidance, mode,
+          initial_noise=None, step_noise=None):
     key = jax.random.fold_in(state.rng, state.turn)  # before _condition advances the turn
     state, z = _condition(params, config, state, us, um, as_, guidance, mode)
     b = us.shape[0]
     z_c, z_u = (z[:b], z[b:]) if guidance else (z, None)
     x = sample_frames(params, config, z_c, z_u, key, cfg_scale=cfg_scale, sample_steps=sample_steps, sampler=sampler, eta=eta,
-                      temperature=temperature)
+                      temperature=temperature, initial_noise=initial_noise, step_noise=step_noise)
     return state, x
 
 
@@ -297,6 +298,8 @@ def stream_step(
     eta: Float[Array, ""] | float = 0.0,
     temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
+    initial_noise: Float[Array, "batch frames param_dim"] | None = None,
+    step_noise: Float[Array, "steps batch frames param_dim"] | None = None,
 ) -> tuple[StreamState, Float[Array, "batch frames param_dim"]]:
     """One streaming turn: encode it against the window, sample the agent's motion for it.
 
@@ -315,6 +318,9 @@ def stream_step(
         eta: DDIM stochasticity (traced).
         temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`).
         guidance: must match the state.
+        initial_noise, step_noise: explicit standard normal draws instead of the turn's key (see
+            :func:`~jaxtalk.models.timar.sample.sample_frames`; for reproducing another
+            implementation's random stream).
 
     Returns:
         ``(new_state, motion)`` with ``motion: (B, F, 56)``.
@@ -335,6 +341,8 @@ def stream_step(
         jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature),
         sample_steps, sampler,
         bool(guidance), _mode(config, state),
+        None if initial_noise is None else jnp.asarray(initial_noise, jnp.float32),
+        None if step_noise is None else jnp.asarray(step_noise, jnp.float32),
     )
 
 
