@@ -13,6 +13,8 @@ jaxtalk on the same inputs and prints the largest difference at each stage:
 * ``head``: the diffusion head's raw output for given ``x_t``, ``t``, ``z``;
 * ``mean`` / ``step std``: the reverse step's mean and standard deviation ``exp(log_variance / 2)``
   (the learned variance) at every step of the respaced 5-step schedule;
+* ``turn speech``: the per-turn wav2vec 2.0 features (jaxtalk's ``prepare --features wav2vec2:PATH``
+  front end on the reference's random wav2vec 2.0, against the reference's ``SpeechEncoder``);
 * ``sample turn 1`` / ``sample turn 2``: the public ``TIMAR.sample`` with CFG (scale 2, one MAR
   iteration, 5 ancestral steps, ``mask_history_agent`` as in the published evaluation) on two
   consecutive turns (the second with the first as history) against jaxtalk's ``stream_step`` given
@@ -237,6 +239,11 @@ def _reference(args: argparse.Namespace) -> None:
             ref_diffloss.torch.randn = randn
             ref_gd.th.randn_like = randn_like
         out["sample_speech"] = np.stack([np.stack([feats[2 * t][0], feats[2 * t + 1][0]]) for t in range(2)])
+        out["sample_audio"] = num(s_audio)  # (speakers, turns, samples)
+    with tempfile.TemporaryDirectory() as folder:  # the random wav2vec 2.0, for jaxtalk's front end
+        w2v.save_pretrained(folder, safe_serialization=True)
+        for name in ("config.json", "model.safetensors"):
+            out[f"w2v/{name}"] = np.frombuffer((Path(folder) / name).read_bytes(), np.uint8)
         out["sample_user_motion"] = num(s_motion)
         out["sample_x_T"] = np.stack([n[0] for n in noise_turns])
         out["sample_step_noise"] = np.stack([n[1] for n in noise_turns])
@@ -328,6 +335,8 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
     # the mean). The last step (respaced index 0) adds no noise, so its variance is not observable.
     res["step std"] = (np.stack(logvars)[1:], np.exp(0.5 * ref["log_variance"][1:].astype(np.float64)), False)
 
+    if "w2v/config.json" in ref:
+        res["turn speech"] = (_jaxtalk_turn_speech(ref), np.moveaxis(ref["sample_speech"], 1, 0).reshape(2, 2 * f, -1), False)
     state_s = init_stream(config, jax.random.key(0), batch=1, context=config.max_turns - 1, guidance=True)
     for turn in range(2):
         speech = ref["sample_speech"][turn]  # (2 speakers, F, D)
@@ -338,6 +347,22 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
         )
         res[f"sample turn {turn + 1}"] = (np.asarray(y[0]), ref["sample"][turn], True)
     return res
+
+
+def _jaxtalk_turn_speech(ref: dict[str, np.ndarray]) -> np.ndarray:
+    """jaxtalk's per-turn wav2vec 2.0 features (``prepare --features wav2vec2:PATH``) of the sampled
+    turns' audio, ``(speakers, turns * 25, D)``, from the reference's random wav2vec 2.0 (saved in
+    Hugging Face's format). The reference's ``SpeechEncoder`` takes the waveform as given (its data
+    loader normalises whole recordings beforehand), so the folder says ``do_normalize: false``."""
+    from jaxtalk.data.features import AudioFeatures
+
+    with tempfile.TemporaryDirectory() as folder:
+        for name in ("config.json", "model.safetensors"):
+            (Path(folder) / name).write_bytes(ref[f"w2v/{name}"].tobytes())
+        (Path(folder) / "preprocessor_config.json").write_text(json.dumps({"do_normalize": False, "sampling_rate": 16000}))
+        features = AudioFeatures("wav2vec2", folder)
+        audio = ref["sample_audio"]
+        return np.stack([features.turn_speech(audio[s].reshape(-1), audio.shape[1]) for s in range(audio.shape[0])])
 
 
 def ref_cfg(args: dict) -> float:

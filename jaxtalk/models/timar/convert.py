@@ -57,6 +57,7 @@ __all__ = [
     "infer_config",
     "convert_state_dict",
     "read_stats",
+    "write_converted_run",
     "convert_checkpoint",
 ]
 
@@ -470,6 +471,105 @@ def _normalizer(ckpt: ReferenceCheckpoint, config: TimarConfig, stats: str | Pat
     return Normalizer(*speech, np.zeros(PARAM_DIM, np.float32), np.ones(PARAM_DIM, np.float32)), "identity"
 
 
+def _check_out(out: Path, overwrite: bool, inputs: list[Any]) -> None:
+    from jaxtalk.files import Output, claim_outputs
+    from jaxtalk.runs import RUN_FILE
+
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file, not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise ValueError(f"{str(out)!r} exists and is not empty; pass --overwrite to replace it")
+    claim_outputs([Output(out / RUN_FILE, named=True)], inputs, overwrite=overwrite)
+
+
+def _check_features(features: str) -> None:
+    from jaxtalk.data.features import parse_audio_features
+
+    parse_audio_features(features)  # validates the spec (and that its folder exists)
+
+
+def write_converted_run(
+    out: str | Path,
+    config: TimarConfig,
+    params: PyTree,
+    normalizer: Any,
+    *,
+    features: str,
+    args: dict[str, Any] | None = None,
+    source: str | Path = "converted",
+    weights: str = "ema",
+    normalizer_kind: str = "identity",
+    overwrite: bool = False,
+) -> Path:
+    """Write converted TIMAR parameters as an ordinary jaxtalk run folder.
+
+    The folder holds ``run.json`` (preset ``"reference"``, the training settings the checkpoint's
+    args give), ``config.json``, ``features.json`` (``features`` as the speech front end, the
+    config's speech width) and an orbax checkpoint at step 0 with the parameters (an identity
+    optimiser: a converted run samples and evaluates; it is not a run to resume). It is written
+    under a temporary name beside ``out`` and renamed into place.
+
+    Args:
+        out: the run folder.
+        config: the model config.
+        params: the parameters (:func:`convert_state_dict`).
+        normalizer: the :class:`~jaxtalk.models.timar.data.Normalizer` of the run's inputs.
+        features: the speech front end spec (``wav2vec2:PATH``).
+        args: the checkpoint's training arguments (recorded; training settings from them).
+        source: the checkpoint it came from (recorded).
+        weights: ``"ema"`` or ``"model"`` (recorded).
+        normalizer_kind: where the normaliser came from (recorded).
+        overwrite: replace an existing folder.
+
+    Returns:
+        The run folder.
+
+    Raises:
+        ValueError: an existing non-empty ``out`` without ``overwrite``, or ``out`` a file.
+    """
+    import jax
+    import optax
+
+    from jaxtalk.runs import CONFIG_FILE, FEATURES_FILE, RUN_FILE, RunInfo, checkpoint_dir, model_spec, write_run
+    from jaxtalk.train import create_train_state, save_checkpoint
+
+    out, args, source = Path(out), dict(args or {}), Path(source)
+    _check_out(out, overwrite, [])
+    spec = model_spec("timar")
+    settings = dataclasses.replace(
+        spec.settings("paper"),
+        weight_decay=float(args.get("weight_decay", 0.02)), clip_norm=float(args.get("grad_clip", 3.0)),
+        ema_decay=float(args.get("ema_rate", 0.9999)), batch_size=int(args.get("batch_size", 32)),
+    )
+    norm = normalizer
+    extra = {"normalizer": norm.to_dict(), "num_turns": config.max_turns, "still": norm.motion_mean.tolist(),
+             "converted": {"from": str(source.absolute()), "weights": weights, "normalizer": normalizer_kind,
+                           "args_model": str(args.get("model"))}}
+    feature_record = {"audio": features, "tokens": None, "token_rate": None, "token_dim": None,
+                      "speech_dim": None, "turn_speech_dim": config.speech_dim}
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.converting-", dir=out.parent))
+    try:
+        train_state = create_train_state(jax.tree_util.tree_map(np.asarray, params), optax.identity(), jax.random.key(0))
+        save_checkpoint(checkpoint_dir(tmp).absolute(), train_state,
+                        metadata={"model": "timar", "converted_from": str(source.name), "weights": weights})
+        write_run(tmp, "timar", config, None, settings.optim(1), seed=0, extra=extra, settings=settings,
+                  info=RunInfo(preset="reference", data_spec=f"converted:{source.name}"), features=feature_record)
+        assert (tmp / RUN_FILE).is_file() and (tmp / CONFIG_FILE).is_file() and (tmp / FEATURES_FILE).is_file()
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.replaced-", dir=out.parent))
+            out.rename(old / out.name)
+            tmp.rename(out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
 def convert_checkpoint(
     checkpoint: str | Path,
     out: str | Path,
@@ -504,23 +604,13 @@ def convert_checkpoint(
         FileNotFoundError: a missing checkpoint, statistics file or feature folder.
         ValueError: any bad input (see :func:`read_checkpoint`, :func:`infer_config`,
             :func:`convert_state_dict`, :func:`read_stats`), an existing ``out`` without
-            ``overwrite``, or a speech width that does not match ``features``.
+            ``overwrite``.
     """
     import jax
-    import optax
-
-    from jaxtalk.data.features import parse_audio_features
-    from jaxtalk.files import Output, claim_outputs
-    from jaxtalk.runs import CONFIG_FILE, FEATURES_FILE, RUN_FILE, RunInfo, checkpoint_dir, model_spec, write_run
-    from jaxtalk.train import create_train_state, save_checkpoint
 
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {str(out)!r} is a file, not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise ValueError(f"{str(out)!r} exists and is not empty; pass --overwrite to replace it")
-    claim_outputs([Output(out / RUN_FILE, named=True)], [checkpoint, stats], overwrite=overwrite)
-    parse_audio_features(features)  # validates the spec (and that its folder exists)
+    _check_out(out, overwrite, [checkpoint, stats])
+    _check_features(features)
     ckpt = read_checkpoint(checkpoint)
     if ema and ckpt.ema is None:
         raise ValueError(f"{str(ckpt.path)!r} has no 'model_ema' weights; pass --no-ema to convert the raw ones")
@@ -531,36 +621,6 @@ def convert_checkpoint(
     norm, norm_kind = _normalizer(ckpt, config, stats)
     num_params = int(sum(np.size(x) for x in jax.tree_util.tree_leaves(params)))
 
-    spec = model_spec("timar")
-    args = ckpt.args
-    settings = dataclasses.replace(
-        spec.settings("paper"),
-        weight_decay=float(args.get("weight_decay", 0.02)), clip_norm=float(args.get("grad_clip", 3.0)),
-        ema_decay=float(args.get("ema_rate", 0.9999)), batch_size=int(args.get("batch_size", 32)),
-    )
-    extra = {"normalizer": norm.to_dict(), "num_turns": config.max_turns, "still": norm.motion_mean.tolist(),
-             "converted": {"from": str(ckpt.path.absolute()), "weights": weights, "normalizer": norm_kind,
-                           "epoch": args.get("epoch"), "args_model": str(args.get("model"))}}
-    feature_record = {"audio": features, "tokens": None, "token_rate": None, "token_dim": None,
-                      "speech_dim": None, "turn_speech_dim": config.speech_dim}
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.converting-", dir=out.parent))
-    try:
-        train_state = create_train_state(jax.tree_util.tree_map(np.asarray, params), optax.identity(), jax.random.key(0))
-        save_checkpoint(checkpoint_dir(tmp).absolute(), train_state,
-                        metadata={"model": "timar", "converted_from": str(ckpt.path.name), "weights": weights})
-        write_run(tmp, "timar", config, None, settings.optim(1), seed=0, extra=extra, settings=settings,
-                  info=RunInfo(preset="reference", data_spec=f"converted:{ckpt.path.name}"), features=feature_record)
-        assert (tmp / RUN_FILE).is_file() and (tmp / CONFIG_FILE).is_file() and (tmp / FEATURES_FILE).is_file()
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.replaced-", dir=out.parent))
-            out.rename(old / out.name)
-            tmp.rename(out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+    write_converted_run(out, config, params, norm, features=features, args=ckpt.args, source=ckpt.path,
+                        weights=weights, normalizer_kind=norm_kind, overwrite=overwrite)
     return ConversionResult(run_dir=out, config=config, weights=weights, normalizer=norm_kind, num_params=num_params)
