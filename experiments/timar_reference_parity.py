@@ -14,7 +14,8 @@ jaxtalk on the same inputs and prints the largest difference at each stage:
 * ``mean`` / ``step std``: the reverse step's mean and standard deviation ``exp(log_variance / 2)``
   (the learned variance) at every step of the respaced 5-step schedule;
 * ``turn speech``: the per-turn wav2vec 2.0 features (jaxtalk's ``prepare --features wav2vec2:PATH``
-  front end on the reference's random wav2vec 2.0, against the reference's ``SpeechEncoder``);
+  front end on the reference's random wav2vec 2.0, against the reference's ``SpeechEncoder``; needs
+  the ``safetensors`` package in jaxtalk's environment, the ``[encoders]`` extra, else not shown);
 * ``sample turn 1`` / ``sample turn 2``: the public ``TIMAR.sample`` with CFG (scale 2, one MAR
   iteration, 5 ancestral steps, ``mask_history_agent`` as in the published evaluation) on two
   consecutive turns (the second with the first as history) against jaxtalk's ``stream_step`` given
@@ -49,6 +50,7 @@ without torch).
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import subprocess
 import sys
@@ -294,8 +296,8 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
     enc = TimarEncoder(config)
     call = lambda method, *a, **k: enc.apply({"params": params["encoder"]}, *a, method=method, **k)  # noqa: E731
 
-    sp = ref["turn_speech"]  # (2, B, N, F, D)
-    mo = ref["inputs_motion"].reshape(2, BATCH, TURNS, f, -1)
+    sp = jnp.asarray(ref["turn_speech"])  # (2, B, N, F, D)
+    mo = jnp.asarray(ref["inputs_motion"].reshape(2, BATCH, TURNS, f, -1))
     agent_mask = jnp.broadcast_to(jnp.asarray(ref["agent_frames"]), (BATCH, TURNS, f))
     res: dict[str, tuple[np.ndarray, np.ndarray, bool]] = {}
     enc_dec = config.architecture == "encoder_decoder"
@@ -335,7 +337,7 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
     # the mean). The last step (respaced index 0) adds no noise, so its variance is not observable.
     res["step std"] = (np.stack(logvars)[1:], np.exp(0.5 * ref["log_variance"][1:].astype(np.float64)), False)
 
-    if "w2v/config.json" in ref:
+    if "w2v/config.json" in ref and importlib.util.find_spec("safetensors") is not None:
         res["turn speech"] = (_jaxtalk_turn_speech(ref), np.moveaxis(ref["sample_speech"], 1, 0).reshape(2, 2 * f, -1), False)
     state_s = init_stream(config, jax.random.key(0), batch=1, context=config.max_turns - 1, guidance=True)
     for turn in range(2):

@@ -60,8 +60,9 @@ def test_fixtures_are_small():
 def test_every_stage_matches_the_reference(parity, reference):
     args, state, outs = reference
     rows = parity.differences(parity.jaxtalk_stages(args, state, outs))
-    assert [r[0] for r in rows] == ["tokens", "encoder", "condition", "head", "mean", "step std", "sample turn 1",
-                                    "sample turn 2"]
+    speech = ["turn speech"] if importlib.util.find_spec("safetensors") is not None else []
+    assert [r[0] for r in rows] == ["tokens", "encoder", "condition", "head", "mean", "step std", *speech,
+                                    "sample turn 1", "sample turn 2"]
     bad = [(name, rel) for name, _, rel, ok in rows if not ok]
     assert not bad, bad
 
@@ -299,3 +300,34 @@ def test_checkpoint_round_trip_and_truncated_file(tmp_path, parity):  # pragma: 
     torch.save({"state_dict": sd}, tmp_path / "other.pth")
     with pytest.raises(ValueError, match="no 'model' state dict"):
         convert_checkpoint(tmp_path / "other.pth", tmp_path / "run3", features=f"wav2vec2:{w2v}")
+
+
+def test_current_turn_guidance_drop_is_the_same_offline_and_streamed():
+    # guidance_drop="current_turn": turn t's unconditional branch drops turn t's user tokens only. The
+    # whole-window conditions and the turn-by-turn stream (which keeps the conditional rows' past turns
+    # in the unconditional rows' window and key/value cache) must agree, and differ from "window".
+    from jaxtalk.models.timar.model import init_params
+    from jaxtalk.models.timar.sample import conditions
+    from jaxtalk.models.timar.stream import init_stream, stream_condition
+
+    config = TimarConfig.reference(width=32, num_layers=2, num_heads=4, speech_dim=8, token_width=24, head_width=32,
+                                   max_turns=3, dropout=0.0)
+    params = init_params(config, jax.random.key(0))
+    rng = np.random.default_rng(0)
+    n, f = 3, config.frames_per_turn
+    us, as_ = (jnp.asarray(rng.standard_normal((1, n, f, 8)), jnp.float32) for _ in range(2))
+    um = jnp.asarray(rng.standard_normal((1, n, f, 56)), jnp.float32)
+    z_c, z_u = conditions(params, config, us, um, as_)
+    state = init_stream(config, jax.random.key(1), batch=1, context=n - 1)
+    rows = []
+    for t in range(n):
+        state, z = stream_condition(params, config, state, us[:, t], um[:, t], as_[:, t])
+        rows.append(np.asarray(z))
+    streamed = np.stack(rows, axis=1)  # (2, n, F, w): conditional row, unconditional row
+    np.testing.assert_allclose(streamed[0], np.asarray(z_c[0]), atol=2e-5)
+    np.testing.assert_allclose(streamed[1], np.asarray(z_u[0]), atol=2e-5)
+    import dataclasses
+
+    _, z_window = conditions(params, dataclasses.replace(config, guidance_drop="window"), us, um, as_)
+    np.testing.assert_allclose(np.asarray(z_window[0, 0]), np.asarray(z_u[0, 0]), atol=2e-5)  # turn 0: same
+    assert np.abs(np.asarray(z_window[0, 2]) - np.asarray(z_u[0, 2])).max() > 1e-3  # later turns: not

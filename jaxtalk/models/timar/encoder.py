@@ -339,7 +339,7 @@ class TimarEncoder(nn.Module):
         agent_speech: Float[Array, "batch turns frames speech_dim"],
         agent_motion: Float[Array, "batch turns frames param_dim"] | None = None,
         agent_mask: Bool[Array, "batch turns frames"] | None = None,
-        user_drop: Bool[Array, " batch"] | None = None,
+        user_drop: Bool[Array, " batch"] | Bool[Array, "batch turns"] | None = None,
         deterministic: bool = True,
     ) -> Float[Array, "batch turns frames width"]:
         """Whole-window pass: embed, fuse with the config's mask, return the head conditions.

@@ -155,8 +155,9 @@ def sample_frames(
     eta: Float[Array, ""] | float = 0.0,
     temperature: Float[Array, ""] | float = 1.0,
     precompute: bool | None = None,
-    initial_noise: Float[Array, "batch *frames param_dim"] | None = None,
-    step_noise: Float[Array, "steps batch *frames param_dim"] | None = None,
+    # Loose annotations (Array or NumPy): the shape checks below raise a ValueError that names the problem.
+    initial_noise: StreamLike | None = None,
+    step_noise: StreamLike | None = None,
 ) -> Float[Array, "batch *frames param_dim"]:
     """Sample every frame's head parameters from its condition (jit-able building block).
 
@@ -214,8 +215,12 @@ def sample_frames(
         noise = jnp.asarray(initial_noise, jnp.float32)
         if noise.shape != shape:
             raise ValueError(f"initial_noise must have shape {shape}, got {noise.shape}")
-    if step_noise is not None and sampler != "ddpm":
-        raise ValueError(f"step_noise is only used by the 'ddpm' sampler, got sampler {sampler!r}")
+    if step_noise is not None:
+        if sampler != "ddpm":
+            raise ValueError(f"step_noise is only used by the 'ddpm' sampler, got sampler {sampler!r}")
+        step_noise = jnp.asarray(step_noise, jnp.float32)
+        if step_noise.shape != (sample_steps,) + shape:
+            raise ValueError(f"step_noise must have shape {(sample_steps,) + shape} (steps, *frames), got {step_noise.shape}")
     if sampler != "ddpm":
         noise = noise * tau
     if sampler == "mean":

@@ -298,8 +298,8 @@ def stream_step(
     eta: Float[Array, ""] | float = 0.0,
     temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
-    initial_noise: Float[Array, "batch frames param_dim"] | None = None,
-    step_noise: Float[Array, "steps batch frames param_dim"] | None = None,
+    initial_noise: StreamLike | None = None,
+    step_noise: StreamLike | None = None,
 ) -> tuple[StreamState, Float[Array, "batch frames param_dim"]]:
     """One streaming turn: encode it against the window, sample the agent's motion for it.
 
