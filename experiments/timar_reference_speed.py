@@ -54,7 +54,7 @@ def _reference(args: argparse.Namespace) -> dict:
     import torch
     import transformers
 
-    transformers.Wav2Vec2Model.from_pretrained = classmethod(lambda cls, *a, **k: None)
+    transformers.Wav2Vec2Model.from_pretrained = classmethod(lambda cls, *a, **k: torch.nn.Identity())
     import model.timar as ref_timar
 
     torch.manual_seed(0)
