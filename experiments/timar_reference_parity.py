@@ -287,7 +287,7 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
     from jaxtalk.models.timar.stream import init_stream, stream_step
     from jaxtalk.models.timar.tokens import turn_layout
     from jaxtalk.nn import bias_from_mask
-    from jaxtalk.samplers.diffusion import DiffusionState, ddpm_step, _tables
+    from jaxtalk.samplers.diffusion import DiffusionState, _tables, ddpm_step
     from jaxtalk.samplers.flow import as_model
 
     config = infer_config(state, args)
@@ -324,7 +324,7 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
     apply_fn = as_model(jax.tree_util.Partial(lambda x, t, c: apply_head(params["head"], config, c, x, t)))
     means, logvars = [], []
     for j in range(STEPS):
-        row = jax.tree_util.tree_map(lambda a: a[STEPS - 1 - j], tables)  # respaced index j
+        row = jax.tree_util.tree_map(lambda a, i=STEPS - 1 - j: a[i], tables)  # respaced index j
         kw = dict(apply_fn=apply_fn, cond=hz, variance="learned_range", prediction="x0")
         st = DiffusionState(x=hx, x0=jnp.zeros_like(hx))
         m = ddpm_step(st, row, jax.random.key(0), step_noise=jnp.zeros_like(hx), **kw).x

@@ -283,7 +283,7 @@ def test_checkpoint_round_trip_and_truncated_file(tmp_path, parity):  # pragma: 
 
     from jaxtalk.models.timar.convert import convert_checkpoint
 
-    args, state, outs = parity.load_reference(FIXTURES / FIXTURE_NAMES[0])
+    args, state, _ = parity.load_reference(FIXTURES / FIXTURE_NAMES[0])
     sd = {k: torch.from_numpy(v) for k, v in state.items()}
     ckpt = tmp_path / "TIMAR.pth"
     torch.save({"model": sd, "model_ema": sd, "args": argparse.Namespace(**args), "epoch": 3}, ckpt)
