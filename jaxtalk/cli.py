@@ -468,6 +468,36 @@ def view(
         server.close()
 
 
+convert_app = typer.Typer(help="Convert another implementation's checkpoint into a jaxtalk run.", no_args_is_help=True)
+app.add_typer(convert_app, name="convert")
+
+
+@convert_app.command("timar")
+@_user_errors
+def convert_timar(
+    checkpoint: Annotated[Path, typer.Argument(help="Checkpoint of the public TIMAR code (.pth with model, model_ema, "
+                                                    "args), e.g. the released TIMAR.pth.")],
+    out: Annotated[Path, typer.Option(help="Run folder to write.")],
+    features: Annotated[str, typer.Option(help="Speech front end of the run's inputs, as `jaxtalk prepare --features` "
+                                               "takes it: wav2vec2:PATH, the wav2vec2-large-960h-lv60-self folder.")],
+    stats: Annotated[Path | None, typer.Option(help="The public code's stat_flame.json: the run's motion normaliser "
+                                                    "(default: identity, as the public commands train).")] = None,
+    ema: Annotated[bool, typer.Option("--ema/--no-ema", help="Convert the EMA weights (what the public evaluation "
+                                                             "loads) or the raw ones.")] = True,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing run folder at --out.")] = False,
+) -> None:
+    """Convert the public TIMAR code's checkpoint into a run that sample, stream and eval open (needs torch:
+    pip install "jaxtalk[torch]")."""
+    from jaxtalk.commands.converting import ConvertOptions, convert_timar_run
+
+    report = convert_timar_run(ConvertOptions(checkpoint=checkpoint, out=out, features=features, stats=stats, ema=ema,
+                                              overwrite=overwrite))
+    for line in report.warnings:
+        typer.echo(f"warning: {line}", err=True)
+    for line in report.lines:
+        typer.echo(line)
+
+
 def main() -> None:
     """Console-script entry point."""
     app()

@@ -382,7 +382,8 @@ def _preset_of(model: str, config: Any) -> str | None:
 
 
 def write_run(run_dir: str | Path, model: str, config: Any, data: Any, optim: Any, *, seed: int,
-              extra: dict[str, Any], settings: Any, info: RunInfo | None = None) -> RunRecord:
+              extra: dict[str, Any], settings: Any, info: RunInfo | None = None,
+              features: dict[str, Any] | None = None) -> RunRecord:
     """Write a trained run's ``run.json``, ``config.json`` and inference assets into ``run_dir``.
 
     Every recipe calls this after training when it is given a ``run_dir`` (the checkpoints are
@@ -399,23 +400,35 @@ def write_run(run_dir: str | Path, model: str, config: Any, data: Any, optim: An
         extra: what the recipe fitted on the training split.
         settings: the training settings used when ``info`` names none.
         info: how the run was asked for (preset, ``--set`` items, data as named, settings).
+        features: only with ``data=None`` (a run made without prepared data, e.g. converted from
+            another implementation's checkpoint): the ``features.json`` record of the speech front
+            end its inputs come from (``{"audio": spec, "turn_speech_dim": width, ...}``).
 
     Returns:
         The :class:`RunRecord` written.
+
+    Raises:
+        ValueError: ``data`` and ``features`` both or neither given.
     """
     from jaxtalk.files import atomic_write_json
 
+    if (data is None) == (features is None):
+        raise ValueError("write_run needs the prepared data, or (for a run made without data) its feature record")
     info = info or RunInfo()
     preset = info.preset if info.preset is not None else _preset_of(model, config)
+    if data is None:
+        data_record = {"spec": info.data_spec, "path": None, "key": None}
+    else:
+        data_record = {"spec": info.data_spec or str(data.root), "path": str(Path(data.root).absolute()), "key": data.key}
     record = RunRecord(model=model, preset=preset, items=list(info.items), config=dataclasses.asdict(config),
                        train=dataclasses.asdict(info.settings if info.settings is not None else settings),
-                       optim=optim.to_dict(),
-                       data={"spec": info.data_spec or str(data.root), "path": str(Path(data.root).absolute()),
-                             "key": data.key},
-                       seed=seed, extra=extra)
+                       optim=optim.to_dict(), data=data_record, seed=seed, extra=extra)
     record.save(run_dir)
     atomic_write_json(Path(run_dir) / CONFIG_FILE, record.config)
-    save_run_assets(run_dir, model, data, config)
+    if data is None:
+        atomic_write_json(Path(run_dir) / FEATURES_FILE, features)
+    else:
+        save_run_assets(run_dir, model, data, config)
     return record
 
 

@@ -16,7 +16,7 @@ import soundfile as sf
 from helpers import cli_ok as _ok, cli_error as _user_error
 
 
-COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render", "export", "view"]
+COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render", "export", "view", "convert"]
 
 
 @pytest.mark.parametrize("command", COMMANDS)

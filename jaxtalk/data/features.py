@@ -8,8 +8,14 @@ Audio features come in two alignments, both at the 25-fps motion rate:
 * ``turn_speech (turns * 25, D)``: each 1-s turn computed from that turn's audio ALONE (TIMAR's
   per-chunk tokenisation), so no future audio reaches a past turn. With log-mel ``D = 80``.
 
-With a pretrained encoder (``hubert:PATH`` / ``wav2vec2:PATH``, a local Hugging Face folder) both
-streams are the encoder's features resampled to 25 fps, the per-turn one again turn by turn.
+With a pretrained encoder (``hubert:PATH`` / ``wav2vec2:PATH``, a local Hugging Face folder) the
+whole-clip stream is the encoder's 50 Hz features resampled to 25 fps. The per-turn stream is
+computed turn by turn: with wav2vec 2.0 in TIMAR's order (each turn's CNN features interpolated to
+its 25 frames with ``align_corners=True``, then the projection and the transformer at 25 Hz, as the
+public TIMAR code's ``SpeechEncoder``); with HuBERT resampled after the transformer. Each turn's
+waveform is normalised on its own when the checkpoint asks for it (``do_normalize``); the public
+code's data loader normalises the whole recording instead, a step that reads the future audio and
+that a stream cannot take.
 """
 
 from __future__ import annotations
@@ -71,8 +77,16 @@ class AudioFeatures:
                      for b in range(blocks)]
             return np.concatenate(feats)[: num_turns * TURN_FRAMES]
         spt = TURN_FRAMES * SAMPLES_PER_FRAME
-        turns = [_fit(np.asarray(self._encoder.features_at(audio[k * spt:(k + 1) * spt], MOTION_FPS)), TURN_FRAMES)
-                 for k in range(num_turns)]
+        if self.kind == "wav2vec2":
+            # TIMAR's order (the public code's SpeechEncoder): per 1-s turn, the CNN features linearly
+            # interpolated (align_corners=True) to the turn's 25 frames, THEN the feature projection
+            # and the transformer, which therefore runs at 25 Hz.
+            turns = [np.asarray(self._encoder.interpolated_features(_fit(audio[k * spt:(k + 1) * spt], spt),
+                                                                    num_frames=TURN_FRAMES))
+                     for k in range(num_turns)]
+        else:
+            turns = [_fit(np.asarray(self._encoder.features_at(audio[k * spt:(k + 1) * spt], MOTION_FPS)), TURN_FRAMES)
+                     for k in range(num_turns)]
         return np.concatenate(turns).astype(np.float32)
 
 

@@ -243,6 +243,7 @@ def ddpm_step(
     clip: Sequence[ClipGroup] = (),
     variance: str = "fixed_small",
     temperature: Float[Array, ""] | float = 1.0,
+    step_noise: Float[Array, "batch *dims"] | None = None,
 ) -> DiffusionState:
     """One ancestral DDPM step: sample ``q(x_prev | x_t, x0_hat)`` (pure).
 
@@ -254,6 +255,8 @@ def ddpm_step(
         variance: ``"fixed_small"`` (clipped posterior variance), ``"fixed_large"`` (beta) or
             ``"learned_range"``.
         temperature: ``()`` factor on the step noise (traced).
+        step_noise: the standard normal draw of this step, shaped as ``state.x``, used instead of
+            drawing one from ``key`` (to reproduce another implementation's random stream).
 
     Returns:
         The next :class:`DiffusionState` (no noise is added on the final step).
@@ -261,7 +264,8 @@ def ddpm_step(
     x = state.x
     x0, log_var = _model_x0(state, tables, apply_fn, cond, uncond, cfg_scale, prediction, clip, variance)
     mean = tables.coef_x0 * x0 + tables.coef_xt * x
-    noise = jax.random.normal(key, x.shape, x.dtype) * jnp.asarray(temperature, x.dtype)
+    draw = jax.random.normal(key, x.shape, x.dtype) if step_noise is None else step_noise.astype(x.dtype)
+    noise = draw * jnp.asarray(temperature, x.dtype)
     return DiffusionState(x=mean + tables.nonzero * jnp.exp(0.5 * log_var) * noise, x0=x0)
 
 
@@ -300,6 +304,7 @@ def _sample(
     variance,
     return_trajectory,
     remat,
+    step_noise=None,
 ):
     kwargs = dict(
         apply_fn=apply_fn,
@@ -317,8 +322,8 @@ def _sample(
         step_fn = functools.partial(ddpm_step, temperature=eta, **kwargs)
 
     def body(state, xs):
-        tables, k = xs
-        new = step_fn(state, tables, k)
+        tables, k, sn = xs
+        new = step_fn(state, tables, k) if sn is None else step_fn(state, tables, k, step_noise=sn)
         return new, (new.x if return_trajectory else None)
 
     if remat:
@@ -326,7 +331,7 @@ def _sample(
     tables = _tables(schedule, noise.dtype)
     keys = jax.random.split(key, tables.alpha_bar.shape[0])
     state0 = init(noise)
-    final, traj = jax.lax.scan(body, state0, (tables, keys))
+    final, traj = jax.lax.scan(body, state0, (tables, keys, step_noise))
     if return_trajectory:
         return final.x, jnp.concatenate([noise[None], traj], axis=0)
     return final.x
@@ -454,6 +459,7 @@ def sample_ddpm(
     temperature: ShapedLike["*scale"] | float | int = 1.0,
     return_trajectory: bool = False,
     remat: bool = False,
+    step_noise: FloatLike["steps batch *dims"] | None = None,
 ) -> Float[Array, "batch *dims"] | tuple[Float[Array, "batch *dims"], Float[Array, "grid batch *dims"]]:
     """Ancestral DDPM sampling over the respaced steps of ``schedule``.
 
@@ -466,16 +472,25 @@ def sample_ddpm(
         variance: the reverse-step variance.
         temperature: ``()`` factor on every step's noise (traced; MAR's sampling temperature;
             ``noise`` itself, x_T, is used as given).
+        step_noise: ``(N, B, ...)`` the standard normal draws of the N steps in sampling order
+            (noisiest first), used instead of drawing them from ``key`` (the last one is never
+            used: no noise is added on the final step). For reproducing another implementation's
+            random stream number for number; None draws them from ``key``.
 
     Returns:
         ``(B, ...)`` sample (and the trajectory when asked).
 
     Raises:
-        ValueError: as :func:`sample_ddim`.
+        ValueError: as :func:`sample_ddim`, or a ``step_noise`` not shaped ``(N,) + noise.shape``.
     """
     noise, schedule, cfg_scale, eta, clip = _prepare(
         noise, cond, schedule, key, uncond, cfg_scale, temperature, prediction, clip, variance
     )
+    if step_noise is not None:
+        step_noise = jnp.asarray(step_noise, noise.dtype)
+        expected = (np.shape(schedule.alphas_cumprod)[0],) + noise.shape
+        if step_noise.shape != expected:
+            raise ValueError(f"step_noise must have shape {expected} (steps, *noise.shape), got {step_noise.shape}")
     return _sample(
         as_model(apply_fn),
         noise,
@@ -491,4 +506,5 @@ def sample_ddpm(
         variance,
         bool(return_trajectory),
         bool(remat),
+        step_noise,
     )

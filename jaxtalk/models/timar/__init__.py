@@ -4,7 +4,8 @@ Modules: ``config`` (presets), ``tokens`` (turn layout, separators, interleave),
 (embedding + turn-causal fusion, and the MAE-style encoder-decoder variant), ``head`` (per-frame adaLN diffusion head, vmapped), ``model``
 (parameters, window pass), ``loss`` (masking, CFG dropout, grouped x0 diffusion loss), ``sample``
 (respaced DDIM/DDPM with traced CFG), ``stream`` (turn-by-turn engine with a KV cache), ``data``
-(SynthTalk conversations -> turn windows, normalisation).
+(SynthTalk conversations -> turn windows, normalisation), ``convert`` (the public code's checkpoints ->
+parameters and a run folder; torch only there, ``pip install "jaxtalk[torch]"``).
 """
 
 from jaxtalk.models.timar.config import TimarConfig

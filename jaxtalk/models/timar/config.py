@@ -18,7 +18,7 @@ import math
 from jaxtalk.metrics.params import LOSS_GROUPS
 from jaxtalk.types import MOTION_FPS, PARAM_DIM
 
-__all__ = ["TimarConfig", "NUM_SEPARATORS", "NUM_SPANS", "LOSS_GROUPS", "SAMPLERS", "ARCHITECTURES"]
+__all__ = ["TimarConfig", "NUM_SEPARATORS", "NUM_SPANS", "LOSS_GROUPS", "SAMPLERS", "ARCHITECTURES", "GUIDANCE_DROPS"]
 
 # "ddpm": ancestral steps (MAR's sampler; with a learned variance and the temperature on every step's
 # noise); "ddim": deterministic DDIM from x_T; "mean": the guided posterior mean (no denoising loop).
@@ -26,6 +26,12 @@ SAMPLERS = ("ddpm", "ddim", "mean")
 # "encoder": TIMAR's encoder-only backbone; "encoder_decoder": the MAE-style asymmetric variant of
 # Table 2 (MAR's default layout: the encoder sees the visible tokens only, a decoder fills in the masks).
 ARCHITECTURES = ("encoder", "encoder_decoder")
+
+# What the unconditional (CFG) branch replaces by the fake token: "window": the user tokens of every
+# turn of the window (jaxtalk's default; training drops a whole example's user tokens the same way);
+# "current_turn": only the current turn's user tokens, earlier turns keep the real ones (the public
+# code's ``TIMAR.sample``).
+GUIDANCE_DROPS = ("window", "current_turn")
 
 # Turn open/close plus an open/close pair around each of the four modality spans.
 NUM_SEPARATORS = 10
@@ -82,6 +88,21 @@ class TimarConfig:
         cfg_scale: default guidance scale omega (paper's convention: 0 = unconditional,
             1 = conditional, > 1 = guided).
         dropout: dropout in the encoder (residual branches and attention).
+        token_width: width of the token embeddings (speech projection, motion encoder, separators,
+            mask-free tokens and the fake token) when ``input_projection`` is set; None = ``width``.
+        input_projection: a learned ``Dense(token_width -> width)`` on every token before the
+            positional embedding (the public code's ``z_proj``); the mask token then lives in the
+            encoder width and replaces the PROJECTED agent-motion tokens, as there. False: tokens are
+            embedded directly at ``width`` (jaxtalk's default).
+        norm_after_position: ``LayerNorm(x + P1)`` at the encoder input (the public code's
+            ``z_proj_ln`` after the positional table) instead of jaxtalk's ``LayerNorm(x) + P1``.
+        motion_encoder_final_relu: the motion encoder ends with a ReLU (the public code's
+            Linear-ReLU-Linear-ReLU) instead of jaxtalk's Linear-ReLU-Linear.
+        block_norm_epsilon: epsilon of the LayerNorms inside the transformer blocks (1e-5,
+            PyTorch's default; the public ``timar_*`` models build their timm blocks with 1e-6).
+            The encoder's input/output norms always use 1e-6.
+        guidance_drop: what the unconditional CFG branch replaces by the fake token, one of
+            :data:`GUIDANCE_DROPS`.
     """
 
     width: int = 128
@@ -110,6 +131,12 @@ class TimarConfig:
     sampler: str = "ddim"
     cfg_scale: float = 1.5
     dropout: float = 0.0
+    token_width: int | None = None
+    input_projection: bool = False
+    norm_after_position: bool = False
+    motion_encoder_final_relu: bool = False
+    block_norm_epsilon: float = 1e-5
+    guidance_drop: str = "window"
 
     def __post_init__(self) -> None:
         positive = ("width", "num_layers", "num_heads", "speech_dim", "param_dim", "frames_per_turn",
@@ -143,6 +170,23 @@ class TimarConfig:
             raise ValueError(f"TimarConfig.sampler must be one of {SAMPLERS}, got {self.sampler!r}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"TimarConfig.dropout must lie in [0, 1), got {self.dropout}")
+        if self.token_width is not None:
+            if isinstance(self.token_width, bool) or not isinstance(self.token_width, int) or self.token_width < 1:
+                raise ValueError(f"TimarConfig.token_width must be a positive integer or None, got {self.token_width!r}")
+            if not self.input_projection and self.token_width != self.width:
+                raise ValueError(
+                    f"TimarConfig.token_width {self.token_width} differs from width {self.width}: "
+                    "that needs input_projection=True"
+                )
+        if not (self.block_norm_epsilon > 0 and math.isfinite(self.block_norm_epsilon)):
+            raise ValueError(f"TimarConfig.block_norm_epsilon must be positive, got {self.block_norm_epsilon}")
+        if self.guidance_drop not in GUIDANCE_DROPS:
+            raise ValueError(f"TimarConfig.guidance_drop must be one of {GUIDANCE_DROPS}, got {self.guidance_drop!r}")
+
+    @property
+    def embed_width(self) -> int:
+        """Width of the token embeddings before the optional input projection."""
+        return self.width if self.token_width is None else self.token_width
 
     @property
     def tokens_per_turn(self) -> int:
@@ -158,8 +202,15 @@ class TimarConfig:
     def paper(cls, **overrides) -> TimarConfig:
         """The paper's sizes and training: 1024 wide, 16 layers, 16 heads, head K = 3 x 1024, wav2vec 2.0
         features, mask ratio from TN[0.7, 1], a learned variance, 4 diffusion draws per frame (MAR's
-        ``diffusion_batch_mul``) and MAR's ancestral DDPM sampler. Its optimiser (AdamW 1e-4, batch
-        32, 100 warm-up steps) is :data:`jaxtalk.models.timar.recipe.PRESET_DEFAULTS` ``["paper"]``.
+        ``diffusion_batch_mul``) and MAR's ancestral DDPM sampler.
+
+        This is the model the paper's TEXT describes (a 16-layer encoder), in jaxtalk's layout. The
+        released checkpoint (``timar_large`` with ``--use_encoder_only``) stacks
+        ``encoder_depth + decoder_depth`` = 32 blocks and uses the public code's layout: that model
+        is :meth:`reference` (``num_layers=32``), which ``jaxtalk convert timar`` builds.
+
+        Its optimiser (AdamW 1e-4, batch 32, 100 warm-up steps) is
+        :data:`jaxtalk.models.timar.recipe.PRESET_DEFAULTS` ``["paper"]``.
 
         Args:
             **overrides: any field to change.
@@ -169,6 +220,30 @@ class TimarConfig:
         """
         base = dict(width=1024, num_layers=16, num_heads=16, speech_dim=1024, head_width=1024,
                     head_blocks=3, learn_sigma=True, diffusion_batch_mul=4, sampler="ddpm", decoder_layers=8)
+        return cls(**(base | overrides))
+
+    @classmethod
+    def reference(cls, **overrides) -> TimarConfig:
+        """The layout of the public code (``CoderChen01/towards-seamless-interaction``) at the released
+        checkpoint's sizes: ``timar_large`` with ``--use_encoder_only --use_causal_attn --diffloss_d 3
+        --diffloss_w 1024``, i.e. 32 timm ViT blocks (16 encoder + 16 decoder depth, stacked) of
+        width 1024 and 16 heads with LayerNorm eps 1e-6, 1024-wide tokens projected by ``z_proj``
+        and normalised after the positional table, a Linear-ReLU-Linear-ReLU motion encoder, a
+        K = 3 x 1024 head with a learned variance on the 1000-step cosine schedule, x0-prediction,
+        5 ancestral sampling steps, and a CFG branch that drops the current turn's user tokens only.
+        The public evaluation samples with ``--cfg 1.0`` (no guidance) and temperature 1.
+
+        Args:
+            **overrides: any field to change (the converter sets every size from the checkpoint).
+
+        Returns:
+            The config.
+        """
+        base = dict(width=1024, num_layers=32, num_heads=16, speech_dim=1024, head_width=1024, head_blocks=3,
+                    learn_sigma=True, diffusion_batch_mul=4, sampler="ddpm", decoder_layers=16, token_width=1024,
+                    input_projection=True, norm_after_position=True, motion_encoder_final_relu=True,
+                    block_norm_epsilon=1e-6, guidance_drop="current_turn", cfg_scale=1.0, dropout=0.1,
+                    schedule="cosine", sample_steps=5)
         return cls(**(base | overrides))
 
     @classmethod

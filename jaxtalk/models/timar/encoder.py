@@ -92,12 +92,16 @@ class TimarEncoder(nn.Module):
     def setup(self) -> None:
         c = self.config
         w = c.width
+        ew = c.embed_width  # token width before the optional input projection (= w without it)
         small = nn.initializers.normal(stddev=0.02)
-        self.speech_proj = nn.Dense(w, name="speech_proj")
-        self.motion_encoder = MLP((max(w // 2, 1), w), activation=jax.nn.relu, name="motion_encoder")
-        self.separators = self.param("separators", small, (NUM_SEPARATORS, w))
+        self.speech_proj = nn.Dense(ew, name="speech_proj")
+        self.motion_encoder = MLP((max(ew // 2, 1), ew), activation=jax.nn.relu,
+                                  activate_final=c.motion_encoder_final_relu, name="motion_encoder")
+        self.separators = self.param("separators", small, (NUM_SEPARATORS, ew))
         self.mask_token = self.param("mask_token", small, (w,))
-        self.fake_token = self.param("fake_token", small, (w,))
+        self.fake_token = self.param("fake_token", small, (ew,))
+        if c.input_projection:
+            self.input_proj = nn.Dense(w, name="input_proj")
         self.pos_embed = self.param("pos_embed", aligned_position_init(c), (c.max_turns * c.tokens_per_turn, w))
         self.head_pos_embed = self.param("head_pos_embed", small, (c.max_turns * c.frames_per_turn, w))
         self.in_norm = nn.LayerNorm(name="in_norm")
@@ -120,7 +124,8 @@ class TimarEncoder(nn.Module):
         c = self.config
         return [
             TransformerBlock(num_heads=c.num_heads, head_dim=c.width // c.num_heads, mlp_ratio=c.mlp_ratio,
-                             dropout_rate=c.dropout, attention_dropout_rate=c.dropout, name=f"{prefix}_{i}")
+                             dropout_rate=c.dropout, attention_dropout_rate=c.dropout,
+                             layer_norm_epsilon=c.block_norm_epsilon, name=f"{prefix}_{i}")
             for i in range(depth)
         ]
 
@@ -131,7 +136,7 @@ class TimarEncoder(nn.Module):
         agent_speech: Float[Array, "batch turns frames speech_dim"],
         agent_motion: Float[Array, "batch turns frames param_dim"] | None,
         agent_mask: Bool[Array, "batch turns frames"] | None,
-        user_drop: Bool[Array, " batch"] | None,
+        user_drop: Bool[Array, " batch"] | Bool[Array, "batch turns"] | None,
     ) -> Float[Array, "batch turns tokens width"]:
         """Interleaved token embeddings of whole turns (no positional embedding yet).
 
@@ -142,25 +147,32 @@ class TimarEncoder(nn.Module):
                 frame is masked (sampling).
             agent_mask: ``(B, N, F)`` True where the agent frame is replaced by the mask token
                 (ignored when ``agent_motion`` is None).
-            user_drop: ``(B,)`` True where every user token is replaced by the fake token.
+            user_drop: ``(B,)`` True where every user token of the example is replaced by the fake
+                token, or ``(B, N)`` True where the user tokens of that turn are.
 
         Returns:
-            ``(B, N, 4F + 10, width)`` tokens.
+            ``(B, N, 4F + 10, width)`` tokens (after the input projection when the config has one:
+            the fake token replaces user tokens BEFORE it, the mask token agent tokens AFTER it,
+            as in the public code; the projection is per token, so projecting each span and the
+            separators before interleaving equals projecting the interleaved sequence).
         """
         us = self.speech_proj(user_speech)
         as_ = self.speech_proj(agent_speech)
         um = self.motion_encoder(user_motion)
-        if agent_motion is None:
-            am = jnp.broadcast_to(self.mask_token.astype(us.dtype), us.shape)
-        else:
-            am = self.motion_encoder(agent_motion)
-            if agent_mask is not None:
-                am = jnp.where(agent_mask[..., None], self.mask_token.astype(am.dtype), am)
+        am = None if agent_motion is None else self.motion_encoder(agent_motion)
         if user_drop is not None:
-            drop = user_drop[:, None, None, None]
+            drop = user_drop[:, None, None, None] if user_drop.ndim == 1 else user_drop[:, :, None, None]
             us = jnp.where(drop, self.fake_token.astype(us.dtype), us)
             um = jnp.where(drop, self.fake_token.astype(um.dtype), um)
-        return interleave(us, um, as_, am, self.separators)
+        seps = self.separators
+        if self.config.input_projection:
+            us, um, as_, seps = self.input_proj(us), self.input_proj(um), self.input_proj(as_), self.input_proj(seps)
+            am = None if am is None else self.input_proj(am)
+        if am is None:
+            am = jnp.broadcast_to(self.mask_token.astype(us.dtype), us.shape)
+        elif agent_mask is not None:
+            am = jnp.where(agent_mask[..., None], self.mask_token.astype(am.dtype), am)
+        return interleave(us, um, as_, am, seps)
 
     def encode(
         self,
@@ -189,7 +201,10 @@ class TimarEncoder(nn.Module):
         x = tokens.reshape(b, nq * tpt, w)
         start = jnp.asarray(first_turn, jnp.int32) * tpt
         pos = jax.lax.dynamic_slice_in_dim(self.pos_embed, start, nq * tpt, axis=0)
-        x = self.in_norm(x) + pos[None].astype(x.dtype)
+        if self.config.norm_after_position:
+            x = self.in_norm(x + pos[None].astype(x.dtype))  # the public code's z_proj_ln(z_proj(x) + P1)
+        else:
+            x = self.in_norm(x) + pos[None].astype(x.dtype)
         caches = []
         for i, block in enumerate(self.blocks):
             cache = None if kv_cache is None else kv_cache[i]
@@ -324,7 +339,7 @@ class TimarEncoder(nn.Module):
         agent_speech: Float[Array, "batch turns frames speech_dim"],
         agent_motion: Float[Array, "batch turns frames param_dim"] | None = None,
         agent_mask: Bool[Array, "batch turns frames"] | None = None,
-        user_drop: Bool[Array, " batch"] | None = None,
+        user_drop: Bool[Array, " batch"] | Bool[Array, "batch turns"] | None = None,
         deterministic: bool = True,
     ) -> Float[Array, "batch turns frames width"]:
         """Whole-window pass: embed, fuse with the config's mask, return the head conditions.

@@ -38,7 +38,7 @@ def encode_window(
     agent_speech: Float[Array, "batch turns frames speech_dim"],
     agent_motion: Float[Array, "batch turns frames param_dim"] | None = None,
     agent_mask: Bool[Array, "batch turns frames"] | None = None,
-    user_drop: Bool[Array, " batch"] | None = None,
+    user_drop: Bool[Array, " batch"] | Bool[Array, "batch turns"] | None = None,
     *,
     dropout_key: PRNGKeyArray | None = None,
 ) -> Float[Array, "batch turns frames width"]:
@@ -50,7 +50,8 @@ def encode_window(
         user_speech, user_motion, agent_speech: ``(B, N, F, ...)`` turn-split streams.
         agent_motion: ``(B, N, F, 56)`` or None (all agent frames masked, as in sampling).
         agent_mask: ``(B, N, F)`` True = agent frame replaced by the mask token.
-        user_drop: ``(B,)`` True = all of the example's user tokens replaced by the fake token.
+        user_drop: ``(B,)`` True = all of the example's user tokens replaced by the fake token;
+            ``(B, N)``: per turn.
         dropout_key: enables encoder dropout (training) when given.
 
     Returns:

@@ -115,14 +115,27 @@ def conditions(
         params: model parameters.
         config: model config.
         user_speech, user_motion, agent_speech: ``(B, N, F, ...)`` turn-split streams.
-        guidance: also compute the unconditional features (user tokens -> fake token).
+        guidance: also compute the unconditional features (user tokens -> fake token: of the whole
+            window, or with ``config.guidance_drop == "current_turn"`` of each frame's own turn only).
 
     Returns:
         ``(z_cond, z_uncond)``, each ``(B, N, F, width)``; ``z_uncond`` is None without guidance.
     """
-    b = user_speech.shape[0]
+    b, n = user_speech.shape[:2]
     if not guidance:
         return encode_window(params, config, user_speech, user_motion, agent_speech), None
+    if config.guidance_drop == "current_turn" and n > 1:
+        # Turn t's unconditional condition drops turn t's user tokens only (earlier turns keep theirs,
+        # as a stream does): one window copy per turn t with that turn dropped, after the conditional
+        # copy; copy t's turn-t features are kept.
+        copies = lambda x: jnp.broadcast_to(x[None], (n + 1,) + x.shape).reshape((n + 1) * b, *x.shape[1:])  # noqa: E731
+        drop = jnp.concatenate([jnp.zeros((1, n), bool), jnp.eye(n, dtype=bool)])  # (n + 1, n)
+        drop = jnp.broadcast_to(drop[:, None], (n + 1, b, n)).reshape((n + 1) * b, n)
+        z = encode_window(params, config, copies(user_speech), copies(user_motion), copies(agent_speech), None, None, drop)
+        z = z.reshape((n + 1, b) + z.shape[1:])
+        turns = jnp.arange(n)
+        z_u = jnp.moveaxis(z[1 + turns, :, turns], 0, 1)  # (n, b, F, w) -> (b, n, F, w)
+        return z[0], z_u
     two = lambda x: jnp.concatenate([x, x], axis=0)  # noqa: E731
     drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
     z = encode_window(params, config, two(user_speech), two(user_motion), two(agent_speech), None, None, drop)
@@ -142,6 +155,9 @@ def sample_frames(
     eta: Float[Array, ""] | float = 0.0,
     temperature: Float[Array, ""] | float = 1.0,
     precompute: bool | None = None,
+    # Loose annotations (Array or NumPy): the shape checks below raise a ValueError that names the problem.
+    initial_noise: StreamLike | None = None,
+    step_noise: StreamLike | None = None,
 ) -> Float[Array, "batch *frames param_dim"]:
     """Sample every frame's head parameters from its condition (jit-able building block).
 
@@ -170,9 +186,20 @@ def sample_frames(
         precompute: compute every step's adaLN modulations before the loop (static; None: when
             the table fits in :data:`MODULATION_TABLE_BYTES`). Both ways give the same samples up
             to float32 summation order.
+        initial_noise: the standard normal x_T draw ``(B, *F, 56)`` to use instead of drawing it
+            from ``key`` (temperature applies as to a drawn one).
+        step_noise: ``(sample_steps, B, *F, 56)`` the standard normal draws of the DDPM steps in
+            sampling order (noisiest first), used instead of drawing them from ``key``
+            (``"ddpm"`` only). With both, the sampler is a deterministic function of the noises:
+            this is the hook that reproduces another implementation's random stream (the public
+            code's torch draws; ``experiments/timar_reference_parity.py``).
 
     Returns:
         ``(B, *F, 56)`` samples (the MLP head's prediction for the ``"mlp"`` ablation).
+
+    Raises:
+        ValueError: explicit noises of the wrong shape, or ``step_noise`` with a sampler other
+            than ``"ddpm"``.
     """
     sampler = resolve_sampler(config, sampler)
     omega = jnp.asarray(cfg_scale, jnp.float32)
@@ -181,7 +208,19 @@ def sample_frames(
     if config.head == "mlp":
         return _guided(lambda z: apply_head(hp, config, z), z_cond, z_uncond, omega)
     k_noise, k_steps = jax.random.split(key)
-    noise = jax.random.normal(k_noise, z_cond.shape[:-1] + (config.param_dim,), jnp.float32)
+    shape = z_cond.shape[:-1] + (config.param_dim,)
+    if initial_noise is None:
+        noise = jax.random.normal(k_noise, shape, jnp.float32)
+    else:
+        noise = jnp.asarray(initial_noise, jnp.float32)
+        if noise.shape != shape:
+            raise ValueError(f"initial_noise must have shape {shape}, got {noise.shape}")
+    if step_noise is not None:
+        if sampler != "ddpm":
+            raise ValueError(f"step_noise is only used by the 'ddpm' sampler, got sampler {sampler!r}")
+        step_noise = jnp.asarray(step_noise, jnp.float32)
+        if step_noise.shape != (sample_steps,) + shape:
+            raise ValueError(f"step_noise must have shape {(sample_steps,) + shape} (steps, *frames), got {step_noise.shape}")
     if sampler != "ddpm":
         noise = noise * tau
     if sampler == "mean":
@@ -209,7 +248,7 @@ def sample_frames(
     )
     if sampler == "ddim":
         return sample_ddim(model, noise, {"cz": cz}, schedule, k_steps, eta=eta, **kwargs)
-    return sample_ddpm(model, noise, {"cz": cz}, schedule, k_steps, temperature=tau, **kwargs)
+    return sample_ddpm(model, noise, {"cz": cz}, schedule, k_steps, temperature=tau, step_noise=step_noise, **kwargs)
 
 
 def resolve_sampler(config: TimarConfig, sampler: str | None) -> str:

@@ -20,7 +20,9 @@ recomputation costs.
 The state is an explicit pytree. :func:`stream_step` compiles two programs, filling and sliding,
 and picks one on the host from the turn counter (under an outer ``jit`` the counter is abstract and
 one program with a ``lax.cond`` is used instead). CFG stacks the conditional and the unconditional
-window (user tokens -> fake token) along the batch axis.
+window (user tokens -> fake token) along the batch axis; with ``guidance_drop="current_turn"`` (the
+public code's choice) the unconditional rows drop the current turn's user tokens only and keep the
+conditional rows' past turns.
 """
 
 from __future__ import annotations
@@ -144,10 +146,16 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
         us, um, as_ = two(us), two(um), two(as_)
         drop = jnp.concatenate([jnp.zeros((b,), bool), jnp.ones((b,), bool)])
     tok = _encoder_call(params, config, "embed", us, um, as_, None, None, drop)  # (S, 1, tpt, w)
+    # What later turns see of this one: with guidance_drop="current_turn" the unconditional rows keep
+    # the REAL user tokens of past turns (only the current turn's are dropped), so they store, and
+    # cache the keys/values of, the conditional rows' tokens.
+    per_turn = guidance and config.guidance_drop == "current_turn"
+    keep_rows = (lambda x: jnp.concatenate([x[:b], x[:b]], axis=0)) if per_turn else (lambda x: x)  # noqa: E731
+    tok_kept = keep_rows(tok)
     t = state.turn
     slot = jnp.minimum(t, n)
-    written = jax.lax.dynamic_update_slice_in_dim(state.tokens, tok, slot, axis=1)
-    shifted = jnp.concatenate([state.tokens[:, 1:], tok], axis=1)
+    written = jax.lax.dynamic_update_slice_in_dim(state.tokens, tok_kept, slot, axis=1)
+    shifted = jnp.concatenate([state.tokens[:, 1:], tok_kept], axis=1)
     causal = config.attention == "turn_causal"
     layout = turn_layout(config.frames_per_turn)
 
@@ -155,12 +163,14 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
         # Bidirectional: past turns attend to the current one, nothing can be cached; encoder-decoder:
         # recomputed (see the module docstring); n = 0: the window is the current turn alone.
         tokens = jnp.where(t > n, shifted, written)
+        # The pass itself sees this turn's own tokens (the fake user tokens on unconditional rows).
+        current = jax.lax.dynamic_update_slice_in_dim(tokens, tok, slot, axis=1) if per_turn else tokens
         static_mask = jnp.asarray(layout.attention_mask(n + 1, causal=causal))
         key_slot = jnp.asarray(np.repeat(np.arange(n + 1), tpt))
         visible = static_mask & (key_slot <= slot)[None, :]
         # Every agent frame is masked at inference, past ones included (outputs are never fed back).
         masked = jnp.ones(tokens.shape[:2] + (config.frames_per_turn,), bool)
-        z = _encoder_call(params, config, "fuse", tokens, masked, visible)
+        z = _encoder_call(params, config, "fuse", current, masked, visible)
         z = jax.lax.dynamic_index_in_dim(z, slot, axis=1, keepdims=False)
         return StreamState(tokens, state.keys, state.values, t + 1, state.rng), z
 
@@ -195,11 +205,11 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
     # never read again (later turns rebuild it from the slid window), so it is left as is.
     fill = t < n
     new_k = tuple(
-        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(k_old, k_all[:, n * tpt:], t * tpt, axis=1), k_old)
+        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(k_old, keep_rows(k_all[:, n * tpt:]), t * tpt, axis=1), k_old)
         for k_old, (k_all, _) in zip(state.keys, kvs)
     )
     new_v = tuple(
-        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(v_old, v_all[:, n * tpt:], t * tpt, axis=1), v_old)
+        jnp.where(fill, jax.lax.dynamic_update_slice_in_dim(v_old, keep_rows(v_all[:, n * tpt:]), t * tpt, axis=1), v_old)
         for v_old, (_, v_all) in zip(state.values, kvs)
     )
     return StreamState(tokens, new_k, new_v, t + 1, state.rng), z
@@ -263,13 +273,14 @@ def stream_condition(
 @functools.partial(
     jax.jit, static_argnames=("config", "sample_steps", "sampler", "guidance", "mode"), donate_argnums=(2,)
 )
-def _step(params, config, state, us, um, as_, cfg_scale, eta, temperature, sample_steps, sampler, guidance, mode):
+def _step(params, config, state, us, um, as_, cfg_scale, eta, temperature, sample_steps, sampler, guidance, mode,
+          initial_noise=None, step_noise=None):
     key = jax.random.fold_in(state.rng, state.turn)  # before _condition advances the turn
     state, z = _condition(params, config, state, us, um, as_, guidance, mode)
     b = us.shape[0]
     z_c, z_u = (z[:b], z[b:]) if guidance else (z, None)
     x = sample_frames(params, config, z_c, z_u, key, cfg_scale=cfg_scale, sample_steps=sample_steps, sampler=sampler, eta=eta,
-                      temperature=temperature)
+                      temperature=temperature, initial_noise=initial_noise, step_noise=step_noise)
     return state, x
 
 
@@ -287,6 +298,8 @@ def stream_step(
     eta: Float[Array, ""] | float = 0.0,
     temperature: Shaped[Array, "..."] | float = 1.0,
     guidance: bool = True,
+    initial_noise: StreamLike | None = None,
+    step_noise: StreamLike | None = None,
 ) -> tuple[StreamState, Float[Array, "batch frames param_dim"]]:
     """One streaming turn: encode it against the window, sample the agent's motion for it.
 
@@ -305,6 +318,9 @@ def stream_step(
         eta: DDIM stochasticity (traced).
         temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`).
         guidance: must match the state.
+        initial_noise, step_noise: explicit standard normal draws instead of the turn's key (see
+            :func:`~jaxtalk.models.timar.sample.sample_frames`; for reproducing another
+            implementation's random stream).
 
     Returns:
         ``(new_state, motion)`` with ``motion: (B, F, 56)``.
@@ -325,6 +341,8 @@ def stream_step(
         jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature),
         sample_steps, sampler,
         bool(guidance), _mode(config, state),
+        None if initial_noise is None else jnp.asarray(initial_noise, jnp.float32),
+        None if step_noise is None else jnp.asarray(step_noise, jnp.float32),
     )
 
 

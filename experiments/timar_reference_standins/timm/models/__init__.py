@@ -1,0 +1,1 @@
+"""Stand-in package: only ``timm.models.vision_transformer.Block``."""
