@@ -27,6 +27,7 @@ FIELDS = ("model", "preset", "batch", "params_m", "step_s", "gflops", "gflop_s",
           "loop_step_s", "host_s", "host_share", "loader_s", "loader_x", "rss_gb")
 
 
+@pytest.mark.slow
 def test_every_model_has_a_complete_training_row(prepared_tiny, fast_compile):
     from jaxtalk.benchmarking import measure_matmul_peak
 
@@ -45,6 +46,7 @@ def test_every_model_has_a_complete_training_row(prepared_tiny, fast_compile):
         assert row["host_s"] == pytest.approx(row["loop_step_s"] - row["step_s"])
 
 
+@pytest.mark.slow
 def test_bench_train_cli_writes_the_json_traces_and_keeps_to_the_selection(prepared_tiny, tmp_path, fast_compile):
     out, traces = tmp_path / "bench.json", tmp_path / "trace"
     result = runner.invoke(app, [
@@ -113,3 +115,35 @@ def test_bench_train_user_errors(args, message, tmp_path):
 def test_train_step_rejects_an_unknown_model(prepared_tiny):
     with pytest.raises(ValueError, match="unknown training benchmark model"):
         bench.train_step("wavenet", "small", prepared_tiny)
+
+
+def test_train_profile_writes_a_trace_of_the_chosen_steps(prepared_tiny, tmp_path, fast_compile):
+    from jaxtalk.commands.training import PROFILE_DIR
+
+    run = tmp_path / "run"
+    result = runner.invoke(app, [
+        "train", "ats", "--data", "synthtalk:tiny", "--cache-dir", str(prepared_tiny.root.parent), "--out", str(run),
+        "--steps", "3", "--set", "batch_size=2", "--set", "num_layers=1", "--no-progress", "--profile", "2:3"])
+    assert result.exit_code == 0, result.output
+    files = trace_files(run / PROFILE_DIR)
+    assert any(p.name.endswith(".xplane.pb") for p in files), files
+    assert any(p.name.endswith(".trace.json.gz") for p in files), files
+
+
+@pytest.mark.parametrize("text, message", [
+    ("3", "START:STOP"), ("a:b", "two step numbers"), ("0:2", "1 <= START <= STOP"), ("5:4", "1 <= START <= STOP")])
+def test_profile_range_is_checked(text, message, tmp_path):
+    from jaxtalk.train.observers import parse_step_range
+
+    assert parse_step_range("2:5") == (2, 5)
+    with pytest.raises(ValueError, match=message):
+        parse_step_range(text)
+    result = runner.invoke(app, ["train", "ats", "--out", str(tmp_path / "r"), "--profile", text])
+    assert result.exit_code == 2 and message in result.output
+
+
+def test_profile_outside_the_run_is_refused(prepared_tiny, tmp_path):
+    result = runner.invoke(app, [
+        "train", "ats", "--data", "synthtalk:tiny", "--cache-dir", str(prepared_tiny.root.parent),
+        "--out", str(tmp_path / "run"), "--steps", "3", "--profile", "2:9"])
+    assert result.exit_code == 2 and "outside the steps this run trains (1..3)" in result.output
