@@ -65,6 +65,20 @@ def test_bench_train_cli_writes_the_json_traces_and_keeps_to_the_selection(prepa
                                 "set": ["batch_size=2", "num_layers=1"]}
     files = trace_files(traces / "ats-small")
     assert any(p.name.endswith(".xplane.pb") for p in files), files
+    # The README's tables come from this JSON, the machine named.
+    text = _bench_readme().performance_section(payload)
+    assert payload["machine_info"]["cpu_model"] in text and "| ats | small | 2 |" in text
+
+
+def _bench_readme():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "bench_readme.py"
+    spec = importlib.util.spec_from_file_location("bench_readme", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_bench_selection_maps_models_and_presets(monkeypatch, tmp_path):

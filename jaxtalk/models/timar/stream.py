@@ -39,6 +39,7 @@ from jaxtalk.models.timar.sample import check_temperature, resolve_sampler, samp
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.nn import bias_from_mask
 from jaxtalk.types import Array, Float, Int, PRNGKeyArray, Shaped, StreamLike
+from jaxtalk.nn.precision import compute_in
 
 __all__ = ["StreamState", "init_stream", "stream_condition", "stream_step", "stream"]
 
@@ -111,7 +112,8 @@ def init_stream(
 
 
 def _encoder_call(params: Any, config: TimarConfig, method: str, *args: Any, **kwargs: Any) -> Any:
-    return TimarEncoder(config).apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
+    apply = compute_in(config.compute_dtype, TimarEncoder(config).apply)
+    return apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
 
 
 def _cached(config: TimarConfig) -> bool:
