@@ -52,6 +52,7 @@ __all__ = [
     "TRAIN_MODELS",
     "TrainProbe",
     "train_step",
+    "recipe_setup",
     "run_train_benchmarks",
 ]
 
@@ -668,6 +669,34 @@ def _peak_rss_gb() -> float | None:
         return None
 
 
+def recipe_setup(model: str, preset: str, data: Any, overrides: Sequence[str] = ()) -> tuple[Callable[..., Any], Any, Any]:
+    """What ``jaxtalk train MODEL --preset PRESET --set ...`` would train on ``data``.
+
+    Args:
+        model: a model of :data:`jaxtalk.runs.REGISTRY`.
+        preset: a config preset.
+        data: a :class:`~jaxtalk.data.loader.PreparedData` (input widths follow it unless set).
+        overrides: ``key=value`` items for the config or the training settings.
+
+    Returns:
+        ``(recipe train function, model config, TrainSettings)``.
+
+    Raises:
+        ValueError: an unknown model or preset, or bad overrides.
+    """
+    from jaxtalk.commands.training import recipe_for, split_overrides
+    from jaxtalk.runs import build_config, config_class, model_spec, parse_overrides
+
+    train_fn, defaults = recipe_for(model, preset)
+    model_items, train_kw = split_overrides(model, overrides)
+    explicit = parse_overrides(config_class(model), model_items)
+    m = data.manifest
+    widths = [f"{field}={m[key]:g}" if isinstance(m[key], float) else f"{field}={m[key]}"
+              for field, key in model_spec(model).data_fields if m.get(key) is not None and field not in explicit]
+    config = build_config(model, preset, [*widths, *model_items])
+    return train_fn, config, dataclasses.replace(defaults, **train_kw)
+
+
 def train_step(
     model: str,
     preset: str,
@@ -707,19 +736,9 @@ def train_step(
     """
     import jax
 
-    from jaxtalk.commands.training import recipe_for, split_overrides
-    from jaxtalk.runs import build_config, config_class, model_spec, parse_overrides
-
     if model not in TRAIN_MODELS:
         raise ValueError(f"unknown training benchmark model {model!r}; expected one of {', '.join(TRAIN_MODELS)}")
-    train_fn, defaults = recipe_for(model, preset)
-    model_items, train_kw = split_overrides(model, overrides)
-    explicit = parse_overrides(config_class(model), model_items)
-    widths = [f"{field}={data.manifest[key]:g}" if isinstance(data.manifest[key], float) else f"{field}={data.manifest[key]}"
-              for field, key in model_spec(model).data_fields
-              if data.manifest.get(key) is not None and field not in explicit]
-    config = build_config(model, preset, [*widths, *model_items])
-    settings = dataclasses.replace(defaults, **train_kw)
+    train_fn, config, settings = recipe_setup(model, preset, data, overrides)
     probe = TrainProbe(repeats=repeats, loop_warmup=loop_warmup, loop_steps=loop_steps,
                        loader_batches=loader_batches, profile_dir=profile_dir)
     steps = probe.last_step + 1
