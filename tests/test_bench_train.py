@@ -71,11 +71,15 @@ def test_bench_train_cli_writes_the_json_traces_and_keeps_to_the_selection(prepa
 
 
 def _bench_readme():
+    return _experiment("bench_readme")
+
+
+def _experiment(name: str):
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "experiments" / "bench_readme.py"
-    spec = importlib.util.spec_from_file_location("bench_readme", path)
+    path = Path(__file__).resolve().parents[1] / "experiments" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -161,3 +165,17 @@ def test_profile_outside_the_run_is_refused(prepared_tiny, tmp_path):
         "train", "ats", "--data", "synthtalk:tiny", "--cache-dir", str(prepared_tiny.root.parent),
         "--out", str(tmp_path / "run"), "--steps", "3", "--profile", "2:9"])
     assert result.exit_code == 2 and "outside the steps this run trains (1..3)" in result.output
+
+
+@pytest.mark.slow
+def test_device_check_trains_for_a_time_budget_and_streams(prepared_tiny, fast_compile):
+    from jaxtalk.models.toktalk import TokTalkConfig
+
+    check = _experiment("device_check")
+    record = check.timar_train(4.0, preset="small", data="synthtalk:tiny", cache_dir=str(prepared_tiny.root.parent),
+                               overrides=TINY["timar"])
+    assert record["steps"] >= 1 and record["seconds"] >= 4.0 and record["first_step_s"] > 0
+    assert record["batch"] == 2 and record["params_m"] > 0
+    stream = check.toktalk_stream(2, configs={"tiny": TokTalkConfig.tiny()})
+    (row,) = stream["rows"]
+    assert row["latency_s"] > 0 and 0 < row["of_peak"] < 1.5 and stream["matmul_peak_gflop_s"] > 0
