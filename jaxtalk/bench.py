@@ -762,6 +762,7 @@ def run_train_benchmarks(
     overrides: dict[str, Sequence[str]] | None = None,
     repeats: int = 5,
     loop_steps: int = 10,
+    paper_batch: int | None = None,
     profile_dir: Any = None,
     echo: Callable[[str], None] = print,
 ) -> BenchTable:
@@ -773,8 +774,10 @@ def run_train_benchmarks(
         data: the prepared dataset every model trains on.
         peak_gflop_s: the float32 matmul peak measured in this process.
         overrides: ``--set`` items per model name (e.g. a smaller batch).
-        repeats: timed compiled steps per row.
-        loop_steps: timed loop updates per row.
+        repeats: timed compiled steps per row (``paper`` rows: half as many, at least 2).
+        loop_steps: timed loop updates per row (``paper`` rows: a third as many, at least 3).
+        paper_batch: the batch of the ``paper`` rows (None: the recipe's for the preset, e.g. TIMAR's
+            32, which takes minutes per step on a CPU).
         profile_dir: a :mod:`jax.profiler` trace of each row's compiled steps in ``<dir>/<model>-<preset>``.
         echo: progress lines.
 
@@ -796,6 +799,11 @@ def run_train_benchmarks(
         for model in models:
             echo(f"training step: {model} {preset}")
             trace = None if profile_dir is None else Path(profile_dir) / f"{model}-{preset}"
-            rows.append(train_step(model, preset, data, overrides=tuple((overrides or {}).get(model, ())),
-                                   repeats=repeats, loop_steps=loop_steps, profile_dir=trace))
+            items = tuple((overrides or {}).get(model, ()))
+            reps, loop = repeats, loop_steps
+            if preset == "paper":  # seconds to minutes per step on a CPU: fewer of them
+                reps, loop = max(2, repeats // 2), max(3, loop_steps // 3)
+                items = items + ((f"batch_size={paper_batch}",) if paper_batch is not None else ())
+            rows.append(train_step(model, preset, data, overrides=items, repeats=reps, loop_steps=loop,
+                                   loop_warmup=1 if preset == "paper" else 2, profile_dir=trace))
     return BenchTable("Training: one train step (compiled, median) and the loop around it", with_peak(rows, peak_gflop_s))

@@ -396,6 +396,8 @@ def bench(
                                                                 "every trained model, KEY=VALUE (repeatable), e.g. "
                                                                 "--set batch_size=4.")] = None,
     loop_steps: Annotated[int, typer.Option(help="With --train: loop steps timed for the host overhead.")] = 10,
+    paper_batch: Annotated[int | None, typer.Option(help="With --train: the batch of the paper rows (default the "
+                                                         "recipe's, e.g. TIMAR's 32: minutes per step on a CPU).")] = None,
     profile: Annotated[Path | None, typer.Option(help="With --train: write a jax.profiler trace of each row's timed train "
                                                       "steps to DIR/MODEL-PRESET (Perfetto or TensorBoard).")] = None,
     out: Annotated[Path | None, typer.Option(help="JSON with every row and the machine (replaced if it exists; default "
@@ -443,7 +445,7 @@ def bench(
         overrides = {m: tuple(set_ or ()) for m in train_models}
         tables.insert(0, run_train_benchmarks(train_models, presets, data=prepared, peak_gflop_s=peak,
                                               overrides=overrides, repeats=repeats, loop_steps=loop_steps,
-                                              profile_dir=profile, echo=typer.echo))
+                                              paper_batch=paper_batch, profile_dir=profile, echo=typer.echo))
     info = machine_info()
     typer.echo(f"machine: {info['cpu_model']} ({info['cpu_cores']} cores, {info['backend']}, {info['device_kind']}), "
                f"load {info['load_avg_1m']}; float32 matmul peak {peak:.1f} GFLOP/s")
@@ -451,7 +453,8 @@ def bench(
         _echo_table(table.rows, table.title)
     payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
     if train_models:
-        payload["train"] = {"data": data, "presets": presets, "models": train_models, "set": list(set_ or ())}
+        payload["train"] = {"data": data, "presets": presets, "models": train_models, "set": list(set_ or ()),
+                            "paper_batch": paper_batch}
     write_json(out, payload)
     typer.echo(f"written to {out}")
 

@@ -62,7 +62,7 @@ def test_bench_train_cli_writes_the_json_traces_and_keeps_to_the_selection(prepa
     (row,) = table["rows"]
     assert tuple(row) == FIELDS and row["model"] == "ats" and row["preset"] == "small"
     assert payload["train"] == {"data": "synthtalk:tiny", "presets": ["small"], "models": ["ats"],
-                                "set": ["batch_size=2", "num_layers=1"]}
+                                "set": ["batch_size=2", "num_layers=1"], "paper_batch": None}
     files = trace_files(traces / "ats-small")
     assert any(p.name.endswith(".xplane.pb") for p in files), files
     # The README's tables come from this JSON, the machine named.
@@ -91,7 +91,7 @@ def test_bench_selection_maps_models_and_presets(monkeypatch, tmp_path):
     calls: dict[str, object] = {}
 
     def fake_train(models, presets, **kw):
-        calls["train"] = (list(models), list(presets), kw["overrides"])
+        calls["train"] = (list(models), list(presets), kw["overrides"], kw["paper_batch"])
         return bench.BenchTable("train", [{"model": m, "gflop_s": 1.0} for m in models])
 
     def fake_sample(models, *, paper, **kw):
@@ -104,10 +104,10 @@ def test_bench_selection_maps_models_and_presets(monkeypatch, tmp_path):
     monkeypatch.setattr("jaxtalk.data.loader.open_data", lambda *a, **k: None)
     out = tmp_path / "b.json"
     result = runner.invoke(app, ["bench", "--train", "--model", "freetalk", "--model", "dualtalk", "--paper",
-                                 "--set", "batch_size=4", "--out", str(out)])
+                                 "--set", "batch_size=4", "--paper-batch", "2", "--out", str(out)])
     assert result.exit_code == 0, result.output
     assert calls["train"] == (["ats", "stm", "dualtalk"], ["small", "paper"],
-                              {m: ("batch_size=4",) for m in ("ats", "stm", "dualtalk")})
+                              {m: ("batch_size=4",) for m in ("ats", "stm", "dualtalk")}, 2)
     assert calls["sample"] == (["freetalk"], True)  # ATS's and STM's sampler rows; DualTalk has none
     titles = [t["title"] for t in json.loads(out.read_text())["tables"]]
     assert titles == ["train", "sample"]
@@ -116,7 +116,7 @@ def test_bench_selection_maps_models_and_presets(monkeypatch, tmp_path):
     result = runner.invoke(app, ["bench", "--train", "--model", "timar", "--preset", "paper", "--no-sampling",
                                  "--out", str(out)])
     assert result.exit_code == 0, result.output
-    assert calls == {"train": (["timar"], ["paper"], {"timar": ()})}
+    assert calls == {"train": (["timar"], ["paper"], {"timar": ()}, None)}
 
 
 @pytest.mark.parametrize("args, message", [
@@ -179,3 +179,20 @@ def test_device_check_trains_for_a_time_budget_and_streams(prepared_tiny, fast_c
     stream = check.toktalk_stream(2, configs={"tiny": TokTalkConfig.tiny()})
     (row,) = stream["rows"]
     assert row["latency_s"] > 0 and 0 < row["of_peak"] < 1.5 and stream["matmul_peak_gflop_s"] > 0
+
+
+def test_paper_rows_take_the_paper_batch_and_fewer_steps(monkeypatch):
+    seen = []
+
+    def fake_step(model, preset, data, **kw):
+        seen.append((model, preset, kw["overrides"], kw["repeats"], kw["loop_steps"], kw["loop_warmup"]))
+        return {"model": model, "preset": preset, "gflop_s": 5.0}
+
+    monkeypatch.setattr(bench, "train_step", fake_step)
+    table = bench.run_train_benchmarks(["timar"], ("small", "paper"), data=None, peak_gflop_s=10.0,
+                                       overrides={"timar": ("lr=1e-4",)}, repeats=6, loop_steps=12, paper_batch=2,
+                                       echo=lambda line: None)
+    assert seen == [("timar", "small", ("lr=1e-4",), 6, 12, 2), ("timar", "paper", ("lr=1e-4", "batch_size=2"), 3, 4, 1)]
+    assert [r["of_peak"] for r in table.rows] == [0.5, 0.5]
+    with pytest.raises(ValueError, match="unknown training benchmark model"):
+        bench.run_train_benchmarks(["wavenet"], data=None, peak_gflop_s=1.0)
