@@ -43,8 +43,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from jaxtalk.geometry.operators import Operators
-from jaxtalk.types import Array, Float, Int
 from jaxtalk.nn.precision import matmul_layer
+from jaxtalk.types import Array, Float, Int
 
 __all__ = [
     "DiffusionOperators",

@@ -22,8 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.types import Array, Float, PRNGKeyArray, Shaped
 from jaxtalk.nn.precision import matmul_layer
+from jaxtalk.types import Array, Float, PRNGKeyArray, Shaped
 
 __all__ = [
     "BLOCKED",

@@ -31,8 +31,8 @@ from jaxtalk.data.turns import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.nn import MLP, DecoderBlock, MultiHeadAttention, TransformerBlock
 from jaxtalk.nn.embeddings import sinusoidal_embedding
-from jaxtalk.types import Array, Float, PRNGKeyArray, StreamLike
 from jaxtalk.nn.precision import compute_in
+from jaxtalk.types import Array, Float, PRNGKeyArray, StreamLike
 
 __all__ = ["DualTalkNet", "apply", "check_inputs", "init_params"]
 

@@ -18,8 +18,8 @@ import numpy as np
 from jaxtalk.data.turns import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.models.dualtalk.model import DualTalkNet, check_inputs
-from jaxtalk.types import Array, Float, StreamLike
 from jaxtalk.nn.precision import compute_in
+from jaxtalk.types import Array, Float, StreamLike
 
 __all__ = ["WINDOW_BATCH", "predict_turns", "predict_window"]
 

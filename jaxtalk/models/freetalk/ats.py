@@ -32,9 +32,9 @@ from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.models.freetalk.emotions import check_intensity, emotion_ids
 from jaxtalk.models.freetalk.loss import motion_loss
 from jaxtalk.nn import DecoderBlock, TimestepEmbedding, bias_from_mask
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.samplers import make_schedule, respace, sample_ddim
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
-from jaxtalk.nn.precision import compute_in
 
 __all__ = [
     "ATSCondition",

@@ -42,8 +42,8 @@ from jaxtalk.geometry.operators import compute_operators, vertex_normals
 from jaxtalk.models.freetalk.config import STMConfig
 from jaxtalk.models.freetalk.loss import motion_loss
 from jaxtalk.nn import GraphConv, dot_product_attention, normalized_adjacency, sinusoidal_embedding
-from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 from jaxtalk.nn.precision import compute_in
+from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 
 __all__ = [
     "STMMesh",

@@ -17,8 +17,8 @@ import jax.numpy as jnp
 
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.nn import MLP, AdaLNFinalLayer, AdaLNResBlock, TimestepEmbedding, adaln_modulation
-from jaxtalk.types import Array, Float, PRNGKeyArray
 from jaxtalk.nn.precision import compute_in
+from jaxtalk.types import Array, Float, PRNGKeyArray
 
 __all__ = [
     "DiffusionHead",

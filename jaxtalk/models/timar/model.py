@@ -10,8 +10,8 @@ import jax
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder, init_encoder
 from jaxtalk.models.timar.head import init_head
-from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 from jaxtalk.nn.precision import compute_in
+from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 
 __all__ = ["init_params", "encode_window"]
 

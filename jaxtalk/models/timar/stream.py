@@ -38,8 +38,8 @@ from jaxtalk.data.turns import check_streams
 from jaxtalk.models.timar.sample import check_temperature, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.nn import bias_from_mask
-from jaxtalk.types import Array, Float, Int, PRNGKeyArray, Shaped, StreamLike
 from jaxtalk.nn.precision import compute_in
+from jaxtalk.types import Array, Float, Int, PRNGKeyArray, Shaped, StreamLike
 
 __all__ = ["StreamState", "init_stream", "stream_condition", "stream_step", "stream"]
 

@@ -21,8 +21,8 @@ from jaxtalk.models.toktalk.adapter import Adapter
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.decoder import Decoder
 from jaxtalk.models.toktalk.style import StyleEncoder
-from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 from jaxtalk.nn.precision import compute_in
+from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 
 __all__ = [
     "Condition",
