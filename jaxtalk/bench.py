@@ -536,7 +536,8 @@ class TrainProbe(StepObserver):
 
     * At the start: ``loader_batches`` batches drawn from the loop's own loader, each timed (the
       first, which builds the pipeline, untimed).
-    * Before update 1: the loop's jitted step, on a copy of the loop's state and the first batch:
+    * Before update 1: the loop's jitted step, on a copy of the loop's state and the first batch (put
+      on the device first):
       ``lower`` + ``compile`` timed, XLA's cost analysis (FLOPs) and memory analysis, then
       ``repeats`` runs of the compiled step (after ``warmup``), each ``block_until_ready``-ed, the
       state chained from one to the next as in training. With ``profile_dir`` a
@@ -580,6 +581,9 @@ class TrainProbe(StepObserver):
         if step != 1:
             return
         copy = jax.tree.map(lambda x: x.copy(), state)  # the loop donates its own state
+        # On the device once: the timed step is the computation; the loop's per-step transfer of the
+        # host batch counts in its wall time (the host's share).
+        batch = jax.device_put(batch)
         t0 = time.perf_counter()
         compiled = step_fn.lower(copy, batch).compile()
         compile_s = time.perf_counter() - t0
