@@ -16,6 +16,11 @@ Per model:
   latency and FLOPs; :func:`timar_head`: the diffusion head alone.
 * :func:`ats_clip`: ATS DDIM on a clip; :func:`stm_frames`: STM frames per second on a mesh.
 * :func:`run_benchmarks`: all of them, one matmul peak, one set of tables.
+
+Training (:func:`run_train_benchmarks`, ``jaxtalk bench --train``): each model's recipe runs a few
+steps on prepared data with a :class:`TrainProbe` watching the shared loop: the loop's own compiled
+step timed, its FLOPs and memory from XLA, the loader's time per batch, and the loop's wall time per
+step (the host's overhead is the difference).
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+
+from jaxtalk.train.observers import StepObserver
 
 __all__ = [
     "random_params",
@@ -42,6 +49,11 @@ __all__ = [
     "BenchTable",
     "run_benchmarks",
     "BENCH_MODELS",
+    "TRAIN_MODELS",
+    "TrainProbe",
+    "train_step",
+    "recipe_setup",
+    "run_train_benchmarks",
 ]
 
 BENCH_MODELS = ("toktalk", "timar", "freetalk")
@@ -412,8 +424,20 @@ def stm_frames(config: Any, name: str, *, resolution: str = "high", frames: int 
 
 # ------------------------------------------------------------------------------------------ all
 def with_peak(rows: list[dict[str, Any]], peak_gflop_s: float) -> list[dict[str, Any]]:
-    """Rows with ``of_peak`` = ``gflop_s / peak_gflop_s`` added (None where FLOPs are unknown)."""
-    return [{**r, "of_peak": None if r.get("gflop_s") is None else r["gflop_s"] / peak_gflop_s} for r in rows]
+    """Rows with ``of_peak`` = ``gflop_s / peak_gflop_s`` added right after ``gflop_s`` (at the end where
+    the row has none; None where FLOPs are unknown)."""
+    out = []
+    for r in rows:
+        value = None if r.get("gflop_s") is None else r["gflop_s"] / peak_gflop_s
+        row = {k: v for k, v in r.items() if k != "of_peak"}
+        if "gflop_s" in row:
+            keys = list(row)
+            at = keys.index("gflop_s") + 1
+            row = {**{k: row[k] for k in keys[:at]}, "of_peak": value, **{k: row[k] for k in keys[at:]}}
+        else:
+            row["of_peak"] = value
+        out.append(row)
+    return out
 
 
 @dataclasses.dataclass
@@ -493,3 +517,297 @@ def run_benchmarks(
             rows.append(stm_frames(STMConfig.paper(), "paper", repeats=few))
         tables.append(BenchTable("FreeTalk STM: 25 frames per call on the ~5.9k-vertex face", with_peak(rows, peak)))
     return peak, tables
+
+
+# ------------------------------------------------------------------------------------------ training
+TRAIN_MODELS = ("toktalk", "ats", "stm", "timar", "dualtalk")
+TRAIN_PRESETS = ("small", "paper")
+# The inference table that shows each training model's sampler.
+SAMPLER_OF = {"toktalk": "toktalk", "ats": "freetalk", "stm": "freetalk", "timar": "timar"}
+
+
+class _WindowDone(Exception):
+    """Raised by :class:`TrainProbe` once its timed window is over: the benchmark needs no more steps
+    (nor the run's final evaluation)."""
+
+
+class TrainProbe(StepObserver):
+    """Measures a real recipe run from inside the shared loop (a :class:`~jaxtalk.train.StepObserver`).
+
+    * At the start: ``loader_batches`` batches drawn from the loop's own loader, each timed (the
+      first, which builds the pipeline, untimed).
+    * Before update 1: the loop's jitted step, on a copy of the loop's state and the first batch (put
+      on the device first):
+      ``lower`` + ``compile`` timed, XLA's cost analysis (FLOPs) and memory analysis, then
+      ``repeats`` runs of the compiled step (after ``warmup``), each ``block_until_ready``-ed, the
+      state chained from one to the next as in training. With ``profile_dir`` a
+      :mod:`jax.profiler` trace of those runs is written there.
+    * Updates ``loop_warmup + 1 .. loop_warmup + loop_steps`` of the loop itself: wall time from the
+      finished update ``loop_warmup`` to the finished last one (the loop's batches, checks, metric
+      fetches and dispatch included), after which it raises to stop the run.
+
+    Attributes:
+        result: what was measured (filled as the run goes).
+    """
+
+    def __init__(self, *, repeats: int = 5, warmup: int = 2, loop_warmup: int = 2, loop_steps: int = 10,
+                 loader_batches: int = 10, profile_dir: Any = None) -> None:
+        if min(repeats, loop_steps, loader_batches) < 1 or min(warmup, loop_warmup) < 0:
+            raise ValueError("repeats, loop_steps and loader_batches must be >= 1, warm-ups >= 0")
+        self.repeats, self.warmup = repeats, warmup
+        self.loop_warmup, self.loop_steps = loop_warmup, loop_steps
+        self.loader_batches = loader_batches
+        self.profile_dir = profile_dir
+        self.result: dict[str, Any] = {}
+        self._t0: float | None = None
+
+    @property
+    def last_step(self) -> int:
+        """The update after which the probe stops the run."""
+        return self.loop_warmup + self.loop_steps
+
+    def start(self, data_iter: Any) -> None:
+        next(data_iter)  # builds grain's pipeline
+        times = []
+        for _ in range(self.loader_batches):
+            t0 = time.perf_counter()
+            next(data_iter)
+            times.append(time.perf_counter() - t0)
+        self.result["loader_s"] = float(np.median(times))
+
+    def before_step(self, step: int, state: Any, batch: Any, step_fn: Callable[..., Any]) -> None:
+        import jax
+
+        if step != 1:
+            return
+        copy = jax.tree.map(lambda x: x.copy(), state)  # the loop donates its own state
+        # On the device once: the timed step is the computation; the loop's per-step transfer of the
+        # host batch counts in its wall time (the host's share).
+        batch = jax.device_put(batch)
+        t0 = time.perf_counter()
+        compiled = step_fn.lower(copy, batch).compile()
+        compile_s = time.perf_counter() - t0
+        cost = compiled.cost_analysis()
+        if isinstance(cost, (list, tuple)):
+            cost = cost[0] if cost else None
+        flops = float(cost["flops"]) if cost and "flops" in cost and float(cost["flops"]) >= 0 else None
+        memory = compiled.memory_analysis()
+        peak = None
+        if memory is not None:
+            peak = getattr(memory, "peak_memory_in_bytes", 0) or (
+                memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
+                - memory.alias_size_in_bytes)
+        for _ in range(self.warmup):
+            copy, metrics = compiled(copy, batch)
+            jax.block_until_ready((copy, metrics))
+        if self.profile_dir is not None:
+            from pathlib import Path
+
+            Path(self.profile_dir).mkdir(parents=True, exist_ok=True)
+            jax.profiler.start_trace(str(self.profile_dir), create_perfetto_trace=True)
+        runs = []
+        try:
+            for _ in range(self.repeats):
+                t0 = time.perf_counter()
+                copy, metrics = compiled(copy, batch)
+                jax.block_until_ready((copy, metrics))
+                runs.append(time.perf_counter() - t0)
+        finally:
+            if self.profile_dir is not None:
+                jax.profiler.stop_trace()
+        del copy
+        leaves = jax.tree.leaves(batch)
+        self.result.update(
+            batch=int(leaves[0].shape[0]) if leaves and np.ndim(leaves[0]) else None,
+            params_m=sum(int(np.size(p)) for p in jax.tree.leaves(state.params)) / 1e6,
+            compile_s=compile_s, step_s=float(np.median(runs)), step_min_s=float(min(runs)),
+            flops=flops, memory_gb=None if peak is None else peak / 2**30,
+        )
+
+    def after_step(self, step: int, state: Any, metrics: Any) -> None:
+        import jax
+
+        if step == self.loop_warmup:
+            jax.block_until_ready((state, metrics))
+            self._t0 = time.perf_counter()
+        elif step == self.last_step:
+            jax.block_until_ready((state, metrics))
+            self.result["loop_step_s"] = (time.perf_counter() - self._t0) / self.loop_steps
+            raise _WindowDone
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def row(self) -> dict[str, Any]:
+        """The measured values as a benchmark row (without the fraction of peak).
+
+        Returns:
+            ``batch``, ``params_m`` (millions), ``step_s`` (median compiled step), ``gflops`` per
+            step, ``gflop_s``, ``compile_s``, ``memory_gb`` (XLA's peak for the step), ``loop_step_s``
+            (wall per step in the loop), ``host_s`` (loop minus compiled step) and ``host_share``
+            (of the loop's step), ``loader_s`` per batch and ``loader_x`` (batches the loader makes
+            in one compiled step).
+        """
+        r = self.result
+        flops = r.get("flops")
+        loop = r.get("loop_step_s")
+        host = None if loop is None else loop - r["step_s"]
+        return {
+            "batch": r.get("batch"), "params_m": r.get("params_m"), "step_s": r["step_s"],
+            "gflops": None if flops is None else flops / 1e9, "gflop_s": _rate(flops, r["step_s"]),
+            "compile_s": r["compile_s"], "memory_gb": r.get("memory_gb"), "loop_step_s": loop, "host_s": host,
+            "host_share": None if host is None else host / loop, "loader_s": r.get("loader_s"),
+            "loader_x": r["step_s"] / r["loader_s"] if r.get("loader_s") else None,
+        }
+
+
+def _peak_rss_gb() -> float | None:
+    """The process's peak resident memory so far, in GiB (None where the OS does not say)."""
+    try:
+        import resource
+        import sys
+
+        kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return kb / 2**30 if sys.platform == "darwin" else kb / 2**20
+    except (ImportError, OSError):
+        return None
+
+
+def recipe_setup(model: str, preset: str, data: Any, overrides: Sequence[str] = ()) -> tuple[Callable[..., Any], Any, Any]:
+    """What ``jaxtalk train MODEL --preset PRESET --set ...`` would train on ``data``.
+
+    Args:
+        model: a model of :data:`jaxtalk.runs.REGISTRY`.
+        preset: a config preset.
+        data: a :class:`~jaxtalk.data.loader.PreparedData` (input widths follow it unless set).
+        overrides: ``key=value`` items for the config or the training settings.
+
+    Returns:
+        ``(recipe train function, model config, TrainSettings)``.
+
+    Raises:
+        ValueError: an unknown model or preset, or bad overrides.
+    """
+    from jaxtalk.commands.training import recipe_for, split_overrides
+    from jaxtalk.runs import build_config, config_class, model_spec, parse_overrides
+
+    train_fn, defaults = recipe_for(model, preset)
+    model_items, train_kw = split_overrides(model, overrides)
+    explicit = parse_overrides(config_class(model), model_items)
+    m = data.manifest
+    widths = [f"{field}={m[key]:g}" if isinstance(m[key], float) else f"{field}={m[key]}"
+              for field, key in model_spec(model).data_fields if m.get(key) is not None and field not in explicit]
+    config = build_config(model, preset, [*widths, *model_items])
+    return train_fn, config, dataclasses.replace(defaults, **train_kw)
+
+
+def train_step(
+    model: str,
+    preset: str,
+    data: Any,
+    *,
+    overrides: Sequence[str] = (),
+    repeats: int = 5,
+    loop_steps: int = 10,
+    loop_warmup: int = 2,
+    loader_batches: int = 10,
+    profile_dir: Any = None,
+) -> dict[str, Any]:
+    """One training row: the model's recipe run for a few steps on ``data`` with a :class:`TrainProbe`.
+
+    The model config is the preset plus ``overrides`` (``--set`` items; training settings such as
+    ``batch_size`` included), its input widths following the data as in ``jaxtalk train``; the
+    optimiser settings are the recipe's for the preset. The step timed is the loop's own jitted step
+    (:func:`jaxtalk.train.make_train_step` of the recipe's loss), not a copy of it.
+
+    Args:
+        model: one of :data:`TRAIN_MODELS`.
+        preset: ``small`` or ``paper`` (``tiny`` where the model has one).
+        data: a :class:`~jaxtalk.data.loader.PreparedData`.
+        overrides: ``key=value`` items for the config or the training settings.
+        repeats: timed runs of the compiled step.
+        loop_steps: updates of the loop timed for its wall time per step.
+        loop_warmup: updates of the loop before those.
+        loader_batches: batches timed from the loop's loader.
+        profile_dir: write a :mod:`jax.profiler` trace of the timed compiled steps here.
+
+    Returns:
+        Row: ``model``, ``preset``, the :meth:`TrainProbe.row` values and ``rss_gb`` (the process's
+        peak resident memory so far).
+
+    Raises:
+        ValueError: an unknown model or preset, or bad overrides.
+    """
+    import jax
+
+    if model not in TRAIN_MODELS:
+        raise ValueError(f"unknown training benchmark model {model!r}; expected one of {', '.join(TRAIN_MODELS)}")
+    train_fn, config, settings = recipe_setup(model, preset, data, overrides)
+    probe = TrainProbe(repeats=repeats, loop_warmup=loop_warmup, loop_steps=loop_steps,
+                       loader_batches=loader_batches, profile_dir=profile_dir)
+    steps = probe.last_step + 1
+    kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames else {}
+    try:
+        train_fn(config, data, settings.optim(steps), steps=steps, key=jax.random.key(0),
+                 batch_size=settings.batch_size, seed=0, progress=False, observers=[probe], **kw)
+    except _WindowDone:
+        pass
+    else:
+        raise RuntimeError(f"{model} {preset}: the run ended before the probe's window")
+    return {"model": model, "preset": preset, **probe.row(), "rss_gb": _peak_rss_gb()}
+
+
+def run_train_benchmarks(
+    models: Sequence[str] = TRAIN_MODELS,
+    presets: Sequence[str] = ("small",),
+    *,
+    data: Any,
+    peak_gflop_s: float,
+    overrides: dict[str, Sequence[str]] | None = None,
+    repeats: int = 5,
+    loop_steps: int = 10,
+    paper_batch: int | None = None,
+    profile_dir: Any = None,
+    echo: Callable[[str], None] = print,
+) -> BenchTable:
+    """The training table: one :func:`train_step` row per model and preset, with ``of_peak``.
+
+    Args:
+        models: any of :data:`TRAIN_MODELS`.
+        presets: config presets, each run for every model.
+        data: the prepared dataset every model trains on.
+        peak_gflop_s: the float32 matmul peak measured in this process.
+        overrides: ``--set`` items per model name (e.g. a smaller batch).
+        repeats: timed compiled steps per row (``paper`` rows: half as many, at least 2).
+        loop_steps: timed loop updates per row (``paper`` rows: a third as many, at least 3).
+        paper_batch: the batch of the ``paper`` rows (None: the recipe's for the preset, e.g. TIMAR's
+            32, which takes minutes per step on a CPU).
+        profile_dir: a :mod:`jax.profiler` trace of each row's compiled steps in ``<dir>/<model>-<preset>``.
+        echo: progress lines.
+
+    Returns:
+        The :class:`BenchTable`.
+
+    Raises:
+        ValueError: an unknown model name, or ``repeats`` / ``loop_steps`` < 1.
+    """
+    from pathlib import Path
+
+    unknown = [m for m in models if m not in TRAIN_MODELS]
+    if unknown:
+        raise ValueError(f"unknown training benchmark model(s) {unknown}; expected some of {', '.join(TRAIN_MODELS)}")
+    if repeats < 1 or loop_steps < 1:
+        raise ValueError(f"repeats and loop_steps must be >= 1, got {repeats} and {loop_steps}")
+    rows = []
+    for preset in presets:
+        for model in models:
+            echo(f"training step: {model} {preset}")
+            trace = None if profile_dir is None else Path(profile_dir) / f"{model}-{preset}"
+            items = tuple((overrides or {}).get(model, ()))
+            reps, loop = repeats, loop_steps
+            if preset == "paper":  # seconds to minutes per step on a CPU: fewer of them
+                reps, loop = max(2, repeats // 2), max(3, loop_steps // 3)
+                items = items + ((f"batch_size={paper_batch}",) if paper_batch is not None else ())
+            rows.append(train_step(model, preset, data, overrides=items, repeats=reps, loop_steps=loop,
+                                   loop_warmup=1 if preset == "paper" else 2, profile_dir=trace))
+    return BenchTable("Training: one train step (compiled, median) and the loop around it", with_peak(rows, peak_gflop_s))

@@ -200,13 +200,19 @@ def train(
         bool, typer.Option(help="Several hosts: jax.distributed.initialize() (JAXTALK_COORDINATOR, "
                                 "JAXTALK_NUM_PROCESSES, JAXTALK_PROCESS_ID) and the global device mesh.")
     ] = False,
+    profile: Annotated[
+        str | None, typer.Option(help="START:STOP: write a jax.profiler trace of those steps (1-based, both included) to "
+                                      "OUT/profile, for Perfetto or TensorBoard.")
+    ] = None,
 ) -> None:
     """Train a model on a prepared dataset with checkpoints; run again with more --steps to continue exactly."""
     from jaxtalk.commands.training import TrainOptions, train_run
+    from jaxtalk.train.observers import parse_step_range
 
     opts = TrainOptions(model=model, out_dir=out or Path("runs") / model, data=data, preset=preset,
                         overrides=tuple(set_ or ()), steps=steps, seed=seed, cache_dir=cache_dir, resume=resume,
-                        progress=progress, data_parallel=data_parallel, distributed=distributed)
+                        progress=progress, data_parallel=data_parallel, distributed=distributed,
+                        profile=None if profile is None else parse_step_range(profile))
     summary = train_run(opts, echo=typer.echo)
     loss = "-" if summary.final_loss is None else f"{summary.final_loss:.4f}"
     val = "" if summary.val_loss is None else f", validation loss {summary.val_loss:.4f}"
@@ -372,30 +378,84 @@ def eval_(
 @_user_errors
 def bench(
     models: Annotated[
-        list[str] | None, typer.Option("--model", help="toktalk, timar or freetalk (repeatable; default all).")
+        list[str] | None, typer.Option("--model", help="Sampling: toktalk, timar or freetalk; with --train also ats, "
+                                                       "stm and dualtalk (freetalk = ats + stm). Repeatable; default all.")
     ] = None,
     paper: Annotated[bool, typer.Option(help="Also the paper-size presets (minutes of compilation).")] = False,
     repeats: Annotated[int, typer.Option(help="Timed runs per case (median).")] = 5,
+    train: Annotated[bool, typer.Option("--train", help="Also time each model's train step in a real recipe run: compiled "
+                                                        "step, FLOPs, fraction of peak, compile time, memory, loader "
+                                                        "time per batch and the loop's host overhead.")] = False,
+    preset: Annotated[list[str] | None, typer.Option("--preset", help="With --train: the presets to train, small or paper "
+                                                                     "(repeatable; default small, and paper with --paper).")] = None,
+    sampling: Annotated[bool, typer.Option(help="With --train: also the sampling tables of the chosen models.")] = True,
+    data: Annotated[str, typer.Option(help="With --train: the prepared data the models train on (a folder or "
+                                           "synthtalk:SIZE).")] = "synthtalk:tiny",
+    cache_dir: Annotated[Path, typer.Option(help="Where synthtalk: data is prepared.")] = Path(".cache/prepared"),
+    set_: Annotated[list[str] | None, typer.Option("--set", help="With --train: a config field or training setting for "
+                                                                "every trained model, KEY=VALUE (repeatable), e.g. "
+                                                                "--set batch_size=4.")] = None,
+    loop_steps: Annotated[int, typer.Option(help="With --train: loop steps timed for the host overhead.")] = 10,
+    paper_batch: Annotated[int | None, typer.Option(help="With --train: the batch of the paper rows (default the "
+                                                         "recipe's, e.g. TIMAR's 32: minutes per step on a CPU).")] = None,
+    profile: Annotated[Path | None, typer.Option(help="With --train: write a jax.profiler trace of each row's timed train "
+                                                      "steps to DIR/MODEL-PRESET (Perfetto or TensorBoard).")] = None,
     out: Annotated[Path | None, typer.Option(help="JSON with every row and the machine (replaced if it exists; default "
                                                   "experiments/results/bench_all.json, which needs --overwrite to "
                                                   "replace a file).")] = None,
     overwrite: _OVERWRITE = False,
 ) -> None:
-    """Speed tables of all three models in one run, with the matmul peak and the achieved fraction."""
-    from jaxtalk.bench import BENCH_MODELS, run_benchmarks
-    from jaxtalk.benchmarking import machine_info, write_json
+    """Speed tables of all three models in one run, with the matmul peak and the achieved fraction; --train
+    adds each model's training step."""
+    from jaxtalk.bench import BENCH_MODELS, SAMPLER_OF, TRAIN_MODELS, run_benchmarks, run_train_benchmarks
+    from jaxtalk.benchmarking import machine_info, measure_matmul_peak, write_json
     from jaxtalk.files import Output, claim_outputs
 
+    if profile is not None and not train:
+        raise ValueError("--profile traces the train steps: add --train")
+    names = list(models or ())
+    if train:
+        wanted = [m for n in names for m in (("ats", "stm") if n == "freetalk" else (n,))] or list(TRAIN_MODELS)
+        unknown = [m for m in wanted if m not in TRAIN_MODELS]
+        if unknown:
+            raise ValueError(f"unknown benchmark model(s) {unknown}; expected some of {', '.join((*TRAIN_MODELS, 'freetalk'))}")
+        train_models = list(dict.fromkeys(wanted))
+        sample_models = list(dict.fromkeys(SAMPLER_OF[m] for m in train_models if m in SAMPLER_OF)) if sampling else []
+        presets = list(dict.fromkeys(preset or (["small", "paper"] if paper else ["small"])))
+        bad = [p for p in presets if p not in ("small", "paper")]
+        if bad:
+            raise ValueError(f"--preset {bad[0]}: expected small or paper")
+        paper = paper or "paper" in presets
+    else:
+        if preset or set_:
+            raise ValueError("--preset and --set choose what --train trains: add --train")
+        sample_models = list(dict.fromkeys({"ats": "freetalk", "stm": "freetalk"}.get(n, n) for n in names)) or list(BENCH_MODELS)
+        train_models, presets = [], []
     (out,) = claim_outputs([Output(out or Path("experiments/results/bench_all.json"), named=out is not None)],
                            overwrite=overwrite)
+    if sample_models:
+        peak, tables = run_benchmarks(tuple(sample_models), paper=paper, repeats=repeats, echo=typer.echo)
+    else:
+        typer.echo("measuring the float32 matmul peak")
+        peak, tables = measure_matmul_peak() / 1e9, []
+    if train_models:
+        from jaxtalk.data.loader import open_data
 
-    peak, tables = run_benchmarks(tuple(models or BENCH_MODELS), paper=paper, repeats=repeats, echo=typer.echo)
+        prepared = open_data(data, cache_dir=cache_dir, progress=False)
+        overrides = {m: tuple(set_ or ()) for m in train_models}
+        tables.insert(0, run_train_benchmarks(train_models, presets, data=prepared, peak_gflop_s=peak,
+                                              overrides=overrides, repeats=repeats, loop_steps=loop_steps,
+                                              paper_batch=paper_batch, profile_dir=profile, echo=typer.echo))
     info = machine_info()
-    typer.echo(f"machine: {info['cpu_model']} ({info['cpu_cores']} cores, {info['backend']}), "
+    typer.echo(f"machine: {info['cpu_model']} ({info['cpu_cores']} cores, {info['backend']}, {info['device_kind']}), "
                f"load {info['load_avg_1m']}; float32 matmul peak {peak:.1f} GFLOP/s")
     for table in tables:
         _echo_table(table.rows, table.title)
-    write_json(out, {"matmul_peak_gflop_s": peak, "tables": [{"title": t.title, "rows": t.rows} for t in tables]})
+    payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
+    if train_models:
+        payload["train"] = {"data": data, "presets": presets, "models": train_models, "set": list(set_ or ()),
+                            "paper_batch": paper_batch}
+    write_json(out, payload)
     typer.echo(f"written to {out}")
 
 

@@ -10,6 +10,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, Shaped
 
 __all__ = [
+    "COMPUTE_DTYPES",
+    "check_compute_dtype",
     "Array",
     "Bool",
     "Float",
@@ -52,3 +54,18 @@ Mask2D = Bool[Array, "queries keys"]
 # An input stream (JAX or NumPy, any shape) of a public entry point that validates the shape itself,
 # naming the stream in its error (TIMAR's and the DualTalk baseline's conversation streams).
 StreamLike = Shaped[Array, "..."] | Shaped[np.ndarray, "..."]
+
+
+# The compute dtypes a model config accepts (``compute_dtype``; :mod:`jaxtalk.nn.precision` applies it).
+COMPUTE_DTYPES = ("float32", "bfloat16")
+
+
+def check_compute_dtype(name: str, owner: str = "config") -> None:
+    """Raise ValueError unless ``name`` is one of :data:`COMPUTE_DTYPES`.
+
+    Args:
+        name: the setting's value.
+        owner: the config's name for the message.
+    """
+    if name not in COMPUTE_DTYPES:
+        raise ValueError(f"{owner}.compute_dtype must be one of {', '.join(COMPUTE_DTYPES)}, got {name!r}")

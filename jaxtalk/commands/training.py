@@ -41,9 +41,11 @@ from jaxtalk.runs import (
 )
 
 DEFAULT_DATA = "synthtalk:tiny"
+# Where ``--profile`` writes its trace, inside the run folder.
+PROFILE_DIR = "profile"
 # What the loop says when a resumed run's schedule is stretched to the new --steps (intended).
 
-__all__ = ["DEFAULT_DATA", "TrainOptions", "TrainSummary", "train_run", "recipe_for", "split_overrides"]
+__all__ = ["DEFAULT_DATA", "PROFILE_DIR", "TrainOptions", "TrainSummary", "train_run", "recipe_for", "split_overrides"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +73,9 @@ class TrainOptions:
             ``batch_size`` setting is per process (the global batch is ``batch_size`` x processes,
             the same batches as one process with the global batch size), all processes write the
             checkpoints together and process 0 alone writes ``run.json`` and the run's assets.
+        profile: ``(start, stop)``: write a :mod:`jax.profiler` trace of updates ``start..stop``
+            (1-based, counted from the run's first step, resumed runs included) to
+            ``<out_dir>/profile`` (:class:`jaxtalk.train.TraceSteps`); None: no trace.
     """
 
     model: str
@@ -86,6 +91,7 @@ class TrainOptions:
     save_every: int | None = None
     data_parallel: bool = False
     distributed: bool = False
+    profile: tuple[int, int] | None = None
 
 
 @dataclasses.dataclass
@@ -234,6 +240,13 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         if settings.batch_size % local:
             raise ValueError(f"batch_size {settings.batch_size} must divide by the {local} local devices")
     kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames is not None else {}
+    if opts.profile is not None:
+        from jaxtalk.train import TraceSteps
+
+        if opts.profile[0] <= done or opts.profile[1] > opts.steps:
+            raise ValueError(f"--profile {opts.profile[0]}:{opts.profile[1]} is outside the steps this run trains "
+                             f"({done + 1}..{opts.steps})")
+        kw["observers"] = [TraceSteps(*opts.profile, out / PROFILE_DIR)]
     info = RunInfo(preset=preset, items=tuple(opts.overrides), data_spec=opts.data, settings=settings)
     with warnings.catch_warnings():
         # The library's warnings (a smaller batch than asked, ...) as one line each, not Python's

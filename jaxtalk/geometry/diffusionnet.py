@@ -43,6 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from jaxtalk.geometry.operators import Operators
+from jaxtalk.nn.precision import matmul_layer
 from jaxtalk.types import Array, Float, Int
 
 __all__ = [
@@ -328,6 +329,7 @@ class _Kernel(nn.Module):
         return self.param("kernel", nn.initializers.lecun_normal(), (in_features, self.features), jnp.float32)
 
 
+@matmul_layer
 class SpatialGradientFeatures(nn.Module):
     """``tanh(Re(conj(g) * (A g)))`` per channel, with g = gradX x + i gradY x and A complex-linear.
 
@@ -352,6 +354,7 @@ class SpatialGradientFeatures(nn.Module):
         return jnp.tanh(gx * (t1 - t2) + gy * (t3 - t1 - t2))
 
 
+@matmul_layer
 class _SplitDense(nn.Module):
     """``nn.Dense`` of a concatenation, computed as a sum of per-part matmuls (same parameters).
 

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.nn.precision import matmul_layer
 from jaxtalk.types import Array, Float, PRNGKeyArray, Shaped
 
 __all__ = [
@@ -143,6 +144,7 @@ def dot_product_attention(
     return jnp.einsum("...hqk,...khd->...qhd", weights.astype(value.dtype), value)
 
 
+@matmul_layer
 class _MergeHeads(nn.Module):
     """Output projection ``(*batch, len, heads, head_dim) -> (*batch, len, features)``.
 

@@ -9,6 +9,7 @@
 * Reading a run's folder: :func:`best_checkpoint_dir` (best vs latest), :func:`read_best`,
   :func:`read_history`, :func:`read_metrics` (``metrics.jsonl``; :mod:`jaxtalk.train.writers` also
   writes TensorBoard event files beside it).
+* Watching steps of a run: :class:`StepObserver`, :class:`TraceSteps` (a :mod:`jax.profiler` trace).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from jaxtalk.train.checkpoint import (
 from jaxtalk.train.checks import BatchSpec, check_finite
 from jaxtalk.train.ema import ema_decay_at, ema_update
 from jaxtalk.train.loop import NonFiniteLossError, TrainResult, train
+from jaxtalk.train.observers import StepObserver, TraceSteps
 from jaxtalk.train.optim import OptimConfig, make_optimizer, make_schedule, trainable_mask
 from jaxtalk.train.sharding import make_mesh, replicate, shard_batch
 from jaxtalk.train.state import TrainState, create_train_state
@@ -65,4 +67,6 @@ __all__ = [
     "make_mesh",
     "shard_batch",
     "replicate",
+    "StepObserver",
+    "TraceSteps",
 ]

@@ -33,6 +33,7 @@ from jax.sharding import Mesh
 from jaxtalk.files import atomic_write_text
 from jaxtalk.train.checks import BatchSpec, check_finite
 from jaxtalk.train.checkpoint import BEST_DIR, HISTORY_FILE, Checkpointer, best_checkpoint_dir, read_history
+from jaxtalk.train.observers import StepObserver
 from jaxtalk.train.optim import OptimConfig, Trainable, make_optimizer, trainable_mask
 from jaxtalk.train.sharding import replicate, shard_batch
 from jaxtalk.train.state import TrainState, create_train_state
@@ -108,6 +109,7 @@ def train(
     log_every: int = 10,
     check_batches: bool = True,
     variable_axes: Sequence[int] | None = None,
+    observers: Sequence[StepObserver] = (),
 ) -> TrainResult:
     """Train ``init_params`` on ``data_iter`` with AdamW (warm-up + cosine), clipping and optional EMA.
 
@@ -157,6 +159,8 @@ def train(
         check_batches: scan every batch for NaN/inf before its step (costs a host pass).
         variable_axes: batch axes allowed to change size between batches (default: the iterator's
             ``variable_axes`` attribute, else none). All other sizes must match the first batch.
+        observers: :class:`~jaxtalk.train.observers.StepObserver` s that watch the steps (a profiler
+            trace of some steps, the benchmark's timing probe); each is closed when the loop ends.
 
     Returns:
         :class:`TrainResult` with the final state, per-step history and best record.
@@ -258,6 +262,7 @@ def train(
             best=best,
             history_file=history_file,
             metrics_log=metrics_log,
+            observers=tuple(observers),
         )
         return loop.run(max_steps)
     finally:
@@ -305,6 +310,7 @@ class _Loop:
     best: _BestKeeper | None = None
     history_file: _HistoryFile | None = None
     metrics_log: RunMetrics | None = None
+    observers: tuple[StepObserver, ...] = ()
 
     def run(self, max_steps: int) -> TrainResult:
         from tqdm.auto import tqdm  # deferred: keeps `import jaxtalk.train` light
@@ -321,6 +327,8 @@ class _Loop:
         self.bar = tqdm(total=max_steps, initial=step, disable=not self.progress or jax.process_index() != 0,
                         desc="train", unit="step")
         try:
+            for observer in self.observers:
+                observer.start(self.data_iter)
             while step < max_steps:
                 try:
                     batch = next(self.data_iter)
@@ -328,8 +336,12 @@ class _Loop:
                     warnings.warn(f"data_iter ended after step {step}, before max_steps={max_steps}", stacklevel=3)
                     break
                 batch = self._prepare(batch, step + 1)
+                for observer in self.observers:
+                    observer.before_step(step + 1, self.state, batch, self.step_fn)
                 self.state, metrics = self.step_fn(self.state, batch)
                 step += 1
+                for observer in self.observers:
+                    observer.after_step(step, self.state, metrics)
                 self.pending.append((step, metrics))
                 data_state = self.position.get_state() if self.position is not None else None
                 if step % self.log_every == 0:
@@ -349,6 +361,8 @@ class _Loop:
                 self.metrics_log.flush()
         finally:
             self.bar.close()
+            for observer in self.observers:
+                observer.close()
         return TrainResult(
             state=self.state, history=self.history, best=None if self.best is None else self.best.record
         )

@@ -10,7 +10,7 @@ import numpy as np
 import optax
 from flax import struct
 
-from jaxtalk.types import Array, Int, PRNGKeyArray
+from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["TrainState", "create_train_state"]
 
@@ -32,11 +32,14 @@ class TrainState:
         rng: base PRNG key; step ``s`` uses ``fold_in(rng, s)``, so resuming needs only ``step``.
     """
 
-    step: Int[Array, ""]
+    # Leaves are typed loosely: JAX rebuilds this pytree with abstract leaves (``ShapeDtypeStruct``
+    # for jax.export, ``ArgInfo`` when lowering, shapes under tree maps), which array annotations
+    # would reject under a runtime type checker. In a real state: an int32 scalar and a typed key.
+    step: PyTree
     params: PyTree
     opt_state: PyTree
     ema_params: PyTree | None
-    rng: PRNGKeyArray
+    rng: PyTree
 
     @property
     def eval_params(self) -> PyTree:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from jaxtalk.types import MOTION_FPS, PARAM_DIM
+from jaxtalk.types import MOTION_FPS, PARAM_DIM, check_compute_dtype
 
 __all__ = ["DualTalkConfig"]
 
@@ -55,8 +55,10 @@ class DualTalkConfig:
     dropout: float = 0.0
     feature_dropout: float = 0.0
     velocity_weight: float = 1.0
+    compute_dtype: str = "float32"
 
     def __post_init__(self) -> None:
+        check_compute_dtype(self.compute_dtype, "DualTalkConfig")
         positive = ("width", "num_layers", "num_heads", "decoder_layers", "lstm_layers", "speech_dim", "param_dim",
                     "frames_per_turn", "max_turns")
         for name in positive:

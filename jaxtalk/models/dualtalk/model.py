@@ -31,6 +31,7 @@ from jaxtalk.data.turns import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.nn import MLP, DecoderBlock, MultiHeadAttention, TransformerBlock
 from jaxtalk.nn.embeddings import sinusoidal_embedding
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.types import Array, Float, PRNGKeyArray, StreamLike
 
 __all__ = ["DualTalkNet", "apply", "check_inputs", "init_params"]
@@ -155,4 +156,5 @@ def apply(
     check_inputs(config, user_speech, user_motion, agent_speech)
     rngs = None if dropout_key is None else {"dropout": dropout_key}
     us, um, as_ = (jnp.asarray(x) for x in (user_speech, user_motion, agent_speech))
-    return DualTalkNet(config).apply({"params": params}, us, um, as_, deterministic=dropout_key is None, rngs=rngs)
+    apply = compute_in(config.compute_dtype, DualTalkNet(config).apply)
+    return apply({"params": params}, us, um, as_, deterministic=dropout_key is None, rngs=rngs)

@@ -18,6 +18,7 @@ import numpy as np
 from jaxtalk.data.turns import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.models.dualtalk.model import DualTalkNet, check_inputs
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.types import Array, Float, StreamLike
 
 __all__ = ["WINDOW_BATCH", "predict_turns", "predict_window"]
@@ -29,7 +30,7 @@ WINDOW_BATCH = 8
 
 @functools.partial(jax.jit, static_argnums=1)
 def _forward(params: Any, config: DualTalkConfig, us: Array, um: Array, as_: Array) -> Array:
-    return DualTalkNet(config).apply({"params": params}, us, um, as_, deterministic=True)
+    return compute_in(config.compute_dtype, DualTalkNet(config).apply)({"params": params}, us, um, as_, deterministic=True)
 
 
 def predict_window(

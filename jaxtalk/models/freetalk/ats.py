@@ -32,6 +32,7 @@ from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.models.freetalk.emotions import check_intensity, emotion_ids
 from jaxtalk.models.freetalk.loss import motion_loss
 from jaxtalk.nn import DecoderBlock, TimestepEmbedding, bias_from_mask
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.samplers import make_schedule, respace, sample_ddim
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 
@@ -278,10 +279,10 @@ def _denoise(params: PyTree, config: ATSConfig, x: Array, t: Array, cond: ATSCon
              deterministic: bool = True, rngs: dict | None = None) -> Array:
     model = ATSDenoiser(config)
 
-    def run(m: ATSDenoiser) -> Array:
+    def run(m: ATSDenoiser, x: Array, t: Array, cond: ATSCondition) -> Array:
         return m(x, t, m.encode_memory(cond.audio), cond, deterministic)
 
-    return nn.apply(run, model)(params, rngs=rngs)
+    return compute_in(config.compute_dtype, nn.apply(run, model))(params, x, t, cond, rngs=rngs)
 
 
 @functools.partial(jax.jit, static_argnames="config")
@@ -398,14 +399,16 @@ def _respaced(num_timesteps: int, sample_steps: int):
 
 def _apply_denoiser(config: ATSConfig, params: PyTree, x: Array, t: Array, cond: tuple[Array, ATSCondition]) -> Array:
     memory, rest = cond
-    return nn.apply(lambda m: m(x, t, memory, rest), ATSDenoiser(config))(params)
+    run = nn.apply(lambda m, x, t, memory, rest: m(x, t, memory, rest), ATSDenoiser(config))
+    return compute_in(config.compute_dtype, run)(params, x, t, memory, rest)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "sample_steps", "remat"))
 def _sample(params, config: ATSConfig, cond: ATSCondition, key, eta, noise, sample_steps: int, remat: bool):
     b, frames = cond.mask.shape
     # The audio memory does not depend on the diffusion step: encode it once, outside the scan.
-    memory = nn.apply(lambda m: m.encode_memory(cond.audio), ATSDenoiser(config))(params)
+    memory = compute_in(config.compute_dtype, nn.apply(lambda m, audio: m.encode_memory(audio), ATSDenoiser(config)))(
+        params, cond.audio)
     # A Partial (a pytree) rather than a closure, so the parameters are traced leaves of the scan
     # (differentiable, e.g. by jaxtalk.models.freetalk.inversion) and not baked-in constants.
     apply_fn = jax.tree_util.Partial(functools.partial(_apply_denoiser, config), params)

@@ -13,7 +13,7 @@ import math
 
 from jaxtalk.geometry.diffusionnet import DiffusionNetConfig
 from jaxtalk.models.freetalk.emotions import EMOTIONS, parse_vocabulary
-from jaxtalk.types import NUM_LANDMARKS
+from jaxtalk.types import NUM_LANDMARKS, check_compute_dtype
 
 __all__ = ["ATSConfig", "STMConfig", "FUSIONS", "DECODERS"]
 
@@ -86,8 +86,10 @@ class ATSConfig:
     velocity_weight: float = 0.3
     acceleration_weight: float = 0.1
     dropout: float = 0.0
+    compute_dtype: str = "float32"
 
     def __post_init__(self) -> None:
+        check_compute_dtype(self.compute_dtype, "ATSConfig")
         _positive_ints(self, ("num_landmarks", "speech_dim", "width", "num_layers", "num_heads", "ff_dim",
                               "max_frames", "num_intensities", "time_frequency_dim",
                               "num_timesteps", "sample_steps"))
@@ -185,8 +187,10 @@ class STMConfig:
     num_eigenpairs: int = 128
     velocity_weight: float = 0.5
     acceleration_weight: float = 0.2
+    compute_dtype: str = "float32"
 
     def __post_init__(self) -> None:
+        check_compute_dtype(self.compute_dtype, "STMConfig")
         _positive_ints(self, ("num_landmarks", "mesh_feature_dim", "encoder_width", "encoder_blocks",
                               "decoder_width", "decoder_blocks", "gcn_layers", "gcn_hidden",
                               "attention_dim", "attention_heads", "num_eigenpairs"))

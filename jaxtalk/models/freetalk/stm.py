@@ -42,6 +42,7 @@ from jaxtalk.geometry.operators import compute_operators, vertex_normals
 from jaxtalk.models.freetalk.config import STMConfig
 from jaxtalk.models.freetalk.loss import motion_loss
 from jaxtalk.nn import GraphConv, dot_product_attention, normalized_adjacency, sinusoidal_embedding
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 
 __all__ = [
@@ -390,7 +391,8 @@ def _check_mesh(mesh: STMMesh) -> None:
 @functools.partial(jax.jit, static_argnames="config")
 def _mesh_features(params, config: STMConfig, mesh: STMMesh):
     model = SparseToMesh(config)
-    return model.apply(params, mesh.vertices, mesh.normals, mesh.ops, method=SparseToMesh.mesh_features)
+    forward = compute_in(config.compute_dtype, model.apply)
+    return forward(params, mesh.vertices, mesh.normals, mesh.ops, method=SparseToMesh.mesh_features)
 
 
 def stm_mesh_features(params: PyTree, config: STMConfig, mesh: STMMesh) -> Float[Array, "verts features"]:
@@ -414,11 +416,12 @@ def stm_mesh_features(params: PyTree, config: STMConfig, mesh: STMMesh) -> Float
 def _decode(params, config: STMConfig, features, disp, ops):
     # disp (T, N, 3) metres -> (T, V, 3) metres; features, mesh context and operators shared by all frames.
     model = SparseToMesh(config)
-    context = model.apply(params, features, method=SparseToMesh.mesh_context)
+    forward = compute_in(config.compute_dtype, model.apply)
+    context = forward(params, features, method=SparseToMesh.mesh_context)
 
     def frame(d: Array) -> Array:
-        fused = model.apply(params, context, d * config.displacement_scale, method=SparseToMesh.fuse_frame)
-        return model.apply(params, fused, ops, method=SparseToMesh.decode_fused)
+        fused = forward(params, context, d * config.displacement_scale, method=SparseToMesh.fuse_frame)
+        return forward(params, fused, ops, method=SparseToMesh.decode_fused)
 
     # Frame by frame (lax.map), not all frames at once: one frame's working set (the V x 68 x heads
     # attention logits, 6 MB at 5.9k vertices; the decoder's (V, C) features and one-ring gathers)
@@ -511,10 +514,11 @@ def loss(
     """
     del key
     model = SparseToMesh(config)
+    forward = compute_in(config.compute_dtype, model.apply)
     mesh_idx = jnp.asarray(batch["mesh"], jnp.int32)
     picked = jax.tree.map(lambda a: a[mesh_idx], meshes)
     features = jax.vmap(
-        lambda m: model.apply(params, m.vertices, m.normals, m.ops, method=SparseToMesh.mesh_features)
+        lambda m: forward(params, m.vertices, m.normals, m.ops, method=SparseToMesh.mesh_features)
     )(picked)
     landmarks = jnp.asarray(batch["landmarks"], jnp.float32)
     pred = jax.vmap(lambda f, d, ops: _decode(params, config, f, d, ops))(features, landmarks, picked.ops)

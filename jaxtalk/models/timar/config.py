@@ -16,7 +16,7 @@ import math
 # The diffusion loss is computed per group of the 56-d head vector and summed (Appendix 7.2); the
 # groups are shared with the DualTalk baseline and re-exported as part of TIMAR's config API.
 from jaxtalk.metrics.params import LOSS_GROUPS
-from jaxtalk.types import MOTION_FPS, PARAM_DIM
+from jaxtalk.types import MOTION_FPS, PARAM_DIM, check_compute_dtype
 
 __all__ = ["TimarConfig", "NUM_SEPARATORS", "NUM_SPANS", "LOSS_GROUPS", "SAMPLERS", "ARCHITECTURES", "GUIDANCE_DROPS"]
 
@@ -137,8 +137,10 @@ class TimarConfig:
     motion_encoder_final_relu: bool = False
     block_norm_epsilon: float = 1e-5
     guidance_drop: str = "window"
+    compute_dtype: str = "float32"
 
     def __post_init__(self) -> None:
+        check_compute_dtype(self.compute_dtype, "TimarConfig")
         positive = ("width", "num_layers", "num_heads", "speech_dim", "param_dim", "frames_per_turn",
                     "max_turns", "head_width", "head_blocks", "num_timesteps", "sample_steps", "diffusion_batch_mul",
                     "decoder_layers")

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.nn import MLP, AdaLNFinalLayer, AdaLNResBlock, TimestepEmbedding, adaln_modulation
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.types import Array, Float, PRNGKeyArray
 
 __all__ = [
@@ -168,6 +169,7 @@ def apply_head(
         ValueError: if the diffusion head is missing ``x``/``t`` or the leading axes disagree.
     """
     module = _module(config)
+    apply = compute_in(config.compute_dtype, module.apply)
     lead = z.shape[:-1]
     if config.head == "diffusion":
         if x is None or t is None:
@@ -176,7 +178,7 @@ def apply_head(
             raise ValueError(f"leading axes disagree: z {z.shape}, x {x.shape}, t {t.shape}")
 
         def one(xi: Array, ti: Array, zi: Array) -> Array:
-            return module.apply({"params": params}, xi, ti, zi)
+            return apply({"params": params}, xi, ti, zi)
 
         fn = one
         for _ in lead:
@@ -184,7 +186,7 @@ def apply_head(
         return fn(x, t.astype(x.dtype), z)
 
     def one_mlp(zi: Array) -> Array:
-        return module.apply({"params": params}, zi)
+        return apply({"params": params}, zi)
 
     fn = one_mlp
     for _ in lead:
@@ -212,7 +214,8 @@ def head_condition(
         ``(*F, head_width)``.
     """
     module = _module(config)
-    one = lambda zi: module.apply({"params": params}, zi, method=DiffusionHead.embed_condition)  # noqa: E731
+    apply = compute_in(config.compute_dtype, module.apply)
+    one = lambda zi: apply({"params": params}, zi, method=DiffusionHead.embed_condition)  # noqa: E731
     return _nest_vmap(one, z.ndim - 1)(z)
 
 
@@ -240,9 +243,10 @@ def apply_head_hoisted(
         ``(B, *F, out_dim)``.
     """
     module = _module(config)
-    temb = jax.vmap(lambda ti: module.apply({"params": params}, ti, method=DiffusionHead.embed_time))(t.astype(x.dtype))
+    apply = compute_in(config.compute_dtype, module.apply)
+    temb = jax.vmap(lambda ti: apply({"params": params}, ti, method=DiffusionHead.embed_time))(t.astype(x.dtype))
     c = cz + temb.reshape(temb.shape[:1] + (1,) * (cz.ndim - 2) + temb.shape[1:])
-    one = lambda xi, ci: module.apply({"params": params}, xi, ci, method=DiffusionHead.denoise)  # noqa: E731
+    one = lambda xi, ci: apply({"params": params}, xi, ci, method=DiffusionHead.denoise)  # noqa: E731
     return _nest_vmap(one, x.ndim - 1)(x, c)
 
 
@@ -260,7 +264,8 @@ def time_embedding(
         ``(*S, head_width)``.
     """
     module = _module(config)
-    one = lambda ti: module.apply({"params": params}, ti, method=DiffusionHead.embed_time)  # noqa: E731
+    apply = compute_in(config.compute_dtype, module.apply)
+    one = lambda ti: apply({"params": params}, ti, method=DiffusionHead.embed_time)  # noqa: E731
     return _nest_vmap(one, t.ndim)(t)
 
 
@@ -314,8 +319,9 @@ def apply_head_modulated(
     if len(modulations) != config.head_blocks + 1:
         raise ValueError(f"expected {config.head_blocks + 1} modulations (K blocks + final), got {len(modulations)}")
     module = _module(config)
+    apply = compute_in(config.compute_dtype, module.apply)
 
     def one(xi: Array, mods: tuple[Array, ...]) -> Array:
-        return module.apply({"params": params}, xi, None, mods, method=DiffusionHead.denoise)
+        return apply({"params": params}, xi, None, mods, method=DiffusionHead.denoise)
 
     return _nest_vmap(one, x.ndim - 1)(x, tuple(modulations))

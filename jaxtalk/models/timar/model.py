@@ -10,6 +10,7 @@ import jax
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder, init_encoder
 from jaxtalk.models.timar.head import init_head
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 
 __all__ = ["init_params", "encode_window"]
@@ -58,7 +59,7 @@ def encode_window(
         ``(B, N, F, width)``.
     """
     rngs = None if dropout_key is None else {"dropout": dropout_key}
-    return TimarEncoder(config).apply(
+    return compute_in(config.compute_dtype, TimarEncoder(config).apply)(
         {"params": params["encoder"]},
         user_speech,
         user_motion,

@@ -40,6 +40,7 @@ from jaxtalk.data.turns import check_streams
 from jaxtalk.models.timar.sample import check_temperature, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.nn import bias_from_mask
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.types import Array, Float, Int, PRNGKeyArray, Shaped, StreamLike
 
 __all__ = ["StreamState", "init_stream", "stream_condition", "stream_step", "stream"]
@@ -113,7 +114,8 @@ def init_stream(
 
 
 def _encoder_call(params: Any, config: TimarConfig, method: str, *args: Any, **kwargs: Any) -> Any:
-    return TimarEncoder(config).apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
+    apply = compute_in(config.compute_dtype, TimarEncoder(config).apply)
+    return apply({"params": params["encoder"]}, *args, method=getattr(TimarEncoder, method), **kwargs)
 
 
 def _cached(config: TimarConfig) -> bool:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from jaxtalk.types import MOTION_FPS, PARAM_DIM
+from jaxtalk.types import MOTION_FPS, PARAM_DIM, check_compute_dtype
 
 __all__ = ["TokTalkConfig"]
 
@@ -145,8 +145,10 @@ class TokTalkConfig:
     precondition: bool = True
     noise_frames: float = 2.0
     time_sampling: str = "cosine"
+    compute_dtype: str = "float32"
 
     def __post_init__(self) -> None:
+        check_compute_dtype(self.compute_dtype, "TokTalkConfig")
         positive = (
             "param_dim", "fps", "speech_dim", "width", "transformer_blocks", "num_heads", "head_dim",
             "time_frequency_dim", "time_embed_dim", "num_groups", "style_dim", "style_hidden",

@@ -21,6 +21,7 @@ from jaxtalk.models.toktalk.adapter import Adapter
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.decoder import Decoder
 from jaxtalk.models.toktalk.style import StyleEncoder
+from jaxtalk.nn.precision import compute_in
 from jaxtalk.types import Array, Bool, Float, PRNGKeyArray
 
 __all__ = [
@@ -227,12 +228,12 @@ def velocity(
     """
     rngs = None if dropout_key is None else {"dropout": dropout_key}
     if not config.precondition:
-        return Decoder(config).apply(
+        return compute_in(config.compute_dtype, Decoder(config).apply)(
             {"params": params["decoder"]}, x, t, *cond, deterministic=dropout_key is None, rngs=rngs
         )
     c_skip, c_out, c_in = preconditioning(t, config.sigma_min)
     col = lambda c: c[:, None, None].astype(x.dtype)  # noqa: E731  (B,) -> (B, 1, 1)
-    f = Decoder(config).apply(
+    f = compute_in(config.compute_dtype, Decoder(config).apply)(
         {"params": params["decoder"]}, x * col(c_in), t, *cond, deterministic=dropout_key is None, rngs=rngs
     )
     return col(c_skip) * x + col(c_out) * f
@@ -291,7 +292,7 @@ def style_distribution(
     rngs = None if dropout_key is None else {"dropout": dropout_key}
     if "norm" in params:
         clip = standardize(params["norm"], clip)
-    return StyleEncoder(config).apply(
+    return compute_in(config.compute_dtype, StyleEncoder(config).apply)(
         {"params": params["style"]}, clip, mask, deterministic=dropout_key is None, rngs=rngs
     )
 
@@ -475,7 +476,7 @@ def adapter_apply(
 ) -> Float[Array, "batch tokens token"]:
     """The adapter network on source tokens already at the base rate (no validation; jit-friendly)."""
     rngs = None if dropout_key is None else {"dropout": dropout_key}
-    return Adapter(config).apply(
+    return compute_in(config.compute_dtype, Adapter(config).apply)(
         {"params": params["adapter"]}, at_base, mask, deterministic=dropout_key is None, positions=positions,
         rngs=rngs,
     )
