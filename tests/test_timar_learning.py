@@ -55,6 +55,7 @@ def test_posterior_mean_beats_the_mean_pose_on_the_jaw_of_held_out_speakers(synt
             err[name].append(((pred - c.agent_motion)[speaking][:, JAW] ** 2).mean())
         err["mean pose"].append(((norm.motion_mean - c.agent_motion)[speaking][:, JAW] ** 2).mean())
     score = {k: float(np.mean(v)) for k, v in err.items()}
+    print("jaw MSE on speaking frames:", score, "posterior mean / mean pose:", score["posterior mean"] / score["mean pose"])
     # The posterior mean must use the audio to beat the training mean by a clear margin. (Samples
     # need a longer run to do so: with width 48 and 600 steps they reach ~0.35x, here ~0.9x, so
     # they are only required not to be much worse.)

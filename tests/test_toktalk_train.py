@@ -48,7 +48,7 @@ def test_adapter_windows_align_the_source_stream_with_the_tokens_and_motion(prep
         n = min(40, len(src) - st)
         np.testing.assert_array_equal(w["src_tokens"][:n], src[st:st + n])
     with pytest.raises(ValueError, match="whole tokens"):
-        AdapterWindows(cfg, 41, src_tokens=stream_b)
+        AdapterWindows(cfg, 41, src_tokens=stream_b, src_rate=25.0)
 
 
 def test_stage2_trains_only_the_adapter_and_writes_a_run(fast_compile, prepared_tiny, stream_b, tmp_path):

@@ -17,6 +17,7 @@ train through these entry points:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -211,8 +212,8 @@ class AdapterWindows(TokTalkWindows):
         src_rate: the source stream's token rate (Hz).
     """
 
-    src_tokens: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
-    src_rate: float = 25.0
+    src_tokens: Mapping[str, np.ndarray] = dataclasses.field(kw_only=True)
+    src_rate: float = dataclasses.field(kw_only=True)
 
     def table(self, data: PreparedData, split: str) -> np.ndarray:
         rows = super().table(data, split)
@@ -267,12 +268,10 @@ def train_adapter(
     Raises:
         ValueError: no source tokens for any clip of ``data``, or source tokens of unequal widths.
     """
-    import functools
-
     from jaxtalk.models.toktalk.model import init_adapter
 
     check_data(config, data)
-    widths = {int(np.shape(v)[-1]) for name, v in src_tokens.items()}
+    widths = {int(np.shape(v)[-1]) for v in src_tokens.values()}
     if not any(c["name"] in src_tokens for c in data.clips) or len(widths) != 1:
         raise ValueError(f"src_tokens must give tokens of one width for clips of {data.root} "
                          f"(widths {sorted(widths)}, {sum(c['name'] in src_tokens for c in data.clips)} clips named)")
