@@ -121,7 +121,7 @@ REGISTRY: dict[str, ModelSpec] = {
         ModelSpec("ats", "jaxtalk.models.freetalk.config:ATSConfig", "jaxtalk.models.freetalk.recipe:train_ats",
                   "jaxtalk.models.freetalk.recipe:DEFAULTS", data_fields=(("speech_dim", "speech_dim"),)),
         ModelSpec("stm", "jaxtalk.models.freetalk.config:STMConfig", "jaxtalk.models.freetalk.recipe:train_stm",
-                  "jaxtalk.models.freetalk.recipe:DEFAULTS", windows="16 frames"),
+                  "jaxtalk.models.freetalk.recipe:DEFAULTS"),
         ModelSpec("timar", "jaxtalk.models.timar.config:TimarConfig", "jaxtalk.models.timar.recipe:train",
                   "jaxtalk.models.timar.recipe:DEFAULTS", "jaxtalk.models.timar.recipe:PRESET_DEFAULTS",
                   data_fields=_TURN_SPEECH, windows="whole turns (max_turns)"),
