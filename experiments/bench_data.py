@@ -189,7 +189,7 @@ def model_setups(data: Any) -> list[dict]:
     from jaxtalk.models.toktalk.loss import make_loss_fn as tok_loss_fn
     from jaxtalk.models.toktalk.model import init_params as tok_init
     from jaxtalk.models.toktalk.recipe import TokTalkWindows, default_window
-    from jaxtalk.models.toktalk.train import base_trainable
+    from jaxtalk.models.toktalk.recipe import base_trainable
 
     config = build_config("toktalk", "small", [f"speech_dim={m['token_dim']}", f"token_rate={m['token_rate']:g}"])
     window = default_window(config)

@@ -24,7 +24,7 @@ import numpy as np
 from jaxtalk.layout import GROUPS
 from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar import TimarConfig
-from jaxtalk.models.timar.data import Normalizer, conversations, fit_normalizer, monologues, windows
+from jaxtalk.models.timar.data import Normalizer
 from jaxtalk.models.timar.stream import stream
 from jaxtalk.train.recipes import TrainSettings
 
@@ -45,10 +45,6 @@ def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None
     ap.add_argument("--head-width", type=int, default=128)
     ap.add_argument("--warmup", type=int, default=20, help="learning-rate warm-up steps")
     ap.add_argument("--batch-mul", type=int, default=1, help="diffusion (t, noise) draws per frame (MAR: 4)")
-    ap.add_argument("--monologues", action="store_true",
-                    help="also train on the train split's monologues (in-memory windows: not the recipe's)")
-    ap.add_argument("--stride", type=int, default=1,
-                    help="hop between 8-turn training windows, in turns (not 1: in-memory windows, not the recipe's)")
 
 
 def load_corpus(args):
@@ -64,39 +60,23 @@ def model_config(args, **overrides) -> TimarConfig:
                              num_heads=max(1, args.width // 32), diffusion_batch_mul=args.batch_mul, **overrides)
 
 
-def uses_recipe(args) -> bool:
-    """Whether the recipe expresses the requested training data (no monologues, a one-turn hop)."""
-    return not args.monologues and getattr(args, "stride", 1) == 1
-
-
-def train_model(args, corpus, config: TimarConfig, *, ckpt_dir=None, max_steps: int | None = None,
+def train_model(args, config: TimarConfig, *, ckpt_dir=None, max_steps: int | None = None,
                 seed: int = 0) -> tuple[Any, Normalizer, int]:
-    """Train ``config`` for ``--steps`` (AdamW ``--lr``, ``--warmup`` warm-up, cosine to 0.1 x, batch
-    ``--batch``; stop early at ``max_steps``, checkpointed in ``ckpt_dir``).
-
-    With the default data the model trains through TIMAR's recipe on the prepared corpus. ``--monologues``
-    (monologue sides against a silent user) and ``--stride`` > 1 are data the recipe does not cut, so
-    those runs keep the in-memory windows of :func:`training_setup` and
-    :func:`jaxtalk.models.timar.train.train_timar` (the same optimiser).
+    """Train ``config`` for ``--steps`` through TIMAR's recipe on the prepared corpus (AdamW ``--lr``,
+    ``--warmup`` warm-up, cosine to 0.1 x, batch ``--batch``; stop early at ``max_steps``, checkpointed in
+    ``ckpt_dir``).
 
     Returns:
         ``(loop result, normaliser, training windows)``.
     """
+    from jaxtalk.data.loader import open_data
+    from jaxtalk.models.timar import recipe
+
     optim = TrainSettings(lr=args.lr, warmup_steps=args.warmup, final_lr_ratio=0.1).optim(args.steps)
-    if uses_recipe(args):
-        from jaxtalk.data.loader import open_data
-        from jaxtalk.models.timar import recipe
-
-        data = open_data(f"synthtalk:{args.size}", cache_dir=args.cache_dir)
-        result = recipe.train(config, data, optim, steps=max_steps or args.steps, key=jax.random.key(seed),
-                              batch_size=args.batch, seed=seed, ckpt_dir=ckpt_dir, progress=True)
-        return result, Normalizer.from_dict(result.extra["normalizer"]), result.windows
-    from jaxtalk.models.timar.train import train_timar
-
-    norm, windows_ = training_setup(args, corpus)
-    result = train_timar(config, windows_, optim, key=jax.random.key(seed), batch_size=args.batch, seed=seed,
-                         progress=True, ckpt_dir=ckpt_dir, max_steps=max_steps)
-    return result, norm, int(windows_["agent_motion"].shape[0])
+    data = open_data(f"synthtalk:{args.size}", cache_dir=args.cache_dir)
+    result = recipe.train(config, data, optim, steps=max_steps or args.steps, key=jax.random.key(seed),
+                          batch_size=args.batch, seed=seed, ckpt_dir=ckpt_dir, progress=True)
+    return result, Normalizer.from_dict(result.extra["normalizer"]), result.windows
 
 
 KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_exp", "MSE_exp", "MSE_jaw", "MSE_pose", "MSE_mouth_spk", "MSE_jaw_spk",
@@ -172,17 +152,6 @@ def load_model(path):
     with open(path, "rb") as f:
         d = pickle.load(f)
     return TimarConfig(**d["config"]), d["params"], Normalizer.from_dict(d["normalizer"])
-
-
-def training_setup(args, corpus):
-    """Normaliser and 8-turn training windows of the in-memory train split, for the data the recipe does
-    not cut (``--monologues``, ``--stride`` > 1; see :func:`train_model`)."""
-    train_convs = conversations(corpus, "train")
-    if args.monologues:
-        train_convs = train_convs + monologues(corpus, "train")
-    norm = fit_normalizer(train_convs)
-    data = windows(train_convs, norm, num_turns=8, stride_turns=getattr(args, "stride", 1))
-    return norm, data
 
 
 def context_sensitivity(config, params, normalizer, convs, *, cfg_scale, windows_per_conv=4, seed=0):

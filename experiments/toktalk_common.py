@@ -4,8 +4,9 @@ The base model is the demo's (:func:`jaxtalk.demo.train_or_load`: TokTalk's reci
 :func:`jaxtalk.commands.training.train_run`, as ``jaxtalk train toktalk``), trained into a run folder
 under ``experiments/results/toktalk_cache/`` keyed by corpus, steps and seed (``jaxtalk sample`` /
 ``jaxtalk stream`` take it as RUN); the stage-2 adapter is cached beside it, so the sweep and the
-quality table reuse one training run. Stage 2 has no recipe yet: the adapter is still trained here
-on in-memory windows of stream B (:func:`jaxtalk.models.toktalk.train.train_adapter`).
+quality table reuse one training run. Stage 2 is TokTalk's adapter recipe
+(:func:`jaxtalk.models.toktalk.recipe.train_adapter`) on the same prepared corpus, with SynthTalk's
+stream B as the source.
 """
 
 from __future__ import annotations
@@ -19,10 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.data import synthtalk
-from jaxtalk.demo import DemoOptions, model_config, train_or_load
+from jaxtalk.data.loader import open_data
+from jaxtalk.data.sources.synthtalk import clip_name
+from jaxtalk.demo import DemoOptions, cache_dir, data_spec, model_config, train_or_load
 from jaxtalk.metrics import fdd, jitter, lve, mod
 from jaxtalk.models import toktalk as tt
-from jaxtalk.models.toktalk.train import make_windows, train_adapter
+from jaxtalk.models.toktalk.recipe import train_adapter
 from jaxtalk.train import OptimConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -70,13 +73,12 @@ def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0, chunk_f
             "stage1_final_loss": history[-1]["loss"] if history else None}
     if path.is_file():
         return cfg, _load(path, like), {**info, "adapter_cached": str(path)}
-    windows = make_windows(corpus, corpus.split("train"), cfg, window_frames=options.window_frames,
-                           hop_frames=options.window_frames // 4, src_stream="B", seed=seed)
-    adapted = train_adapter(cfg, base, windows,
+    stream_b = {clip_name(i): np.asarray(corpus.tokens(i, "B").embeddings, np.float32) for i in range(len(corpus.clips))}
+    adapted = train_adapter(cfg, open_data(data_spec(options), cache_dir=cache_dir(options)),
                             OptimConfig(lr=5e-4, warmup_steps=min(20, adapter_steps // 10), total_steps=adapter_steps,
-                                      weight_decay=0.0),
-                            key=jax.random.key(seed + 1), src_rate=25.0, batch_size=16, progress=True,
-                            log_every=50)
+                                        weight_decay=0.0),
+                            base_params=base, src_tokens=stream_b, src_rate=25.0, key=jax.random.key(seed + 1),
+                            batch_size=16, seed=seed, window_frames=options.window_frames, progress=True, log_every=50)
     params = adapted.state.params
     _save(path, params)
     return cfg, params, {**info, "stage2_s": time.perf_counter() - t1,

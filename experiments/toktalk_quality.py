@@ -29,8 +29,9 @@ import numpy as np
 from jaxtalk.benchmarking import machine_info, print_table, write_json
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.sample import default_grid
-from jaxtalk.models.toktalk.train import make_windows
-from toktalk_common import RESULTS, evaluate, load_corpus, style_clip_for, trained_small, weighted_mean
+from jaxtalk.data.loader import iter_windows, open_data
+from jaxtalk.models.toktalk.recipe import TokTalkWindows
+from toktalk_common import DATA, RESULTS, evaluate, load_corpus, style_clip_for, trained_small, weighted_mean
 
 
 def main() -> None:
@@ -48,7 +49,10 @@ def main() -> None:
     corpus = load_corpus(args.size)
     cfg, params, train_info = trained_small(corpus, args.steps, args.adapter_steps)
     rng = np.random.default_rng(0)
-    train_w = make_windows(corpus, corpus.split("train"), cfg, window_frames=50, hop_frames=50)
+    # The training split's 2-s windows as TokTalk's recipe cuts them (the demo's prepared corpus).
+    windows = list(iter_windows(open_data(f"synthtalk:{args.size}:{corpus.seed}", cache_dir=DATA),
+                                TokTalkWindows(cfg, 50, hop_frames=50), "train"))
+    train_w = {k: np.stack([w[k] for w in windows]) for k in ("motion", "mask", "style")}
     mean_pose = train_w["motion"][train_w["mask"]].mean(0)
     mean_style = np.asarray(tt.encode_style(params, cfg, train_w["style"])).mean(0, keepdims=True)
     variants = ("TokTalk w/o style", "TokTalk w/ style", "TokTalk adapted (stream B)")

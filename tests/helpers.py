@@ -152,6 +152,45 @@ def crashing_batches(crash_at: int, *args, **kw):
     return Crashing()
 
 
+@contextlib.contextmanager
+def few_validation_windows(count: int = 4):
+    """The recipes validate on ``count`` windows instead of :data:`jaxtalk.train.recipes.VAL_WINDOWS`
+    while inside (tests that need a validation pass, not a precise one: STM renders every window)."""
+    from jaxtalk.train import recipes
+
+    saved, recipes.VAL_WINDOWS = recipes.VAL_WINDOWS, count
+    try:
+        yield
+    finally:
+        recipes.VAL_WINDOWS = saved
+
+
+def assert_recipe_resumes_exactly(train, config, data, folder: Path, **kw) -> None:
+    """A recipe (``train(config, data, optim, *, steps, key, batch_size, ckpt_dir, ...)``) run for 4 steps
+    with a checkpoint every 2, then its step-4 checkpoint deleted (as if the run had died after step 2):
+    a fresh call with the same arguments resumes from step 2 and ends bitwise where the uninterrupted
+    run did, with the same losses on steps 3 and 4 (the loader's position and the RNG resume too)."""
+    import shutil
+
+    import numpy as np
+
+    from jaxtalk.train import OptimConfig
+
+    ckpt = Path(folder) / "checkpoint"
+    run = functools.partial(train, config, data, OptimConfig(lr=1e-3, warmup_steps=1, total_steps=4),
+                            key=jax.random.key(0), batch_size=2, ckpt_dir=ckpt, progress=False, **kw)
+    with few_validation_windows():
+        straight = run(save_every=2)
+        assert sorted(p.name for p in ckpt.iterdir() if p.name.isdigit()) == ["2", "4"]
+        shutil.rmtree(ckpt / "4")
+        resumed = run()
+    losses = {r["step"]: r["loss"] for r in straight.history if "loss" in r}
+    again = {r["step"]: r["loss"] for r in resumed.history if "loss" in r}
+    assert sorted(again) == [3, 4] and again == {k: losses[k] for k in (3, 4)}, (losses, again)
+    for a, b in zip(jax.tree.leaves(resumed.state.params), jax.tree.leaves(straight.state.params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def cli_ok(args: list) -> str:
     """Run ``jaxtalk ARGS`` in-process (typer's runner); it must succeed. Returns its output."""
     from typer.testing import CliRunner

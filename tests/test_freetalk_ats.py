@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,7 +12,7 @@ from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.models.freetalk.emotions import EMOTIONS, check_intensity, emotion_ids
 from jaxtalk.models.freetalk.loss import motion_loss
 from jaxtalk.samplers.schedules import make_schedule
-from helpers import most_optimizations_off
+from helpers import assert_recipe_resumes_exactly, most_optimizations_off
 
 T = 12
 AUDIO_DIM = 8
@@ -290,25 +288,9 @@ def test_training_schedule_is_the_linear_ddpm_table():
     np.testing.assert_allclose(abar[-1], np.prod(1 - np.linspace(1e-4, 0.02, 1000)))
 
 
-def test_fit_ats_resumes_exactly_from_its_checkpoint(tmp_path):
-    # A fresh call resuming from the step-2 checkpoint ends bitwise where the uninterrupted run did.
-    from jaxtalk.models.freetalk.fit import fit_ats
-    from jaxtalk.train import OptimConfig
+def test_recipe_resumes_exactly_from_its_checkpoint(prepared_tiny, tmp_path):
+    # ATS's one training path, the recipe, resumed from its step-2 checkpoint (tests/helpers.py).
+    from jaxtalk.models.freetalk.recipe import train_ats
 
-    cfg = _config(max_frames=T, displacement_scale=1.0)
-    rng = np.random.default_rng(8)
-    windows = {
-        "displacements": (0.003 * rng.normal(size=(6, T, 68, 3))).astype(np.float32),
-        "audio": rng.normal(size=(6, T, AUDIO_DIM)).astype(np.float32),
-        "emotion": rng.integers(0, 12, 6).astype(np.int32),
-        "intensity": rng.integers(1, 4, 6).astype(np.float32),
-    }
-    optim = OptimConfig(lr=1e-3, warmup_steps=1, total_steps=4)
-    straight = fit_ats(cfg, windows, optim, jax.random.key(0), batch_size=2, ckpt_dir=tmp_path, save_every=2)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["2", "4"]
-    shutil.rmtree(tmp_path / "4")  # as if the run had died after its step-2 checkpoint
-    resumed = fit_ats(cfg, windows, optim, jax.random.key(0), batch_size=2, ckpt_dir=tmp_path)
-    assert [h["step"] for h in resumed.history] == [3, 4]
-    for a, b in zip(jax.tree.leaves(resumed.params), jax.tree.leaves(straight.params), strict=True):
-        np.testing.assert_array_equal(a, b)
-    assert [h["loss"] for h in resumed.history] == [h["loss"] for h in straight.history[2:]]
+    cfg = _config(speech_dim=prepared_tiny.manifest["speech_dim"], max_frames=T, displacement_scale=1.0)
+    assert_recipe_resumes_exactly(train_ats, cfg, prepared_tiny, tmp_path, window_frames=T)

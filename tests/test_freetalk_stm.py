@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,7 +11,7 @@ from jaxtalk.face import builtin_face
 from jaxtalk.geometry.topology import make_variant
 from jaxtalk.models.freetalk import stm
 from jaxtalk.models.freetalk.config import FUSIONS, STMConfig
-from helpers import most_optimizations_off
+from helpers import assert_recipe_resumes_exactly, most_optimizations_off
 
 K = 12
 
@@ -224,25 +222,10 @@ def test_prepare_meshes_pads_to_common_shapes(face):
         stm.prepare_meshes([], cfg)
 
 
-def test_fit_stm_resumes_exactly_from_its_checkpoint(model, tmp_path):
-    # A fresh call resuming from the step-2 checkpoint ends bitwise where the uninterrupted run did.
-    from jaxtalk.models.freetalk.fit import fit_stm
-    from jaxtalk.train import OptimConfig
+def test_recipe_resumes_exactly_from_its_checkpoint(model, prepared_tiny, tmp_path):
+    # STM's one training path, the recipe (one small mesh, 3-frame windows), resumed from its step-2
+    # checkpoint (tests/helpers.py).
+    from jaxtalk.models.freetalk.recipe import train_stm
 
-    cfg, mesh, _ = model
-    rng = np.random.default_rng(3)
-    windows = {
-        "mesh": np.zeros(4, np.int32),
-        "landmarks": np.stack([_motion(3, seed=s) for s in range(4)]),
-        "vertices": (0.003 * rng.normal(size=(4, 3, mesh.num_vertices, 3))).astype(np.float32),
-    }
-    optim = OptimConfig(lr=1e-3, warmup_steps=1, total_steps=4)
-    straight, full = fit_stm(cfg, [mesh], windows, optim, jax.random.key(0), batch_size=2, ckpt_dir=tmp_path,
-                             save_every=2)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["2", "4"]
-    shutil.rmtree(tmp_path / "4")  # as if the run had died after its step-2 checkpoint
-    resumed, history = fit_stm(cfg, [mesh], windows, optim, jax.random.key(0), batch_size=2, ckpt_dir=tmp_path)
-    assert [h["step"] for h in history] == [3, 4]
-    for a, b in zip(jax.tree.leaves(resumed), jax.tree.leaves(straight), strict=True):
-        np.testing.assert_array_equal(a, b)
-    assert [h["loss"] for h in history] == [h["loss"] for h in full[2:]]
+    assert_recipe_resumes_exactly(train_stm, model[0], prepared_tiny, tmp_path, window_frames=3,
+                                  meshes=((1, "decimated"),))

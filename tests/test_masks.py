@@ -136,13 +136,34 @@ def test_padding_works_under_jit_and_softmax_has_no_nan():
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.bfloat16, jnp.float16, jnp.float64])
 def test_mask_to_bias_values_and_no_overflow(dtype):
+    # The one mask-to-bias helper of jaxtalk (every attention layer's bias comes from it): entry by
+    # entry, an allowed position is exactly 0 and a blocked one exactly BIAS_FRACTION * finfo.min.
     m = np.array([[True, False], [False, True]])
     b = masks.mask_to_bias(m, dtype)
-    assert b.dtype == jnp.dtype(dtype) or dtype == jnp.float64  # float64 becomes float32 without x64
-    assert float(b[0, 0]) == 0.0 and float(b[1, 1]) == 0.0
-    assert float(b[0, 1]) < -1e3
+    got = jax.dtypes.canonicalize_dtype(dtype)  # float64 becomes float32 without x64
+    assert b.dtype == got and b.shape == m.shape
+    blocked = np.asarray(masks.BIAS_FRACTION * float(jnp.finfo(got).min), got)
+    for idx in np.ndindex(m.shape):
+        want = 0.0 if m[idx] else blocked
+        assert float(b[idx]) == float(want), (idx, float(b[idx]))
+    assert masks.mask_to_bias(jnp.asarray(m)).dtype == jnp.float32  # default dtype, traced-array input
     # Two biases plus a large logit stay finite.
     assert bool(jnp.all(jnp.isfinite(b + b + jnp.asarray(-1e3, b.dtype))))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.bfloat16])
+def test_softmax_gives_a_blocked_logit_exactly_zero(dtype):
+    # Logits of both signs and sizes, one key blocked per row, a row with a single allowed key.
+    logits = jnp.asarray([[3.0, -2.0, 40.0, 0.5], [-30.0, 1.0, 2.0, 3.0], [1.0, 1.0, 1.0, 1.0]], dtype)
+    m = np.array([[True, True, False, True], [False, True, True, True], [False, False, True, False]])
+    p = jax.nn.softmax(logits + masks.mask_to_bias(m, dtype), axis=-1)
+    assert p.dtype == jnp.dtype(dtype)
+    assert np.all(np.asarray(p, np.float32)[~m] == 0.0)
+    np.testing.assert_allclose(np.asarray(p, np.float32).sum(-1), 1.0, rtol=1e-2)
+    assert float(p[2, 2]) == 1.0
+    # Formed in float32 from lower-precision logits (as jaxtalk.nn's attention does): also exactly 0.
+    q = jax.nn.softmax(logits.astype(jnp.float32) + masks.mask_to_bias(m), axis=-1)
+    assert np.all(np.asarray(q)[~m] == 0.0)
 
 
 def test_mask_to_bias_float64_under_x64(float64):

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxtalk.masks import mask_to_bias
 from jaxtalk.nn import (
     AdaLNResBlock,
     Conv1dBlock,
@@ -14,7 +15,6 @@ from jaxtalk.nn import (
     MultiHeadAttention,
     ResnetBlock1D,
     TimestepEmbedding,
-    bias_from_mask,
     normalized_adjacency,
 )
 
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.usefixtures("fast_compile")
 
 T, C = 6, 16
 MASK = jnp.arange(T)[None, :] < jnp.array([[T], [4]])
-CAUSAL_BIAS = bias_from_mask(np.tril(np.ones((T, T), bool)))
+CAUSAL_BIAS = mask_to_bias(np.tril(np.ones((T, T), bool)))
 
 # name -> (module factory taking dtype, example inputs (batch 2), extra keyword arguments)
 CASES = {

@@ -28,11 +28,13 @@ def _text(nb) -> str:
     return "\n".join(out)
 
 
-def test_quickstart_runs_top_to_bottom(tmp_path, monkeypatch, synthtalk_tiny):
+def test_quickstart_runs_top_to_bottom(tmp_path, monkeypatch, synthtalk_tiny, prepared_tiny):
     nb = nbformat.read(NOTEBOOK, as_version=4)
     assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code"), "commit the notebook without outputs"
     # The kernel inherits the environment: reuse the session's tiny corpus instead of regenerating it.
     monkeypatch.setenv("JAXTALK_CACHE", str(synthtalk_tiny._cache_dir))
+    # ... and its prepared copy, where open_data("synthtalk:tiny:0") finds it (tests/conftest.py).
+    monkeypatch.setenv("JAXTALK_PREPARED", str(prepared_tiny.root.parent))
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
     # Compile time dominates a notebook of tiny models (the conftest's fast_compile, for the kernel).
     monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")

@@ -18,7 +18,7 @@ from jaxtalk.data.turns import to_turns
 from jaxtalk.models.timar.sample import conditions
 from jaxtalk.models.timar.stream import stream_condition, stream, init_stream
 from jaxtalk.models.timar.tokens import agent_token_mask, turn_layout
-from jaxtalk.nn import bias_from_mask
+from jaxtalk.masks import mask_to_bias
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -84,7 +84,7 @@ def _encoder_on_visible_tokens_alone(module, tokens, keep, visibility):
     b, n, tpt, w = tokens.shape
     x = module.in_norm(tokens.reshape(b, n * tpt, w)) + module.pos_embed[None, : n * tpt]
     x = x[:, keep]
-    bias = bias_from_mask(visibility[np.ix_(keep, keep)])
+    bias = mask_to_bias(visibility[np.ix_(keep, keep)])
     for block in module.blocks:
         x = block(x, bias=bias)
     return module.out_norm(x)

@@ -196,19 +196,3 @@ def test_config_presets_training_settings_and_errors():
                 {"cfg_dropout": 1.0}, {"num_layers": 0}, {"sample_steps": 2000}, {"param_dim": 50}, {"sampler": "euler"}):
         with pytest.raises(ValueError):
             TimarConfig.small(**bad)
-
-
-def test_train_timar_runs_a_two_step_schedule_and_rejects_missing_streams():
-    from jaxtalk.models.timar.train import train_timar
-    from jaxtalk.train import OptimConfig
-
-    rng = np.random.default_rng(0)
-    cfg = TimarConfig.small(**{**CFG.__dict__, "num_layers": 1, "max_turns": 2})
-    data = {k: rng.normal(size=(2, 2 * F, 8 if "speech" in k else 56)).astype(np.float32)
-            for k in ("user_speech", "user_motion", "agent_speech", "agent_motion")}
-    result = train_timar(cfg, data, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2), key=jax.random.key(0),
-                         batch_size=2)
-    assert len(result.history) >= 1 and np.isfinite(result.history[-1]["loss"])
-    with pytest.raises(ValueError, match="missing streams"):
-        train_timar(cfg, {k: v for k, v in data.items() if k != "user_motion"}, OptimConfig(warmup_steps=0, total_steps=2),
-                    key=jax.random.key(0))

@@ -1,7 +1,8 @@
-"""TokTalk training: windows from SynthTalk, stage 2 leaves every base parameter bitwise unchanged and
-trains only the adapter, the flow loss falls on a learnable task, and the causal ``small`` model trained
-with TokTalk's recipe learns SynthTalk: streamed on held-out clips it beats the mean pose on LVE at 1
-and at 10 Euler steps."""
+"""TokTalk's two training stages, both recipes on prepared SynthTalk: stage 2's windows carry the source
+stream aligned with the base tokens and the motion, stage 2 leaves every base parameter bitwise
+unchanged and trains only the adapter (and writes a run that loads), and the causal ``small`` model
+trained with stage 1's recipe learns SynthTalk: streamed on held-out clips it beats the mean pose on LVE
+at 1 and at 10 Euler steps."""
 
 from __future__ import annotations
 
@@ -11,91 +12,72 @@ import numpy as np
 import pytest
 
 from jaxtalk.models import toktalk as tt
-from jaxtalk.models.toktalk.train import adapter_trainable, make_windows, train_adapter, train_base
+from jaxtalk.models.toktalk.recipe import AdapterWindows, adapter_trainable, base_trainable, train_adapter
 from jaxtalk.train import OptimConfig
 
-CFG = tt.TokTalkConfig.tiny()
+CFG = tt.TokTalkConfig.tiny(num_mid_blocks=0)
 
 
-def _fake_windows(n=8, t=16, seed=0):
-    rng = np.random.default_rng(seed)
-    return {
-        "motion": rng.normal(size=(n, t, 56)).astype(np.float32),
-        "tokens": rng.normal(size=(n, t // 2, 64)).astype(np.float32),
-        "src_tokens": rng.normal(size=(n, t, 48)).astype(np.float32),
-        "style": rng.normal(size=(n, CFG.style_frames, 56)).astype(np.float32),
-        "mask": np.ones((n, t), bool),
-    }
+@pytest.fixture(scope="module")
+def stream_b(synthtalk_tiny):
+    """SynthTalk's second token stream ("B", 25 Hz x 48) per prepared clip name: stage 2's source."""
+    from jaxtalk.data.sources.synthtalk import clip_name
+
+    return {clip_name(i): np.asarray(synthtalk_tiny.tokens(i, "B").embeddings, np.float32)
+            for i in range(len(synthtalk_tiny.clips))}
 
 
-def test_stage2_trains_only_the_adapter(fast_compile):
-    windows = _fake_windows()
+def test_adapter_windows_align_the_source_stream_with_the_tokens_and_motion(prepared_tiny, stream_b):
+    data = prepared_tiny
+    cfg = tt.TokTalkConfig.tiny(style_frames=20)
+    left_out = data.clips[data.split("train")[0]]["name"]
+    recipe = AdapterWindows(cfg, 40, hop_frames=20, src_tokens={k: v for k, v in stream_b.items() if k != left_out},
+                            src_rate=25.0)
+    table = recipe.table(data, "train")
+    assert len(table) and left_out not in {data.clips[int(i)]["name"] for i in table[:, 0]}
+    for row in table[:: max(len(table) // 6, 1)]:
+        w = recipe.example(data, row)
+        i, st = int(row[0]), int(row[1])
+        rec = data.record(i, ("motion", "tokens"))
+        assert w["motion"].shape == (40, 56) and w["tokens"].shape == (20, 64) and w["src_tokens"].shape == (40, 48)
+        length = int(w["mask"].sum())
+        np.testing.assert_array_equal(w["motion"][:length], rec["motion"][st:st + length])
+        np.testing.assert_array_equal(w["tokens"][0], rec["tokens"][st // 2])
+        # 25 Hz source tokens at 25 fps: token k of the window is the stream's token at frame start + k.
+        src = stream_b[data.clips[i]["name"]]
+        n = min(40, len(src) - st)
+        np.testing.assert_array_equal(w["src_tokens"][:n], src[st:st + n])
+    with pytest.raises(ValueError, match="whole tokens"):
+        AdapterWindows(cfg, 41, src_tokens=stream_b, src_rate=25.0)
+
+
+def test_stage2_trains_only_the_adapter_and_writes_a_run(fast_compile, prepared_tiny, stream_b, tmp_path):
+    from jaxtalk.runs import load_run
+
     base = tt.init_params(CFG, jax.random.key(0))
     before = jax.tree.map(np.asarray, base)
-    res = train_adapter(CFG, base, windows, OptimConfig(lr=1e-2, warmup_steps=0, total_steps=3),
-                        key=jax.random.key(1), src_rate=25.0, batch_size=4, progress=False)
+    res = train_adapter(CFG, prepared_tiny, OptimConfig(lr=1e-2, warmup_steps=0, total_steps=3), base_params=base,
+                        src_tokens=stream_b, src_rate=25.0, steps=3, key=jax.random.key(1), batch_size=4,
+                        window_frames=32, progress=False, run_dir=tmp_path / "run")
     after = res.state.params
-    for name in ("decoder", "style"):
+    for name in ("decoder", "style", "norm"):
         same = jax.tree.map(lambda a, b: a.dtype == b.dtype and np.array_equal(a, np.asarray(b)), before[name],
                             after[name])
         assert all(jax.tree.leaves(same)), name
-    fresh = tt.init_adapter(CFG, jax.random.split(jax.random.key(1))[0], 48)
+    fresh = tt.init_adapter(CFG, jax.random.split(jax.random.key(1), 3)[0], 48)
     moved = [float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(fresh), jax.tree.leaves(after["adapter"]))]
     assert max(moved) > 1e-3
+    assert res.extra["adapter"] == {"src_rate": 25.0, "src_dim": 48}
+    run = load_run(tmp_path / "run")
+    assert run.record.extra["adapter"] == res.extra["adapter"]
+    for a, b in zip(jax.tree.leaves(run.params["adapter"]), jax.tree.leaves(after["adapter"]), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert adapter_trainable("adapter/conv/kernel", None) and not adapter_trainable("decoder/adapter", None)
+    assert base_trainable("decoder/x", None) and not base_trainable("norm/mean", None)
     with pytest.raises(ValueError, match="src_tokens"):
-        train_adapter(CFG, base, {k: v for k, v in windows.items() if k != "src_tokens"},
-                      OptimConfig(total_steps=1, warmup_steps=0), key=jax.random.key(1), src_rate=25.0)
-
-
-def test_make_windows_cuts_aligned_motion_tokens_and_foreign_style():
-    from jaxtalk.data import synthtalk
-    from jaxtalk.data.synthtalk import SizeSpec
-
-    corpus = synthtalk.generate(SizeSpec((2, 1, 1, 1), 2, 3.0, (0, 0, 0, 0), 10.0, 16, 1e9), seed=0)
-    cfg = tt.TokTalkConfig.tiny(style_frames=20)
-    clips = corpus.split("train")
-    w = make_windows(corpus, clips, cfg, window_frames=40, hop_frames=20, src_stream="B", seed=0)
-    n = len(w["clip"])
-    assert w["motion"].shape == (n, 40, 56) and w["tokens"].shape == (n, 20, 64)
-    assert w["src_tokens"].shape == (n, 40, 48) and w["style"].shape == (n, 20, 56)
-    for k in range(n):
-        c, st = int(w["clip"][k]), int(w["start"][k])
-        motion = np.asarray(corpus.motion(c))
-        length = int(w["mask"][k].sum())
-        np.testing.assert_array_equal(w["motion"][k, :length], motion[st : st + length])
-        tok = np.asarray(corpus.tokens(c, "A").embeddings)
-        np.testing.assert_array_equal(w["tokens"][k, 0], tok[st // 2])
-        # The style clip is a crop of another clip of the same speaker, never of the window's own clip.
-        same_speaker = [j for j in clips if corpus.clips[j].speaker == corpus.clips[c].speaker and j != c]
-        sources = [np.asarray(corpus.motion(j)) for j in same_speaker] or [motion]
-        assert any(np.any(np.all(src == w["style"][k, 0], axis=1)) for src in sources)
-    # Every clip's last frames are covered by a window aligned to its end.
-    for c in clips:
-        ends = w["start"][w["clip"] == c] + w["mask"][w["clip"] == c].sum(1)
-        assert ends.max() == corpus.clips[c].num_frames
-    with pytest.raises(ValueError, match="whole tokens"):
-        make_windows(corpus, clips, cfg, window_frames=41)
-
-
-@pytest.mark.slow  # 120 training steps
-def test_training_reduces_the_flow_loss_on_a_learnable_task(fast_compile):
-    # Motion that is a fixed linear function of the tokens: learnable from the condition alone.
-    rng = np.random.default_rng(0)
-    n, t = 64, 16
-    tokens = rng.normal(size=(n, t // 2, 64)).astype(np.float32)
-    proj = (0.1 * rng.normal(size=(64, 56))).astype(np.float32)
-    windows = {
-        "motion": np.repeat(tokens @ proj, 2, axis=1),
-        "tokens": tokens,
-        "style": np.zeros((n, CFG.style_frames, 56), np.float32),
-        "mask": np.ones((n, t), bool),
-    }
-    res = train_base(CFG, windows, OptimConfig(lr=3e-3, warmup_steps=10, total_steps=120, weight_decay=0.0),
-                     key=jax.random.key(0), batch_size=16, progress=False, log_every=20)
-    losses = np.array([h["loss"] for h in res.history if "loss" in h])
-    assert np.all(np.isfinite(losses))
-    assert losses[-20:].mean() < 0.85 * losses[:5].mean(), (losses[:5], losses[-20:])
+        train_adapter(CFG, prepared_tiny, OptimConfig(total_steps=1, warmup_steps=0), base_params=base,
+                      src_tokens={"no such clip": np.zeros((4, 48), np.float32)}, src_rate=25.0,
+                      key=jax.random.key(1))
 
 
 # Steps of the learning test. Measured on SynthTalk tiny v2 (the 6 held-out monologues, 2 CPU cores),

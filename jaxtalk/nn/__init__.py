@@ -17,10 +17,8 @@ from __future__ import annotations
 
 from jaxtalk.nn.adaln import AdaLNFinalLayer, AdaLNResBlock, adaln_modulation, modulate
 from jaxtalk.nn.attention import (
-    BLOCKED,
     Bias,
     MultiHeadAttention,
-    bias_from_mask,
     dot_product_attention,
 )
 from jaxtalk.nn.conv import (
@@ -40,9 +38,7 @@ from jaxtalk.nn.mlp import MLP, gelu_exact
 from jaxtalk.nn.transformer import DecoderBlock, FeedForward, TransformerBlock
 
 __all__ = [
-    "BLOCKED",
     "Bias",
-    "bias_from_mask",
     "dot_product_attention",
     "MultiHeadAttention",
     "FeedForward",

@@ -1,8 +1,9 @@
 """Multi-head dot-product attention with an additive bias and key/value caching.
 
 Masks enter every attention layer of jaxtalk as an ADDITIVE bias: ``0`` where a query may see a key,
-a large negative number (:data:`BLOCKED`) where it may not. Static boolean masks (chunk, band,
-turn-causal, padding) are built in NumPy and turned into a bias once with :func:`bias_from_mask`.
+a large finite negative number where it may not. Static boolean masks (chunk, band, turn-causal,
+padding) are built in NumPy and turned into a bias once with the one helper,
+:func:`jaxtalk.masks.mask_to_bias`.
 
 Incremental decoding: :class:`MultiHeadAttention` can return the keys/values it attended to
 (``return_kv=True``) and accept them back as ``kv_cache`` on the next call, where they are prepended
@@ -23,48 +24,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.nn.precision import matmul_layer
-from jaxtalk.types import Array, Float, PRNGKeyArray, Shaped
+from jaxtalk.types import Array, Float, PRNGKeyArray
 
 __all__ = [
-    "BLOCKED",
     "Bias",
-    "bias_from_mask",
     "dot_product_attention",
     "MultiHeadAttention",
 ]
-
-# Finite rather than -inf: a query whose keys are all blocked (a fully padded row) then gets a uniform
-# softmax instead of NaN, and the value survives a float32 or bfloat16 cast (it overflows float16, so
-# logits are always formed in float32).
-BLOCKED = -1e9
 
 Dtype = Any
 Initializer = Any
 # Biases are often static NumPy constants built from masks; both kinds are accepted.
 Bias = Float[Array, "..."] | Float[np.ndarray, "..."]
-
-
-def bias_from_mask(
-    mask: Shaped[Array, "*dims"] | Shaped[np.ndarray, "*dims"], *, blocked: float = BLOCKED
-) -> Float[Array, "*dims"]:
-    """Turns a boolean visibility mask into an additive attention bias.
-
-    Args:
-        mask: True where a query may attend to a key; any shape, typically ``(q_len, k_len)`` or
-            ``(batch, 1, q_len, k_len)``.
-        blocked: the bias of a hidden position (a large negative number).
-
-    Returns:
-        float32 array of the mask's shape: 0 where ``mask`` is True, ``blocked`` elsewhere.
-
-    Raises:
-        ValueError: if ``mask`` is not boolean or ``blocked`` is not negative.
-    """
-    if mask.dtype != np.bool_:
-        raise ValueError(f"bias_from_mask expects a boolean mask, got dtype {mask.dtype}")
-    if not blocked < 0:
-        raise ValueError(f"blocked must be a negative number, got {blocked}")
-    return jnp.where(jnp.asarray(mask), jnp.float32(0.0), jnp.float32(blocked))
 
 
 def _expand_bias(bias: Array | np.ndarray, target: tuple[int, ...]) -> Array | np.ndarray:
@@ -109,7 +80,8 @@ def dot_product_attention(
         key: keys, ``(*batch, k_len, heads, head_dim)``.
         value: values, ``(*batch, k_len, heads, v_dim)``.
         bias: additive bias broadcastable to ``(*batch, heads, q_len, k_len)`` (leading axes may be
-            omitted, e.g. ``(q_len, k_len)``); 0 = visible, :data:`BLOCKED` = hidden.
+            omitted, e.g. ``(q_len, k_len)``); 0 = visible, :func:`jaxtalk.masks.mask_to_bias`'s
+            blocked value = hidden.
         dropout_rate: probability of dropping an attention weight (inverted dropout).
         dropout_rng: PRNG key, required when ``dropout_rate > 0``.
 

@@ -27,11 +27,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.masks import band_mask, combine
+from jaxtalk.masks import band_mask, combine, mask_to_bias
 from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.models.freetalk.emotions import check_intensity, emotion_ids
 from jaxtalk.models.freetalk.loss import motion_loss
-from jaxtalk.nn import DecoderBlock, TimestepEmbedding, bias_from_mask
+from jaxtalk.nn import DecoderBlock, TimestepEmbedding
 from jaxtalk.nn.precision import compute_in
 from jaxtalk.samplers import make_schedule, respace, sample_ddim
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
@@ -162,10 +162,10 @@ class ATSDenoiser(nn.Module):
         b, frames, _ = x.shape
         z = self.input_proj(x) + self.target_pos[None, :frames]
         z = z + (self.time_embed(t) + self.affect(cond.emotion, cond.intensity))[:, None, :]
-        self_bias = bias_from_mask(combine(np.ones((frames, frames), bool), cond.mask))
+        self_bias = mask_to_bias(combine(np.ones((frames, frames), bool), cond.mask))
         band = jnp.asarray(cross_attention_mask(cfg, frames, memory.shape[1]))
         cross_ok = band[None, None] & cond.audio_mask[:, None, None, :]
-        cross_bias = bias_from_mask(cross_ok)
+        cross_bias = mask_to_bias(cross_ok)
         for block in self.blocks:
             z = block(z, memory, self_bias=self_bias, cross_bias=cross_bias, deterministic=deterministic)
         return self.head(self.out_norm(z))

@@ -1,28 +1,23 @@
-"""Training FreeTalk's two modules with the shared loop (:func:`jaxtalk.train.train`).
-
-ATS and STM are trained independently (section 3.3): ATS on landmark-displacement windows
-standardised with :class:`~jaxtalk.models.freetalk.data.DisplacementStats`, STM on landmark and
-dense vertex displacement windows over several meshes (identities and topologies).
+"""FreeTalk's two trained modules as objects: :class:`FittedATS` and :class:`FittedSTM`, loaded from the
+runs their recipes write (:func:`jaxtalk.models.freetalk.recipe.train_ats` / ``train_stm``, the one way
+each is trained), and :func:`sample_displacements` in metres from a fitted ATS.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Sequence
 from typing import Any
 
 import jax
 import numpy as np
 
-from jaxtalk.data.batching import BatchIterator
-from jaxtalk.models.freetalk import ats, stm
+from jaxtalk.models.freetalk import ats
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
-from jaxtalk.train import OptimConfig, train
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["FittedATS", "FittedSTM", "fit_ats", "fit_stm", "sample_displacements"]
+__all__ = ["FittedATS", "FittedSTM", "sample_displacements"]
 
 PyTree = Any
 
@@ -117,70 +112,6 @@ class FittedSTM:
         return cls(run.config, jax.tree.map(jax.numpy.asarray, run.params), run.record.extra.get("resolution", "low"))
 
 
-def fit_ats(
-    config: ATSConfig,
-    windows: dict[str, np.ndarray],
-    optim: OptimConfig,
-    key: PRNGKeyArray,
-    *,
-    batch_size: int = 16,
-    progress: bool = False,
-    ckpt_dir: str | os.PathLike[str] | None = None,
-    save_every: int | None = None,
-    max_steps: int | None = None,
-) -> FittedATS:
-    """Train ATS on windows from :func:`~jaxtalk.models.freetalk.data.ats_windows`.
-
-    Displacements are standardised per coordinate (fitted on ``windows``), so ``config`` should use
-    ``displacement_scale = 1``.
-
-    Args:
-        config: ATS configuration (``max_frames`` >= the window length).
-        windows: ``displacements``, ``audio``, ``emotion``, ``intensity`` arrays.
-        optim: optimiser settings (``total_steps`` = training length).
-        key: PRNG key (initialisation and training).
-        batch_size: windows per step.
-        progress: show the loop's progress bar.
-        ckpt_dir: checkpoint directory (atomic orbax checkpoints of the train state and the data
-            position through :func:`jaxtalk.train.train`); a run over an existing directory resumes
-            from its newest checkpoint exactly. None: no checkpoints.
-        save_every: also checkpoint every this many steps (the final step is always saved).
-        max_steps: stop at this step (default ``optim.total_steps``; the schedule still spans
-            ``total_steps``), e.g. to train in several sessions with ``ckpt_dir``.
-
-    Returns:
-        :class:`FittedATS`.
-
-    Raises:
-        ValueError: ``displacement_scale != 1``, windows longer than ``config.max_frames`` or
-            malformed arrays.
-    """
-    if config.displacement_scale != 1.0:
-        raise ValueError(
-            "fit_ats standardises the displacements itself; use a config with displacement_scale=1.0, "
-            f"got {config.displacement_scale}"
-        )
-    disp = np.asarray(windows["displacements"], np.float32)
-    if disp.ndim != 4 or disp.shape[-2:] != (config.num_landmarks, 3):
-        raise ValueError(f"displacements must have shape (N, T, {config.num_landmarks}, 3), got {disp.shape}")
-    if disp.shape[1] > config.max_frames:
-        raise ValueError(f"windows of {disp.shape[1]} frames exceed config.max_frames={config.max_frames}")
-    stats = DisplacementStats.fit(disp)
-    data = {
-        "displacements": stats.normalize(disp).astype(np.float32),
-        "audio": np.asarray(windows["audio"], np.float32),
-        "emotion": np.asarray(windows["emotion"], np.int32),
-        "intensity": np.asarray(windows["intensity"], np.float32),
-    }
-    k_init, k_train = jax.random.split(key)
-    params = ats.init_params(config, k_init)
-    it = BatchIterator(data, batch_size, seed=int(jax.random.randint(k_init, (), 0, 2**30)))
-    result = train(ats.make_loss_fn(config), params, it, optim, key=k_train, progress=progress,
-                   log_every=max(1, optim.total_steps // 20), ckpt_dir=ckpt_dir, save_every=save_every,
-                   max_steps=max_steps, metadata={"model": "freetalk_ats", "model_config": dataclasses.asdict(config)})
-    return FittedATS(config, result.state.eval_params, stats, result.history)
-
-
 def sample_displacements(
     fitted: FittedATS,
     audio: np.ndarray,
@@ -195,7 +126,7 @@ def sample_displacements(
     """Sample landmark displacements (metres) from a fitted ATS.
 
     Args:
-        fitted: from :func:`fit_ats`.
+        fitted: a trained ATS (:meth:`FittedATS.from_run`).
         audio: ``(B, T, speech_dim)`` features.
         emotion: names or ids (one per example, or one for all).
         intensity: scalar or ``(B,)``.
@@ -210,51 +141,3 @@ def sample_displacements(
     cond = ats.make_condition(fitted.config, audio, emotion, intensity)
     out = ats.sample(fitted.params, fitted.config, cond, key, sample_steps=sample_steps, eta=eta, noise=noise)
     return np.asarray(fitted.stats.denormalize(np.asarray(out)))
-
-
-def fit_stm(
-    config: STMConfig,
-    meshes: Sequence[stm.STMMesh],
-    windows: dict[str, np.ndarray],
-    optim: OptimConfig,
-    key: PRNGKeyArray,
-    *,
-    batch_size: int = 4,
-    progress: bool = False,
-    ckpt_dir: str | os.PathLike[str] | None = None,
-    save_every: int | None = None,
-    max_steps: int | None = None,
-) -> tuple[PyTree, list[dict[str, Any]]]:
-    """Train STM on windows from :func:`~jaxtalk.models.freetalk.data.stm_windows`.
-
-    Args:
-        config: STM configuration.
-        meshes: the training meshes, prepared with a common ``num_vertices`` and ``degree`` (the
-            windows' ``"mesh"`` entries index this list).
-        windows: ``mesh``, ``landmarks``, ``vertices`` arrays.
-        optim: optimiser settings.
-        key: PRNG key.
-        batch_size: windows per step.
-        progress: show the loop's progress bar.
-        ckpt_dir: checkpoint directory (resumes exactly from its newest checkpoint; see
-            :func:`fit_ats`). None: no checkpoints.
-        save_every: also checkpoint every this many steps.
-        max_steps: stop at this step (default ``optim.total_steps``).
-
-    Returns:
-        ``(params, history)``.
-
-    Raises:
-        ValueError: a window that names a mesh outside ``meshes``.
-    """
-    idx = np.asarray(windows["mesh"])
-    if idx.min() < 0 or idx.max() >= len(meshes):
-        raise ValueError(f"windows name meshes {sorted(set(idx.tolist()))} but {len(meshes)} meshes were given")
-    stacked = stm.stack_meshes(list(meshes))
-    k_init, k_train = jax.random.split(key)
-    params = stm.init_params(config, k_init, meshes[0])
-    it = BatchIterator(dict(windows), batch_size, seed=int(jax.random.randint(k_init, (), 0, 2**30)))
-    result = train(stm.make_loss_fn(config, stacked), params, it, optim, key=k_train, progress=progress,
-                   log_every=max(1, optim.total_steps // 20), ckpt_dir=ckpt_dir, save_every=save_every,
-                   max_steps=max_steps, metadata={"model": "freetalk_stm", "model_config": dataclasses.asdict(config)})
-    return result.state.eval_params, result.history

@@ -9,7 +9,7 @@ outside), so the solver works on a latent ``z`` reflected into the range; the sa
 non-convex function of the intensity through the transformer, so by default the solver runs once from
 the midpoint of each stretch between levels and keeps the best. The objective is the per-example mean
 squared error in the model's units (``displacement_scale`` x metres, or standardised units for a
-``fit_ats`` model).
+model of ATS's recipe).
 """
 
 from __future__ import annotations
@@ -234,8 +234,8 @@ def invert_intensity(
         params, config: an ATS model.
         cond: from :func:`~jaxtalk.models.freetalk.ats.make_condition` (its intensity is ignored).
         target: ``(B, T, N, 3)`` target displacements in ``ats.sample``'s units (metres for a model
-            with ``displacement_scale`` 100; standardised units for a ``fit_ats`` model); NaN allowed
-            only on frames outside ``cond.mask``.
+            with ``displacement_scale`` 100; standardised units for a model of ATS's recipe); NaN
+            allowed only on frames outside ``cond.mask``.
         noise: ``(B, T, 3N)`` the fixed starting noise (model units), e.g. :func:`ats_noise`.
         init: starting intensity, scalar or ``(B,)`` in ``[1, L]`` (one run; a start within 1 % of the
             range from a bound is moved 1 % inside). ``None``: one run per segment midpoint.

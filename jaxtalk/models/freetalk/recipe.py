@@ -213,6 +213,7 @@ def train_stm(
     key: PRNGKeyArray,
     batch_size: int = 16,
     seed: int = 0,
+    window_frames: int | None = None,
     meshes: tuple[tuple[int, str], ...] = STM_MESHES,
     resolution: str = "low",
     params: Any = None,
@@ -223,7 +224,8 @@ def train_stm(
     eval_every: int | None = None,
     **loop_kwargs: Any,
 ) -> RecipeResult:
-    """Train STM on ``data``'s training motion rendered on ``meshes`` (identity, topology) pairs.
+    """Train STM on ``data``'s training motion rendered on ``meshes`` (identity, topology) pairs
+    (arguments as every recipe's ``train``; ``window_frames`` default 16).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the meshes, resolution and window.
@@ -233,11 +235,10 @@ def train_stm(
 
     faces = tuple(face_mesh(i, kind, resolution=resolution) for i, kind in meshes)
     prepared = stm.prepare_meshes([(m.vertices, m.faces) for m in faces], config)
-    recipe = STMWindows(faces, max(p.num_vertices for p in prepared))
+    recipe = STMWindows(faces, max(p.num_vertices for p in prepared), window=window_frames or 16)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = stm.init_params(config, k_init, prepared[0]) if params is None else params
     extra = {"meshes": [list(m) for m in meshes], "resolution": resolution, "window": recipe.window}
     return fit_recipe(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
                       eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
-                      config=config, run_dir=run_dir, run_info=run_info,
-                      **loop_kwargs)
+                      config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)

@@ -35,9 +35,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.masks import mask_to_bias
 from jaxtalk.models.timar.config import NUM_SEPARATORS, TimarConfig
 from jaxtalk.models.timar.tokens import agent_token_mask, interleave, turn_layout
-from jaxtalk.nn import MLP, TransformerBlock, bias_from_mask
+from jaxtalk.nn import MLP, TransformerBlock
 from jaxtalk.nn.embeddings import sinusoidal_embedding
 from jaxtalk.types import Array, Bool, Float, Int
 
@@ -245,7 +246,7 @@ class TimarEncoder(nn.Module):
         hidden = agent_token_mask(agent_mask).reshape(b, n * tpt)
         vis = visibility if visibility.ndim == 3 else visibility[None]
         keys = vis & ~hidden[:, None, :]  # (B, S, S)
-        return self.encode(tokens, 0, bias_from_mask(keys)[:, None], deterministic=deterministic)
+        return self.encode(tokens, 0, mask_to_bias(keys)[:, None], deterministic=deterministic)
 
     def decode(
         self,
@@ -274,7 +275,7 @@ class TimarEncoder(nn.Module):
         masked = agent_token_mask(agent_mask)[..., None]
         x = jnp.where(masked, self.mask_token.astype(x.dtype), x).reshape(b, n * tpt, w)
         x = x + self.decoder_pos_embed[None, : n * tpt].astype(x.dtype)
-        bias = bias_from_mask(visibility)
+        bias = mask_to_bias(visibility)
         if bias.ndim == 3:
             bias = bias[:, None]
         for block in self.decoder_blocks:
@@ -302,7 +303,7 @@ class TimarEncoder(nn.Module):
             ``(B, N, F, width)``.
         """
         if self.config.architecture == "encoder":
-            bias = bias_from_mask(visibility)
+            bias = mask_to_bias(visibility)
             if bias.ndim == 3:
                 bias = bias[:, None]
             features = self.encode(tokens, 0, bias, deterministic=deterministic)

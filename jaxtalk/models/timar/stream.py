@@ -39,7 +39,7 @@ from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.data.turns import check_streams
 from jaxtalk.models.timar.sample import check_temperature, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
-from jaxtalk.nn import bias_from_mask
+from jaxtalk.masks import mask_to_bias
 from jaxtalk.nn.precision import compute_in
 from jaxtalk.types import Array, Float, Int, PRNGKeyArray, Shaped, StreamLike
 
@@ -183,7 +183,7 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
         # through the last layer (a full-window pass would also push the n past turns' queries
         # through it, for outputs nobody reads).
         past_mask = jnp.asarray(layout.attention_mask(n, causal=True))
-        _, kvs = _encoder_call(params, config, "encode", shifted[:, :n], 0, bias_from_mask(past_mask), None, True)
+        _, kvs = _encoder_call(params, config, "encode", shifted[:, :n], 0, mask_to_bias(past_mask), None, True)
         return tuple(k for k, _ in kvs), tuple(v for _, v in kvs)
 
     def keep(_: Any) -> tuple[Any, Any]:
@@ -200,7 +200,7 @@ def _condition(params, config, state, us, um, as_, guidance, mode="auto"):
     cache_slot = jnp.asarray(np.repeat(np.arange(n), tpt))
     visible = jnp.concatenate([cache_slot < slot, jnp.ones((tpt,), bool)])
     feats, kvs = _encoder_call(
-        params, config, "encode", tok, slot, bias_from_mask(visible)[None, :], tuple(zip(keys, values)), True
+        params, config, "encode", tok, slot, mask_to_bias(visible)[None, :], tuple(zip(keys, values)), True
     )
     z = _encoder_call(params, config, "head_condition", feats, slot)[:, 0]
     # While filling (t < n) the newest turn's keys/values go to its slot. From t == n on, the cache is

@@ -5,7 +5,8 @@
 * Losses: :func:`loss` (stage 1) and :func:`adapter_loss` (stage 2).
 * Inference: :func:`sample` (offline), :func:`sample_long` (offline, any length in bounded memory), :func:`init_stream` / :func:`stream_step` / :func:`stream`
   (streaming engine with an explicit carried state), :func:`encode_style`, :func:`adapt_tokens`.
-* Training: :mod:`jaxtalk.models.toktalk.train` (two stages with the shared loop).
+* Training: :mod:`jaxtalk.models.toktalk.recipe` (:func:`~jaxtalk.models.toktalk.recipe.train`, stage 1, and
+  :func:`~jaxtalk.models.toktalk.recipe.train_adapter`, stage 2, on a prepared dataset with the shared loop).
 """
 
 from jaxtalk.models.toktalk.adapter import Adapter

@@ -158,7 +158,7 @@ def init_params(
     Returns:
         ``{"decoder": ..., "style": ..., "norm": ...}`` plus ``"adapter"`` when requested. ``norm`` is
         the motion standardiser (``{"mean", "std"}``) and the flow's per-channel scale
-        (``"flow_scale"``), identity here; :func:`train_base` fits them on the training motion (see
+        (``"flow_scale"``), identity here; :func:`jaxtalk.models.toktalk.recipe.train` fits them on the training motion (see
         :func:`fit_flow_scale`): the decoder and the style encoder work on standardised motion, every
         public input and output is in raw parameter units.
     """
@@ -386,7 +386,7 @@ def fit_flow_scale(
     Args:
         params: parameters with the fitted ``norm`` (``mean``, ``std``).
         config: model settings.
-        motion, mask, style: training windows (the recipe's examples).
+        motion, mask, style: training windows (:class:`~jaxtalk.models.toktalk.recipe.TokTalkWindows`).
         floor: smallest scale (a channel that never moves is not blown up).
         style_mask: True on the style clips' real frames (None: all real).
 
@@ -504,7 +504,7 @@ def adapter_source_dim(params: dict[str, PyTree]) -> int:
         ValueError: no adapter in ``params``.
     """
     if "adapter" not in params:
-        raise ValueError("params has no 'adapter' entry: train stage 2 (train_adapter) first")
+        raise ValueError("params has no 'adapter' entry: train stage 2 (toktalk.recipe.train_adapter) first")
     return int(params["adapter"]["conv"]["conv"]["kernel"].shape[1])
 
 

@@ -1,16 +1,25 @@
-"""TokTalk's recipe: windows of a prepared dataset, and the one way the base model is trained.
+"""TokTalk's recipes: windows of a prepared dataset, and the one way each stage is trained.
 
 A window is ``window_frames`` motion frames (a whole number of base tokens) with the aligned tokens,
 its padding mask, and a reference style clip (``TokTalkConfig.style_source``): a crop of the target
 clip itself (the paper's, and the ``paper`` preset's) or of ANOTHER clip of the same speaker in the
 same split when there is one (the other presets': the style vector cannot copy the target, so training
-measures real style transfer). The CLI, the demo and the experiments train
-through :func:`train`.
+measures real style transfer). The CLI, the demo, the experiments and the tests
+train through these entry points:
+
+* :func:`train` (stage 1): the decoder and style encoder on the dataset's base token stream with the
+  CFM loss (:func:`~jaxtalk.models.toktalk.loss.loss`).
+* :func:`train_adapter` (stage 2): a fresh adapter from another token stream (e.g. SynthTalk's "B",
+  25 Hz x 48) onto the base stream, with every base parameter frozen (bitwise unchanged) and
+  :func:`~jaxtalk.models.toktalk.loss.adapter_loss`. ``prepare`` stores one token stream per clip,
+  so the source stream is given beside the dataset, per clip name (:class:`AdapterWindows`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +34,8 @@ from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, spread
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["DEFAULTS", "TokTalkWindows", "default_window", "check_data", "train"]
+__all__ = ["DEFAULTS", "TokTalkWindows", "AdapterWindows", "default_window", "check_data", "base_trainable",
+           "adapter_trainable", "train", "train_adapter"]
 
 # The small model's training settings on 2 CPU cores (the demo's): a short EMA suits runs of ~1k steps.
 DEFAULTS = TrainSettings(lr=2e-3, ema_decay=0.99, warmup_steps=100)
@@ -55,6 +65,16 @@ def check_data(config: TokTalkConfig, data: PreparedData) -> None:
             f"{data.root} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz but the model expects "
             f"{config.speech_dim} at {config.token_rate:g} Hz (--set speech_dim=... token_rate=...)"
         )
+
+
+def base_trainable(path: str, leaf: Any) -> bool:
+    """Stage 1's ``trainable`` predicate: everything but the fitted standardiser ``norm/``."""
+    return path.split("/", 1)[0] != "norm"
+
+
+def adapter_trainable(path: str, leaf: Any) -> bool:
+    """Stage 2's ``trainable`` predicate: only parameters under ``adapter/`` train."""
+    return path.split("/", 1)[0] == "adapter"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,7 +198,7 @@ def train(
     """
     from jaxtalk.models.toktalk.loss import make_loss_fn
     from jaxtalk.models.toktalk.model import fit_flow_scale, init_params
-    from jaxtalk.models.toktalk.train import base_trainable
+
     check_data(config, data)
     window = window_frames or default_window(config)
     recipe = TokTalkWindows(config, window, hop_frames=window // 4, seed=seed)
@@ -201,3 +221,97 @@ def train(
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames,
                       trainable=base_trainable, **loop_kwargs)
 
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class AdapterWindows(TokTalkWindows):
+    """Stage 2's window recipe: :class:`TokTalkWindows` plus the source stream's tokens of the window.
+
+    Attributes:
+        src_tokens: per clip name, the source stream's token embeddings ``(Ts, src_dim)`` at
+            ``src_rate`` (clips without an entry give no window).
+        src_rate: the source stream's token rate (Hz).
+    """
+
+    src_tokens: Mapping[str, np.ndarray] = dataclasses.field(kw_only=True)
+    src_rate: float = dataclasses.field(kw_only=True)
+
+    def table(self, data: PreparedData, split: str) -> np.ndarray:
+        rows = super().table(data, split)
+        return rows[[data.clips[int(i)]["name"] in self.src_tokens for i in rows[:, 0]]].reshape(-1, 4)
+
+    def example(self, data: PreparedData, row: np.ndarray) -> dict[str, np.ndarray]:
+        out = super().example(data, row)
+        src = np.asarray(self.src_tokens[data.clips[int(row[0])]["name"]], np.float32)
+        per_frame = self.src_rate / self.config.fps
+        out["src_tokens"] = _fit_length(src[int(round(int(row[1]) * per_frame)):],
+                                        int(round(self.window_frames * per_frame)))
+        return out
+
+
+def train_adapter(
+    config: TokTalkConfig,
+    data: PreparedData,
+    optim: OptimConfig,
+    *,
+    base_params: PyTree,
+    src_tokens: Mapping[str, np.ndarray],
+    src_rate: float,
+    flow_weight: float = 1.0,
+    steps: int | None = None,
+    key: PRNGKeyArray,
+    batch_size: int = 16,
+    seed: int = 0,
+    window_frames: int | None = None,
+    run_dir: str | Path | None = None,
+    run_info: RunInfo | None = None,
+    ckpt_dir: Any = None,
+    mesh: Any = None,
+    eval_every: int | None = None,
+    **loop_kwargs: Any,
+) -> RecipeResult:
+    """Stage 2: train a fresh adapter from another token stream with the base model frozen.
+
+    Arguments as :func:`train`, plus:
+
+    Args:
+        base_params: stage-1 parameters (``decoder``, ``style``, ``norm``); left bitwise unchanged
+            (an ``adapter`` entry in them is replaced by a fresh one).
+        src_tokens: per clip name of ``data``, the source stream's token embeddings ``(Ts, src_dim)``
+            (e.g. SynthTalk's stream "B": ``{clip_name(i): corpus.tokens(i, "B").embeddings}``).
+        src_rate: the source stream's token rate (Hz).
+        flow_weight: lambda of the flow term of :func:`~jaxtalk.models.toktalk.loss.adapter_loss`.
+
+    Returns:
+        :class:`~jaxtalk.train.recipes.RecipeResult`; ``state.params`` hold the base parameters and the
+        adapter; ``extra``: the window size, the source rate and width.
+
+    Raises:
+        ValueError: no source tokens for any clip of ``data``, or source tokens of unequal widths.
+    """
+    from jaxtalk.models.toktalk.model import init_adapter
+
+    check_data(config, data)
+    widths = {int(np.shape(v)[-1]) for v in src_tokens.values()}
+    if not any(c["name"] in src_tokens for c in data.clips) or len(widths) != 1:
+        raise ValueError(f"src_tokens must give tokens of one width for clips of {data.root} "
+                         f"(widths {sorted(widths)}, {sum(c['name'] in src_tokens for c in data.clips)} clips named)")
+    window = window_frames or default_window(config)
+    recipe = AdapterWindows(config, window, hop_frames=window // 4, seed=seed, src_tokens=src_tokens,
+                            src_rate=float(src_rate))
+    k_init, k_train, k_eval = jax.random.split(key, 3)
+    src_dim = widths.pop()
+    params = {k: v for k, v in base_params.items() if k != "adapter"}
+    params["adapter"] = init_adapter(config, k_init, src_dim)
+    loss = functools.partial(_adapter_loss, config, float(src_rate), float(flow_weight))
+    extra = {"window_frames": recipe.window_frames, "adapter": {"src_rate": float(src_rate), "src_dim": src_dim}}
+    return fit_recipe(recipe, data, loss, params, optim, key=k_train, eval_key=k_eval, steps=steps,
+                      batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
+                      metadata={"model": "toktalk", "stage": 2}, extra=extra, config=config, run_dir=run_dir,
+                      run_info=run_info, window_frames=window_frames, trainable=adapter_trainable, **loop_kwargs)
+
+
+def _adapter_loss(config: TokTalkConfig, src_rate: float, flow_weight: float, params: PyTree, batch: dict,
+                  key: PRNGKeyArray) -> tuple[Any, dict[str, Any]]:
+    from jaxtalk.models.toktalk.loss import adapter_loss
+
+    return adapter_loss(params, config, batch, key, src_rate=src_rate, flow_weight=flow_weight)
