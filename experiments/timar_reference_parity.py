@@ -286,7 +286,7 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
     from jaxtalk.models.timar.sample import respaced_schedule
     from jaxtalk.models.timar.stream import init_stream, stream_step
     from jaxtalk.models.timar.tokens import turn_layout
-    from jaxtalk.nn import bias_from_mask
+    from jaxtalk.masks import mask_to_bias
     from jaxtalk.samplers.diffusion import DiffusionState, _tables, ddpm_step
     from jaxtalk.samplers.flow import as_model
 
@@ -312,7 +312,7 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
         feats = call(TimarEncoder.encode_visible, masked_tokens, agent_mask, visibility)
         feats = call(TimarEncoder.decode, feats, agent_mask, visibility)
     else:
-        feats = call(TimarEncoder.encode, masked_tokens, 0, bias_from_mask(visibility))
+        feats = call(TimarEncoder.encode, masked_tokens, 0, mask_to_bias(visibility))
     res["encoder"] = (np.asarray(feats).reshape(ref["encoder"].shape), ref["encoder"], False)
     cond = call(TimarEncoder.head_condition, feats, 0)
     res["condition"] = (np.asarray(cond).reshape(ref["condition"].shape), ref["condition"], False)

@@ -162,7 +162,7 @@ def _samplers(model, monkeypatch):
         params = tt.init_params(config, key)
         tokens = jnp.asarray(rng.normal(size=(1, 8, config.speech_dim)), jnp.float32)
         style = jnp.asarray(rng.normal(size=(1, config.style_vector_dim)), jnp.float32)
-        state = tt.init_stream(config, key, batch=1, buffer_frames=200)
+        state = tt.init_stream(config, key, batch=1)
         chunk = jnp.asarray(rng.normal(size=(1, tt.tokens_per_chunk(config), config.speech_dim)), jnp.float32)
         return [
             ("sampler", *_capture_call(monkeypatch, "jaxtalk.models.toktalk.sample", "_sample",
