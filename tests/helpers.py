@@ -152,6 +152,17 @@ def crashing_batches(crash_at: int, *args, **kw):
     return Crashing()
 
 
+# The smallest graph of each model that ``jaxtalk train`` builds, as ``--preset`` / ``--set`` arguments
+# (compile time dominates the suite's few-step runs); the session's shared runs use them.
+TINY_TRAIN_ARGS = {
+    "toktalk": ["--preset", "tiny", "--set", "num_mid_blocks=0"],
+    "timar": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
+              "--set", "head_blocks=1", "--set", "max_turns=2"],
+    "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
+            "--set", "sample_steps=4"],
+}
+
+
 def cli_ok(args: list) -> str:
     """Run ``jaxtalk ARGS`` in-process (typer's runner); it must succeed. Returns its output."""
     from typer.testing import CliRunner

@@ -1,8 +1,8 @@
 """``jaxtalk train / sample / stream`` end to end on a tiny TokTalk trained for a few steps.
 
-One module-scoped run (2 steps, then resumed to 4) serves every test. The CLI's outputs are checked
-against the library called directly with the same inputs, so a wiring mistake (wrong style clip, wrong
-key, dropped frames, normalisation applied twice) fails here.
+One run serves every test: the session's two-step tiny TokTalk (``trained_toktalk``), copied and resumed
+to 4 steps. The CLI's outputs are checked against the library called directly with the same inputs, so a
+wiring mistake (wrong style clip, wrong key, dropped frames, normalisation applied twice) fails here.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from helpers import cli_ok as _ok, cli_error as _user_error
+from helpers import most_optimizations_off, cli_ok as _ok, cli_error as _user_error
 
 
 COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render", "export", "view"]
@@ -25,21 +25,21 @@ def test_every_command_has_help(command):
     assert "Usage" in output and command in output
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compile():
+    with most_optimizations_off():  # compile time dominates these tiny runs
+        yield
+
+
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, synthtalk_tiny, prepared_tiny):
-    """A tiny TokTalk trained 2 steps, then resumed to 4 (the resume is a test of its own)."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)  # compile time dominates these tiny runs
+def run(tmp_path_factory, synthtalk_tiny, prepared_tiny, trained_toktalk):
+    """The session's two-step tiny TokTalk (``trained_toktalk``), copied and resumed to 4 steps (the
+    resume is a test of its own)."""
     root = tmp_path_factory.mktemp("cli_run")
-    out = root / "run"
-    cache = str(prepared_tiny.root.parent)
-    # The tiny preset without middle stages: the smallest graph, hence the shortest compile.
-    args = ["train", "toktalk", "--data", "synthtalk:tiny", "--preset", "tiny", "--set", "num_mid_blocks=0",
-            "--set", "batch_size=4", "--no-progress", "--cache-dir", cache, "--out", str(out)]
-    first = _ok(args + ["--steps", "2"])
+    out = trained_toktalk.copy(root / "run")
     second = _ok(["train", "toktalk", "--steps", "4", "--no-progress", "--out", str(out)])
-    yield {"dir": out, "root": root, "first": first, "second": second, "corpus": synthtalk_tiny, "data": prepared_tiny}
-    jax.config.update("jax_disable_most_optimizations", previous)
+    return {"dir": out, "root": root, "first": trained_toktalk.output, "second": second, "corpus": synthtalk_tiny,
+            "data": prepared_tiny}
 
 
 def test_train_writes_run_and_resume_continues_the_step_count(run):
@@ -52,7 +52,7 @@ def test_train_writes_run_and_resume_continues_the_step_count(run):
     with Checkpointer(run["dir"] / "checkpoint", read_only=True) as ckpt:
         assert {2, 4} <= set(ckpt.all_steps())
     record = RunRecord.load(run["dir"])
-    assert record.model == "toktalk" and record.preset == "tiny" and record.train["batch_size"] == 4
+    assert record.model == "toktalk" and record.preset == "tiny" and record.train["batch_size"] == 2
     assert record.data["spec"] == "synthtalk:tiny" and record.data["key"] == run["data"].key
     assert record.model_config().chunk_frames == 4  # the tiny preset, restored from run.json
     at2, at4 = load_run(run["dir"], step=2), load_run(run["dir"])

@@ -1,8 +1,8 @@
 """``jaxtalk eval`` on prepared data: every model's table, its baselines checked by hand, and user errors.
 
-Tiny TokTalk, TIMAR and ATS runs are trained through the CLI for two steps on SynthTalk tiny (prepared
-once per session); STM, whose training renders several meshes (minutes), is evaluated from its
-initial parameters saved as a step-0 checkpoint. Scores of two-step models mean nothing, so the
+Tiny TokTalk, TIMAR and ATS runs are trained through the CLI for two steps on SynthTalk tiny, once per
+session (``trained_toktalk``, ``trained_timar``, ``trained_ats`` in conftest); STM, whose training renders
+several meshes (minutes), is evaluated from its initial parameters saved as a step-0 checkpoint. Scores of two-step models mean nothing, so the
 checks are on the wiring: the tables' shape, finite numbers, the mean-pose rows recomputed by hand from
 the data, and the oracle beating the mean pose on SynthTalk. The real DualTalk demo clips (no oracle,
 audio-only partners) run through prepare, train and eval when ``../shared`` is present.
@@ -18,16 +18,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import DUALTALK_SOURCES, dualtalk_folder, most_optimizations_off, cli_ok as _ok, cli_error as _user_error
+from helpers import (DUALTALK_SOURCES, TINY_TRAIN_ARGS, dualtalk_folder, most_optimizations_off, cli_ok as _ok,
+                     cli_error as _user_error)
 
 
-TIMAR = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
-         "--set", "head_blocks=1", "--set", "max_turns=2"]
+# The real-data test's own runs (the other tests read the session's runs).
 SMALL = {
-    "toktalk": ["--preset", "tiny", "--set", "num_mid_blocks=0", "--set", "batch_size=4"],
-    "timar": [*TIMAR, "--set", "batch_size=2"],
-    "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
-            "--set", "sample_steps=4", "--set", "batch_size=2"],
+    "toktalk": [*TINY_TRAIN_ARGS["toktalk"], "--set", "batch_size=4"],
+    "timar": [*TINY_TRAIN_ARGS["timar"], "--set", "batch_size=2"],
 }
 
 
@@ -52,16 +50,9 @@ def _fast_compile():
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory, prepared_tiny):
-    """Two-step TokTalk, TIMAR and ATS runs on SynthTalk tiny, trained through the CLI."""
-    root = tmp_path_factory.mktemp("eval_runs")
-    cache = prepared_tiny.root.parent
-    out = {}
-    for model, args in SMALL.items():
-        out[model] = root / model
-        _ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", cache, "--steps", "2", *args,
-             "--no-progress", "--out", out[model]])
-    return out
+def runs(trained_toktalk, trained_timar, trained_ats):
+    """The session's two-step TokTalk, TIMAR and ATS runs on SynthTalk tiny, trained through the CLI."""
+    return {"toktalk": trained_toktalk.dir, "timar": trained_timar.dir, "ats": trained_ats.dir}
 
 
 def _report(path: Path) -> dict:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-import jax
 import numpy as np
 import pygltflib
 import pytest
@@ -20,7 +19,7 @@ import soundfile
 
 from jaxtalk.data.formats import MotionClip, save_npz
 
-from helpers import cli_ok as _ok, cli_error as _refused
+from helpers import most_optimizations_off, cli_ok as _ok, cli_error as _refused
 
 
 def _hashes(folder: Path) -> dict[str, str]:
@@ -36,17 +35,17 @@ def _user_files(folder: Path, names: list[str]) -> dict[str, str]:
     return _hashes(folder)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compile():
+    with most_optimizations_off():  # compile time dominates the tiny run's sampling
+        yield
+
+
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, prepared_tiny):
-    """A tiny TokTalk run trained for one step (what is sampled does not matter here)."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    out = tmp_path_factory.mktemp("outputs") / "run"
-    _ok(["train", "toktalk", "--data", "synthtalk:tiny", "--preset", "tiny", "--set", "num_mid_blocks=0",
-         "--set", "batch_size=2", "--steps", "1", "--no-progress", "--cache-dir", prepared_tiny.root.parent,
-         "--out", out])
-    yield out
-    jax.config.update("jax_disable_most_optimizations", previous)
+def run(trained_toktalk):
+    """The session's tiny TokTalk run (what is sampled does not matter here; every command that would
+    write into it must refuse, so it is read, never written)."""
+    return trained_toktalk.dir
 
 
 @pytest.fixture
