@@ -44,6 +44,30 @@ def fast_compile():
         yield
 
 
+# Tests of the slow tier in modules that other work was rewriting when the tiers were cut (issue 26):
+# marked here rather than in those files. Move each to a ``@pytest.mark.slow`` on the test itself when
+# its module is next edited; a name here that no longer exists simply marks nothing.
+SLOW_ELSEWHERE = {
+    "test_timar_model.py": {"test_changing_turn_t_plus_1_leaves_turns_up_to_t_exactly_unchanged",
+                            "test_fresh_diffusion_head_predicts_zero_and_has_a_gradient",
+                            "test_learned_sigma_head_doubles_output_and_mlp_head_works",
+                            "test_train_timar_runs_a_two_step_schedule_and_rejects_missing_streams"},
+    "test_freetalk_stm.py": {"test_ablation_fusions_run", "test_fit_stm_resumes_exactly_from_its_checkpoint",
+                             "test_loss_ignores_padding_rows_and_trains_all_parts"},
+    "test_freetalk_ats.py": {"test_explicit_noise_and_remat_reproduce_the_keyed_sampler",
+                             "test_fit_ats_resumes_exactly_from_its_checkpoint",
+                             "test_one_ddim_step_is_the_denoiser_at_step_zero"},
+    "test_toktalk_train.py": {"test_stage2_trains_only_the_adapter"},
+    "test_cli_bench.py": {"test_toktalk_table_rates_and_fraction_of_peak"},
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if getattr(item, "originalname", item.name) in SLOW_ELSEWHERE.get(item.path.name, ()):
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture
 def key():
     return jax.random.key(0)

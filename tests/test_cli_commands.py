@@ -42,6 +42,7 @@ def run(tmp_path_factory, synthtalk_tiny, prepared_tiny, trained_toktalk):
             "data": prepared_tiny}
 
 
+@pytest.mark.slow
 def test_train_writes_run_and_resume_continues_the_step_count(run):
     from jaxtalk.runs import RunRecord, load_run
     from jaxtalk.train import Checkpointer, latest_checkpoint_step
@@ -61,6 +62,7 @@ def test_train_writes_run_and_resume_continues_the_step_count(run):
     assert max(jax.tree.leaves(moved)) > 0  # the resumed steps trained
 
 
+@pytest.mark.slow
 def test_train_user_errors_are_one_line(run, tmp_path):
     out = str(tmp_path / "fresh")
     _user_error(["train", "toktalk", "--set", "nonsense=1", "--out", out], "nonsense: neither a TokTalkConfig field")
@@ -106,6 +108,7 @@ def _default_style(loaded, corpus) -> np.ndarray:
     return want[None]
 
 
+@pytest.mark.slow
 def test_sample_tokens_equals_the_library_call(run, tmp_path):
     from jaxtalk.runs import load_run
     from jaxtalk.data.formats import read_npz
@@ -122,6 +125,7 @@ def test_sample_tokens_equals_the_library_call(run, tmp_path):
     np.testing.assert_allclose(clip.params, np.asarray(want)[0], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_stream_prints_each_chunk_and_equals_the_streaming_engine(run, tmp_path):
     from jaxtalk.runs import load_run
     from jaxtalk.data.formats import read_npz
@@ -143,6 +147,7 @@ def test_stream_prints_each_chunk_and_equals_the_streaming_engine(run, tmp_path)
     np.testing.assert_allclose(got, np.asarray(want)[0], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_sample_stereo_audio_at_another_rate(run, tmp_path):
     from jaxtalk.audio import resample_audio
     from jaxtalk.data.formats import read_npz
@@ -157,6 +162,7 @@ def test_sample_stereo_audio_at_another_rate(run, tmp_path):
     assert clip.audio is not None and abs(clip.audio.shape[0] - audio.shape[0]) <= 2  # 16 kHz mono, stored
 
 
+@pytest.mark.slow
 def test_sample_user_errors(run, tmp_path):
     run_dir = str(run["dir"])
     _user_error(["sample", run_dir, str(tmp_path / "missing.wav")], "input file not found")
@@ -185,6 +191,7 @@ def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise():
     assert RunRecord(**{**dataclasses.asdict(record), "config": config}).model_config().noise_frames == 2.0
 
 
+@pytest.mark.slow
 def test_a_run_written_before_the_one_vocabulary_renames_samples_and_resumes(run, tmp_path):
     import json
     import shutil

@@ -70,6 +70,7 @@ def _rows(table: dict) -> dict[str, dict]:
 # ------------------------------------------------------------------------------------------ TokTalk
 
 
+@pytest.mark.slow
 def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
     from jaxtalk.face import builtin_face
 
@@ -106,6 +107,7 @@ def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path)
     assert rows["ground truth"]["MSE"] is None and rows["ground truth"]["jitter_mm"] > 0
 
 
+@pytest.mark.slow
 def test_toktalk_eval_rows_per_step_count_streamed_and_offline(runs, tmp_path):
     from jaxtalk.runs import load_run
 
@@ -144,6 +146,7 @@ def _fake_flame(folder: Path, num_verts: int = 120) -> Path:
     return folder / "generic_model.pkl"
 
 
+@pytest.mark.slow
 def test_toktalk_eval_on_flame_with_its_masks(runs, tmp_path):
     flame = _fake_flame(tmp_path / "flame")
     output = _ok(["eval", runs["toktalk"], "--max-clips", "1", "--flame", flame, "--json", tmp_path / "r.json"])
@@ -161,6 +164,7 @@ def test_toktalk_eval_on_flame_with_its_masks(runs, tmp_path):
 # -------------------------------------------------------------------------------------------- TIMAR
 
 
+@pytest.mark.slow
 def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
     from jaxtalk.runs import RunRecord
     from jaxtalk.models.timar.data import Normalizer
@@ -196,6 +200,7 @@ def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
 # ---------------------------------------------------------------------------------------------- ATS
 
 
+@pytest.mark.slow
 def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_path):
     from jaxtalk.runs import RunRecord
     from jaxtalk.data.batching import window_starts
@@ -225,6 +230,7 @@ def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_
 # ---------------------------------------------------------------------------------------------- STM
 
 
+@pytest.mark.slow
 def test_stm_eval_maps_true_landmarks_on_the_run_meshes(stm_run, prepared_tiny, tmp_path):
     from jaxtalk.models.freetalk.data import face_mesh, without_head_pose
 
@@ -257,6 +263,7 @@ def _copy_prepared(data, out: Path, edit) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_eval_user_errors_are_one_line(runs, prepared_tiny, tmp_path):
     tok, timar = runs["toktalk"], runs["timar"]
     _user_error(["eval", tmp_path], "is not a training run")

@@ -50,6 +50,7 @@ def files(tmp_path_factory, synthtalk_tiny):
             "cloud": root / "cloud.ply", "vertices": vertices, "root": root}
 
 
+@pytest.mark.slow
 def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, stm_run, files):
     out = files["root"] / "anim.npy"
     output = _ok(["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh", files["ply"], "--emotion", "happy",
@@ -65,6 +66,7 @@ def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, st
     assert gif.stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_sample_onto_a_mesh_user_errors_are_one_line(ats_run, stm_run, files, tmp_path):
     base = ["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh"]
     _user_error([*base, files["ply"], "--emotion", "elated"], "--emotion elated: not an emotion of this run")

@@ -58,6 +58,7 @@ def talk(tmp_path):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_sample_and_stream_keep_a_user_file_at_the_default_name_until_overwrite_replaces_only_it(run, talk):
     before = _user_files(talk, ["talk_params.npz"])
     for command in ("sample", "stream"):
@@ -70,6 +71,7 @@ def test_sample_and_stream_keep_a_user_file_at_the_default_name_until_overwrite_
     assert np.load(talk / "talk_params.npz")["params"].shape[1] == 56
 
 
+@pytest.mark.slow
 def test_sample_never_writes_over_an_input_even_with_out_and_overwrite(run, talk):
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "style.npz"])
     before = _hashes(talk)
@@ -80,6 +82,7 @@ def test_sample_never_writes_over_an_input_even_with_out_and_overwrite(run, talk
     assert _hashes(talk) == before and _hashes(run) == run_before
 
 
+@pytest.mark.slow
 def test_an_explicit_out_replaces_its_file_and_a_folder_or_a_path_under_a_file_is_refused_before_work(run, talk):
     (talk / "mine.npz").write_bytes(b"old")
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "mine.npz"])
@@ -90,6 +93,7 @@ def test_an_explicit_out_replaces_its_file_and_a_folder_or_a_path_under_a_file_i
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "new" / "deeper" / "x.npz"])  # folders are created
 
 
+@pytest.mark.slow
 def test_export_writes_its_audio_beside_the_glb_without_touching_the_recording(run, talk):
     # The session: sample -> talk.npz, export -> talk.glb; talk.wav stays the user's.
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "talk.npz"])
@@ -119,6 +123,7 @@ def test_export_writes_its_audio_beside_the_glb_without_touching_the_recording(r
     assert _hashes(talk) == before
 
 
+@pytest.mark.slow
 def test_every_writing_command_leaves_user_files_under_its_names_unchanged(run, talk, monkeypatch):
     monkeypatch.chdir(talk)
     save_npz(talk / "clip.npz", MotionClip(name="clip", fps=25, params=np.zeros((30, 56), np.float32)))
