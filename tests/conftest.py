@@ -4,13 +4,18 @@
 * ``float64`` fixture: enables x64 inside one test only (finite-difference gradient checks,
   analytic-target checks) and restores the previous setting afterwards.
 * ``fast_compile`` fixture: turns off most XLA optimisations for tests dominated by compile time.
+* ``synthtalk_tiny``, ``prepared_tiny`` and ``trained_toktalk`` / ``trained_timar`` / ``trained_ats``: the
+  tiny corpus, its prepared folder and one two-step run per model, each made once per test session and
+  shared by the xdist workers (built under a file lock by the first worker that needs it).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import os
+import shutil
 from pathlib import Path
 
 # Keep CPU tests deterministic and avoid oversubscribing the 2 CI cores.
@@ -136,3 +141,56 @@ def stm_run(tmp_path_factory, prepared_tiny):
               extra={"meshes": [[1, "decimated"]], "resolution": "low", "window": 16}).save(out)
     save_run_assets(out, "stm", data, config)
     return out
+
+
+# --------------------------------------------------------------------------- shared trained runs
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainedRun:
+    """A run ``jaxtalk train`` made once per test session: its folder (read it, never write into it; a
+    test that resumes or overwrites works on :meth:`copy`) and what the command printed."""
+
+    dir: Path
+    output: str
+
+    def copy(self, dest: Path) -> Path:
+        shutil.copytree(self.dir, dest)
+        return dest
+
+
+def _trained_run(tmp_path_factory, prepared_tiny, model: str) -> TrainedRun:
+    """``jaxtalk train MODEL`` on SynthTalk tiny: two steps, batch 2, the smallest graph, XLA's
+    optimisations off. The xdist workers share it: the first trains it under a file lock, the others
+    wait for it and read it."""
+    from helpers import TINY_TRAIN_ARGS, cli_ok, most_optimizations_off
+
+    folder = _session_shared(tmp_path_factory, f"trained_{model}")
+    run, printed = folder / "run", folder / "output.txt"
+    with _exclusive(folder):
+        if not printed.is_file():  # written last: a run a killed worker left half-made is trained again
+            shutil.rmtree(run, ignore_errors=True)
+            with most_optimizations_off():
+                output = cli_ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent,
+                                 "--steps", "2", "--set", "batch_size=2", *TINY_TRAIN_ARGS[model], "--no-progress",
+                                 "--out", run])
+            printed.write_text(output)
+    return TrainedRun(run, printed.read_text())
+
+
+@pytest.fixture(scope="session")
+def trained_toktalk(tmp_path_factory, prepared_tiny) -> TrainedRun:
+    """TokTalk's tiny preset without middle stages, two steps through ``jaxtalk train``."""
+    return _trained_run(tmp_path_factory, prepared_tiny, "toktalk")
+
+
+@pytest.fixture(scope="session")
+def trained_timar(tmp_path_factory, prepared_tiny) -> TrainedRun:
+    """A one-layer, 32-wide TIMAR on two-turn windows, two steps through ``jaxtalk train``."""
+    return _trained_run(tmp_path_factory, prepared_tiny, "timar")
+
+
+@pytest.fixture(scope="session")
+def trained_ats(tmp_path_factory, prepared_tiny) -> TrainedRun:
+    """A one-layer, 32-wide ATS (four sampling steps), two steps through ``jaxtalk train``."""
+    return _trained_run(tmp_path_factory, prepared_tiny, "ats")

@@ -189,6 +189,15 @@ def assert_recipe_resumes_exactly(train, config, data, folder: Path, **kw) -> No
     assert sorted(again) == [3, 4] and again == {k: losses[k] for k in (3, 4)}, (losses, again)
     for a, b in zip(jax.tree.leaves(resumed.state.params), jax.tree.leaves(straight.state.params), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+# The smallest graph of each model that ``jaxtalk train`` builds, as ``--preset`` / ``--set`` arguments
+# (compile time dominates the suite's few-step runs); the session's shared runs use them.
+TINY_TRAIN_ARGS = {
+    "toktalk": ["--preset", "tiny", "--set", "num_mid_blocks=0"],
+    "timar": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
+              "--set", "head_blocks=1", "--set", "max_turns=2"],
+    "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
+            "--set", "sample_steps=4"],
+}
 
 
 def cli_ok(args: list) -> str:

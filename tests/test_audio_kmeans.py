@@ -33,6 +33,7 @@ def test_recovers_separated_blobs(key):
         )
 
 
+@pytest.mark.slow
 def test_lloyd_fixed_point_and_inertia(key):
     points = np.random.default_rng(1).standard_normal((300, 5)).astype(np.float32)
     result = kmeans(points, 7, key=key, iterations=60)

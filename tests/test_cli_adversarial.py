@@ -226,6 +226,7 @@ def test_freetalk_refuses_toktalk_options(ats_run, stm_run, speech, tmp_path, mo
     assert "--style: not an option of a FreeTalk run (it takes --stm, --mesh, --emotion" in line
 
 
+@pytest.mark.slow
 def test_sample_prints_the_duration_of_the_frames_written_and_no_more_than_the_audio(toktalk_run, speech, tmp_path):
     from jaxtalk.data.formats import read_npz
 

@@ -36,6 +36,7 @@ def test_with_peak_divides_and_keeps_unknowns():
     assert rows[0]["of_peak"] == 0.25 and rows[1]["of_peak"] is None and rows[2]["of_peak"] is None
 
 
+@pytest.mark.slow
 def test_toktalk_table_rates_and_fraction_of_peak(monkeypatch, fast_compile):
     from jaxtalk import benchmarking
     from jaxtalk.models.toktalk import TokTalkConfig

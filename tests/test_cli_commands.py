@@ -1,8 +1,8 @@
 """``jaxtalk train / sample / stream`` end to end on a tiny TokTalk trained for a few steps.
 
-One module-scoped run (2 steps, then resumed to 4) serves every test. The CLI's outputs are checked
-against the library called directly with the same inputs, so a wiring mistake (wrong style clip, wrong
-key, dropped frames, normalisation applied twice) fails here.
+One run serves every test: the session's two-step tiny TokTalk (``trained_toktalk``), copied and resumed
+to 4 steps. The CLI's outputs are checked against the library called directly with the same inputs, so a
+wiring mistake (wrong style clip, wrong key, dropped frames, normalisation applied twice) fails here.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from helpers import cli_ok as _ok, cli_error as _user_error
+from helpers import most_optimizations_off, cli_ok as _ok, cli_error as _user_error
 
 
 COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render", "export", "view", "convert"]
@@ -25,23 +25,24 @@ def test_every_command_has_help(command):
     assert "Usage" in output and command in output
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compile():
+    with most_optimizations_off():  # compile time dominates these tiny runs
+        yield
+
+
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, synthtalk_tiny, prepared_tiny):
-    """A tiny TokTalk trained 2 steps, then resumed to 4 (the resume is a test of its own)."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)  # compile time dominates these tiny runs
+def run(tmp_path_factory, synthtalk_tiny, prepared_tiny, trained_toktalk):
+    """The session's two-step tiny TokTalk (``trained_toktalk``), copied and resumed to 4 steps (the
+    resume is a test of its own)."""
     root = tmp_path_factory.mktemp("cli_run")
-    out = root / "run"
-    cache = str(prepared_tiny.root.parent)
-    # The tiny preset without middle stages: the smallest graph, hence the shortest compile.
-    args = ["train", "toktalk", "--data", "synthtalk:tiny", "--preset", "tiny", "--set", "num_mid_blocks=0",
-            "--set", "batch_size=4", "--no-progress", "--cache-dir", cache, "--out", str(out)]
-    first = _ok(args + ["--steps", "2"])
+    out = trained_toktalk.copy(root / "run")
     second = _ok(["train", "toktalk", "--steps", "4", "--no-progress", "--out", str(out)])
-    yield {"dir": out, "root": root, "first": first, "second": second, "corpus": synthtalk_tiny, "data": prepared_tiny}
-    jax.config.update("jax_disable_most_optimizations", previous)
+    return {"dir": out, "root": root, "first": trained_toktalk.output, "second": second, "corpus": synthtalk_tiny,
+            "data": prepared_tiny}
 
 
+@pytest.mark.slow
 def test_train_writes_run_and_resume_continues_the_step_count(run):
     from jaxtalk.runs import RunRecord, load_run
     from jaxtalk.train import Checkpointer, latest_checkpoint_step
@@ -52,7 +53,7 @@ def test_train_writes_run_and_resume_continues_the_step_count(run):
     with Checkpointer(run["dir"] / "checkpoint", read_only=True) as ckpt:
         assert {2, 4} <= set(ckpt.all_steps())
     record = RunRecord.load(run["dir"])
-    assert record.model == "toktalk" and record.preset == "tiny" and record.train["batch_size"] == 4
+    assert record.model == "toktalk" and record.preset == "tiny" and record.train["batch_size"] == 2
     assert record.data["spec"] == "synthtalk:tiny" and record.data["key"] == run["data"].key
     assert record.model_config().chunk_frames == 4  # the tiny preset, restored from run.json
     at2, at4 = load_run(run["dir"], step=2), load_run(run["dir"])
@@ -61,6 +62,7 @@ def test_train_writes_run_and_resume_continues_the_step_count(run):
     assert max(jax.tree.leaves(moved)) > 0  # the resumed steps trained
 
 
+@pytest.mark.slow
 def test_train_user_errors_are_one_line(run, tmp_path):
     out = str(tmp_path / "fresh")
     _user_error(["train", "toktalk", "--set", "nonsense=1", "--out", out], "nonsense: neither a TokTalkConfig field")
@@ -106,6 +108,7 @@ def _default_style(loaded, corpus) -> np.ndarray:
     return want[None]
 
 
+@pytest.mark.slow
 def test_sample_tokens_equals_the_library_call(run, tmp_path):
     from jaxtalk.runs import load_run
     from jaxtalk.data.formats import read_npz
@@ -122,6 +125,7 @@ def test_sample_tokens_equals_the_library_call(run, tmp_path):
     np.testing.assert_allclose(clip.params, np.asarray(want)[0], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_stream_prints_each_chunk_and_equals_the_streaming_engine(run, tmp_path):
     from jaxtalk.runs import load_run
     from jaxtalk.data.formats import read_npz
@@ -143,6 +147,7 @@ def test_stream_prints_each_chunk_and_equals_the_streaming_engine(run, tmp_path)
     np.testing.assert_allclose(got, np.asarray(want)[0], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_sample_stereo_audio_at_another_rate(run, tmp_path):
     from jaxtalk.audio import resample_audio
     from jaxtalk.data.formats import read_npz
@@ -157,6 +162,7 @@ def test_sample_stereo_audio_at_another_rate(run, tmp_path):
     assert clip.audio is not None and abs(clip.audio.shape[0] - audio.shape[0]) <= 2  # 16 kHz mono, stored
 
 
+@pytest.mark.slow
 def test_sample_user_errors(run, tmp_path):
     run_dir = str(run["dir"])
     _user_error(["sample", run_dir, str(tmp_path / "missing.wav")], "input file not found")
@@ -185,6 +191,7 @@ def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise():
     assert RunRecord(**{**dataclasses.asdict(record), "config": config}).model_config().noise_frames == 2.0
 
 
+@pytest.mark.slow
 def test_a_run_written_before_the_one_vocabulary_renames_samples_and_resumes(run, tmp_path):
     import json
     import shutil

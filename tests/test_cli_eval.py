@@ -1,8 +1,8 @@
 """``jaxtalk eval`` on prepared data: every model's table, its baselines checked by hand, and user errors.
 
-Tiny TokTalk, TIMAR and ATS runs are trained through the CLI for two steps on SynthTalk tiny (prepared
-once per session); STM, whose training renders several meshes (minutes), is evaluated from its
-initial parameters saved as a step-0 checkpoint. Scores of two-step models mean nothing, so the
+Tiny TokTalk, TIMAR and ATS runs are trained through the CLI for two steps on SynthTalk tiny, once per
+session (``trained_toktalk``, ``trained_timar``, ``trained_ats`` in conftest); STM, whose training renders
+several meshes (minutes), is evaluated from its initial parameters saved as a step-0 checkpoint. Scores of two-step models mean nothing, so the
 checks are on the wiring: the tables' shape, finite numbers, the mean-pose rows recomputed by hand from
 the data, and the oracle beating the mean pose on SynthTalk. The real DualTalk demo clips (no oracle,
 audio-only partners) run through prepare, train and eval when ``../shared`` is present.
@@ -18,16 +18,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import DUALTALK_SOURCES, dualtalk_folder, most_optimizations_off, cli_ok as _ok, cli_error as _user_error
+from helpers import (DUALTALK_SOURCES, TINY_TRAIN_ARGS, dualtalk_folder, most_optimizations_off, cli_ok as _ok,
+                     cli_error as _user_error)
 
 
-TIMAR = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
-         "--set", "head_blocks=1", "--set", "max_turns=2"]
+# The real-data test's own runs (the other tests read the session's runs).
 SMALL = {
-    "toktalk": ["--preset", "tiny", "--set", "num_mid_blocks=0", "--set", "batch_size=4"],
-    "timar": [*TIMAR, "--set", "batch_size=2"],
-    "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
-            "--set", "sample_steps=4", "--set", "batch_size=2"],
+    "toktalk": [*TINY_TRAIN_ARGS["toktalk"], "--set", "batch_size=4"],
+    "timar": [*TINY_TRAIN_ARGS["timar"], "--set", "batch_size=2"],
 }
 
 
@@ -52,16 +50,9 @@ def _fast_compile():
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory, prepared_tiny):
-    """Two-step TokTalk, TIMAR and ATS runs on SynthTalk tiny, trained through the CLI."""
-    root = tmp_path_factory.mktemp("eval_runs")
-    cache = prepared_tiny.root.parent
-    out = {}
-    for model, args in SMALL.items():
-        out[model] = root / model
-        _ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", cache, "--steps", "2", *args,
-             "--no-progress", "--out", out[model]])
-    return out
+def runs(trained_toktalk, trained_timar, trained_ats):
+    """The session's two-step TokTalk, TIMAR and ATS runs on SynthTalk tiny, trained through the CLI."""
+    return {"toktalk": trained_toktalk.dir, "timar": trained_timar.dir, "ats": trained_ats.dir}
 
 
 def _report(path: Path) -> dict:
@@ -79,6 +70,7 @@ def _rows(table: dict) -> dict[str, dict]:
 # ------------------------------------------------------------------------------------------ TokTalk
 
 
+@pytest.mark.slow
 def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
     from jaxtalk.face import builtin_face
 
@@ -115,6 +107,7 @@ def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path)
     assert rows["ground truth"]["MSE"] is None and rows["ground truth"]["jitter_mm"] > 0
 
 
+@pytest.mark.slow
 def test_toktalk_eval_rows_per_step_count_streamed_and_offline(runs, tmp_path):
     from jaxtalk.runs import load_run
 
@@ -153,6 +146,7 @@ def _fake_flame(folder: Path, num_verts: int = 120) -> Path:
     return folder / "generic_model.pkl"
 
 
+@pytest.mark.slow
 def test_toktalk_eval_on_flame_with_its_masks(runs, tmp_path):
     flame = _fake_flame(tmp_path / "flame")
     output = _ok(["eval", runs["toktalk"], "--max-clips", "1", "--flame", flame, "--json", tmp_path / "r.json"])
@@ -170,6 +164,7 @@ def test_toktalk_eval_on_flame_with_its_masks(runs, tmp_path):
 # -------------------------------------------------------------------------------------------- TIMAR
 
 
+@pytest.mark.slow
 def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
     from jaxtalk.runs import RunRecord
     from jaxtalk.models.timar.data import Normalizer
@@ -220,6 +215,7 @@ def test_pad_with_last_repeats_the_last_predicted_frame_to_the_side_length():
 # ---------------------------------------------------------------------------------------------- ATS
 
 
+@pytest.mark.slow
 def test_ats_eval_landmark_table_and_baselines_by_hand(runs, prepared_tiny, tmp_path):
     from jaxtalk.runs import RunRecord
     from jaxtalk.data.batching import window_starts
@@ -266,6 +262,7 @@ def test_ats_trained_on_whole_clips_is_scored_on_whole_clips(prepared_tiny, tmp_
 # ---------------------------------------------------------------------------------------------- STM
 
 
+@pytest.mark.slow
 def test_stm_eval_maps_true_landmarks_on_the_run_meshes(stm_run, prepared_tiny, tmp_path):
     from jaxtalk.models.freetalk.data import face_mesh, without_head_pose
 
@@ -298,6 +295,7 @@ def _copy_prepared(data, out: Path, edit) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_eval_user_errors_are_one_line(runs, prepared_tiny, tmp_path):
     tok, timar = runs["toktalk"], runs["timar"]
     _user_error(["eval", tmp_path], "is not a training run")

@@ -2,9 +2,9 @@
 file a user brings, ``jaxtalk render`` of the result with the mesh file's triangles, user errors, and
 the ATS ``paper`` preset on 768-d HuBERT features from a checkpoint on disk.
 
-The ATS run trains two steps through the CLI on SynthTalk tiny; the STM run is at its initial
-parameters (``stm_run`` in conftest). The checks are on the wiring: shapes, units, file order, finite
-values and the one-line errors.
+The ATS run is the session's, trained two steps through the CLI on SynthTalk tiny (``trained_ats`` in
+conftest); the STM run is at its initial parameters (``stm_run``). The checks are on the wiring:
+shapes, units, file order, finite values and the one-line errors.
 """
 
 from __future__ import annotations
@@ -16,18 +16,14 @@ import pytest
 import soundfile as sf
 from scipy.spatial.transform import Rotation
 
-from helpers import cli_ok as _ok, cli_error as _user_error
+from helpers import TINY_TRAIN_ARGS, cli_ok as _ok, cli_error as _user_error
 
-ATS_SMALL = ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
-             "--set", "sample_steps=4", "--set", "batch_size=2"]
+ATS_SMALL = [*TINY_TRAIN_ARGS["ats"], "--set", "batch_size=2"]
 
 
 @pytest.fixture(scope="module")
-def ats_run(tmp_path_factory, prepared_tiny):
-    out = tmp_path_factory.mktemp("ats_run") / "ats"
-    _ok(["train", "ats", "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent, "--steps", "2",
-         *ATS_SMALL, "--no-progress", "--out", out])
-    return out
+def ats_run(trained_ats):
+    return trained_ats.dir
 
 
 @pytest.fixture(scope="module")
@@ -54,6 +50,7 @@ def files(tmp_path_factory, synthtalk_tiny):
             "cloud": root / "cloud.ply", "vertices": vertices, "root": root}
 
 
+@pytest.mark.slow
 def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, stm_run, files):
     out = files["root"] / "anim.npy"
     output = _ok(["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh", files["ply"], "--emotion", "happy",
@@ -69,6 +66,7 @@ def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, st
     assert gif.stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_sample_onto_a_mesh_user_errors_are_one_line(ats_run, stm_run, files, tmp_path):
     base = ["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh"]
     _user_error([*base, files["ply"], "--emotion", "elated"], "--emotion elated: not an emotion of this run")

@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-import jax
 import numpy as np
 import pygltflib
 import pytest
@@ -20,7 +19,7 @@ import soundfile
 
 from jaxtalk.data.formats import MotionClip, save_npz
 
-from helpers import cli_ok as _ok, cli_error as _refused
+from helpers import most_optimizations_off, cli_ok as _ok, cli_error as _refused
 
 
 def _hashes(folder: Path) -> dict[str, str]:
@@ -36,17 +35,17 @@ def _user_files(folder: Path, names: list[str]) -> dict[str, str]:
     return _hashes(folder)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compile():
+    with most_optimizations_off():  # compile time dominates the tiny run's sampling
+        yield
+
+
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, prepared_tiny):
-    """A tiny TokTalk run trained for one step (what is sampled does not matter here)."""
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    out = tmp_path_factory.mktemp("outputs") / "run"
-    _ok(["train", "toktalk", "--data", "synthtalk:tiny", "--preset", "tiny", "--set", "num_mid_blocks=0",
-         "--set", "batch_size=2", "--steps", "1", "--no-progress", "--cache-dir", prepared_tiny.root.parent,
-         "--out", out])
-    yield out
-    jax.config.update("jax_disable_most_optimizations", previous)
+def run(trained_toktalk):
+    """The session's tiny TokTalk run (what is sampled does not matter here; every command that would
+    write into it must refuse, so it is read, never written)."""
+    return trained_toktalk.dir
 
 
 @pytest.fixture
@@ -59,6 +58,7 @@ def talk(tmp_path):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_sample_and_stream_keep_a_user_file_at_the_default_name_until_overwrite_replaces_only_it(run, talk):
     before = _user_files(talk, ["talk_params.npz"])
     for command in ("sample", "stream"):
@@ -71,6 +71,7 @@ def test_sample_and_stream_keep_a_user_file_at_the_default_name_until_overwrite_
     assert np.load(talk / "talk_params.npz")["params"].shape[1] == 56
 
 
+@pytest.mark.slow
 def test_sample_never_writes_over_an_input_even_with_out_and_overwrite(run, talk):
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "style.npz"])
     before = _hashes(talk)
@@ -81,6 +82,7 @@ def test_sample_never_writes_over_an_input_even_with_out_and_overwrite(run, talk
     assert _hashes(talk) == before and _hashes(run) == run_before
 
 
+@pytest.mark.slow
 def test_an_explicit_out_replaces_its_file_and_a_folder_or_a_path_under_a_file_is_refused_before_work(run, talk):
     (talk / "mine.npz").write_bytes(b"old")
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "mine.npz"])
@@ -91,6 +93,7 @@ def test_an_explicit_out_replaces_its_file_and_a_folder_or_a_path_under_a_file_i
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "new" / "deeper" / "x.npz"])  # folders are created
 
 
+@pytest.mark.slow
 def test_export_writes_its_audio_beside_the_glb_without_touching_the_recording(run, talk):
     # The issue's session: sample -> talk.npz, export -> talk.glb; talk.wav stays the user's.
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "talk.npz"])
@@ -120,6 +123,7 @@ def test_export_writes_its_audio_beside_the_glb_without_touching_the_recording(r
     assert _hashes(talk) == before
 
 
+@pytest.mark.slow
 def test_every_writing_command_leaves_user_files_under_its_names_unchanged(run, talk, monkeypatch):
     monkeypatch.chdir(talk)
     save_npz(talk / "clip.npz", MotionClip(name="clip", fps=25, params=np.zeros((30, 56), np.float32)))

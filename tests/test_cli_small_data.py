@@ -54,22 +54,33 @@ def _windows(output: str, model: str) -> int:
     return int(match.group(1))
 
 
+@pytest.fixture(scope="module")
+def first_timar(small_dualtalk, tmp_path_factory) -> tuple[Path, str, dict]:
+    """TIMAR trained one step with default settings on the small folder: ``(run, output, run.json)``."""
+    out = tmp_path_factory.mktemp("small_timar") / "timar"
+    return (out, *_train("timar", small_dualtalk, out, 1))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("model", ["timar", "toktalk"])
-def test_default_settings_train_on_fewer_windows_than_the_default_batch(model, small_dualtalk, tmp_path):
-    output, record = _train(model, small_dualtalk, tmp_path / model, 2)
+def test_default_settings_train_on_fewer_windows_than_the_default_batch(model, small_dualtalk, tmp_path, request):
+    if model == "timar":  # the run the resume test continues
+        _, output, record = request.getfixturevalue("first_timar")
+    else:
+        output, record = _train(model, small_dualtalk, tmp_path / model, 1)
     windows = _windows(output, model)
     assert windows < 16  # the case this test is about
     assert WARNING.format(n=windows) in output.splitlines()
-    assert f"{model}: step 0 -> 2 on" in output
+    assert f"{model}: step 0 -> 1 on" in output
     assert record["train"]["batch_size"] == windows  # the batch actually used
 
 
 @pytest.mark.slow
-def test_a_resumed_small_data_run_keeps_its_batch_without_warning_again(small_dualtalk, tmp_path):
-    first, _ = _train("timar", small_dualtalk, tmp_path / "timar", 1)
+def test_a_resumed_small_data_run_keeps_its_batch_without_warning_again(first_timar, small_dualtalk, tmp_path):
+    run, first, _ = first_timar
     windows = _windows(first, "timar")
     assert WARNING.format(n=windows) in first.splitlines()
+    shutil.copytree(run, tmp_path / "timar")
     output, record = _train("timar", small_dualtalk, tmp_path / "timar", 2)
     assert "resuming timar" in output and "step 1 -> 2" in output
     assert "warning" not in output.lower()

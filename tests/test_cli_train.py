@@ -2,7 +2,9 @@
 and the data paths agreeing: SynthTalk prepared from memory and from its generic-layout export train
 to the same parameters with the same seed.
 
-Models are shrunk with ``--set`` so each compiles in seconds; two steps each.
+Models are shrunk with ``--set`` so each compiles in seconds; two steps each. TokTalk, TIMAR and ATS are
+the session's runs (``trained_toktalk`` and the others in conftest, made by the same command); STM trains
+here.
 """
 
 from __future__ import annotations
@@ -13,35 +15,31 @@ import jax
 import numpy as np
 import pytest
 
-from helpers import cli_ok as _ok
+from helpers import TINY_TRAIN_ARGS, most_optimizations_off, cli_ok as _ok
 
 
 # The smallest graphs of each model (compile time dominates two-step runs).
-SMALL = {
-    "toktalk": ["--preset", "tiny", "--set", "num_mid_blocks=0"],
-    "timar": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
-              "--set", "head_blocks=1", "--set", "max_turns=2"],
-    "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32"],
-    "stm": [],
-}
+SMALL = {**TINY_TRAIN_ARGS, "stm": []}
 
 
 @pytest.fixture(scope="module")
 def cache(prepared_tiny):
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    yield str(prepared_tiny.root.parent)
-    jax.config.update("jax_disable_most_optimizations", previous)
+    with most_optimizations_off():
+        yield str(prepared_tiny.root.parent)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("model", ["toktalk", "timar", "ats", "stm"])
-def test_train_recipe_runs_end_to_end_and_writes_a_loadable_run(model, cache, tmp_path):
+def test_train_recipe_runs_end_to_end_and_writes_a_loadable_run(model, cache, tmp_path, request):
     from jaxtalk.runs import RunRecord, load_run
 
-    out = tmp_path / model
-    output = _ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", cache, "--steps", "2", "--set",
-                  "batch_size=2", *SMALL[model], "--no-progress", "--out", str(out)])
+    if model == "stm":  # the session has no trained STM (training renders meshes): this test trains it
+        out = tmp_path / model
+        output = _ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", cache, "--steps", "2", "--set",
+                      "batch_size=2", *SMALL[model], "--no-progress", "--out", str(out)])
+    else:  # the session's run, trained with the same command (conftest)
+        trained = request.getfixturevalue(f"trained_{model}")
+        out, output = trained.dir, trained.output
     assert f"{model}: step 0 -> 2" in output and "validation loss" in output
     record = RunRecord.load(out)
     assert record.model == model and record.train["batch_size"] == 2 and record.data["spec"] == "synthtalk:tiny"
@@ -58,17 +56,17 @@ def test_train_recipe_runs_end_to_end_and_writes_a_loadable_run(model, cache, tm
 
 
 @pytest.mark.slow
-def test_memory_and_generic_export_paths_train_to_identical_parameters(cache, synthtalk_tiny, tmp_path):
+def test_memory_and_generic_export_paths_train_to_identical_parameters(cache, synthtalk_tiny, trained_toktalk,
+                                                                       tmp_path):
     from jaxtalk.runs import load_run
     from jaxtalk.data.sources import export_generic
 
     folder = export_generic(synthtalk_tiny, tmp_path / "generic")
     _ok(["prepare", str(folder), "--out", str(tmp_path / "prepared"), "--no-progress"])
-    runs = {}
-    for name, data in (("memory", "synthtalk:tiny"), ("export", str(tmp_path / "prepared"))):
-        _ok(["train", "toktalk", "--data", data, "--cache-dir", cache, "--steps", "2", "--set", "batch_size=2",
-             *SMALL["toktalk"], "--no-progress", "--out", str(tmp_path / name)])
-        runs[name] = load_run(tmp_path / name).params
+    # The in-memory path is the session's run (trained with this command on synthtalk:tiny).
+    _ok(["train", "toktalk", "--data", str(tmp_path / "prepared"), "--cache-dir", cache, "--steps", "2", "--set",
+         "batch_size=2", *SMALL["toktalk"], "--no-progress", "--out", str(tmp_path / "export")])
+    runs = {"memory": load_run(trained_toktalk.dir).params, "export": load_run(tmp_path / "export").params}
     for a, b in zip(jax.tree.leaves(runs["memory"]), jax.tree.leaves(runs["export"])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 

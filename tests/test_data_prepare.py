@@ -413,6 +413,7 @@ def test_synthtalk_recipe_windows_are_bitwise_equal_from_disk_and_memory(synth_p
                 _assert_records_equal(rm.example(mem, row), rd.example(disk, row))
 
 
+@pytest.mark.slow
 # ------------------------------------------------------------------------------------------ real data
 @pytest.mark.parametrize("source", DUALTALK_SOURCES)
 def test_dualtalk_demo_layout_prepares_four_sides_with_exact_motion_turn_speech_and_vq_tokens(source, tmp_path, request):

@@ -116,6 +116,7 @@ def test_regression_loss_is_group_mse_plus_velocity_mse():
     assert float(loss) == pytest.approx(groups + 2.0 * velocity, rel=1e-5)
 
 
+@pytest.mark.slow
 def test_loss_gradient_matches_central_finite_differences_in_float64(params, float64):
     from jax.flatten_util import ravel_pytree
 

@@ -111,6 +111,7 @@ def _jit_apply(config, **kwargs):
     return jax.jit(functools.partial(Wav2Vec2Model(config).apply, **kwargs))
 
 
+@pytest.mark.slow
 def test_padded_batch_equals_single_inputs(small, fast_compile):
     config, params = small
     lengths = [1600, 1111]
@@ -142,6 +143,7 @@ def test_padded_batch_equals_single_inputs(small, fast_compile):
             assert gap > 1e-3
 
 
+@pytest.mark.slow
 def test_layer_selection(small, fast_compile):
     config, params = small
     audio = jnp.asarray(_audio(1200, seed=1)[None])
@@ -162,6 +164,7 @@ def test_layer_selection(small, fast_compile):
             resolve_layer(config, bad)
 
 
+@pytest.mark.slow
 def test_frozen_stops_gradients_and_finetuning_gradient_matches_finite_differences(float64, fast_compile):
     config = EncoderConfig.small("hubert", "large", num_hidden_layers=1)
     params = jax.tree.map(lambda a: a.astype(jnp.float64), _params(config, seed=2))
@@ -187,6 +190,7 @@ def test_frozen_stops_gradients_and_finetuning_gradient_matches_finite_differenc
     assert abs(analytic - numeric) <= 1e-6 * max(1.0, abs(analytic))
 
 
+@pytest.mark.slow
 def test_dropout_is_on_only_with_a_key(fast_compile):
     config = EncoderConfig.small("wav2vec2", "base", hidden_dropout=0.3, attention_dropout=0.3)
     params = _params(config)

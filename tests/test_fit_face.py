@@ -63,6 +63,7 @@ def _null_space_of_expressions(model) -> np.ndarray:
     return np.concatenate([null, np.zeros((len(null), 6))], axis=1).T
 
 
+@pytest.mark.slow
 def test_vertex_fit_recovers_params_up_to_the_model_null_space(float64, fast_compile):
     """All 56 params from vertices: exact geometry; params equal the truth projected off the null space.
 
@@ -83,6 +84,7 @@ def test_vertex_fit_recovers_params_up_to_the_model_null_space(float64, fast_com
     assert fit.all_converged and fit.result_code.shape == (2,) and np.all(np.asarray(fit.steps) > 0)
 
 
+@pytest.mark.slow
 def test_landmark_fit_recovers_identifiable_subset(float64, fast_compile):
     """Fitting the pivoted-QR subset that 68 landmarks determine recovers those params exactly."""
     model = _face()
@@ -96,6 +98,7 @@ def test_landmark_fit_recovers_identifiable_subset(float64, fast_compile):
     assert np.max(np.asarray(fit.rms)) < 1e-9
 
 
+@pytest.mark.slow
 def test_landmark_fit_all_params_reproduces_landmarks_with_masked_nans(float64, fast_compile):
     """All 56 from landmarks with a prior: the visible geometry is exact, missing points are ignored."""
     model = _face()
@@ -110,6 +113,7 @@ def test_landmark_fit_all_params_reproduces_landmarks_with_masked_nans(float64, 
     assert fit.result_code.shape == (1,)
 
 
+@pytest.mark.slow
 def test_joint_fit_is_a_stationary_point_of_the_documented_objective(float64, fast_compile):
     """Brute-force check of the joint objective: its gradient, written out here, vanishes at the fit."""
     model = _face()
@@ -132,6 +136,7 @@ def test_joint_fit_is_a_stationary_point_of_the_documented_objective(float64, fa
     np.testing.assert_allclose(fit.rms, rms, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_weights_are_traced_no_recompilation(float64, fast_compile):
     model = _face()
     landmarks = model.landmarks_seq(jnp.asarray(_smooth_params(FRAMES, np.arange(56))))
@@ -142,6 +147,7 @@ def test_weights_are_traced_no_recompilation(float64, fast_compile):
     assert face_fit._fit_core._cache_size() == size
 
 
+@pytest.mark.slow
 def test_noise_degrades_gracefully_and_smoothing_helps(float64, fast_compile):
     """Error grows about linearly with landmark noise; the temporal term lowers it on a smooth clip."""
     model = _face()
@@ -163,6 +169,7 @@ def test_noise_degrades_gracefully_and_smoothing_helps(float64, fast_compile):
     assert error(1e-3, smoothness=1.0) < 0.9 * errors[2]
 
 
+@pytest.mark.slow
 def test_sequential_mode_warm_starts_and_smooths_causally(float64, fast_compile):
     model = _face()
     active = identifiable_params(model, target="landmarks")
@@ -179,6 +186,7 @@ def test_sequential_mode_warm_starts_and_smooths_causally(float64, fast_compile)
     assert gap_pulled < 0.5 * gap_free
 
 
+@pytest.mark.slow
 def test_fit_on_topology_variant_through_its_map(float64, fast_compile):
     model = _face()
     variant = make_variant(np.asarray(model.template), np.asarray(model.faces), "retriangulated", seed=0)
@@ -190,6 +198,7 @@ def test_fit_on_topology_variant_through_its_map(float64, fast_compile):
     np.testing.assert_allclose(variant.transfer(np.asarray(model.vertices_seq(fit.params))), target, atol=1e-8)
 
 
+@pytest.mark.slow
 def test_gauss_newton_option_recovers_identifiable_subset(float64, fast_compile):
     model = _face()
     active = identifiable_params(model, target="landmarks")
@@ -200,6 +209,7 @@ def test_gauss_newton_option_recovers_identifiable_subset(float64, fast_compile)
     assert np.all(np.asarray(fit.steps) < 20)  # quadratic convergence on a well-posed problem
 
 
+@pytest.mark.slow
 def test_non_converging_fit_raises_with_result_and_residual(float64, fast_compile):
     model = _face()
     landmarks = model.landmarks_seq(jnp.asarray(_random_params(FRAMES, seed=7)))

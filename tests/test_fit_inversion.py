@@ -105,6 +105,7 @@ def _derivative_probe(loss):
 # ---- TokTalk style ---------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_style_recovered_from_a_different_start_and_from_the_encoder(toktalk, style_target):
     d, target = toktalk, style_target
     start = d.style + 1.5 * np.random.default_rng(2).normal(size=d.style.shape).astype(np.float32)
@@ -128,6 +129,7 @@ def test_style_recovered_from_a_different_start_and_from_the_encoder(toktalk, st
     assert float(np.min(res_enc.init_loss)) > 1e2 * float(np.max(res_enc.loss))
 
 
+@pytest.mark.slow
 def test_style_loss_gradient_matches_central_differences(toktalk, style_target, float64):
     d, target = toktalk, style_target
     p64, tokens, target, noise = _as64((d.params, d.tokens, target, d.noise))
@@ -161,6 +163,7 @@ def test_sample_ats_from_noise_reproduces_sample_ats(freetalk):
     np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_intensity_recovered_from_segment_starts(freetalk):
     d = freetalk
     target = d.target
@@ -182,6 +185,7 @@ def test_intensity_recovered_from_segment_starts(freetalk):
     np.testing.assert_allclose(np.asarray(far.value), TRUE_INTENSITY, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_intensity_loss_gradient_matches_central_differences_with_and_without_remat(freetalk, float64):
     d = freetalk
     target = d.target
@@ -209,6 +213,7 @@ def test_intensity_loss_gradient_matches_central_differences_with_and_without_re
 # ---- failures --------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_failed_inversions_raise_with_result_code_and_loss(freetalk):
     d = freetalk
     target = d.target

@@ -152,6 +152,7 @@ def test_padding_frames_do_not_affect_real_frames(model):
     np.testing.assert_allclose(a[:, :8], b[:, :8], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_one_ddim_step_is_the_denoiser_at_step_zero(model):
     # Respacing 1000 steps to one keeps timestep 0, where DDIM returns the x0 estimate itself.
     cfg, params = model
@@ -163,6 +164,7 @@ def test_one_ddim_step_is_the_denoiser_at_step_zero(model):
     np.testing.assert_allclose(out.reshape(2, T, -1), ref, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_explicit_noise_and_remat_reproduce_the_keyed_sampler(model):
     cfg, params = model
     cond = _cond(cfg, _audio(6, b=2), ["sad", "happy"], [2.0, 1.0])
@@ -288,6 +290,7 @@ def test_training_schedule_is_the_linear_ddpm_table():
     np.testing.assert_allclose(abar[-1], np.prod(1 - np.linspace(1e-4, 0.02, 1000)))
 
 
+@pytest.mark.slow
 def test_recipe_resumes_exactly_from_its_checkpoint(prepared_tiny, tmp_path):
     # ATS's one training path, the recipe, resumed from its step-2 checkpoint (tests/helpers.py).
     from jaxtalk.models.freetalk.recipe import train_ats

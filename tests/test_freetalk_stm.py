@@ -149,6 +149,7 @@ def test_padding_vertices_do_not_change_real_vertices(model, face):
     np.testing.assert_allclose(out_pad[:, : mesh.num_vertices], out, rtol=1e-4, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_loss_ignores_padding_rows_and_trains_all_parts(model, face):
     cfg, mesh, params = model
     n = mesh.num_vertices
@@ -175,6 +176,7 @@ def test_loss_ignores_padding_rows_and_trains_all_parts(model, face):
     np.testing.assert_allclose(value_and_grad(params, junk, jax.random.key(0))[0][0], loss, rtol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fusion", FUSIONS[:-1])
 def test_ablation_fusions_run(face, fusion):
     cfg = _config(fusion=fusion, num_eigenpairs=8)
@@ -222,6 +224,7 @@ def test_prepare_meshes_pads_to_common_shapes(face):
         stm.prepare_meshes([], cfg)
 
 
+@pytest.mark.slow
 def test_recipe_resumes_exactly_from_its_checkpoint(model, prepared_tiny, tmp_path):
     # STM's one training path, the recipe (one small mesh, 3-frame windows), resumed from its step-2
     # checkpoint (tests/helpers.py).

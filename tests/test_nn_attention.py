@@ -119,6 +119,7 @@ def test_module_matches_reference_built_from_its_parameters(key):
     np.testing.assert_allclose(mha.apply({"params": params}, x, bias=np.asarray(bias)), expected, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_chunked_decoding_with_kv_cache_equals_full_pass(key):
     """Block-causal self-attention run chunk by chunk with a cache == one pass over the sequence."""
     length, chunk = 12, 4

@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -21,6 +22,7 @@ def test_readme_opens_with_the_two_commands():
     assert bash[1].strip() == "pytest"
 
 
+@pytest.mark.slow
 def test_python_example_runs(synthtalk_tiny, monkeypatch):
     (example,) = _blocks("python")
     from jaxtalk.data import synthtalk

@@ -114,6 +114,7 @@ def test_turn_arousal_scales_loudness_and_pitch_range():
     np.testing.assert_allclose(ranges[1] / ranges[0], 1.5, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_seven_past_turns_raise_the_true_event_ceiling_on_neck_and_upper_face_by_0p15():
     # Motion only (no audio is synthesised): 40 train and 16 test conversations of 30 s, both roles.
     spec = synthtalk.SizeSpec((24, 0, 8, 0), 1, 5.0, (40, 0, 16, 0), 30.0, 32, 1e9, lazy=True)

@@ -56,6 +56,7 @@ def _assert_causal(features: AudioFeatures, speech_dim: int) -> None:
         assert np.abs(a[sl] - b[sl]).max() > 1e-5, f"turn {turn} did not see its own audio"
 
 
+@pytest.mark.slow
 def test_timar_stream_from_log_mel_audio_is_causal():
     _assert_causal(AudioFeatures(), 80)
 

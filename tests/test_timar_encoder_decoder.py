@@ -136,6 +136,7 @@ def test_masked_agent_tokens_change_nothing_anywhere_in_the_encoder_decoder_but_
     assert np.abs(a - b).max() > 1e-3
 
 
+@pytest.mark.slow
 def test_encoder_decoder_changing_turn_t_plus_1_leaves_turns_up_to_t_bitwise_unchanged(params):
     s = _streams()
     mask = jnp.asarray(_fixed_mask())
@@ -160,6 +161,7 @@ def test_encoder_decoder_changing_turn_t_plus_1_leaves_turns_up_to_t_bitwise_unc
 _conditions = jax.jit(conditions, static_argnums=1, static_argnames="guidance")
 
 
+@pytest.mark.slow
 def test_encoder_decoder_stream_equals_whole_window_sample_and_sliding_window_recomputation(params):
     s = _streams()
     streams = (s["user_speech"], s["user_motion"], s["agent_speech"])
@@ -184,6 +186,7 @@ def test_encoder_decoder_stream_equals_whole_window_sample_and_sliding_window_re
         np.testing.assert_allclose(np.asarray(z), ref, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_encoder_decoder_loss_is_finite_on_masked_frames_with_a_gradient_in_encoder_and_decoder(params):
     cfg = dataclasses.replace(CFG, mask_ratio_min=0.7)  # some agent frames visible, as in the paper
     batch = _streams(seed=4)

@@ -94,6 +94,7 @@ def test_loss_only_counts_masked_frames(params):
     assert np.all(g[~np.asarray(mask)] == 0) and np.abs(g[np.asarray(mask)]).sum() > 0
 
 
+@pytest.mark.slow
 def test_timar_loss_is_finite_differentiable_and_reports_groups(params):
     value, m = jax.jit(lambda p, b, k: loss(p, CFG, b, k))(params, _batch(), jax.random.key(0))
     assert np.isfinite(float(value))
@@ -126,6 +127,7 @@ def test_loss_rejects_bad_batches(params):
         loss(params, CFG, long, jax.random.key(0))
 
 
+@pytest.mark.slow
 def test_diffusion_batch_mul_averages_draws_without_bias_and_cuts_the_loss_noise(params):
     # m (t, noise) draws per frame: the same expected loss (an average of single draws) with about
     # 1/m of the key-to-key variance. All randomness here is the draws (every frame masked, no CFG

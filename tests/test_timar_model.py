@@ -51,6 +51,7 @@ def _z(config, params, s, user_drop=None):
                               None, None, user_drop))
 
 
+@pytest.mark.slow
 def test_changing_turn_t_plus_1_leaves_turns_up_to_t_exactly_unchanged(params):
     s = _streams()
     z0 = _z(CFG, params, s)
@@ -139,6 +140,7 @@ def test_hoisted_head_equals_the_per_frame_head(params):
         apply_head_modulated(params["head"], CFG, x[0, 0], mods[:-1])
 
 
+@pytest.mark.slow
 def test_fresh_diffusion_head_predicts_zero_and_has_a_gradient():
     head = init_head(CFG, jax.random.key(0))
     z, x = jnp.ones((4, CFG.width)), jnp.ones((4, 56))
@@ -150,6 +152,7 @@ def test_fresh_diffusion_head_predicts_zero_and_has_a_gradient():
         apply_head(head, CFG, z)
 
 
+@pytest.mark.slow
 def test_learned_sigma_head_doubles_output_and_mlp_head_works():
     cfg = TimarConfig.small(**{**CFG.__dict__, "learn_sigma": True})
     p = _perturbed(init_params(cfg, jax.random.key(0)))

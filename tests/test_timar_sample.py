@@ -50,6 +50,7 @@ def _streams(seed=0, n=N):
             rng.normal(size=(B, t, 8)).astype(np.float32))
 
 
+@pytest.mark.slow
 def test_guidance_scale_one_is_conditional_and_zero_is_unconditional(params):
     us, um, as_ = _streams()
     key = jax.random.key(3)
@@ -78,6 +79,7 @@ def test_cfg_sweep_is_a_vmap_and_never_recompiles(params):
     assert sample_mod._sample._cache_size() == before
 
 
+@pytest.mark.slow
 def test_guided_sample_equals_eq9_applied_to_head_outputs_with_one_step(params):
     # With one respaced step (t = 0: x0 estimate returned directly) the sample is exactly
     # out_u + omega (out_c - out_u) of the x0 predictions at the initial noise.
@@ -94,6 +96,7 @@ def test_guided_sample_equals_eq9_applied_to_head_outputs_with_one_step(params):
     np.testing.assert_allclose(got, np.asarray(ou + omega * (oc - ou)).reshape(B, N * F, 56), atol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("learn_sigma", [False, True])
 def test_sampler_equals_a_python_loop_ddim_reference(params, learn_sigma):
     # Independent reference: the plain per-frame head (nothing hoisted, t broadcast to every frame),
@@ -161,6 +164,7 @@ def test_paper_default_ddpm_reads_the_learned_variance_and_scales_each_steps_noi
     assert np.abs(cold[0] - got).max() > 1e-3 and np.abs(cold[0] - cold[1]).max() > 1e-3
 
 
+@pytest.mark.slow
 def test_ddpm_and_step_counts_and_mlp_head(params):
     us, um, as_ = _streams()
     x = sample(params, CFG, us, um, as_, jax.random.key(1), sampler="ddpm", sample_steps=3)

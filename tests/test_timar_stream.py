@@ -52,6 +52,7 @@ def _window_reference(config, params, s, lo, hi):
     return np.asarray(jnp.concatenate([zc[:, -1], zu[:, -1]]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("context", [0, 1, 3])
 def test_cached_stream_equals_recomputed_window(params, context):
     s = _streams(6)
@@ -64,6 +65,7 @@ def test_cached_stream_equals_recomputed_window(params, context):
     assert int(state.turn) == 6
 
 
+@pytest.mark.slow
 def test_bidirectional_stream_recomputes_the_window(params):
     bi = TimarConfig.small(**{**CFG.__dict__, "attention": "bidirectional"})
     s = _streams(4)
@@ -74,6 +76,7 @@ def test_bidirectional_stream_recomputes_the_window(params):
         np.testing.assert_allclose(np.asarray(z), _window_reference(bi, params, s, max(0, t - 2), t), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_stream_step_samples_with_the_window_conditions_and_compiles_once(params):
     s = _streams(5)
     context = 2
@@ -113,6 +116,7 @@ def test_stream_under_an_outer_jit_uses_one_program_with_the_same_outputs(params
         np.testing.assert_allclose(np.asarray(z_j), np.asarray(z_h), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_stream_causality_future_turn_does_not_change_past_outputs(params):
     s = _streams(4)
     s2 = tuple(x.copy() for x in s)

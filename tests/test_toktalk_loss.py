@@ -79,6 +79,7 @@ def _constant_pose_batch(seed=0):
     return {**batch, "motion": np.repeat(pose, T, 1), "style": np.repeat(pose, CFG.style_frames, 1)}
 
 
+@pytest.mark.slow
 def test_cfm_loss_of_zero_velocity_model_is_noise_energy(params):
     # Motion equal to the reference clip's (constant) pose is x1 = 0 in the anchored flow coordinates;
     # with v = 0 (raw decoder, no preconditioning skip) the loss is mean((1 - sigma_min)^2 z^2) over
@@ -121,6 +122,7 @@ def test_flow_space_is_standardised_motion_minus_the_reference_mean_pose(params)
                                rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_cfm_loss_ignores_padded_frames_and_has_gradients(params):
     batch = _batch(1, motion_scale=1.0)
     loss_a, _ = _cfm(params, batch, jax.random.key(4))
@@ -135,6 +137,7 @@ def test_cfm_loss_ignores_padded_frames_and_has_gradients(params):
     assert float(jnp.abs(grads["decoder"]["token_proj"]["kernel"]).sum()) > 0
 
 
+@pytest.mark.slow
 def test_adapter_loss_alignment_term_is_analytic(params):
     zero_adapter = {**params, "adapter": dict(params["adapter"])}
     zero_adapter["adapter"]["out"] = jax.tree.map(jnp.zeros_like, params["adapter"]["out"])

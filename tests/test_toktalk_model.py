@@ -58,6 +58,7 @@ def test_presets_and_config_errors():
         tt.TokTalkConfig.small(style_source="another")
 
 
+@pytest.mark.slow
 def test_paper_decoder_has_about_82m_parameters():
     # eval_shape: counts parameters without allocating or compiling anything.
     shapes = jax.eval_shape(lambda k: tt.init_params(tt.TokTalkConfig.paper(), k), jax.random.key(0))
@@ -95,6 +96,7 @@ def _decoder_inputs(cfg):
     return p, x, jnp.asarray([0.3, 0.8], jnp.float32), _cond(rng, chunked=True)
 
 
+@pytest.mark.slow
 def test_causal_decoder_under_chunk_mask_ignores_later_chunks_bitwise():
     p, x, t, c_chunk = _decoder_inputs(CFG)
     y1 = np.asarray(_decoder_apply(CFG, p, x, t, c_chunk))
@@ -111,6 +113,7 @@ def test_causal_decoder_under_chunk_mask_ignores_later_chunks_bitwise():
     assert float(jnp.max(jnp.abs(f1[:, :8] - f2[:, :8]))) > 1e-4
 
 
+@pytest.mark.slow
 def test_offline_decoder_sees_the_next_chunk_through_its_convolutions():
     p, x, t, c_chunk = _decoder_inputs(OFFLINE)
     x2, c2 = _perturb_from(x, c_chunk, 8)
@@ -148,6 +151,7 @@ def test_condition_dropout_removes_tokens_style_and_known(params):
     assert float(jnp.max(jnp.abs(y3 - y1))) > 1e-3
 
 
+@pytest.mark.slow
 # ------------------------------------------------------------------------------- style/adapter
 def test_style_encoder_ignores_padding_and_uses_frame_positions(params):
     rng = np.random.default_rng(3)

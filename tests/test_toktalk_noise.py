@@ -20,6 +20,7 @@ def test_zero_correlation_is_plain_white_noise():
     np.testing.assert_array_equal(z[:, 1], np.asarray(jax.random.normal(jax.random.fold_in(key, 4), (2, 5))))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("frames", [1.0, 2.5])
 def test_smoothed_noise_has_unit_variance_and_gaussian_autocorrelation(frames):
     k = noise_kernel(frames)

@@ -69,6 +69,7 @@ def _reference(params, tokens, style, noise, known, known_mask, mask, ts, w):
     return x * mask[..., None]
 
 
+@pytest.mark.slow
 def test_sample_equals_python_loop_reference(params):
     tokens, style, noise, known, known_mask, mask = _inputs()
     ts = cosine_grid(CFG.sample_steps)
@@ -81,6 +82,7 @@ def test_sample_equals_python_loop_reference(params):
     np.testing.assert_array_equal(np.asarray(out)[1, 12:], 0.0)
 
 
+@pytest.mark.slow
 def test_traced_knobs_do_not_recompile(params):
     tokens, style, noise, *_ = _inputs(1)
     tt.sample(params, CFG, tokens, style, noise=noise, cfg_scale=0.0)
@@ -95,6 +97,7 @@ def test_traced_knobs_do_not_recompile(params):
     assert sample_mod._sample._cache_size() == before
 
 
+@pytest.mark.slow
 def test_grad_through_sampler_matches_finite_differences(params, float64):
     p64 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), params)
     tokens, style, noise, *_ = _inputs(3)
@@ -151,6 +154,7 @@ def test_sample_long_is_bitwise_sample_when_the_input_fits_one_window(params):
     np.testing.assert_array_equal(tt.sample_long(params, CFG, tokens, style, key, window_frames=2 * TT), whole)
 
 
+@pytest.mark.slow
 def test_sample_long_windows_equal_whole_sequence_sample_of_their_tokens_with_earlier_frames_known(params):
     # 25 tokens = 50 frames in 20-frame windows with 6 frames of context: windows start at frames 0, 14,
     # 28 and 30 (the last moved back to end at frame 50, so it re-reads 18 known frames). Window k is exactly the whole-sequence sample of
@@ -173,6 +177,7 @@ def test_sample_long_windows_equal_whole_sequence_sample_of_their_tokens_with_ea
     assert np.all(np.abs(out).sum(-1) > 0)  # every frame generated
 
 
+@pytest.mark.slow
 def test_sample_long_peak_memory_does_not_grow_from_150_s_to_10_minutes():
     # Whole-sequence sample at this preset peaked at 1.6 GB for 150 s and 4.5 GB for 300 s (O(T^2)
     # attention; experiments/bench_long_sample.py); windowed, 10 minutes must fit in what 150 s took.

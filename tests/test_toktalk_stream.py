@@ -50,6 +50,7 @@ def test_stream_compiles_once_and_keeps_fixed_state(params):
     assert np.asarray(state.valid).all()
 
 
+@pytest.mark.slow
 def test_stream_step_equals_offline_core_on_the_same_window(params):
     rng = np.random.default_rng(1)
     style = jnp.asarray(rng.normal(size=(B, CFG.style_vector_dim)), jnp.float32)
@@ -111,6 +112,7 @@ def _assert_causal(run, inputs, cut_input, cut_frame, rng):
     assert np.abs(before[:, cut_frame:] - after[:, cut_frame:]).max(axis=-1).min() > 1e-6
 
 
+@pytest.mark.slow
 def test_stream_with_base_tokens_is_causal(params):
     rng = np.random.default_rng(3)
     tokens = rng.normal(size=(B, 8, CFG.speech_dim)).astype(np.float32)  # 4 chunks of 2 tokens
@@ -120,6 +122,7 @@ def test_stream_with_base_tokens_is_causal(params):
         _assert_causal(run, tokens, chunk * 2, chunk * CFG.chunk_frames, rng)
 
 
+@pytest.mark.slow
 def test_stream_with_source_tokens_is_causal_and_equals_offline_adaptation(params):
     rng = np.random.default_rng(4)
     src = rng.normal(size=(B, 16, 48)).astype(np.float32)  # 25 Hz: 4 chunks of 4 source tokens
@@ -169,6 +172,7 @@ def test_offline_sample_with_chunk_mask_is_causal(params):
         _assert_causal(run, tokens, chunk * 2, chunk * CFG.chunk_frames, rng)
 
 
+@pytest.mark.slow
 def test_stream_equals_offline_chunked_sample_when_the_window_holds_the_whole_past():
     # No overlap inpainting and a left context as long as the utterance: every chunk's window is the
     # whole past with the same noise, which is exactly the offline chunk-masked computation.

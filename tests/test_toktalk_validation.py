@@ -23,6 +23,7 @@ def config(prepared_tiny):
     return tt.TokTalkConfig.tiny(num_mid_blocks=0, speech_dim=m["token_dim"], token_rate=float(m["token_rate"]))
 
 
+@pytest.mark.slow
 def test_streamed_validation_equals_a_hand_computation_and_repeats_exactly(config, prepared_tiny):
     data = prepared_tiny
     params = tt.init_params(config, jax.random.key(0))

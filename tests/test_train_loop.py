@@ -96,6 +96,7 @@ def test_linear_regression_reaches_the_true_weights(key):
     assert int(result.state.step) == 400 and result.state.ema_params is None
 
 
+@pytest.mark.slow
 def test_interrupted_and_resumed_run_is_bitwise_equal(tmp_path):
     straight = _run(tmp_path, "straight")
     first = _run(tmp_path, "resumed", max_steps=7)
