@@ -248,7 +248,7 @@ def test_ats_trained_on_whole_clips_is_scored_on_whole_clips(prepared_tiny, tmp_
 
     run = tmp_path / "ats-whole"
     _ok(["train", "ats", "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent, "--steps", "2",
-         *SMALL["ats"], "--set", "window_frames=0", "--no-progress", "--out", run])
+         *TINY_TRAIN_ARGS["ats"], "--set", "batch_size=2", "--set", "window_frames=0", "--no-progress", "--out", run])
     assert RunRecord.load(run).extra["window"] == 0
     output = _ok(["eval", run, "--max-clips", "2", "--json", tmp_path / "r.json"])
     assert "whole clips (at most 300 frames)" in output

@@ -313,7 +313,7 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
             echo(f"note: each token reads {1e3 * run.tokenizer().lookahead_s:.1f} ms of audio past its window "
                  "(the tokenizer's centred STFT): a live chunk's latency is that plus the times below")
         # Committed like the restored parameters: an uncommitted first state would compile twice.
-        state = jax.device_put(toktalk.init_stream(config, key), jax.devices()[0])
+        state = jax.device_put(toktalk.init_stream(config, key), jax.local_devices()[0])
         chunk_s = config.chunk_frames / config.fps
         for i in range(n):
             t0 = time.perf_counter()
@@ -329,7 +329,7 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
         streams, audio, turns = _timar_inputs(run, opts)
         f = config.frames_per_turn
         context = max(run.record.extra.get("num_turns", config.max_turns) - 1, 0)
-        state = jax.device_put(init_stream(config, key, context=context), jax.devices()[0])
+        state = jax.device_put(init_stream(config, key, context=context), jax.local_devices()[0])
         for i in range(turns):
             sl = slice(i * f, (i + 1) * f)
             t0 = time.perf_counter()

@@ -202,7 +202,7 @@ def init_stream(
     )
     # Commit the state to a device like the step's outputs are: an uncommitted first state gives the
     # jitted step a different cache key from every later one, so chunk 2 would compile again.
-    return jax.device_put(state, jax.devices()[0])
+    return jax.device_put(state, jax.local_devices()[0])  # this process's own: jax.devices()[0] may be another's
 
 
 def stream_step(

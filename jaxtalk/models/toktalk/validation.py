@@ -39,10 +39,10 @@ EvalFn = Callable[[Any, Any, int], dict[str, float]]
 
 
 def _host_copy(tree: Any) -> Any:
-    """Parameters as one process's full copy: a multi-process run's replicated arrays span devices
-    this process cannot address, and a stream jitted here takes its own."""
+    """Parameters as one full copy on this process: a data-parallel run's replicated arrays span
+    several devices (some of another process's), while the stream runs on one local device."""
     def local(x: Any) -> Any:
-        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+        if isinstance(x, jax.Array) and len(x.sharding.device_set) > 1:
             return np.asarray(x.addressable_data(0))
         return x
 
