@@ -204,6 +204,10 @@ def train(
         str | None, typer.Option(help="START:STOP: write a jax.profiler trace of those steps (1-based, both included) to "
                                       "OUT/profile, for Perfetto or TensorBoard.")
     ] = None,
+    init: Annotated[
+        Path | None, typer.Option(help="Fine-tune: start from this run's parameters, config and normaliser (a trained "
+                                       "run or one made by `jaxtalk convert`).")
+    ] = None,
 ) -> None:
     """Train a model on a prepared dataset with checkpoints; run again with more --steps to continue exactly."""
     from jaxtalk.commands.training import TrainOptions, train_run
@@ -212,7 +216,7 @@ def train(
     opts = TrainOptions(model=model, out_dir=out or Path("runs") / model, data=data, preset=preset,
                         overrides=tuple(set_ or ()), steps=steps, seed=seed, cache_dir=cache_dir, resume=resume,
                         progress=progress, data_parallel=data_parallel, distributed=distributed,
-                        profile=None if profile is None else parse_step_range(profile))
+                        profile=None if profile is None else parse_step_range(profile), init=init)
     summary = train_run(opts, echo=typer.echo)
     loss = "-" if summary.final_loss is None else f"{summary.final_loss:.4f}"
     val = "" if summary.val_loss is None else f", validation loss {summary.val_loss:.4f}"

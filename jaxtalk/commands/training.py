@@ -30,6 +30,7 @@ import numpy as np
 
 from jaxtalk.runs import (
     MODELS,
+    load_run,
     RunInfo,
     RunRecord,
     build_config,
@@ -76,6 +77,9 @@ class TrainOptions:
         profile: ``(start, stop)``: write a :mod:`jax.profiler` trace of updates ``start..stop``
             (1-based, counted from the run's first step, resumed runs included) to
             ``<out_dir>/profile`` (:class:`jaxtalk.train.TraceSteps`); None: no trace.
+        init: fine-tune: start from this run's newest parameters (a trained or converted run of the same
+            model), with its config and, for turn models, its normaliser (so the inputs keep the
+            standardisation the weights were trained with); None: fresh parameters.
     """
 
     model: str
@@ -92,6 +96,7 @@ class TrainOptions:
     data_parallel: bool = False
     distributed: bool = False
     profile: tuple[int, int] | None = None
+    init: Path | None = None
 
 
 @dataclasses.dataclass
@@ -216,8 +221,14 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     if existing is not None and data.key != existing.data["key"]:
         raise ValueError(f"{out} was trained on prepared data {existing.data['key']!r}, but {data.root} now holds "
                          f"{data.key!r}; resume it on the same data or choose another --out")
+    init = _init_run(opts, existing, model_items, done)
+    if init is not None and opts.preset is None:  # the starting run's preset sets the training defaults
+        preset = init.record.preset
+        train_fn, defaults = recipe_for(opts.model, preset or "small")
     if existing is not None:
         config = existing.model_config()
+    elif init is not None:
+        config = init.config
     else:
         explicit = parse_overrides(config_class(opts.model), model_items)
         config = build_config(opts.model, preset, [*_data_fields(opts.model, data, explicit), *model_items])
@@ -240,6 +251,14 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         if settings.batch_size % local:
             raise ValueError(f"batch_size {settings.batch_size} must divide by the {local} local devices")
     kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames is not None else {}
+    if init is not None:
+        kw["params"] = init.params
+        echo(f"fine-tuning from {opts.init} (step {init.step})")
+    # A fine-tuned turn model keeps its starting run's normaliser, on resume too (run.json records it).
+    started_from = init.record.extra if init is not None else (existing.extra if existing is not None and
+                                                               existing.extra.get("init") else None)
+    if started_from is not None and "normalizer" in started_from:
+        kw["normalizer"] = started_from["normalizer"]
     if opts.profile is not None:
         from jaxtalk.train import TraceSteps
 
@@ -261,6 +280,25 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     return TrainSummary(run_dir=out, start_step=done, step=int(result.state.step),
                         final_loss=float(np.mean(losses)) if losses else None, val_loss=evals[-1] if evals else None,
                         examples=result.windows, wall_s=time.perf_counter() - start)
+
+
+def _init_run(opts: TrainOptions, existing: Any, model_items: list[str], done: int) -> Any:
+    """The run ``--init`` names, loaded, or None; refuses what would silently not be a fine-tune."""
+    if opts.init is None:
+        return None
+    if existing is not None or done:
+        raise ValueError(f"{opts.out_dir} already holds a run; --init starts a new one: choose another --out "
+                         "(a fine-tuned run resumes without --init)")
+    if model_items:
+        raise ValueError(f"--init takes {opts.init}'s model config; --set of model fields ({', '.join(model_items)}) "
+                         "would not match its weights (training settings such as lr may be set)")
+    if opts.model == "ats":
+        raise ValueError("--init is not available for ats: its recipe standardises the displacements with statistics "
+                         "of the new data, which the starting weights were not trained with")
+    run = load_run(opts.init)
+    if run.record.model != opts.model:
+        raise ValueError(f"--init {opts.init} is a {run.record.model} run, not {opts.model}")
+    return run
 
 
 def _check_run_folder(out: Path) -> None:
