@@ -25,17 +25,18 @@ def test_timar_fine_tune_starts_from_the_runs_weights_and_keeps_its_normaliser(t
     out = tmp_path / "tuned"
     common = ["train", "timar", "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent, "--init", start,
               "--no-progress", "--out", out, "--set", "batch_size=2"]
-    # lr 0: one step leaves the parameters where they started, so the run must have started there.
-    output = cli_ok([*common, "--steps", "1", "--set", "lr=0", "--set", "weight_decay=0"])
+    # A learning rate of 1e-30: one step leaves the parameters where they started (to 1e-20), so the run
+    # must have started there.
+    output = cli_ok([*common, "--steps", "1", "--set", "lr=1e-30", "--set", "weight_decay=0"])
     assert f"fine-tuning from {start}" in output
     before, after = load_run(start), load_run(out)
     assert after.config == before.config and after.step == 1
     for a, b in zip(jax.tree.leaves(after.params), jax.tree.leaves(before.params), strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-20)
     extra = RunRecord.load(out).extra
     assert extra["normalizer"] == norm and extra["init"] is True
     # Resumed without --init, it keeps the starting run's normaliser.
-    cli_ok([*[a for a in common if a not in ("--init", start)], "--steps", "2", "--set", "lr=0", "--set", "weight_decay=0"])
+    cli_ok([*[a for a in common if a not in ("--init", start)], "--steps", "2", "--set", "lr=1e-30", "--set", "weight_decay=0"])
     assert RunRecord.load(out).extra["normalizer"] == norm
 
 
@@ -46,6 +47,7 @@ def test_init_refusals_are_one_line(trained_timar, trained_toktalk, prepared_tin
     cli_error([*base, "--init", trained_timar.dir, "--set", "width=64", "--out", tmp_path / "b"],
               "--set of model fields (width=64)")
     existing = trained_timar.copy(tmp_path / "existing")
-    cli_error([*base, "--init", trained_timar.dir, "--out", existing], "--init starts a new one")
+    cli_error([*base[:-3], "--steps", "3", "--no-progress", "--init", trained_timar.dir, "--out", existing],
+              "--init starts a new one")
     cli_error(["train", "ats", "--data", "synthtalk:tiny", "--init", trained_timar.dir, "--out", tmp_path / "c"],
               "--init is not available for ats")
