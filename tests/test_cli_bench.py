@@ -56,8 +56,8 @@ def test_toktalk_table_rates_and_fraction_of_peak(monkeypatch, fast_compile):
     assert row["gflops"] > floor
 
 
-def test_bench_user_errors():
-    result = runner.invoke(app, ["bench", "--model", "wavenet"])
+def test_bench_user_errors(tmp_path):
+    result = runner.invoke(app, ["bench", "--model", "wavenet", "--out", str(tmp_path / "b.json")])
     assert result.exit_code == 2 and "unknown benchmark model(s) ['wavenet']" in result.output
     with pytest.raises(ValueError, match="repeats must be >= 1"):
         bench.run_benchmarks(["toktalk"], repeats=0)
