@@ -202,8 +202,8 @@ def test_timar_eval_groups_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path):
         assert tables[group]["mean pose"]["SID"] == pytest.approx(0.0, abs=1e-5)  # one pose, one cluster
 
 
-def test_pad_with_last_repeats_the_last_predicted_frame_to_the_side_length():
-    from jaxtalk.commands.evaluation import pad_with_last
+def test_fit_length_repeats_the_last_predicted_frame_to_the_side_length():
+    from jaxtalk.data.batching import fit_length as pad_with_last
 
     pred = np.arange(12, dtype=np.float32).reshape(4, 3)
     padded = pad_with_last(pred, 7)

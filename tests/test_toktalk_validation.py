@@ -71,8 +71,8 @@ def test_offline_model_or_zero_clips_gets_no_streamed_validation_and_an_unknown_
 @pytest.mark.slow
 def test_recipe_records_streamed_metrics_and_keeps_the_best_checkpoint_by_streamed_lve(config, prepared_tiny, tmp_path):
     from jaxtalk.models.toktalk import recipe
-    from jaxtalk.train import OptimConfig, best_checkpoint_dir
-    from jaxtalk.train.checkpoint import Checkpointer
+    from jaxtalk.train import OptimConfig
+    from jaxtalk.train.checkpoint import read_best
 
     result = recipe.train(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=3), steps=3,
                           key=jax.random.key(0), batch_size=2, run_dir=tmp_path / "run", eval_every=1, val_clips=1,
@@ -80,16 +80,15 @@ def test_recipe_records_streamed_metrics_and_keeps_the_best_checkpoint_by_stream
     evals = [h for h in result.history if "eval" in h]
     assert len(evals) == 3 and all({"val_loss", SELECTION_METRIC, "LVE_mm2_1step"} <= set(h["eval"]) for h in evals)
     best_value = min(h["eval"][SELECTION_METRIC] for h in evals)
-    with Checkpointer(best_checkpoint_dir(tmp_path / "run" / "checkpoint"), read_only=True) as ckpt:
-        record = ckpt.read_metadata()["best"]
+    record = read_best(tmp_path / "run" / "checkpoint")
     assert record["metric"] == SELECTION_METRIC and record["value"] == pytest.approx(best_value)
 
 
 @pytest.mark.slow
 def test_a_resumed_run_whose_best_was_chosen_by_the_loss_keeps_selecting_by_it(config, prepared_tiny, tmp_path):
     from jaxtalk.models.toktalk import recipe
-    from jaxtalk.train import OptimConfig, best_checkpoint_dir
-    from jaxtalk.train.checkpoint import Checkpointer
+    from jaxtalk.train import OptimConfig
+    from jaxtalk.train.checkpoint import read_best
 
     optim = OptimConfig(lr=1e-3, warmup_steps=0, total_steps=3)
     kw = dict(key=jax.random.key(0), batch_size=2, run_dir=tmp_path / "run", eval_every=1, progress=False)
@@ -97,5 +96,4 @@ def test_a_resumed_run_whose_best_was_chosen_by_the_loss_keeps_selecting_by_it(c
     with pytest.warns(UserWarning, match="best checkpoint was chosen by 'val_loss'"):
         result = recipe.train(config, prepared_tiny, optim, steps=3, val_clips=1, **kw)
     assert SELECTION_METRIC in result.history[-1]["eval"]
-    with Checkpointer(best_checkpoint_dir(tmp_path / "run" / "checkpoint"), read_only=True) as ckpt:
-        assert ckpt.read_metadata()["best"]["metric"] == "val_loss"
+    assert read_best(tmp_path / "run" / "checkpoint")["metric"] == "val_loss"

@@ -366,17 +366,10 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
 _GROUP_COLUMNS = ("FD", "P-FD", "MSE", "SID", "rPCC")
 
 
-def pad_with_last(pred: np.ndarray, frames: int) -> np.ndarray:
-    """``pred`` extended to ``frames`` rows by repeating its last row (TIMAR's evaluation protocol for
-    the frames after the last whole turn); ``pred`` itself when it is already that long."""
-    if pred.shape[0] >= frames:
-        return pred[:frames]
-    return np.concatenate([pred, np.repeat(pred[-1:], frames - pred.shape[0], axis=0)], axis=0)
-
-
 def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
     import jax
 
+    from jaxtalk.data.batching import fit_length
     from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
     from jaxtalk.models.timar.data import Normalizer
     from jaxtalk.models.timar.recipe import agent_sides
@@ -423,7 +416,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
             out = predict_turns(run.params, config, *streams, context=context)
         else:
             out = stream(run.params, config, *streams, jax.random.fold_in(key, n), context=context)
-        preds.append(pad_with_last(norm.unmotion(np.asarray(out)[0]), total))
+        preds.append(fit_length(norm.unmotion(np.asarray(out)[0]), total))
         gts.append(np.asarray(agent["motion"], np.float32)[:total])
         partners.append(user_motion)
         oracles.append(np.asarray(agent["oracle"], np.float32)[:total] if "oracle" in agent else None)

@@ -19,9 +19,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BatchIterator", "length_buckets", "window_starts"]
+__all__ = ["BatchIterator", "fit_length", "length_buckets", "window_starts"]
 
 Batch = dict[str, np.ndarray]
+
+
+def fit_length(x: np.ndarray, n: int) -> np.ndarray:
+    """``x`` cropped, or extended by repeating its last row, to exactly ``n`` rows along axis 0 (a
+    window's tokens past a clip's end; TIMAR's evaluation of the frames after the last whole turn)."""
+    if x.shape[0] >= n:
+        return x[:n]
+    return np.concatenate([x, np.repeat(x[-1:], n - x.shape[0], axis=0)], axis=0)
 
 
 def window_starts(num_frames: int, window: int, hop: int, *, align: int = 1, pad_short: bool = True) -> list[int]:

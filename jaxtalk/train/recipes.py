@@ -232,20 +232,6 @@ def merged_eval(*eval_fns: Callable[[Any, Any, int], dict[str, float]] | None
     return eval_fn
 
 
-def _saved_best_metric(ckpt_dir: Any) -> str | None:
-    """The metric an existing run's best checkpoint was chosen by (None: no best checkpoint yet)."""
-    from jaxtalk.train.checkpoint import Checkpointer, best_checkpoint_dir
-
-    directory = best_checkpoint_dir(ckpt_dir)
-    if not directory.is_dir():
-        return None
-    with Checkpointer(directory, read_only=True) as ckpt:
-        if ckpt.latest_step() is None:
-            return None
-        record = ckpt.read_metadata().get("best")
-    return record.get("metric") if isinstance(record, dict) else None
-
-
 def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any, best_metric: str = "val_loss") -> dict[str, Any]:
     """The loop's evaluation arguments: validate every ``eval_every`` steps and, with checkpoints, keep
     the state of the lowest ``best_metric`` in ``<ckpt_dir>/best`` (nothing when there is no
@@ -254,7 +240,10 @@ def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any, best_metric:
     if eval_fn is None:
         return {}
     if ckpt_dir is not None:
-        saved = _saved_best_metric(ckpt_dir)
+        from jaxtalk.train.checkpoint import read_best
+
+        record = read_best(ckpt_dir)
+        saved = None if record is None else record["metric"]
         if saved is not None and saved != best_metric:
             warnings.warn(f"this run's best checkpoint was chosen by {saved!r}; it keeps selecting by it rather "
                           f"than {best_metric!r}", stacklevel=3)

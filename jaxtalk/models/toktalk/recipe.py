@@ -26,7 +26,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxtalk.data.batching import window_starts
+from jaxtalk.data.batching import fit_length, window_starts
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.runs import RunInfo
@@ -46,13 +46,6 @@ PyTree = Any
 def default_window(config: TokTalkConfig) -> int:
     """Training window in frames: 100 (4 s) for chunks up to 20 frames, else five chunks."""
     return 100 if config.chunk_frames <= 20 else 5 * config.chunk_frames
-
-
-def _fit_length(x: np.ndarray, n: int) -> np.ndarray:
-    """Crop or edge-pad ``x`` along axis 0 to exactly ``n`` rows."""
-    if x.shape[0] >= n:
-        return x[:n]
-    return np.concatenate([x, np.repeat(x[-1:], n - x.shape[0], axis=0)], axis=0)
 
 
 def check_data(config: TokTalkConfig, data: PreparedData) -> None:
@@ -142,7 +135,7 @@ class TokTalkWindows:
         style_clip[:len(style)] = style
         return {
             "motion": seg,
-            "tokens": _fit_length(tokens[st // self.per_token:], w // self.per_token),
+            "tokens": fit_length(tokens[st // self.per_token:], w // self.per_token),
             "style": style_clip,
             "style_mask": np.arange(self.config.style_frames) < len(style),
             "mask": np.arange(w) < length,
@@ -243,7 +236,7 @@ class AdapterWindows(TokTalkWindows):
         out = super().example(data, row)
         src = np.asarray(self.src_tokens[data.clips[int(row[0])]["name"]], np.float32)
         per_frame = self.src_rate / self.config.fps
-        out["src_tokens"] = _fit_length(src[int(round(int(row[1]) * per_frame)):],
+        out["src_tokens"] = fit_length(src[int(round(int(row[1]) * per_frame)):],
                                         int(round(self.window_frames * per_frame)))
         return out
 
