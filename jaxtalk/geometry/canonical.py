@@ -78,8 +78,12 @@ MEDIAPIPE_IBUG: dict[int, int] = {8: 152, 17: 70, 19: 105, 21: 107, 22: 336, 24:
 # A fitted similarity scale outside this range means the mesh is not a human face at real size.
 _SCALE_RANGE = (0.6, 1.6)
 # After alignment, the reference's inner face must fit the user's surface within this (metres; the
-# relief-weighted mean distance, dominated by nose, eyes, mouth and chin). Measured: TODO.
-_MAX_FIT_M = 0.006
+# relief-weighted, capped mean distance of _fit_score, dominated by nose, eyes, mouth and chin).
+# Measured (experiments/canonical_alignment.py): faces 0.7-1.9 mm (MediaPipe's canonical face, FLAME's
+# template, menpo3d's head scan, built-in heads, masks and noisy scans with holes); a sphere, an
+# ellipsoid, a box, a cylinder or a half-ellipsoid mask of a face's size 11-15 mm, a torus or a bumpy
+# blob 7.4-8.6 mm.
+_MAX_FIT_M = 0.004
 # The inner face: an ellipse of these fractions of the face's half-width and of its half-height below
 # and above the centre of its bounding box (see _Face).
 _CORE = (0.8, 0.9, 0.6)
@@ -90,10 +94,12 @@ _FLAT_WEIGHT = 0.25
 _FRONT_DEPTH_M = 0.05
 # Turns (degrees) of each principal-axes candidate about the user's longest axis.
 _TURNS = tuple(range(-75, 91, 15))
-# The coarse score looks at this many points of the inner face; this many distinct candidates (20
-# degrees apart) get rigid ICP.
+# The search fits this many points of the inner face; this many distinct candidates (20 degrees or
+# 1 cm apart) take _FIRST_STEPS steps of ICP, and the best _REFINED of them run to convergence.
 _PROBE_POINTS = 200
-_REFINED_CANDIDATES = 12
+_TRIED = 40
+_FIRST_STEPS = 6
+_REFINED = 6
 # ICP leaves out pairs farther apart than _TRIM x the median distance (and than the floor, metres).
 _TRIM = 2.5
 _TRIM_FLOOR_M = 0.004
@@ -327,16 +333,22 @@ def _axis_rotations() -> np.ndarray:
 
 
 def _front_anchors(points: np.ndarray, forward: np.ndarray) -> np.ndarray:
-    """``(N, 3)``: where a face's front is, seen from each of ``N`` forward directions. Along the
-    direction, the front-most surface (a high quantile, so that a stray vertex does not count); across
-    it, the centre of the surface within :data:`_FRONT_DEPTH_M` of that front. For a face or a head
-    seen from the front this is the middle of the face at the height of the nose tip, whatever lies
-    behind it (ears, neck, the back of the head)."""
+    """``(2, N, 3)``: where a face's front is, seen from each of ``N`` forward directions, in two ways.
+
+    First, the middle of the front: along the direction, the front-most surface (a high quantile, so
+    that a stray vertex does not count); across it, the centre of the surface within
+    :data:`_FRONT_DEPTH_M` of that front. For a face or a head seen from the front this is the middle
+    of the face at the height of the nose tip, whatever lies behind it (ears, neck, the back of the
+    head). Second, the front-most point itself (the centre of the samples beyond that quantile): the
+    tip of the nose, which stays put when the direction is a little off, while the middle of the
+    front slides toward the forehead or the chin."""
     proj = points @ forward.T  # (P, N)
     front = np.quantile(proj, 0.999, axis=0)
     shell = proj >= front - _FRONT_DEPTH_M
     centre = (shell.T @ points) / shell.sum(axis=0)[:, None]
-    return centre + (front - np.einsum("nd,nd->n", centre, forward))[:, None] * forward
+    middle = centre + (front - np.einsum("nd,nd->n", centre, forward))[:, None] * forward
+    tip = proj >= front
+    return np.stack([middle, (tip.T @ points) / tip.sum(axis=0)[:, None]])
 
 
 def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray]:
@@ -355,8 +367,10 @@ def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray]:
     aligned = u_axes @ cube @ _principal_frame(face.points).T
     rotations = np.concatenate([(spins[:, None] @ aligned[None]).reshape(-1, 3, 3), cube])
     forward, which = np.unique(rotations[:, :, 2].round(12), axis=0, return_inverse=True)
-    anchors = _front_anchors(user.coarse, forward)[which.reshape(-1)]
-    return rotations, anchors - rotations @ _front_anchors(face.points, np.array([[0.0, 0.0, 1.0]]))[0]
+    user_anchors = _front_anchors(user.coarse, forward)[:, which.reshape(-1)]  # (2, N, 3)
+    face_anchors = _front_anchors(face.points, np.array([[0.0, 0.0, 1.0]]))[:, 0]  # (2, 3)
+    translations = user_anchors - np.einsum("nij,aj->ani", rotations, face_anchors)
+    return np.concatenate([rotations, rotations]), translations.reshape(-1, 3)
 
 
 def _umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, scale: bool) -> Pose:
@@ -428,6 +442,9 @@ def _icp(points: np.ndarray, weights: np.ndarray, user: _Surface, pose: Pose, it
         omega, shift = x[:3] * min(1.0, _MAX_TURN / (float(np.linalg.norm(x[:3])) + 1e-12)), x[3:6]
         grow = float(np.exp(np.clip(x[6], -0.1, 0.1))) if scale else 1.0
         spin = _rotation_vector(omega)
+        # The scale stays within what a face at real size may need (a fit that would shrink the face
+        # onto a patch of something else stops at the bound, where its misfit shows).
+        grow = float(np.clip(grow * s, 1 / _SCALE_RANGE[1], 1 / _SCALE_RANGE[0])) / s
         s, rot, t = grow * s, spin @ rot, grow * spin @ (t - centre) + centre + shift
         if np.abs(omega).max() + np.abs(shift).max() / s + abs(grow - 1) < 1e-7:
             break
@@ -454,7 +471,7 @@ def _distances(points: np.ndarray, user: _Surface, pose: Pose, cap: float = np.i
 def _fit_score(distances: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """The weighted mean of the distances (last axis), each capped at :data:`_SCORE_CAP_M`: a part of
     the face the user's mesh lacks costs the cap, not more."""
-    return np.minimum(distances, _SCORE_CAP_M) @ weights / weights.sum()
+    return np.asarray(np.minimum(distances, _SCORE_CAP_M) @ weights / weights.sum())
 
 
 def _overlap(face: _Face, user: _Surface, pose: Pose) -> float:
@@ -477,12 +494,13 @@ def _pose_score(face: _Face, user: _Surface, pose: Pose, core: slice = slice(Non
     return float(fit) + _overlap(face, user, pose)
 
 
-def _distinct(rotations: np.ndarray, order: np.ndarray, count: int, min_angle: float) -> list[int]:
-    """The first ``count`` of ``order`` whose rotations differ pairwise by more than ``min_angle``."""
+def _distinct(rotations: np.ndarray, translations: np.ndarray, order: np.ndarray, count: int) -> list[int]:
+    """The first ``count`` of ``order`` that differ pairwise by more than 20 degrees or 1 cm."""
     chosen: list[int] = []
     for i in order:
         # The angle between rotations A and B: cos = (trace(A^T B) - 1) / 2.
-        if all((np.einsum("ij,ij->", rotations[i], rotations[j]) - 1) / 2 < np.cos(min_angle) for j in chosen):
+        if all((np.einsum("ij,ij->", rotations[i], rotations[j]) - 1) / 2 < np.cos(np.radians(20.0))
+               or np.linalg.norm(translations[i] - translations[j]) > 0.01 for j in chosen):
             chosen.append(int(i))
             if len(chosen) == count:
                 break
@@ -490,21 +508,24 @@ def _distinct(rotations: np.ndarray, order: np.ndarray, count: int, min_angle: f
 
 
 def _fit(face: _Face, user: _Surface) -> Pose:
-    """The landmark-free pose of a face on the user's surface (face -> user): the candidates of
-    :func:`_candidates` scored by :func:`_fit_score`, the best few distinct ones refined by rigid ICP,
-    the best of those by :func:`_pose_score` refined with the scale free."""
+    """The landmark-free pose of a face on the user's surface (face -> user).
+
+    The candidates of :func:`_candidates` are ranked by :func:`_fit_score` where they start; the
+    best :data:`_TRIED` distinct ones take a few steps of rigid ICP (a start a little off may look
+    worse than a wrong one until it has moved), the best :data:`_REFINED` of those by
+    :func:`_pose_score` run to convergence, and the best of them is refined with the scale free."""
     rotations, translations = _candidates(face, user)
     probe = slice(None, None, max(1, len(face.core) // _PROBE_POINTS))
-    moved = np.einsum("rij,pj->rpi", rotations, face.core[probe]) + translations[:, None]
+    points, weights = face.core[probe], face.weights[probe]
+    moved = np.einsum("rij,pj->rpi", rotations, points) + translations[:, None]
     dist = user.coarse_tree.query(moved.reshape(-1, 3), distance_upper_bound=_SCORE_CAP_M)[0]  # farther: inf, capped
-    score = _fit_score(dist.reshape(len(rotations), -1), face.weights[probe])
-    best = None
-    for i in _distinct(rotations, np.argsort(score), _REFINED_CANDIDATES, np.radians(20.0)):
-        pose = _icp(face.core[probe], face.weights[probe], user, (1.0, rotations[i], translations[i]), 20)
-        fit = _pose_score(face, user, pose, probe)
-        if best is None or fit < best[0]:
-            best = (fit, pose)
-    return _icp(face.core, face.weights, user, best[1], 50, scale=True)
+    score = _fit_score(dist.reshape(len(rotations), -1), weights)
+    tried = [_icp(points, weights, user, (1.0, rotations[i], translations[i]), _FIRST_STEPS)
+             for i in _distinct(rotations, translations, np.argsort(score), _TRIED)]
+    tried.sort(key=lambda pose: _pose_score(face, user, pose, probe))
+    refined = [_icp(points, weights, user, pose, 30) for pose in tried[:_REFINED]]
+    best = min(refined, key=lambda pose: _pose_score(face, user, pose, probe))
+    return _icp(face.core, face.weights, user, best, 50, scale=True)
 
 
 def canonicalize(
@@ -594,12 +615,13 @@ def canonicalize(
 def _checked(canon: Canonicalization, fit: float | None) -> Canonicalization:
     """``canon``, or the error that says why it cannot be a face's alignment (``fit``: the reference's
     :func:`_fit_score`, None with landmarks)."""
-    lo_s, hi_s = _SCALE_RANGE
-    if not (lo_s <= canon.fitted_scale <= hi_s):
-        raise ValueError(f"aligning the template face to the mesh needs a scale of {canon.fitted_scale:.2f} "
-                         f"(beyond {lo_s}-{hi_s}): in {canon.units} this is not a human face at real size; check the units")
     if fit is not None and fit > _MAX_FIT_M:
         raise ValueError(f"the mesh does not look like a face: after the best alignment a face's nose, eyes, mouth "
                          f"and chin lie {fit * 1000:.1f} mm from its surface on average (a face fits within "
                          f"{_MAX_FIT_M * 1000:.0f} mm); pass its 68 landmarks to guide the alignment")
+    lo_s, hi_s = _SCALE_RANGE
+    if not (lo_s * 1.01 <= canon.fitted_scale <= hi_s * 0.99):
+        raise ValueError(f"aligning the template face to the mesh needs a scale of {canon.fitted_scale:.2f} "
+                         f"(at or beyond {lo_s}-{hi_s}): in {canon.units} this is not a human face at real size; "
+                         "check the units")
     return canon
