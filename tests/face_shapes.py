@@ -9,8 +9,9 @@ of the face), triangles, and a few semantic points with the indices of the 68 iB
   vertices, shipped in centimetres).
 * :func:`procedural_head`: a whole head in the way of FLAME's template: a built-in face of another
   identity with the back of the skull, a neck and two ears, as separate components.
-* :func:`bfm_mask`: a BFM-style mask cut from that head: ear to ear, mid-forehead to under the chin,
-  so part of the template's forehead has nothing under it and the cheeks reach past the template's rim.
+* :func:`bfm_mask`: a BFM-style mask cut from that head (:func:`cut_mask`, which cuts any head): in
+  front of the ears, mid-forehead to under the chin, so part of the template's forehead has nothing
+  under it and the cheeks reach past the template's rim.
 * :func:`head_scan`: the head as a scan gives it: 1 mm noise on every vertex and holes.
 * :func:`real_scan` / :func:`flame_template`: menpo3d's head scan (``experiments/fetch_real_scan.sh``)
   and FLAME's template when a user has it; None otherwise.
@@ -115,17 +116,25 @@ def procedural_head(identity: int = 2) -> Shape:
         parts.append(_part(ear))
     v, f = _join(parts)
     points = neutral_landmarks(face).astype(np.float64)[list(SEMANTIC.values())]
-    return Shape(f"procedural head (identity {identity}) with skull, neck and ears", v, f, points)
+    return Shape(f"built-in head (identity {identity}): face, skull, neck, ears", v, f, points)
+
+
+def cut_mask(shape: Shape) -> Shape:
+    """A BFM-style mask cut from a head: in front of the ears, from mid-forehead to under the chin
+    (measured in the template's frame, where the head's semantic points put it), so that part of the
+    template's forehead has nothing under it and the cheeks reach past the template's rim."""
+    from jaxtalk.geometry.canonical import _umeyama
+
+    scale, rotation, shift = _umeyama(shape.points, template()[2], np.ones(len(shape.points)), scale=True)
+    centre = (scale * shape.vertices @ rotation.T + shift)[shape.faces].mean(axis=1)
+    keep = (centre[:, 2] > -0.02) & (centre[:, 1] > -0.115) & (centre[:, 1] < 0.065)
+    used, faces = np.unique(shape.faces[keep], return_inverse=True)
+    return Shape(f"BFM-style mask cut from the {shape.name}", shape.vertices[used], faces.reshape(-1, 3), shape.points)
 
 
 def bfm_mask(identity: int = 3) -> Shape:
-    """A BFM-style mask cut from :func:`procedural_head`: in front of the ears, mid-forehead to under
-    the chin."""
-    head = procedural_head(identity)
-    centre = head.vertices[head.faces].mean(axis=1)
-    keep = (centre[:, 2] > -0.02) & (centre[:, 1] > -0.115) & (centre[:, 1] < 0.065)
-    used, faces = np.unique(head.faces[keep], return_inverse=True)
-    return Shape(f"BFM-style mask (identity {identity})", head.vertices[used], faces.reshape(-1, 3), head.points)
+    """:func:`cut_mask` of :func:`procedural_head`."""
+    return cut_mask(procedural_head(identity))
 
 
 def head_scan(identity: int = 1, seed: int = 0) -> Shape:
@@ -135,7 +144,7 @@ def head_scan(identity: int = 1, seed: int = 0) -> Shape:
     rng = np.random.default_rng(seed)
     v = head.vertices + rng.normal(scale=0.001, size=head.vertices.shape)
     f = head.faces[rng.random(len(head.faces)) > 0.03]
-    return Shape(f"head scan (identity {identity}): 1 mm noise, holes", v, f, head.points)
+    return Shape(f"built-in head scan (identity {identity}): 1 mm noise, holes", v, f, head.points)
 
 
 def real_scan() -> Shape | None:

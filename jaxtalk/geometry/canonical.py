@@ -79,10 +79,10 @@ MEDIAPIPE_IBUG: dict[int, int] = {8: 152, 17: 70, 19: 105, 21: 107, 22: 336, 24:
 _SCALE_RANGE = (0.6, 1.6)
 # After alignment, the reference's inner face must fit the user's surface within this (metres; the
 # relief-weighted, capped mean distance of _fit_score, dominated by nose, eyes, mouth and chin).
-# Measured (experiments/canonical_alignment.py): faces 0.7-1.9 mm (MediaPipe's canonical face, FLAME's
-# template, menpo3d's head scan, built-in heads, masks and noisy scans with holes); a sphere, an
-# ellipsoid, a box, a cylinder or a half-ellipsoid mask of a face's size 11-15 mm, a torus or a bumpy
-# blob 7.4-8.6 mm.
+# Measured (experiments/canonical_alignment.py): faces 0.6-1.9 mm (MediaPipe's canonical face, FLAME's
+# template, menpo3d's head scan, masks cut from them, built-in heads, masks and noisy scans with
+# holes); a sphere, an ellipsoid, a box, a cylinder or a smooth half-ellipsoid mask of a face's size
+# 10.8-12.2 mm, a torus 7.3 mm.
 _MAX_FIT_M = 0.004
 # The inner face: an ellipse of these fractions of the face's half-width and of its half-height below
 # and above the centre of its bounding box (see _Face).
