@@ -76,47 +76,34 @@ def mediapipe_face() -> Shape:
     return Shape("MediaPipe canonical face", v, f, v[list(MEDIAPIPE_SEMANTIC)])
 
 
-def _part(mesh, keep=None) -> tuple[np.ndarray, np.ndarray]:
-    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-    if keep is not None:
-        f = f[keep(v[f].mean(axis=1))]
-    return v, f
-
-
-def _join(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    vs, fs, offset = [], [], 0
-    for v, f in parts:
-        vs.append(v)
-        fs.append(f + offset)
-        offset += len(v)
-    return np.concatenate(vs), np.concatenate(fs)
-
-
 def procedural_head(identity: int = 2) -> Shape:
-    """A built-in face (``default`` resolution) with the back of the skull, a neck and two ears."""
+    """A built-in face (``default`` resolution) with the back of the skull, a neck and two ears, each
+    its own component (metres)."""
     import trimesh
 
     from jaxtalk.face import builtin_face
     from jaxtalk.models.freetalk.data import neutral_landmarks
 
     face = builtin_face(identity, resolution="default")
-    fv, ff = np.asarray(face.template, np.float64), np.asarray(face.faces, np.int64)
-    sphere = trimesh.creation.icosphere(subdivisions=4)
-    skull = sphere.copy()
+    parts = [trimesh.Trimesh(np.asarray(face.template, np.float64), np.asarray(face.faces), process=False)]
+    skull = trimesh.creation.icosphere(subdivisions=4)
     skull.apply_scale([0.08, 0.115, 0.1])
     skull.apply_translation([0.0, 0.015, -0.005])
-    neck = trimesh.creation.cylinder(radius=0.052, height=0.13, sections=48)
+    skull.update_faces(skull.triangles_center[:, 2] < 0.015)  # behind the face
+    neck = trimesh.creation.cylinder(radius=0.052, height=0.128, sections=48)  # open ends below
     neck.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
     neck.apply_translation([0.0, -0.15, -0.03])
-    parts = [(fv, ff), _part(skull, lambda c: c[:, 2] < 0.015), _part(neck, lambda c: np.abs(c[:, 1] + 0.15) < 0.064)]
+    neck.update_faces(np.abs(neck.face_normals[:, 1]) < 0.5)
+    parts += [skull, neck]
     for side in (-1.0, 1.0):
-        ear = sphere.copy()
+        ear = trimesh.creation.icosphere(subdivisions=3)
         ear.apply_scale([0.012, 0.03, 0.018])
         ear.apply_translation([side * 0.082, 0.0, -0.012])
-        parts.append(_part(ear))
-    v, f = _join(parts)
+        parts.append(ear)
+    head = trimesh.util.concatenate(parts)
     points = neutral_landmarks(face).astype(np.float64)[list(SEMANTIC.values())]
-    return Shape(f"built-in head (identity {identity}): face, skull, neck, ears", v, f, points)
+    return Shape(f"built-in head (identity {identity}): face, skull, neck, ears", np.asarray(head.vertices, np.float64),
+                 np.asarray(head.faces, np.int64), points)
 
 
 def cut_mask(shape: Shape) -> Shape:

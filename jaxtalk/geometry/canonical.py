@@ -358,12 +358,11 @@ def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray]:
     the user's longest axis by :data:`_TURNS` (a head is longest from the crown to the neck, while
     its width and depth are alike, so its principal axes across may lie anywhere), plus the 24 of the
     user file's own axes. Each is placed by the front anchors (:func:`_front_anchors`)."""
+    from scipy.spatial.transform import Rotation
+
     cube = _axis_rotations()
     u_axes = _principal_frame(user.coarse)
-    turns = np.radians(np.asarray(_TURNS))
-    axis = u_axes[:, 0]
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    spins = np.eye(3) + np.sin(turns)[:, None, None] * k + (1 - np.cos(turns))[:, None, None] * (k @ k)  # Rodrigues
+    spins = Rotation.from_rotvec(np.radians(np.asarray(_TURNS, np.float64))[:, None] * u_axes[:, 0]).as_matrix()
     aligned = u_axes @ cube @ _principal_frame(face.points).T
     rotations = np.concatenate([(spins[:, None] @ aligned[None]).reshape(-1, 3, 3), cube])
     forward, which = np.unique(rotations[:, :, 2].round(12), axis=0, return_inverse=True)
@@ -425,6 +424,8 @@ def _icp(points: np.ndarray, weights: np.ndarray, user: _Surface, pose: Pose, it
     than :data:`_TRIM_FLOOR_M`) are left out of each step, so that what one mesh has and the other
     lacks (a neck, a cropped forehead, another nose) does not pull. Each step solves the linearised
     problem (rotation vector, translation, and a scale change) about the kept points' centroid."""
+    from scipy.spatial.transform import Rotation
+
     s, rot, t = pose
     for _ in range(iterations):
         moved = s * points @ rot.T + t
@@ -441,7 +442,7 @@ def _icp(points: np.ndarray, weights: np.ndarray, user: _Surface, pose: Pose, it
         # A linearised step is trusted only so far: at most _MAX_TURN radians and 10% of scale.
         omega, shift = x[:3] * min(1.0, _MAX_TURN / (float(np.linalg.norm(x[:3])) + 1e-12)), x[3:6]
         grow = float(np.exp(np.clip(x[6], -0.1, 0.1))) if scale else 1.0
-        spin = _rotation_vector(omega)
+        spin = Rotation.from_rotvec(omega).as_matrix()
         # The scale stays within what a face at real size may need (a fit that would shrink the face
         # onto a patch of something else stops at the bound, where its misfit shows).
         grow = float(np.clip(grow * s, 1 / _SCALE_RANGE[1], 1 / _SCALE_RANGE[0])) / s
@@ -449,16 +450,6 @@ def _icp(points: np.ndarray, weights: np.ndarray, user: _Surface, pose: Pose, it
         if np.abs(omega).max() + np.abs(shift).max() / s + abs(grow - 1) < 1e-7:
             break
     return s, rot, t
-
-
-def _rotation_vector(omega: np.ndarray) -> np.ndarray:
-    """The rotation matrix of a rotation vector (Rodrigues)."""
-    angle = float(np.linalg.norm(omega))
-    if angle < 1e-12:
-        return np.eye(3)
-    kx, ky, kz = omega / angle
-    k = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
 def _distances(points: np.ndarray, user: _Surface, pose: Pose, cap: float = np.inf) -> np.ndarray:
