@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the shapes the tests use
-import face_shapes as fs  # noqa: E402
+import face_shapes as fs
 
-from jaxtalk.geometry import canonical as cn  # noqa: E402
+from jaxtalk.geometry import canonical as cn
 
 
 def _shapes() -> list[fs.Shape]:

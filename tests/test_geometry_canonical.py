@@ -11,12 +11,17 @@ when they are on disk (``experiments/fetch_real_scan.sh``; FLAME's file is the u
 
 from __future__ import annotations
 
+import face_shapes as fs
 import numpy as np
 import pytest
 
-import face_shapes as fs
 from jaxtalk.geometry import canonical as cn
-from jaxtalk.geometry.canonical import MEDIAPIPE_IBUG, UNITS, canonicalize, reference_face
+from jaxtalk.geometry.canonical import (
+    MEDIAPIPE_IBUG,
+    UNITS,
+    canonicalize,
+    reference_face,
+)
 
 
 @pytest.fixture(scope="module")
