@@ -24,13 +24,16 @@ landmarks are given, and the one that fits the user's surface better is used. Fo
 1. Its inner face (:class:`_Face`: the front of the face inside an ellipse, the rim left out because a
    cropped mask may not reach it), each point weighted by its relief, is placed on the user's surface
    in candidate poses: the rotations that map the principal axes of the two surfaces onto each other
-   (24, each also turned about the user's longest axis, along which a head's crown-to-neck runs) and
-   the 24 of the file's own axes, at the template's size, each at the front of the user's surface as
-   seen from the candidate's forward direction (:func:`_front_anchors`).
-2. The best few distinct candidates get rigid, trimmed ICP, and the pose that fits best both ways
-   (:func:`_pose_score`: the reference onto the user's surface, and the user's surface over the
-   reference's inner face back onto it) wins; a last ICP with the scale free follows.
-3. A fit whose scale or residual is implausible for a face is an error, never a silent far-off answer.
+   (24, each also turned about the user's longest axis, along which a head's crown-to-neck runs, since
+   a head's width and depth are alike) and the 24 of the file's own axes, at the reference's size,
+   each put at the front of the user's surface as seen from the candidate's forward direction in two
+   ways (:func:`_front_anchors`: the middle of the front, and the nose tip).
+2. The best distinct candidates (where they start) take a few steps of rigid, trimmed, point-to-plane
+   ICP; the best of those by how well they fit both ways (:func:`_pose_score`: the reference onto the
+   user's surface, and the user's surface over the reference's inner face back onto it) run to
+   convergence, and the best of them is refined with the scale free (within a face's range).
+3. A fit whose residual or scale is implausible for a face is an error, never a silent far-off answer.
+   Measured: see ``_MAX_FIT_M`` and ``experiments/canonical_alignment.py``.
 
 :class:`Canonicalization` maps positions to the template frame and displacements back into the
 user's units and frame (a displacement rotates and scales but does not translate).
@@ -92,11 +95,13 @@ _FLAT_WEIGHT = 0.25
 # Depth of the front of a face behind the tip of the nose that _front_anchors centres on: the eyes,
 # mouth, chin and forehead lie within it, the ears and the neck behind it.
 _FRONT_DEPTH_M = 0.05
-# Turns (degrees) of each principal-axes candidate about the user's longest axis.
+# Turns (degrees) of each principal-axes candidate about the user's longest axis, and the sizes
+# (relative to the reference's) the search starts from.
 _TURNS = tuple(range(-75, 91, 15))
+_SEARCH_SCALES = (0.7, 0.85, 1.0, 1.2, 1.45)
 # The search fits this many points of the inner face; this many distinct candidates (20 degrees or
 # 1 cm apart) take _FIRST_STEPS steps of ICP, and the best _REFINED of them run to convergence.
-_PROBE_POINTS = 200
+_PROBE_POINTS = 120
 _TRIED = 40
 _FIRST_STEPS = 6
 _REFINED = 6
@@ -109,8 +114,13 @@ _SCORE_CAP_M = 0.015
 _MAX_TURN = 0.1
 # Neighbours of a user sample that give its normal.
 _NORMAL_NEIGHBOURS = 12
-# The coarse search and _overlap look at every this-many user samples.
+# The principal axes, the front anchors and _overlap look at every this-many user samples.
 _COARSE_STRIDE = 4
+# The distance field of the user's surface (see _Surface): voxels of this side (or larger, so that
+# the grid has at most _FIELD_MAX_VOXELS along a side), distances capped here.
+_FIELD_VOXEL_M = 0.003
+_FIELD_MAX_VOXELS = 160
+_FIELD_CAP_M = 0.025
 # Samples of each surface (area-weighted).
 _FACE_POINTS = 4000
 _USER_POINTS = 20000
@@ -351,13 +361,15 @@ def _front_anchors(points: np.ndarray, forward: np.ndarray) -> np.ndarray:
     return np.stack([middle, (tip.T @ points) / tip.sum(axis=0)[:, None]])
 
 
-def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray]:
-    """``(N, 3, 3)`` rotations and ``(N, 3)`` translations (face -> user) to start the search from.
+def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(N,)`` scales, ``(N, 3, 3)`` rotations and ``(N, 3)`` translations (face -> user) to start the
+    search from.
 
     The rotations map the face's principal axes onto the user's (the 24 ways), each also turned about
     the user's longest axis by :data:`_TURNS` (a head is longest from the crown to the neck, while
     its width and depth are alike, so its principal axes across may lie anywhere), plus the 24 of the
-    user file's own axes. Each is placed by the front anchors (:func:`_front_anchors`)."""
+    user file's own axes; each at the scales of :data:`_SEARCH_SCALES` (a face may be some way from
+    the reference's size) and placed by the front anchors (:func:`_front_anchors`) in both ways."""
     from scipy.spatial.transform import Rotation
 
     cube = _axis_rotations()
@@ -366,10 +378,13 @@ def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray]:
     aligned = u_axes @ cube @ _principal_frame(face.points).T
     rotations = np.concatenate([(spins[:, None] @ aligned[None]).reshape(-1, 3, 3), cube])
     forward, which = np.unique(rotations[:, :, 2].round(12), axis=0, return_inverse=True)
-    user_anchors = _front_anchors(user.coarse, forward)[:, which.reshape(-1)]  # (2, N, 3)
+    user_anchors = _front_anchors(user.coarse, forward)[:, which.reshape(-1)]  # (2, R, 3)
     face_anchors = _front_anchors(face.points, np.array([[0.0, 0.0, 1.0]]))[:, 0]  # (2, 3)
-    translations = user_anchors - np.einsum("nij,aj->ani", rotations, face_anchors)
-    return np.concatenate([rotations, rotations]), translations.reshape(-1, 3)
+    scales = np.asarray(_SEARCH_SCALES, np.float64)
+    # (S, 2, R, 3): scale x anchor x rotation
+    translations = user_anchors[None] - scales[:, None, None, None] * np.einsum("rij,aj->ari", rotations, face_anchors)[None]
+    count = translations.shape[1] * translations.shape[2]
+    return (np.repeat(scales, count), np.tile(rotations, (len(scales) * 2, 1, 1)), translations.reshape(-1, 3))
 
 
 def _umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, scale: bool) -> Pose:
@@ -394,19 +409,40 @@ def _compose(outer: Pose, inner: Pose) -> Pose:
 
 @dataclasses.dataclass(frozen=True)
 class _Surface:
-    """The user's surface as the fit sees it (metres): area-weighted samples, their KD-tree and
-    normals from each sample's neighbours (principal component of least variance; their sign is
-    arbitrary), which a scanner's noise does not scramble as it does a triangle's normal; and every
-    :data:`_COARSE_STRIDE`-th sample with its own KD-tree, for the coarse search."""
+    """The user's surface as the fit sees it (metres).
+
+    Attributes:
+        points: ``(P, 3)`` area-weighted samples.
+        tree: their KD-tree.
+        normals: ``(P, 3)`` normals from each sample's neighbours (the principal axis of least
+            variance; their sign is arbitrary), which a scanner's noise does not scramble as it does a
+            triangle's normal.
+        coarse: every :data:`_COARSE_STRIDE`-th sample (the principal axes, the front, the overlap).
+        field, origin, spacing: the distance to the nearest sample on a voxel grid (capped at
+            :data:`_FIELD_CAP_M`), read by :meth:`distance` to score thousands of candidate poses at
+            once; accurate to about a voxel.
+    """
 
     points: np.ndarray
     tree: Any
     normals: np.ndarray
     coarse: np.ndarray
-    coarse_tree: Any
+    field: np.ndarray
+    origin: np.ndarray
+    spacing: float
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """Distance (metres, at most :data:`_FIELD_CAP_M`) of each point to the surface, from the field."""
+        index = np.floor((points - self.origin) / self.spacing).astype(np.int64)
+        inside = np.all((index >= 0) & (index < self.field.shape), axis=-1)
+        out = np.full(points.shape[:-1], _FIELD_CAP_M)
+        i = index[inside]
+        out[inside] = self.field[i[:, 0], i[:, 1], i[:, 2]]
+        return out
 
 
 def _surface(vertices: np.ndarray, faces: np.ndarray) -> _Surface:
+    from scipy.ndimage import distance_transform_edt
     from scipy.spatial import cKDTree
 
     points, _ = _surface_samples(vertices, faces, _USER_POINTS, seed=0)
@@ -414,8 +450,13 @@ def _surface(vertices: np.ndarray, faces: np.ndarray) -> _Surface:
     near = points[tree.query(points, k=_NORMAL_NEIGHBOURS)[1]]
     near = near - near.mean(axis=1, keepdims=True)
     _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", near, near))
-    coarse = points[::_COARSE_STRIDE]
-    return _Surface(points, tree, vecs[:, :, 0], coarse, cKDTree(coarse))
+    origin = points.min(axis=0) - _FIELD_CAP_M
+    spacing = max(_FIELD_VOXEL_M, float(np.max(points.max(axis=0) + _FIELD_CAP_M - origin)) / _FIELD_MAX_VOXELS)
+    index = np.floor((points - origin) / spacing).astype(np.int64)
+    empty = np.ones(index.max(axis=0) + 1 + int(np.ceil(_FIELD_CAP_M / spacing)), bool)
+    empty[index[:, 0], index[:, 1], index[:, 2]] = False
+    field = np.minimum(distance_transform_edt(empty) * spacing, _FIELD_CAP_M)
+    return _Surface(points, tree, vecs[:, :, 0], points[::_COARSE_STRIDE], field, origin, spacing)
 
 
 def _icp(points: np.ndarray, weights: np.ndarray, user: _Surface, pose: Pose, iterations: int, scale: bool = False) -> Pose:
@@ -485,16 +526,22 @@ def _pose_score(face: _Face, user: _Surface, pose: Pose, core: slice = slice(Non
     return float(fit) + _overlap(face, user, pose)
 
 
-def _distinct(rotations: np.ndarray, translations: np.ndarray, order: np.ndarray, count: int) -> list[int]:
-    """The first ``count`` of ``order`` that differ pairwise by more than 20 degrees or 1 cm."""
+def _distinct(scales: np.ndarray, rotations: np.ndarray, translations: np.ndarray, order: np.ndarray,
+              count: int) -> list[int]:
+    """The first ``count`` of ``order`` that differ pairwise by more than 20 degrees, 1 cm or 10% of
+    scale."""
     chosen: list[int] = []
     for i in order:
-        # The angle between rotations A and B: cos = (trace(A^T B) - 1) / 2.
-        if all((np.einsum("ij,ij->", rotations[i], rotations[j]) - 1) / 2 < np.cos(np.radians(20.0))
-               or np.linalg.norm(translations[i] - translations[j]) > 0.01 for j in chosen):
-            chosen.append(int(i))
-            if len(chosen) == count:
-                break
+        if chosen:
+            # The angle between rotations A and B: cos = (trace(A^T B) - 1) / 2.
+            cos = (np.einsum("ij,kij->k", rotations[i], rotations[chosen]) - 1) / 2
+            near = ((cos >= np.cos(np.radians(20.0))) & (np.linalg.norm(translations[chosen] - translations[i], axis=1) <= 0.01)
+                    & (np.abs(np.log(scales[chosen] / scales[i])) <= 0.1))
+            if near.any():
+                continue
+        chosen.append(int(i))
+        if len(chosen) == count:
+            break
     return chosen
 
 
@@ -505,14 +552,13 @@ def _fit(face: _Face, user: _Surface) -> Pose:
     best :data:`_TRIED` distinct ones take a few steps of rigid ICP (a start a little off may look
     worse than a wrong one until it has moved), the best :data:`_REFINED` of those by
     :func:`_pose_score` run to convergence, and the best of them is refined with the scale free."""
-    rotations, translations = _candidates(face, user)
+    scales, rotations, translations = _candidates(face, user)
     probe = slice(None, None, max(1, len(face.core) // _PROBE_POINTS))
     points, weights = face.core[probe], face.weights[probe]
-    moved = np.einsum("rij,pj->rpi", rotations, points) + translations[:, None]
-    dist = user.coarse_tree.query(moved.reshape(-1, 3), distance_upper_bound=_SCORE_CAP_M)[0]  # farther: inf, capped
-    score = _fit_score(dist.reshape(len(rotations), -1), weights)
-    tried = [_icp(points, weights, user, (1.0, rotations[i], translations[i]), _FIRST_STEPS)
-             for i in _distinct(rotations, translations, np.argsort(score), _TRIED)]
+    moved = scales[:, None, None] * np.einsum("rij,pj->rpi", rotations, points) + translations[:, None]
+    score = _fit_score(user.distance(moved) / scales[:, None], weights)
+    tried = [_icp(points, weights, user, (scales[i], rotations[i], translations[i]), _FIRST_STEPS)
+             for i in _distinct(scales, rotations, translations, np.argsort(score), _TRIED)]
     tried.sort(key=lambda pose: _pose_score(face, user, pose, probe))
     refined = [_icp(points, weights, user, pose, 30) for pose in tried[:_REFINED]]
     best = min(refined, key=lambda pose: _pose_score(face, user, pose, probe))
@@ -580,7 +626,8 @@ def canonicalize(
         # The landmarks say where the features are; a surface fit of another face would pull them off.
         s, rot, trans = _umeyama(lm * unit, tl, np.ones(len(tl)), scale=True)  # user (m) -> template (m)
         residual = float(np.linalg.norm(s * lm * unit @ rot.T + trans - tl, axis=1).mean())
-        return _checked(Canonicalization(units, unit * s, rot, trans, residual, "landmarks", "landmarks"), None)
+        canon = Canonicalization(units, unit * s, rot, trans, residual, "landmarks", "landmarks")
+        return _checked(canon, None, canon.fitted_scale)
     user = _surface(v * unit, f)
     references = [("template", _face(np.asarray(template_vertices, np.float64), np.asarray(template_faces, np.int64)),
                    (1.0, np.eye(3), np.zeros(3)))]
@@ -596,22 +643,24 @@ def canonicalize(
         distances = _distances(face.core, user, pose)
         fit = float(_fit_score(distances, face.weights))
         if best is None or fit < best[0]:
-            best = (fit, name, _compose(pose, to_reference), float(distances.mean()) / to_reference[0])
-    fit, name, (s, rot, trans), residual = best  # template (m) -> user (m)
+            best = (fit, name, _compose(pose, to_reference), float(distances.mean()) / to_reference[0], 1 / pose[0])
+    fit, name, (s, rot, trans), residual, reference_scale = best  # template (m) -> user (m)
     canon = Canonicalization(units=units, scale=unit / s, rotation=rot.T, translation=-(rot.T @ trans) / s,
                              residual=residual, method="icp", reference=name)
-    return _checked(canon, fit)
+    return _checked(canon, fit, reference_scale)
 
 
-def _checked(canon: Canonicalization, fit: float | None) -> Canonicalization:
+def _checked(canon: Canonicalization, fit: float | None, scale: float) -> Canonicalization:
     """``canon``, or the error that says why it cannot be a face's alignment (``fit``: the reference's
-    :func:`_fit_score`, None with landmarks)."""
+    :func:`_fit_score`, None with landmarks; ``scale``: the similarity scale that fits the reference,
+    or the landmarks, to the mesh, which ICP keeps within :data:`_SCALE_RANGE`: at its bounds the fit
+    wanted more). The scale onto the template must lie in the range too."""
     if fit is not None and fit > _MAX_FIT_M:
         raise ValueError(f"the mesh does not look like a face: after the best alignment a face's nose, eyes, mouth "
                          f"and chin lie {fit * 1000:.1f} mm from its surface on average (a face fits within "
                          f"{_MAX_FIT_M * 1000:.0f} mm); pass its 68 landmarks to guide the alignment")
     lo_s, hi_s = _SCALE_RANGE
-    if not (lo_s * 1.01 <= canon.fitted_scale <= hi_s * 0.99):
+    if not (lo_s * 1.001 < scale < hi_s * 0.999 and lo_s <= canon.fitted_scale <= hi_s):
         raise ValueError(f"aligning the template face to the mesh needs a scale of {canon.fitted_scale:.2f} "
                          f"(at or beyond {lo_s}-{hi_s}): in {canon.units} this is not a human face at real size; "
                          "check the units")
