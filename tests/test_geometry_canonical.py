@@ -71,6 +71,28 @@ def test_a_bfm_mask_in_micrometres_aligns(template):
     assert canon.units == "um" and error_mm.max() < MAX_ERROR_MM["bfm_mask"]
 
 
+@pytest.mark.parametrize("factor", [0.7, 1.4])
+def test_a_face_of_another_size_aligns_at_the_scale_that_fits_its_features(factor, template):
+    """MediaPipe's face made smaller or larger (an artist's stylised head): the scale found is the one
+    that fits its semantic points to the template's (within 4%), and they land as well as at real size."""
+    shape = fs.mediapipe_face()
+    sized = fs.Shape(shape.name, shape.vertices * factor, shape.faces, shape.points * factor)
+    canon, error_mm = _align(sized, "cm", 50, template)
+    expected, _, _ = cn._umeyama(sized.points, template[3], np.ones(len(sized.points)), scale=True)
+    assert abs(canon.fitted_scale / expected - 1) < 0.04, (canon.fitted_scale, expected)
+    assert error_mm.max() < MAX_ERROR_MM["mediapipe"]
+
+
+@pytest.mark.parametrize("factor", [0.55, 1.8])
+def test_a_face_far_from_real_size_is_refused(factor, template):
+    """Past the scales a human face at real size may need (0.6-1.6 x the template's), in the units
+    given: the error says so."""
+    tv, tf, landmarks, _ = template
+    shape = fs.mediapipe_face()
+    with pytest.raises(ValueError, match="not a human face at real size"):
+        canonicalize(shape.vertices * factor, shape.faces, tv, tf, units="m", template_landmarks=landmarks)
+
+
 def test_the_alignment_does_not_depend_on_the_pose(template):
     """The same head in three random poses lands in the same place (its vertices within 0.5 mm)."""
     shape = fs.procedural_head()

@@ -85,7 +85,7 @@ _SCALE_RANGE = (0.6, 1.6)
 # Measured (experiments/canonical_alignment.py): faces 0.6-1.9 mm (MediaPipe's canonical face, FLAME's
 # template, menpo3d's head scan, masks cut from them, built-in heads, masks and noisy scans with
 # holes); a sphere, an ellipsoid, a box, a cylinder or a smooth half-ellipsoid mask of a face's size
-# 10.8-12.2 mm, a torus 7.3 mm.
+# 11.2-14.3 mm, a torus 6.1 mm.
 _MAX_FIT_M = 0.004
 # The inner face: an ellipse of these fractions of the face's half-width and of its half-height below
 # and above the centre of its bounding box (see _Face).
