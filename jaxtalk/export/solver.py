@@ -39,8 +39,8 @@ __all__ = ["Penalties", "SolveInfo", "symmetry_matrix", "solve_weights"]
 
 ArrayLike = Array | np.ndarray
 
-DEFAULT_TOL = 1e-6
-DEFAULT_MAX_ITER = 20_000
+DEFAULT_TOL = 1e-7
+DEFAULT_MAX_ITER = 3000
 
 
 @dataclasses.dataclass(frozen=True)
