@@ -25,7 +25,7 @@ from jaxtalk.types import Float
 __all__ = ["live_link_timecode", "arkit_weights", "write_live_link_csv", "write_weights_json", "read_live_link_csv"]
 
 
-def live_link_timecode(frame: int, fps: float) -> str:
+def live_link_timecode(frame: int, fps: float | int) -> str:
     """``HH:MM:SS:FF.fff`` of frame ``frame`` (from 0) at ``fps``: ``live_link_timecode(26, 25)`` is
     ``00:00:01:01.000``."""
     if frame < 0 or not (math.isfinite(fps) and fps > 0):
@@ -55,7 +55,7 @@ def arkit_weights(names: tuple[str, ...] | list[str], weights: Float[np.ndarray,
 
 
 def write_live_link_csv(path: str | Path, names: tuple[str, ...] | list[str], weights: Float[np.ndarray, "frames k"],
-                        head_angles: Float[np.ndarray, "frames 3"] | None, fps: float) -> Path:
+                        head_angles: Float[np.ndarray, "frames 3"] | None, fps: float | int) -> Path:
     """Write a Live Link Face recording (module docstring), atomically.
 
     Args:
@@ -110,7 +110,7 @@ def read_live_link_csv(path: str | Path) -> tuple[list[str], Float[np.ndarray, "
 
 
 def write_weights_json(path: str | Path, *, names: tuple[str, ...] | list[str], weights: Float[np.ndarray, "frames k"],
-                       head_angles: Float[np.ndarray, "frames 3"] | None, fps: float, extra: dict | None = None) -> Path:
+                       head_angles: Float[np.ndarray, "frames 3"] | None, fps: float | int, extra: dict | None = None) -> Path:
     """Write the weights as JSON: ``fps``, ``frames``, ``names`` (the rig's), ``arkit`` (each name's ARKit
     name or null), ``weights`` (``T`` lists of ``K``), ``head`` (``yaw``/``pitch``/``roll`` lists, radians,
     and their convention), plus ``extra``. Atomically.

@@ -154,7 +154,7 @@ def _rhs(bs, disp):
 def _params_displacements(face: LinearFaceModel, params):
     # The head's rotation is reported, not fitted: the neck is posed at rest.
     still = params.at[:, PARAM_DIM - 3:].set(0.0)
-    return face.vertices_seq(still) - jnp.asarray(face.template, still.dtype)
+    return face.vertices_seq(still) - jnp.asarray(face.template, still.dtype)[None]
 
 
 class Retargeter:
@@ -312,8 +312,9 @@ class Retargeter:
         r = self.registration.rotation
         return np.einsum("ji,tjk,kl->til", r, np.asarray(head_rotation, np.float64), r)
 
-    def displacements(self, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(displacements (T, Vs, 3) template metres with the head's rotation removed, rotations (T, 3, 3))``.
+    def displacements(self, motion: Any) -> tuple[Any, Float[np.ndarray, "frames 3 3"]]:
+        """``(displacements (T, Vs, 3) template metres with the head's rotation removed (a JAX array for
+        parameters, NumPy for vertices), rotations (T, 3, 3))``.
 
         Raises:
             ValueError: a wrong shape, NaN or inf.

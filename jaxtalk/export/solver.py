@@ -118,20 +118,20 @@ def _solve(gram, sym, rhs, previous, anchored, lam, lower, upper, tol, max_iter)
     s = jax.lax.rsqrt(jnp.maximum(jnp.diag(h), jnp.finfo(dtype).tiny))
     hs = s[:, None] * h * s[None, :]
     lipschitz = jnp.linalg.eigvalsh(hs)[-1] + 4.0 * smooth * jnp.max(s * s)
-    c = (rhs - l1) * s  # the linear term in scaled variables
+    c = (rhs - l1) * s[None, :]  # the linear term in scaled variables
     lo = jnp.broadcast_to(lower / s, rhs.shape)
     hi = jnp.broadcast_to(upper / s, rhs.shape)
     anchor = anchored.astype(dtype) * jnp.zeros_like(rhs).at[0].set(1.0)
 
     def grad(u):
-        w = u * s
-        return u @ hs - c + smooth * s * (_chain_laplacian(w) + anchor * (w - previous))
+        w = u * s[None, :]
+        return u @ hs - c + smooth * s[None, :] * (_chain_laplacian(w) + anchor * (w - previous[None, :]))
 
     # Start from the frames' unconstrained solutions, clipped (a pseudo-inverse: a rig may have shapes
     # that the fitted vertices cannot tell apart).
     evals, evecs = jnp.linalg.eigh(hs)
     inv = jnp.where(evals > 1e-6 * evals[-1], 1.0 / jnp.where(evals > 0, evals, 1.0), 0.0)
-    x0 = jnp.clip(((c @ evecs) * inv) @ evecs.T, lo, hi)
+    x0 = jnp.clip(((c @ evecs) * inv[None, :]) @ evecs.T, lo, hi)
 
     def body(state: _State) -> _State:
         g = grad(state.y)
@@ -141,7 +141,7 @@ def _solve(gram, sym, rhs, previous, anchored, lam, lower, upper, tol, max_iter)
         restart = jnp.sum((state.y - x) * (x - state.x)) > 0
         y = jnp.where(restart, x, x + ((state.t - 1.0) / t) * (x - state.x))
         t = jnp.where(restart, jnp.ones_like(t), t)
-        step = jnp.max(jnp.abs((x - state.y) * s))
+        step = jnp.max(jnp.abs((x - state.y) * s[None, :]))
         return _State(x, y, t, state.it + 1, step)
 
     def cond(state: _State):
@@ -149,22 +149,24 @@ def _solve(gram, sym, rhs, previous, anchored, lam, lower, upper, tol, max_iter)
 
     one = jnp.ones((), dtype)
     state = jax.lax.while_loop(cond, body, _State(x0, x0, one, jnp.zeros((), jnp.int32), jnp.full((), jnp.inf, dtype)))
-    return state.x * s, SolveInfo(state.it, state.step)
+    return state.x * s[None, :], SolveInfo(state.it, state.step)
 
 
 def solve_weights(
-    gram: Float[ArrayLike, "k k"],
-    rhs: Float[ArrayLike, "frames k"],
+    gram: Float[ArrayLike, "..."],
+    rhs: Float[ArrayLike, "..."],
     penalties: Penalties = Penalties(),
     *,
-    symmetry: Float[ArrayLike, "k k"] | None = None,
-    previous: Float[ArrayLike, " k"] | None = None,
-    lower: float | Float[ArrayLike, " k"] = 0.0,
-    upper: float | Float[ArrayLike, " k"] = 1.0,
+    symmetry: Float[ArrayLike, "..."] | None = None,
+    previous: Float[ArrayLike, "..."] | None = None,
+    lower: float | Float[ArrayLike, "..."] = 0.0,
+    upper: float | Float[ArrayLike, "..."] = 1.0,
     tol: float = DEFAULT_TOL,
     max_iter: int = DEFAULT_MAX_ITER,
 ) -> tuple[Float[Array, "frames k"], SolveInfo]:
     """Box-constrained weights of every frame at once (module docstring), jitted.
+
+    Inputs are annotated loosely, so that a wrong shape reaches the ValueError that names it.
 
     Args:
         gram: ``B^T B``, symmetric positive semi-definite (positive definite once ``l2`` or the fitted
