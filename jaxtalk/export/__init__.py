@@ -5,7 +5,10 @@
 * :func:`export_vertex_sequence`: any vertex sequence as a compact principal-component morph basis
   within a stated error;
 * :func:`write_audio_beside`: the audio next to a ``.glb`` (glTF has none);
-* :class:`GlbAnimation`: read a ``.glb`` back and pose its mesh as a glTF player does.
+* :class:`GlbAnimation`: read a ``.glb`` back and pose its mesh as a glTF player does;
+* :func:`face_model_weights` / :func:`face_model_rotations`: pose a face model's ``.glb`` live;
+* :mod:`jaxtalk.export.arkit`, :mod:`jaxtalk.export.livelink`: ARKit's shape names, Live Link Face's
+  curves and its UDP packets.
 
 ``jaxtalk export`` and ``jaxtalk view`` (:mod:`jaxtalk.viewer`) wrap them.
 """
@@ -15,6 +18,9 @@ from jaxtalk.export.gltf import (
     ExportSummary,
     export_face_model,
     export_vertex_sequence,
+    face_model_rotations,
+    face_model_targets,
+    face_model_weights,
     one_sided_targets,
     vertex_basis,
     audio_path_for,
@@ -23,4 +29,5 @@ from jaxtalk.export.gltf import (
 from jaxtalk.export.playback import GlbAnimation
 
 __all__ = ["DEFAULT_MAX_ERROR", "ExportSummary", "GlbAnimation", "export_face_model", "export_vertex_sequence",
-           "one_sided_targets", "vertex_basis", "write_audio_beside", "audio_path_for"]
+           "one_sided_targets", "vertex_basis", "write_audio_beside", "audio_path_for", "face_model_rotations",
+           "face_model_targets", "face_model_weights"]
