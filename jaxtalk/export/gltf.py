@@ -38,6 +38,7 @@ import numpy as np
 import pygltflib
 from scipy.spatial.transform import Rotation
 
+from jaxtalk.checks import check_finite
 from jaxtalk.face.model import LinearFaceModel
 from jaxtalk.files import atomic_output, check_output_path
 from jaxtalk.types import MOTION_FPS, Float, Int
@@ -330,7 +331,9 @@ def face_model_weights(
         ValueError: wrong shape or NaN/inf in ``params``; scales of the wrong length or with a zero.
     """
     params = np.asarray(params, np.float32)
-    face.joint_transforms(params)  # checks the shape and finiteness
+    if params.ndim != 2 or params.shape[1] != 56:
+        raise ValueError(f"params must have shape (T, 56) = [exp 50 | jaw 3 | neck 3], got {params.shape}")
+    check_finite(params, "params")
     weights = _component_weights(face, params)
     k2 = 2 * weights.shape[1]
     scales = np.tile([1.0, -1.0], k2 // 2) if scales is None else np.asarray(scales, np.float64)
