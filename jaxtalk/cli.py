@@ -532,6 +532,34 @@ def view(
         server.close()
 
 
+@app.command()
+@_user_errors
+def serve(
+    run: Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk).")],
+    host: Annotated[str, typer.Option(help="Interface to listen on (127.0.0.1: this machine only).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port (0: any free one).")] = 8765,
+    style: _STYLE = None, cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, best: _BEST = False,
+    max_clients: Annotated[int, typer.Option(help="Clients served at once; one more is told the server is busy.")] = 8,
+    max_chunk_s: Annotated[float, typer.Option(help="Longest audio message a client may send, in seconds.")] = 1.0,
+    live_link: Annotated[str | None, typer.Option(help="Send every client's ARKit curves as Live Link Face UDP packets "
+                                                       "to HOST:PORT (or PORT on 127.0.0.1; Unreal listens on 11111).")] = None,
+    allow_origin: Annotated[list[str] | None, typer.Option(help="A web page origin allowed to connect besides this "
+                                                                 "machine's own (http://localhost:*); repeatable.")] = None,
+) -> None:
+    """Animate live speech over WebSocket: clients send 16-kHz PCM, each chunk's frames come back (params, glTF
+    morph weights or ARKit weights) with their timestamps and the compute time (protocol: docs/serve.md)."""
+    from jaxtalk.commands.serving import ServeCommandOptions, serve_run
+
+    running = serve_run(ServeCommandOptions(run_dir=run, host=host, port=port, style=style, cfg_scale=cfg_scale,
+                                            sample_steps=sample_steps, best=best, max_clients=max_clients,
+                                            max_chunk_s=max_chunk_s, live_link=live_link,
+                                            origins=tuple(allow_origin or ())), echo=typer.echo)
+    try:
+        running.thread.join()
+    except KeyboardInterrupt:
+        running.close()
+
+
 convert_app = typer.Typer(help="Convert another implementation's checkpoint into a jaxtalk run.", no_args_is_help=True)
 app.add_typer(convert_app, name="convert")
 

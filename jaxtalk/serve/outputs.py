@@ -21,7 +21,7 @@ import functools
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -35,6 +35,7 @@ class OutputUnavailable(ValueError):
     """An output this build of the server cannot produce (said in the hello reply)."""
 
 
+@runtime_checkable
 class Output(Protocol):
     """A converter from head parameters to one output (module docstring)."""
 

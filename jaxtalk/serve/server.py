@@ -6,9 +6,9 @@ runs on one worker thread (the device), so device calls never overlap, while the
 socket moving: a client's messages are handled one at a time, in order, and its next message is read
 only once the previous one is computed, so a client that sends faster than the model runs is slowed
 by TCP (websockets buffers at most ``max_queue`` messages), not by growing memory. Replies go through a
-bounded outbox per client: a client that does not read its replies has the oldest ``frames`` message
-dropped when the outbox is full (each later reply's ``dropped`` counts them), and never holds up
-another client.
+bounded outbox per client, behind a fixed kernel send buffer: a client that does not read its replies
+has the oldest ``frames`` message dropped when the outbox is full (each later reply's ``dropped`` counts
+them), and never holds up another client.
 
 The server binds 127.0.0.1 unless told otherwise, and refuses WebSocket handshakes whose ``Origin`` is a
 web page on another host (a browser page on any site could otherwise open ``ws://127.0.0.1``).
@@ -60,6 +60,9 @@ class ServeOptions:
         max_chunk_s: the longest audio message, in seconds (longer ones get ``too_large``).
         outbox: replies queued per client before the oldest ``frames`` reply is dropped.
         max_queue: incoming messages websockets buffers per client before it stops reading the socket.
+        send_buffer: the kernel's send buffer per client, bytes (fixed, not auto-tuned: a client that
+            reads slowly then sees at most this much of stale frames before its outbox starts dropping,
+            instead of the megabytes Linux would otherwise let queue up).
         live_link: ``(host, port)`` to send every client's ARKit curves to as Live Link Face packets
             (needs the ``arkit`` output), or None.
         origins: web page origins allowed besides this machine's own (``http://localhost:*``...).
@@ -71,6 +74,7 @@ class ServeOptions:
     max_chunk_s: float = 1.0
     outbox: int = 8
     max_queue: int = 4
+    send_buffer: int = 64 * 1024
     live_link: tuple[str, int] | None = None
     origins: tuple[str, ...] = ()
 
@@ -151,6 +155,7 @@ class LiveServer:
         self._count = 0
         self._device = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxtalk-serve-device")
         self.port: int | None = None
+        self.address: tuple[str, int] | None = None  # the bound socket's (host, port)
         self.warmed_s: float | None = None  # what warm_up took, when it ran
         self.started = time.monotonic()
         self.max_chunk_samples = max(1, round(options.max_chunk_s * model.sample_rate))
@@ -164,15 +169,25 @@ class LiveServer:
         stream = self.model.open(self._key(0))
         frames = [stream.push(np.zeros(self.model.chunk_samples + self.model.lookahead_samples, np.float32)),
                   stream.finish()]
-        for name in self.registry:
-            try:
-                out = build_outputs((name,), self._converters, self.registry)[name]
-            except OutputUnavailable:
+        for name, reason in self.output_status().items():
+            if reason is not None:
                 continue
+            out = self._converters[name]
             state = out.start()
             for chunk in frames:
                 state, _ = out.convert(state, chunk)
         return time.perf_counter() - started
+
+    def output_status(self) -> dict[str, str | None]:
+        """Each output's name -> None when this server can produce it, else why not."""
+        status = {}
+        for name in self.registry:
+            try:
+                build_outputs((name,), self._converters, self.registry)
+                status[name] = None
+            except OutputUnavailable as err:
+                status[name] = str(err)
+        return status
 
     # ------------------------------------------------------------------ running
 
@@ -187,7 +202,8 @@ class LiveServer:
         async with serve(self._connection, self.options.host, self.options.port, origins=origins,
                          process_request=self._http, compression=None, max_size=max_size,
                          max_queue=self.options.max_queue, ping_interval=20, ping_timeout=20) as server:
-            self.port = next(iter(server.sockets)).getsockname()[1]
+            self.address = next(iter(server.sockets)).getsockname()[:2]
+            self.port = self.address[1]
             if ready is not None:
                 ready(self)
             await (stop.wait() if isinstance(stop, asyncio.Event) else stop)
@@ -221,6 +237,11 @@ class LiveServer:
                                                            "once; try again later")))
             await ws.close(1013, "busy")
             return
+        import socket
+
+        raw = ws.transport.get_extra_info("socket")
+        if raw is not None:
+            raw.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.options.send_buffer)
         self._count += 1
         client = _Client(self._count, self.options.outbox)
         self.clients[client.number] = client
