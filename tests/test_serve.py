@@ -213,14 +213,15 @@ def test_a_client_that_never_reads_holds_up_nobody_and_loses_only_its_oldest_rep
 
 
 def test_a_client_gone_mid_stream_leaves_no_state_and_the_server_keeps_serving(server, speech):
-    ws = client(server.url)
-    hello(ws, ("params",))
-    ws.send(pcm(speech[1][:8000]))
-    assert json.loads(ws.recv(timeout=30))["type"] == "frames"
-    (gone,) = [c for c in server.server.clients.values()]
-    stream = weakref.ref(gone.stream)
-    ws.send(pcm(speech[1][8000:16000]))
-    ws.socket.close()  # no closing handshake: the network just went away
+    with client(server.url) as ws:
+        hello(ws, ("params",))
+        ws.send(pcm(speech[1][:8000]))
+        assert json.loads(ws.recv(timeout=30))["type"] == "frames"
+        (gone,) = list(server.server.clients.values())
+        stream = weakref.ref(gone.stream)
+        del gone
+        ws.send(pcm(speech[1][8000:16000]))
+        ws.socket.shutdown(socket.SHUT_RDWR)  # no closing handshake: the network just went away
     deadline = time.monotonic() + 30
     while (server.server.clients or stream() is not None) and time.monotonic() < deadline:
         time.sleep(0.05)
