@@ -169,7 +169,7 @@ class LiveStream:
             raise ValueError("this run was trained on the data's own token files and has no tokenizer for audio: "
                              "push token embeddings (push_tokens)")
 
-    def push(self, audio: Float[np.ndarray, " samples"]) -> Float[np.ndarray, "frames param"]:
+    def push(self, audio: Float[np.ndarray, "..."]) -> Float[np.ndarray, "frames param"]:
         """Add mono audio at :attr:`LiveModel.sample_rate`; returns the ``(n * chunk_frames, 56)`` frames it
         completes (possibly none).
 
@@ -180,7 +180,7 @@ class LiveStream:
         _, tokens = self._tokens.push(audio)
         return self._generate(tokens)
 
-    def push_tokens(self, tokens: Float[np.ndarray, "tokens width"]) -> Float[np.ndarray, "frames param"]:
+    def push_tokens(self, tokens: Float[np.ndarray, "..."]) -> Float[np.ndarray, "frames param"]:
         """Add ``(n, speech_dim)`` token embeddings at the model's token rate; returns the frames of every
         chunk they complete.
 
