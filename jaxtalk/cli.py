@@ -513,23 +513,37 @@ def export(
 @app.command()
 @_user_errors
 def view(
-    folder: Annotated[Path, typer.Argument(help="Folder of exported .glb files (and the NAME.glb.wav beside each).")],
+    folder: Annotated[Path | None, typer.Argument(help="Folder of exported .glb files (and the NAME.glb.wav beside "
+                                                       "each); not with --live.")] = None,
     port: Annotated[int, typer.Option(help="Port on 127.0.0.1 (0: any free one).")] = 8000,
     open_browser: Annotated[bool, typer.Option("--open", help="Open the page in the default browser.")] = False,
+    live: Annotated[bool, typer.Option("--live", help="Stream the microphone (or a file) to `jaxtalk serve` and drive "
+                                                      "the face with its frames, showing the latency.")] = False,
+    server: Annotated[str, typer.Option(help="With --live: the `jaxtalk serve` to stream to.")] = "ws://127.0.0.1:8765",
 ) -> None:
-    """Play exported animations in sync with their audio on a local web page (three.js, installed by npm)."""
-    from jaxtalk.viewer import start_server
+    """Play exported animations in sync with their audio on a local web page (three.js, installed by npm), or
+    with --live animate the face from the microphone through a running `jaxtalk serve`."""
+    from jaxtalk.viewer import start_live_server, start_server
 
-    server = start_server(folder, port=port)
-    typer.echo(f"jaxtalk view: {server.url} (Ctrl-C stops)")
+    if live:
+        if folder is not None:
+            raise ValueError("--live streams to a server and plays no folder: drop FOLDER, or drop --live")
+        viewer = start_live_server(server, port=port)
+        typer.echo(f"jaxtalk view --live: {viewer.url} streams to {server} (start it with `jaxtalk serve RUN`; "
+                   "Ctrl-C stops)")
+    else:
+        if folder is None:
+            raise ValueError("name a FOLDER of exported .glb files to play, or pass --live to stream to `jaxtalk serve`")
+        viewer = start_server(folder, port=port)
+        typer.echo(f"jaxtalk view: {viewer.url} (Ctrl-C stops)")
     if open_browser:
         import webbrowser
 
-        webbrowser.open(server.url)
+        webbrowser.open(viewer.url)
     try:
-        server.thread.join()
+        viewer.thread.join()
     except KeyboardInterrupt:
-        server.close()
+        viewer.close()
 
 
 @app.command()
