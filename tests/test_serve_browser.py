@@ -27,7 +27,7 @@ from jaxtalk.viewer import start_live_server
 pytestmark = [pytest.mark.external, pytest.mark.slow]
 
 SIZE = 320
-STREAM_S = 6  # wall seconds the page streams for
+STREAM_S = 4  # wall seconds the page streams for
 
 
 class EnvelopeStream:

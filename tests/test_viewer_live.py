@@ -19,7 +19,7 @@ def test_the_live_page_its_worklet_and_the_servers_address_are_served_and_nothin
     try:
         status, _, body = get(viewer.url)
         assert status == 200 and body == (WEB_DIR / "live.html").read_bytes() and b'src="/live.js"' in body
-        for name in ("live.js", "capture.js"):
+        for name in ("live.js", "capture.js", "stage.js"):
             status, headers, body = get(viewer.url + name)
             assert status == 200 and headers["Content-Type"] == "text/javascript" and body == (WEB_DIR / name).read_bytes()
         assert json.loads(get(viewer.url + "live.json")[2]) == {"server": "ws://127.0.0.1:9999"}
@@ -35,7 +35,7 @@ def test_the_live_pages_module_and_worklet_are_packaged():
     from pathlib import Path
 
     text = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
-    for name in ("live.html", "live.js", "capture.js"):
+    for name in ("live.html", "live.js", "capture.js", "stage.js", "viewer.css"):
         assert f'"web/{name}"' in text
 
 

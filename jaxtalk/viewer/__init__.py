@@ -40,9 +40,11 @@ __all__ = ["ViewerError", "ViewerServer", "WEB_DIR", "clips", "install_web_depen
 
 WEB_DIR = Path(__file__).with_name("web")
 DEFAULT_CACHE = Path.home() / ".cache" / "jaxtalk" / "viewer"
-_PAGE_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js"}
-_LIVE_FILES = {"/": "live.html", "/index.html": "live.html", "/live.js": "live.js", "/capture.js": "capture.js"}
-_TYPES = {".js": "text/javascript", ".html": "text/html; charset=utf-8", ".glb": "model/gltf-binary",
+_SHARED_FILES = {"/stage.js": "stage.js", "/viewer.css": "viewer.css"}
+_PAGE_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js", **_SHARED_FILES}
+_LIVE_FILES = {"/": "live.html", "/index.html": "live.html", "/live.js": "live.js", "/capture.js": "capture.js",
+               **_SHARED_FILES}
+_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html; charset=utf-8", ".glb": "model/gltf-binary",
           ".wav": "audio/wav", ".json": "application/json"}
 
 

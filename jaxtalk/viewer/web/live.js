@@ -13,9 +13,8 @@
 // Query: ?server=ws://HOST:PORT (default: the one `jaxtalk view --live --server` names), ?source=mic
 // (start the microphone at once), ?send_ms=40. `window.jaxtalkLive` exposes the state, per-chunk latencies
 // and the drawn frames (what the browser test reads).
-import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
-import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { stage } from "/stage.js";
 
 const RATE = 16000;
 const KEEP_FRAMES = 3000; // drawn frames kept for inspection (two minutes at 25 fps)
@@ -43,17 +42,6 @@ window.jaxtalkLive = live;
 const fail = (message) => { live.errors.push(String(message)); live.state = "error"; statusLine.textContent = `error: ${message}`; };
 
 // ------------------------------------------------------------------ the face
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-renderer.setPixelRatio(window.devicePixelRatio);
-renderer.setSize(window.innerWidth, window.innerHeight);
-document.getElementById("scene").appendChild(renderer.domElement);
-const scene = new THREE.Scene();
-scene.background = new THREE.Color(0x202428);
-scene.add(new THREE.HemisphereLight(0xffffff, 0x404050, 1.6));
-const key = new THREE.DirectionalLight(0xffffff, 2.0);
-key.position.set(0.4, 0.6, 1.0);
-scene.add(key);
-
 let gltf;
 try {
   gltf = await new GLTFLoader().loadAsync(serverUrl.replace(/^ws/, "http") + "/face.glb");
@@ -61,23 +49,10 @@ try {
   fail(`cannot load the face from ${serverUrl}: is \`jaxtalk serve\` running there? (${e.message ?? e})`);
   throw e;
 }
-scene.add(gltf.scene);
+const { renderer, draw } = stage(document.getElementById("scene"), gltf.scene);
 let mesh = null;
 gltf.scene.traverse((o) => { if (o.morphTargetDictionary && !mesh) mesh = o; });
 const joints = { jaw: gltf.scene.getObjectByName("jaw"), neck: gltf.scene.getObjectByName("neck") };
-const box = new THREE.Box3().setFromObject(gltf.scene);
-const centre = box.getCenter(new THREE.Vector3());
-const size = box.getSize(new THREE.Vector3());
-const camera = new THREE.PerspectiveCamera(30, window.innerWidth / window.innerHeight, 0.01, 100);
-camera.position.set(centre.x, centre.y, box.max.z + 1.3 * Math.max(size.x, size.y) / (2 * Math.tan(THREE.MathUtils.degToRad(15))));
-camera.lookAt(centre);
-const controls = new OrbitControls(camera, renderer.domElement);
-controls.target.copy(centre);
-window.addEventListener("resize", () => {
-  camera.aspect = window.innerWidth / window.innerHeight;
-  camera.updateProjectionMatrix();
-  renderer.setSize(window.innerWidth, window.innerHeight);
-});
 
 // Channel layout of the morph output, from the server's ready message.
 let targets = null; // [channel index, morph target index] pairs
@@ -236,8 +211,7 @@ renderer.setAnimationLoop(() => {
     if (show.first) firsts.push(show);
   }
   if (show) apply(show.values);
-  controls.update();
-  renderer.render(scene, camera);
+  draw();
   if (!show) return;
   const drawn = performance.now();
   for (const f of firsts) {
