@@ -147,5 +147,5 @@ def test_the_page_draws_the_models_frames_for_the_audio_it_captured_and_reports_
     (tmp_path / "latency.json").write_text(json.dumps({**summary, "per_chunk": chunks}, indent=1))
     with capsys.disabled():
         print(f"\nlive page latency (capture -> drawn), {len(chunks)} chunks: {json.dumps(summary)}")
-    assert len(chunks) >= 0.6 * STREAM_S / 0.16 and np.all(latency > 0)
+    assert len(chunks) >= 0.4 * STREAM_S / 0.16 and np.all(latency > 0)
     assert np.median(latency) < 500 and np.all(compute < latency)

@@ -368,7 +368,8 @@ class LiveServer:
         outputs = build_outputs(tuple(dict.fromkeys(wanted)), self._converters, self.registry)
         values = {}
         for name, out in outputs.items():
-            client.states[name], values[name] = out.convert(client.states.get(name, out.start()), frames)
+            state = client.states[name] if name in client.states else out.start()
+            client.states[name], values[name] = out.convert(state, frames)
         return values, time.perf_counter() - started, started
 
     def _pace(self, client: _Client, arkit: np.ndarray, frame0: int) -> None:
