@@ -512,6 +512,38 @@ def export(
 
 @app.command()
 @_user_errors
+def retarget(
+    motion: Annotated[Path, typer.Argument(help="Head parameters .npz (params or params56) or vertices .npy (FreeTalk's "
+                                                "output).")],
+    rig: Annotated[str, typer.Option(help="Blendshape rig: a .glb/.gltf with morph targets, a folder of OBJ shapes with "
+                                          "a neutral.obj, or 'builtin' (the built-in 52-shape ARKit rig).")] = "builtin",
+    out: Annotated[Path | None, typer.Option(help="Output .glb, replaced if it exists (default retarget.glb, which needs "
+                                                  "--overwrite to replace a file); OUT.csv (Live Link Face), OUT.json and "
+                                                  "the audio OUT.glb.wav go beside it.")] = None,
+    audio: Annotated[Path | None, typer.Option(help="Audio to write beside the .glb (default: the audio stored in the "
+                                                    ".npz).")] = None,
+    mesh: Annotated[Path | None, typer.Option(help="The mesh file (OBJ, PLY, GLB/GLTF) a vertex sequence was animated "
+                                                   "on, when it is neither a built-in face nor the rig's mesh.")] = None,
+    flame: Annotated[Path | None, typer.Option(help="FLAME 2020 model file the parameters are posed on.")] = None,
+    units: Annotated[str | None, typer.Option(help="Units of the rig or mesh file (m, cm, mm, um; default: from its "
+                                                   "size).")] = None,
+    fps: Annotated[float, typer.Option(help="Frame rate of a vertex sequence (an .npz states its own).")] = 25.0,
+    smoothness: Annotated[float, typer.Option(help="Temporal smoothness of the weights (0: frames independent).")] = 0.05,
+    l1: Annotated[float, typer.Option(help="L1 penalty (sparser weights).")] = 0.0,
+    l2: Annotated[float, typer.Option(help="L2 penalty.")] = 1e-4,
+    symmetry: Annotated[float, typer.Option(help="Tie of left/right shape pairs (found by name).")] = 0.0,
+    overwrite: _OVERWRITE = False,
+) -> None:
+    """Retarget motion onto a blendshape rig (ARKit names): an animated .glb, a Live Link Face CSV and JSON."""
+    from jaxtalk.commands.retargeting import RetargetOptions, retarget_file
+
+    retarget_file(RetargetOptions(motion=motion, rig=rig, out=out, audio=audio, mesh=mesh, flame=flame, units=units,
+                                  fps=fps, smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry, overwrite=overwrite),
+                  echo=typer.echo)
+
+
+@app.command()
+@_user_errors
 def view(
     folder: Annotated[Path | None, typer.Argument(help="Folder of exported .glb files (and the NAME.glb.wav beside "
                                                        "each); not with --live.")] = None,

@@ -67,6 +67,23 @@ def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, st
 
 
 @pytest.mark.slow
+def test_sample_animates_mediapipes_canonical_face_in_centimetres(ats_run, stm_run, files):
+    """The issue's command on MediaPipe's canonical face (468 vertices, cm, a real face mask): it
+    aligns (through MediaPipe's own face, at about the template's size) and animates in centimetres."""
+    from jaxtalk.geometry.canonical import MEDIAPIPE_FACE_FILE, load_mesh
+
+    out = files["root"] / "mediapipe.npy"
+    output = _ok(["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh", MEDIAPIPE_FACE_FILE, "--emotion",
+                  "happy", "--intensity", "2", "--out", out])
+    assert "468 vertices" in output and "units cm" in output
+    assert "aligned to the template by icp via MediaPipe's canonical face (scale 0.9" in output
+    vertices, _ = load_mesh(MEDIAPIPE_FACE_FILE)
+    verts = np.load(out)
+    assert verts.shape == (30, 468, 3) and np.isfinite(verts).all()
+    assert 0 < np.abs(verts - vertices).max() < 5.0  # centimetres: the face moves, by less than 5 cm
+
+
+@pytest.mark.slow
 def test_sample_onto_a_mesh_user_errors_are_one_line(ats_run, stm_run, files, tmp_path):
     base = ["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh"]
     _user_error([*base, files["ply"], "--emotion", "elated"], "--emotion elated: not an emotion of this run")

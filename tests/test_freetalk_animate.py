@@ -91,7 +91,7 @@ def test_canonicalize_recovers_a_rotated_shifted_face_in_millimetres(seed):
     np.testing.assert_allclose(c.displacements_to_user(d), c.to_user(back[:5] + d) - c.to_user(back[:5]), atol=1e-9)
 
 
-def test_canonicalize_with_landmarks_starts_from_their_procrustes_fit():
+def test_canonicalize_with_landmarks_is_the_similarity_that_fits_them():
     v, f = _face(0)
     lms = neutral_landmarks(builtin_face(0, resolution="low")).astype(np.float64)
     user, rotation, shift = _pose(v, 5, 100.0)  # centimetres

@@ -419,8 +419,9 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     t0 = time.perf_counter()
     mesh = prepare_user_mesh(stm, (vertices, faces), units=mesh_opts.units, landmarks=landmarks)
     c = mesh.canonical
+    via = " via MediaPipe's canonical face" if c.reference == "mediapipe" else ""
     echo(f"mesh {mesh_opts.mesh}: {vertices.shape[0]} vertices, {faces.shape[0]} faces, units {c.units}, aligned to "
-         f"the template by {c.method} (scale {c.fitted_scale:.3f}, mean distance {c.residual * 1000:.1f} mm) in "
+         f"the template by {c.method}{via} (scale {c.fitted_scale:.3f}, mean distance {c.residual * 1000:.1f} mm) in "
          f"{time.perf_counter() - t0:.1f} s")
     verts = animate(ats, stm, audio, mesh_opts.emotion, mesh_opts.intensity, mesh, key=jax.random.key(opts.seed),
                     sample_steps=opts.sample_steps)

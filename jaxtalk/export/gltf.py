@@ -46,8 +46,9 @@ from jaxtalk.types import MOTION_FPS, Float, Int
 # Inputs are annotated loosely ("..."), as in LinearFaceModel, so that a wrong shape reaches the explicit
 # ValueError that names the expected layout; outputs carry their exact shapes.
 
-__all__ = ["ExportSummary", "export_face_model", "export_vertex_sequence", "face_model_rotations", "face_model_targets",
-           "face_model_weights", "one_sided_targets", "vertex_basis", "write_audio_beside", "audio_path_for"]
+__all__ = ["ExportSummary", "export_face_model", "export_rig_animation", "export_vertex_sequence", "face_model_rotations",
+           "face_model_targets", "face_model_weights", "one_sided_targets", "vertex_basis", "write_audio_beside",
+           "audio_path_for"]
 
 # Default bound of the vertex-basis layout: 0.1 mm, far below what a renderer shows at face scale.
 DEFAULT_MAX_ERROR = 1e-4
@@ -176,6 +177,18 @@ def _mesh(writer: _GlbWriter, base: np.ndarray, faces: np.ndarray, targets: np.n
         The morph weights to animate, ``(T, 2K)`` in ``[0, 1]``.
     """
     sided_targets, sided_weights, scales = one_sided_targets(targets, weights)
+    # Blender, three.js and Babylon read morph target names from the mesh's extras.targetNames; the
+    # jaxtalk entry says how to turn the one-sided weights back into the components' own.
+    _write_mesh(writer, base, faces, sided_targets, [f"{n}{side}" for n in names for side in "+-"],
+                {"components": names, "targetComponent": np.repeat(np.arange(len(names)), 2).tolist(),
+                 "targetScale": scales.tolist()}, skin_attributes)
+    return sided_weights
+
+
+def _write_mesh(writer: _GlbWriter, base: np.ndarray, faces: np.ndarray, targets: np.ndarray, target_names: list[str],
+                jaxtalk_extras: dict | None, skin_attributes: dict[str, int] | None = None) -> None:
+    """The one mesh (index 0) and its material: base positions, normals, triangles, morph targets
+    ``(K, V, 3)`` named in ``extras.targetNames``."""
     index_type = np.uint16 if base.shape[0] <= np.iinfo(np.uint16).max else np.uint32
     attributes = pygltflib.Attributes(
         POSITION=writer.accessor(base.astype(np.float32), target=pygltflib.ARRAY_BUFFER, bounds=True),
@@ -186,18 +199,15 @@ def _mesh(writer: _GlbWriter, base: np.ndarray, faces: np.ndarray, targets: np.n
         indices=writer.accessor(faces.reshape(-1).astype(index_type), target=pygltflib.ELEMENT_ARRAY_BUFFER),
         material=0,
         targets=[pygltflib.Attributes(POSITION=writer.accessor(t.astype(np.float32), target=pygltflib.ARRAY_BUFFER,
-                                                               bounds=True)) for t in sided_targets])
-    # Blender, three.js and Babylon read morph target names from the mesh's extras.targetNames; the
-    # jaxtalk entry says how to turn the one-sided weights back into the components' own.
-    writer.gltf.meshes.append(pygltflib.Mesh(
-        name="face", primitives=[primitive], weights=[0.0] * len(sided_targets),
-        extras={"targetNames": [f"{n}{side}" for n in names for side in "+-"],
-                "jaxtalk": {"components": names, "targetComponent": np.repeat(np.arange(len(names)), 2).tolist(),
-                            "targetScale": scales.tolist()}}))
+                                                               bounds=True)) for t in targets])
+    extras: dict = {"targetNames": list(target_names)}
+    if jaxtalk_extras is not None:
+        extras["jaxtalk"] = jaxtalk_extras
+    writer.gltf.meshes.append(pygltflib.Mesh(name="face", primitives=[primitive], weights=[0.0] * len(targets),
+                                             extras=extras))
     writer.gltf.materials.append(pygltflib.Material(
         name="skin", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(baseColorFactor=_SKIN_RGBA, metallicFactor=0.0,
                                                                         roughnessFactor=0.7)))
-    return sided_weights
 
 
 def _channel(writer: _GlbWriter, animation: pygltflib.Animation, times: int, node: int, path: str,
@@ -428,6 +438,64 @@ def export_face_model(
     writer.save(out)
     return ExportSummary(out, "face model", frames, fps, face.num_vertices, int(np.shape(face.faces)[0]),
                          morph_weights.shape[1], num_joints, len(gltf.nodes), len(animation.channels))
+
+
+def export_rig_animation(
+    rig, weights: Float[np.ndarray, "..."], out: str | Path, *, fps: float | int = MOTION_FPS,
+    head_rotation: Float[np.ndarray, "..."] | None = None, pivot: Float[np.ndarray, "..."] | None = None,
+    name: str = "motion", audio_file: str | None = None,
+) -> ExportSummary:
+    """Write a blendshape rig animated by its weights as a ``.glb``: the rig's mesh, its morph targets under
+    their own names (weights in ``[0, 1]``, as engines and Blender's shape keys take them) and one animation.
+
+    With ``head_rotation``, the mesh hangs under a ``head`` node placed at ``pivot`` whose rotation is
+    animated: the head turns about that point (the rig's neck or head bone) while the face's shapes play.
+
+    Args:
+        rig: a :class:`jaxtalk.export.rig.Rig`.
+        weights: ``(T, K)`` in the rig's shape order.
+        out: the ``.glb`` to write (atomically).
+        fps: frames per second.
+        head_rotation: ``(T, 3, 3)`` rotations in the rig's frame, or None (no head node).
+        pivot: ``(3,)`` the point the head turns about, in the rig's frame (default: the origin).
+        name: the animation's name.
+        audio_file: the name of the audio beside the file, recorded in the asset's ``extras.audio``.
+
+    Raises:
+        ValueError: wrong shapes, NaN or inf, a bad fps or output path.
+    """
+    out = check_output_path(out, (".glb",))
+    fps = _check_fps(fps)
+    w = np.asarray(weights, np.float64)
+    if w.ndim != 2 or w.shape[0] < 1 or w.shape[1] != rig.num_shapes:
+        raise ValueError(f"weights must have shape (frames >= 1, {rig.num_shapes}), got {w.shape}")
+    if not np.all(np.isfinite(w)):
+        raise ValueError("weights contain NaN or inf")
+    writer = _GlbWriter(audio_file)
+    _write_mesh(writer, rig.neutral, rig.faces, rig.deltas, list(rig.names), None)
+    gltf = writer.gltf
+    animation = pygltflib.Animation(name=name)
+    times = _times(writer, w.shape[0], fps)
+    if head_rotation is None:
+        gltf.nodes.append(pygltflib.Node(name="face", mesh=0))
+        roots = [0]
+    else:
+        rot = np.asarray(head_rotation, np.float64)
+        if rot.shape != (w.shape[0], 3, 3) or not np.all(np.isfinite(rot)):
+            raise ValueError(f"head_rotation must be finite (frames, 3, 3) = {(w.shape[0], 3, 3)}, got {rot.shape}")
+        p = np.zeros(3) if pivot is None else np.asarray(pivot, np.float64).reshape(3)
+        # head (at the pivot, rotating) -> face (shifted back by the pivot): x -> p + R (x - p).
+        gltf.nodes.append(pygltflib.Node(name="face", mesh=0, translation=(-p).tolist()))
+        gltf.nodes.append(pygltflib.Node(name=rig.head_bone or "head", translation=p.tolist(), children=[0]))
+        roots = [1]
+        _channel(writer, animation, times, 1, "rotation", _continuous(Rotation.from_matrix(rot).as_quat()))
+    gltf.scenes.append(pygltflib.Scene(name="jaxtalk", nodes=roots))
+    gltf.scene = 0
+    _channel(writer, animation, times, 0, "weights", w.astype(np.float32).reshape(-1))
+    gltf.animations.append(animation)
+    writer.save(out)
+    return ExportSummary(out, "blendshape rig", w.shape[0], fps, rig.num_vertices, int(rig.faces.shape[0]),
+                         rig.num_shapes, 0, len(gltf.nodes), len(animation.channels))
 
 
 def vertex_basis(

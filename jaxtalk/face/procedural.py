@@ -33,7 +33,7 @@ import numpy as np
 from jaxtalk.face.model import LinearFaceModel
 from jaxtalk.layout import EXP_NAMES
 
-__all__ = ["builtin_face", "RESOLUTIONS", "FaceGrid", "face_grid"]
+__all__ = ["builtin_face", "RESOLUTIONS", "FaceGrid", "face_grid", "surface_displacement"]
 
 # Grid sizes (columns, rows); odd column counts put a column on the symmetry plane.
 RESOLUTIONS: dict[str, tuple[int, int]] = {
@@ -334,6 +334,30 @@ def _push(frame, field) -> np.ndarray:
     """Displacements (metres, (V, 3)) of a (du, dv, dn) field given the surface frame (xu, xv, n)."""
     (xu, xv, n), (du, dv, dn) = frame, field
     return du[:, None] * xu + dv[:, None] * xv + dn[:, None] * n
+
+
+def surface_displacement(du: np.ndarray, dv: np.ndarray, dn: np.ndarray, *, resolution: str = "default") -> np.ndarray:
+    """A displacement field over the domain, pushed onto the mean built-in face's surface.
+
+    How the named expression components are made, open to other shape makers (the built-in ARKit rig,
+    :func:`jaxtalk.export.arkit_rig`): ``du``, ``dv`` slide the skin along the surface (domain units,
+    about 0.1 m each), ``dn`` moves it along the outward normal (metres).
+
+    Args:
+        du, dv, dn: per vertex of :func:`face_grid` ``(resolution)``, shape ``(V,)`` each.
+        resolution: the mesh density.
+
+    Returns:
+        ``(V, 3)`` displacements in metres.
+
+    Raises:
+        ValueError: fields that are not one value per vertex.
+    """
+    grid = face_grid(resolution)
+    fields = [np.asarray(f, np.float64) for f in (du, dv, dn)]
+    if any(f.shape != grid.u.shape for f in fields):
+        raise ValueError(f"du, dv, dn must each have shape {grid.u.shape}, got {[f.shape for f in fields]}")
+    return _push(_mean_face_numpy(resolution)["frame"], fields)
 
 
 def _seam_width(grid: FaceGrid) -> float:

@@ -137,8 +137,10 @@ def _morph_output() -> MorphOutput:
 def _arkit_output() -> Output:
     # ARKIT: the one place the ARKit converter is registered. It returns an Output whose channels are the 52
     # ARKit names (jaxtalk.export.arkit.ARKIT_NAMES) and "HeadYaw", "HeadPitch", "HeadRoll", solved per chunk
-    # onto the built-in ARKit rig (jaxtalk.export.retarget) with the per-client state carrying the solver's
-    # smoothing across chunks; `--live-link` sends its channels by name (export.livelink.curves_from_channels).
+    # onto the built-in ARKit rig with the per-client state carrying the solver's smoothing across chunks:
+    # with jaxtalk.export.retarget, start() = Retargeter.for_face(arkit_rig(), builtin_face(0)).init_stream()
+    # and convert(state, params) = stream_step(state, params) -> its weights (in the rig's shape order) and
+    # head_angles. `--live-link` sends the channels by name (export.livelink.curves_from_channels).
     raise OutputUnavailable("the arkit output is not available in this build: the ARKit retargeting solver "
                             "(jaxtalk.export.retarget) is not wired into the server yet; ask for params or morph")
 

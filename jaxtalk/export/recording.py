@@ -1,0 +1,134 @@
+"""Retargeted weights as files: a Live Link Face recording (CSV) and JSON.
+
+Live Link Face's CSV (what the app records and Unreal's LiveLinkFaceImporter, the Maya and Blender
+importers read): a header ``Timecode,BlendShapeCount,`` then the 61 curves of
+:data:`~jaxtalk.export.arkit.LIVE_LINK_CURVES` (the 52 shapes, the head's yaw, pitch and roll, each eye's
+yaw, pitch and roll); one row per frame with its timecode ``HH:MM:SS:FF.fff`` (``FF`` the frame within the
+second at the clip's rate, ``.fff`` the sub-frame fraction, ``.000`` for frames on the grid), the count 61,
+and the 61 values. Shapes the rig lacks are 0; head angles are radians (see
+:mod:`jaxtalk.export.retarget`); the eyes' rotations are 0 (jaxtalk moves the lids, not eyeballs).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
+from jaxtalk.export.rig import arkit_shape_name
+from jaxtalk.files import atomic_write_json, atomic_write_text, check_output_path
+from jaxtalk.types import Float
+
+__all__ = ["live_link_timecode", "arkit_weights", "write_live_link_csv", "write_weights_json", "read_live_link_csv"]
+
+
+def live_link_timecode(frame: int, fps: float | int) -> str:
+    """``HH:MM:SS:FF.fff`` of frame ``frame`` (from 0) at ``fps``: ``live_link_timecode(26, 25)`` is
+    ``00:00:01:01.000``."""
+    if frame < 0 or not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"a timecode needs a frame >= 0 and a positive fps, got {frame} at {fps}")
+    seconds = math.floor(frame / fps + 1e-9)
+    sub = max(frame - seconds * fps, 0.0)  # frames (with a fraction at a non-integer rate) into the second
+    whole = int(sub + 1e-9)
+    milli = min(round((sub - whole) * 1000), 999)
+    hours, rem = divmod(seconds, 3600)
+    minutes, secs = divmod(rem, 60)
+    return f"{hours:02d}:{minutes:02d}:{secs:02d}:{whole:02d}.{milli:03d}"
+
+
+def arkit_weights(names: tuple[str, ...] | list[str], weights: Float[np.ndarray, "frames k"]
+                  ) -> Float[np.ndarray, "frames 52"]:
+    """A rig's weights in ARKit's 52 (Live Link order), matched by name; shapes it lacks are 0."""
+    w = np.asarray(weights, np.float64)
+    out = np.zeros((w.shape[0], len(ARKIT_NAMES)))
+    index = {n: i for i, n in enumerate(ARKIT_NAMES)}
+    seen: set[str] = set()
+    for k, name in enumerate(names):
+        arkit = arkit_shape_name(name)
+        if arkit is not None and arkit not in seen:
+            out[:, index[arkit]] = w[:, k]
+            seen.add(arkit)
+    return out
+
+
+def write_live_link_csv(path: str | Path, names: tuple[str, ...] | list[str], weights: Float[np.ndarray, "frames k"],
+                        head_angles: Float[np.ndarray, "frames 3"] | None, fps: float | int) -> Path:
+    """Write a Live Link Face recording (module docstring), atomically.
+
+    Args:
+        path: the ``.csv``.
+        names: the rig's shape names (matched to ARKit's by :func:`arkit_shape_name`).
+        weights: ``(T, K)``.
+        head_angles: ``(T, 3)`` yaw, pitch, roll in radians, or None (zeros).
+        fps: the frame rate.
+
+    Raises:
+        ValueError: mismatched shapes, NaN, a bad path or fps.
+    """
+    path = check_output_path(path, (".csv",))
+    arkit = arkit_weights(names, weights)
+    frames = arkit.shape[0]
+    head = np.zeros((frames, 3)) if head_angles is None else np.asarray(head_angles, np.float64)
+    if head.shape != (frames, 3):
+        raise ValueError(f"head_angles must have shape ({frames}, 3), got {head.shape}")
+    values = np.concatenate([arkit, head, np.zeros((frames, 6))], axis=1)
+    if not np.all(np.isfinite(values)):
+        raise ValueError("weights or head angles hold NaN or inf")
+    text = io.StringIO()
+    text.write("Timecode,BlendShapeCount," + ",".join(LIVE_LINK_CURVES) + "\n")
+    for t in range(frames):
+        text.write(f"{live_link_timecode(t, fps)},{len(LIVE_LINK_CURVES)}," + ",".join(f"{x:.6f}" for x in values[t])
+                   + "\n")
+    return atomic_write_text(path, text.getvalue())
+
+
+def read_live_link_csv(path: str | Path) -> tuple[list[str], Float[np.ndarray, "frames 61"]]:
+    """``(timecodes, values (T, 61))`` of a Live Link Face CSV, columns in :data:`LIVE_LINK_CURVES` order.
+
+    Raises:
+        ValueError: a header that is not Live Link Face's, or a malformed row.
+    """
+    lines = Path(path).read_text().splitlines()
+    header = lines[0].split(",") if lines else []
+    if header[:2] != ["Timecode", "BlendShapeCount"]:
+        raise ValueError(f"{str(path)!r} is not a Live Link Face CSV (header {header[:3]})")
+    column = {name: i for i, name in enumerate(header)}
+    missing = [c for c in LIVE_LINK_CURVES if c not in column]
+    if missing:
+        raise ValueError(f"{str(path)!r} lacks the curves {missing[:3]}")
+    stamps, rows = [], []
+    for n, line in enumerate(lines[1:], start=2):
+        cells = line.split(",")
+        if len(cells) != len(header):
+            raise ValueError(f"{str(path)!r} line {n}: {len(cells)} cells, the header has {len(header)}")
+        stamps.append(cells[0])
+        rows.append([float(cells[column[c]]) for c in LIVE_LINK_CURVES])
+    return stamps, np.asarray(rows, np.float64).reshape(-1, len(LIVE_LINK_CURVES))
+
+
+def write_weights_json(path: str | Path, *, names: tuple[str, ...] | list[str], weights: Float[np.ndarray, "frames k"],
+                       head_angles: Float[np.ndarray, "frames 3"] | None, fps: float | int, extra: dict | None = None) -> Path:
+    """Write the weights as JSON: ``fps``, ``frames``, ``names`` (the rig's), ``arkit`` (each name's ARKit
+    name or null), ``weights`` (``T`` lists of ``K``), ``head`` (``yaw``/``pitch``/``roll`` lists, radians,
+    and their convention), plus ``extra``. Atomically.
+    """
+    path = check_output_path(path, (".json",))
+    w = np.asarray(weights, np.float64)
+    payload: dict = {
+        "fps": float(fps),
+        "frames": int(w.shape[0]),
+        "names": list(names),
+        "arkit": [arkit_shape_name(n) for n in names],
+        "weights": np.round(w, 6).tolist(),
+    }
+    if head_angles is not None:
+        h = np.asarray(head_angles, np.float64)
+        payload["head"] = {"units": "radians",
+                           "convention": "R = Ry(yaw) Rx(pitch) Rz(roll); x: subject's left, y: up, z: out of the face",
+                           "yaw": np.round(h[:, 0], 6).tolist(), "pitch": np.round(h[:, 1], 6).tolist(),
+                           "roll": np.round(h[:, 2], 6).tolist()}
+    payload.update(extra or {})
+    return atomic_write_json(path, payload)

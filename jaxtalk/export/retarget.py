@@ -1,0 +1,461 @@
+"""Retargeting: jaxtalk motion (56-d parameters, or vertices on a mesh) -> a blendshape rig's weights.
+
+Once, on the host (:class:`Retargeter`):
+
+1. the rig's neutral is registered to the template face with FreeTalk's canonicalisation
+   (:func:`jaxtalk.geometry.canonical.canonicalize`: units, similarity transform, a refusal for a mesh that
+   is not a face); a rig on the motion's own mesh needs none;
+2. every rig vertex finds its closest point on the motion's mesh (in the template's frame); vertices
+   farther than ``max_distance`` or beyond the mesh's rim (the back of a head, the neck, the inside of the
+   mouth of a face mask) are left out of the fit;
+3. the rig's shapes, in the template's frame and metres, become the fit's basis ``B``, its Gram matrix
+   and ``B^T`` carried back onto the motion's mesh, so that a frame's right-hand side is one product
+   with that frame's displacements.
+
+Per frame (jitted, batched over frames): the head's rigid rotation is taken out (the neck rotation of the
+parameters; Procrustes on the upper face of a vertex sequence), the rest of the displacement is fitted by
+:func:`jaxtalk.export.solver.solve_weights` (weights in ``[0, 1]``, temporal smoothness, left/right symmetry
+of the pairs found by name, L1/L2). The head's rotation is reported as yaw, pitch and roll in radians, in
+the template's frame (x: the subject's left, y: up, z: out of the face):
+
+* yaw about +y, positive when the face turns towards the subject's left;
+* pitch about +x, positive when the head nods down (the face tips forward);
+* roll about +z, positive when the head tilts towards the subject's right (the left ear rises),
+
+composed as ``R = R_y(yaw) R_x(pitch) R_z(roll)``. The jaw stays in the fitted motion: ARKit's ``jawOpen``,
+``jawLeft``, ``jawRight`` and ``jawForward`` are shapes.
+
+Penalties are relative to the fit term, which is divided by the rig's mean squared shape norm over the
+fitted vertices: a residual as large as one average shape at full weight costs 1/2, as does a weight jump
+of ``1 / sqrt(smoothness)`` between frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtalk.export.rig import Rig
+from jaxtalk.export.solver import DEFAULT_MAX_ITER, DEFAULT_TOL, Penalties, solve_weights, symmetry_matrix
+from jaxtalk.face.model import LinearFaceModel
+from jaxtalk.types import PARAM_DIM, Float, Int
+
+__all__ = ["Retargeter", "RetargetResult", "Registration", "StreamState", "retarget", "head_angles",
+           "DEFAULT_PENALTIES", "DEFAULT_MAX_DISTANCE"]
+
+# What `jaxtalk retarget` uses unless told otherwise: a little smoothing and ridge, no sparsity or symmetry.
+DEFAULT_PENALTIES = Penalties(smoothness=0.05, l1=0.0, l2=1e-4, symmetry=0.0)
+# Rig vertices farther than this (template metres) from the motion's mesh after registration are not fitted.
+DEFAULT_MAX_DISTANCE = 0.01
+# The fraction of the fitted rig vertices, those the rig's shapes move least, that Procrustes on a vertex
+# sequence takes for the head's rigid part.
+_RIGID_FRACTION = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
+class Registration:
+    """How the rig was put on the motion's mesh.
+
+    Attributes:
+        method: ``"same mesh"`` (the rig is the motion's mesh), ``"icp"`` or ``"landmarks"``.
+        residual: mean distance (metres, template frame) from the fitted rig vertices to the motion's mesh.
+        fitted: rig vertices used in the fit (the rest are beyond the motion's mesh).
+        total: the rig's vertices.
+        scale, rotation, translation: ``x_template = scale * rotation @ x_rig + translation``.
+        units: the rig's unit.
+    """
+
+    method: str
+    residual: float
+    fitted: int
+    total: int
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    units: str
+
+    def describe(self) -> str:
+        return (f"registered ({self.method}, units {self.units}): {self.fitted} of {self.total} rig vertices on the "
+                f"motion's mesh, mean distance {self.residual * 1e3:.2f} mm")
+
+
+class RetargetResult(NamedTuple):
+    """Retargeted motion.
+
+    Attributes:
+        weights: ``(T, K)`` in ``[0, 1]``, the rig's shape order.
+        head_rotation: ``(T, 3, 3)`` the head's rotation in the template's frame.
+        head_angles: ``(T, 3)`` yaw, pitch, roll in radians (module docstring).
+        rms_error: metres, root-mean-square distance of the fitted rig vertices from the motion, over every
+            frame (what the weights cannot reproduce).
+        iterations: solver steps.
+        seconds: wall time of the solve.
+    """
+
+    weights: Float[np.ndarray, "frames k"]
+    head_rotation: Float[np.ndarray, "frames 3 3"]
+    head_angles: Float[np.ndarray, "frames 3"]
+    rms_error: float
+    iterations: int
+    seconds: float
+
+
+class StreamState(NamedTuple):
+    """What a stream carries between chunks: the last frame's weights (None before the first chunk)."""
+
+    previous: Float[np.ndarray, " k"] | None
+
+
+def head_angles(rotations: Float[np.ndarray, "*frames 3 3"]) -> Float[np.ndarray, "*frames 3"]:
+    """Yaw, pitch, roll (radians) of rotation matrices in the template's frame (module docstring)."""
+    from scipy.spatial.transform import Rotation
+
+    r = np.asarray(rotations, np.float64)
+    flat = Rotation.from_matrix(r.reshape(-1, 3, 3)).as_euler("YXZ")  # intrinsic: R = Ry Rx Rz
+    return flat.reshape(*r.shape[:-2], 3)
+
+
+def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, the rotation ``R`` and translation ``t`` with ``target ~ R source + t`` (least squares).
+
+    Args:
+        source: ``(N, 3)``; target: ``(T, N, 3)``.
+    """
+    cs = source.mean(axis=0)
+    ct = target.mean(axis=1)
+    cov = np.einsum("tni,nj->tij", target - ct[:, None], source - cs)
+    u, _, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u @ vt))
+    fix = np.ones((target.shape[0], 3))
+    fix[:, 2] = d
+    rot = (u * fix[:, None, :]) @ vt
+    return rot, ct - np.einsum("tij,j->ti", rot, cs)
+
+
+def _boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    mask = np.zeros(num_vertices, bool)
+    mask[unique[counts == 1].reshape(-1)] = True
+    return mask
+
+
+@jax.jit
+def _rhs(bs, disp):
+    return jnp.einsum("vck,tvc->tk", bs, disp)
+
+
+@jax.jit
+def _params_displacements(face: LinearFaceModel, params):
+    # The head's rotation is reported, not fitted: the neck is posed at rest.
+    still = params.at[:, PARAM_DIM - 3:].set(0.0)
+    return face.vertices_seq(still) - jnp.asarray(face.template, still.dtype)[None]
+
+
+class Retargeter:
+    """The precomputed retargeting of one kind of motion onto one rig (module docstring).
+
+    Build with :meth:`for_face` (56-d parameters on a face model) or :meth:`for_mesh` (vertex sequences
+    on a mesh); then :meth:`__call__` a whole clip, or :meth:`init_stream` / :meth:`stream_step` chunk by
+    chunk (the smoothness term carries across chunks). Penalties and solver settings are traced: a new
+    :class:`Penalties` never recompiles; a new chunk length compiles once.
+    """
+
+    def __init__(self, rig: Rig, *, neutral: np.ndarray, faces: np.ndarray, template: LinearFaceModel,
+                 registration: Registration, corners: np.ndarray, bary: np.ndarray, fitted: np.ndarray,
+                 rigid: np.ndarray, face: LinearFaceModel | None, to_template: Any,
+                 penalties: Penalties = DEFAULT_PENALTIES) -> None:
+        self.rig = rig
+        self.neutral = neutral  # the motion's mesh, template frame, metres
+        self.faces = faces
+        self.template = template
+        self.registration = registration
+        self.face = face
+        self._to_template = to_template  # the motion mesh's canonicalisation (None: already template frame)
+        self.penalties = penalties
+        # rigid: indices into the fitted rig vertices (their correspondences) that move with the head only
+        self.corners, self.bary, self.fitted, self.rigid = corners, bary, fitted, rigid
+        s, r = registration.scale, registration.rotation
+        basis = np.einsum("kvc,dc->kvd", rig.deltas[:, fitted], r) * s  # (K, n, 3) template metres
+        self._basis = basis
+        gram = np.einsum("kvc,jvc->kj", basis, basis)
+        self._scale = float(np.mean(np.diag(gram)))
+        if not self._scale > 0:
+            raise ValueError("none of the rig's shapes moves a vertex that lies on the motion's mesh: "
+                             "nothing to fit")
+        bs = np.zeros((neutral.shape[0], 3, rig.num_shapes))
+        np.add.at(bs, corners.reshape(-1), (bary[:, :, None, None] * np.moveaxis(basis, 0, -1)[:, None]).reshape(
+            -1, 3, rig.num_shapes))
+        dtype = jnp.result_type(float)
+        self._gram = jnp.asarray(gram / self._scale, dtype)
+        self._bs = jnp.asarray(bs / self._scale, dtype)
+        self._symmetry = jnp.asarray(symmetry_matrix(rig.pairs(), rig.num_shapes), dtype)
+
+    # ---- construction ------------------------------------------------------------------------------
+    @classmethod
+    def for_face(cls, rig: Rig, face: LinearFaceModel, penalties: Penalties = DEFAULT_PENALTIES, *,
+                 max_distance: float = DEFAULT_MAX_DISTANCE) -> Retargeter:
+        """Retarget 56-d parameters posed on ``face`` (the built-in face or FLAME) onto ``rig``.
+
+        Raises:
+            ValueError: a rig that does not register to the face (see :func:`canonicalize`).
+        """
+        neutral = np.asarray(face.template, np.float64)
+        faces = np.asarray(face.faces, np.int64)
+        return cls._build(rig, neutral, faces, face, face, None, penalties, max_distance)
+
+    @classmethod
+    def for_mesh(cls, rig: Rig, neutral: Float[np.ndarray, "verts 3"], faces: Int[np.ndarray, "tris 3"], *,
+                 template: LinearFaceModel | None = None, units: str | None = None,
+                 penalties: Penalties = DEFAULT_PENALTIES, max_distance: float = DEFAULT_MAX_DISTANCE) -> Retargeter:
+        """Retarget vertex sequences on the mesh ``(neutral, faces)`` (FreeTalk's output on a user's mesh, or
+        any animation of the rig's own mesh) onto ``rig``.
+
+        Args:
+            rig: the blendshape rig.
+            neutral: ``(V, 3)`` the mesh at rest, in its own units and frame (the motion's).
+            faces: ``(F, 3)`` its triangles.
+            template: the face both meshes are registered to (default: the built-in face).
+            units: the mesh's unit (None: detected from its size).
+            penalties, max_distance: as for :meth:`for_face`.
+
+        Raises:
+            ValueError: a mesh or rig that does not register to the face.
+        """
+        from jaxtalk.geometry.canonical import canonicalize
+
+        if template is None:
+            from jaxtalk.face import builtin_face
+
+            template = builtin_face(0)
+        neutral = np.asarray(neutral, np.float64)
+        faces = np.asarray(faces, np.int64)
+        if neutral.ndim != 2 or neutral.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"the motion's mesh must be (V, 3) vertices and (F, 3) faces, got {neutral.shape} and "
+                             f"{faces.shape}")
+        t_verts, t_faces = np.asarray(template.template, np.float64), np.asarray(template.faces)
+        if neutral.shape == t_verts.shape and np.allclose(neutral, t_verts, atol=1e-6):
+            to_template = None  # the template itself
+        else:
+            to_template = canonicalize(neutral, faces, t_verts, t_faces, units=units or (rig.units if _same(
+                neutral, rig.neutral) else None))
+        in_template = neutral if to_template is None else to_template.to_template(neutral)
+        return cls._build(rig, in_template, faces, template, None, to_template, penalties, max_distance,
+                          original=neutral)
+
+    @classmethod
+    def _build(cls, rig: Rig, neutral: np.ndarray, faces: np.ndarray, template: LinearFaceModel,
+               face: LinearFaceModel | None, to_template: Any, penalties: Penalties, max_distance: float,
+               original: np.ndarray | None = None) -> Retargeter:
+        from jaxtalk.geometry.canonical import canonicalize
+
+        if not (np.isfinite(max_distance) and max_distance > 0):
+            raise ValueError(f"max_distance must be a positive distance in metres, got {max_distance}")
+        motion_frame = neutral if original is None else original
+        if _same(motion_frame, rig.neutral):
+            # The rig is the motion's own mesh: every vertex corresponds to itself.
+            if to_template is None:
+                scale, rot, trans, units = 1.0, np.eye(3), np.zeros(3), rig.units or "m"
+            else:
+                scale, rot, trans, units = (to_template.scale, to_template.rotation, to_template.translation,
+                                            to_template.units)
+            n = rig.num_vertices
+            corners = np.repeat(np.arange(n)[:, None], 3, axis=1)
+            bary = np.tile([1.0, 0.0, 0.0], (n, 1))
+            fitted = np.arange(n)
+            registration = Registration("same mesh", 0.0, n, n, scale, rot, trans, units)
+        else:
+            t_verts, t_faces = np.asarray(template.template, np.float64), np.asarray(template.faces)
+            canon = canonicalize(rig.neutral, rig.faces, t_verts, t_faces, units=rig.units)
+            rig_t = canon.to_template(rig.neutral)
+            corners, bary, distance = _closest_points(neutral, faces, rig_t)
+            rim = _boundary_vertices(faces, neutral.shape[0])
+            keep = (distance <= max_distance) & ~rim[corners].any(axis=1)
+            fitted = np.flatnonzero(keep)
+            if fitted.size < 3:
+                raise ValueError(f"after registration only {fitted.size} of the rig's {rig.num_vertices} vertices lie "
+                                 f"within {max_distance * 1e3:.0f} mm of the motion's face: the rig's mesh does not "
+                                 "register to it")
+            corners, bary = corners[fitted], bary[fitted]
+            registration = Registration(canon.method, float(distance[fitted].mean()), int(fitted.size),
+                                        rig.num_vertices, canon.scale, canon.rotation, canon.translation, canon.units)
+        # The head's rigid part, for Procrustes on vertex sequences: the fitted rig vertices that the rig's
+        # shapes move least (a rig's shapes say where its face moves; the forehead and temples do not).
+        mobility = np.linalg.norm(rig.deltas[:, fitted], axis=-1).max(axis=0)
+        count = min(fitted.size, max(10, int(_RIGID_FRACTION * fitted.size)))
+        rigid = np.argsort(mobility, kind="stable")[:count]
+        return cls(rig, neutral=neutral, faces=faces, template=template, registration=registration, corners=corners,
+                   bary=bary, fitted=fitted, rigid=rigid, face=face, to_template=to_template, penalties=penalties)
+
+    # ---- per frame ---------------------------------------------------------------------------------
+    @property
+    def kind(self) -> str:
+        """``"params"`` or ``"vertices"``: what :meth:`__call__` takes."""
+        return "params" if self.face is not None else "vertices"
+
+    @property
+    def head_pivot(self) -> Float[np.ndarray, "3"]:
+        """Where the head turns, in the rig's frame: its head bone, else the template's neck joint."""
+        if self.rig.head_pivot is not None:
+            return self.rig.head_pivot
+        neck = np.asarray(self.template.joints, np.float64)[self.template.neck_joint]
+        reg = self.registration
+        return (neck - reg.translation) @ reg.rotation / reg.scale
+
+    def rig_rotation(self, head_rotation: Float[np.ndarray, "frames 3 3"]) -> Float[np.ndarray, "frames 3 3"]:
+        """Template-frame head rotations as rotations in the rig's frame."""
+        r = self.registration.rotation
+        return np.einsum("ji,tjk,kl->til", r, np.asarray(head_rotation, np.float64), r)
+
+    def displacements(self, motion: Any) -> tuple[Any, Float[np.ndarray, "frames 3 3"]]:
+        """``(displacements (T, Vs, 3) template metres with the head's rotation removed (a JAX array for
+        parameters, NumPy for vertices), rotations (T, 3, 3))``.
+
+        Raises:
+            ValueError: a wrong shape, NaN or inf.
+        """
+        x = np.asarray(motion)
+        if self.face is not None:
+            if x.ndim != 2 or x.shape[1] != PARAM_DIM or x.shape[0] < 1:
+                raise ValueError(f"motion must be (frames, {PARAM_DIM}) head parameters, got shape {x.shape}")
+            if not np.all(np.isfinite(x)):
+                raise ValueError("motion holds NaN or inf")
+            from jaxtalk.face.model import rodrigues
+
+            params = jnp.asarray(x, jnp.result_type(float))
+            disp = _params_displacements(self.face, params)
+            return disp, np.asarray(rodrigues(params[:, PARAM_DIM - 3:]), np.float64)
+        v = self.neutral.shape[0]
+        if x.ndim == 2 and x.shape[1] == 3 * v:
+            x = x.reshape(x.shape[0], v, 3)
+        if x.ndim != 3 or x.shape[1:] != (v, 3) or x.shape[0] < 1:
+            raise ValueError(f"motion must be (frames, {v}, 3) vertices of the retargeter's mesh, got shape {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise ValueError("motion holds NaN or inf")
+        x = np.asarray(x, np.float64)
+        if self._to_template is not None:
+            x = self._to_template.to_template(x)
+        corners, bary = self.corners[self.rigid], self.bary[self.rigid]
+        rest = np.einsum("nj,njc->nc", bary, self.neutral[corners])
+        rot, shift = _kabsch(rest, np.einsum("nj,tnjc->tnc", bary, x[:, corners]))
+        still = np.einsum("tji,tvj->tvi", rot, x - shift[:, None])  # R^T (x - t)
+        return still - self.neutral, rot
+
+    def solve(self, rhs: Float[Any, "frames k"], previous: np.ndarray | None = None, *,
+              penalties: Penalties | None = None, tol: float = DEFAULT_TOL,
+              max_iter: int = DEFAULT_MAX_ITER) -> tuple[Any, Any]:
+        """The weights of right-hand sides ``B^T d / scale`` (as :meth:`rhs` makes them)."""
+        return solve_weights(self._gram, rhs, penalties or self.penalties, symmetry=self._symmetry,
+                             previous=previous, tol=tol, max_iter=max_iter)
+
+    def rhs(self, displacements: Any) -> Any:
+        """``B^T d / scale`` per frame, jitted."""
+        return _rhs(self._bs, jnp.asarray(displacements, self._bs.dtype))
+
+    def __call__(self, motion: np.ndarray, *, previous: np.ndarray | None = None, penalties: Penalties | None = None,
+                 tol: float = DEFAULT_TOL, max_iter: int = DEFAULT_MAX_ITER) -> RetargetResult:
+        """Retarget a clip: ``(T, 56)`` parameters (:meth:`for_face`) or ``(T, V, 3)`` vertices (:meth:`for_mesh`).
+
+        Args:
+            motion: the clip.
+            previous: the weights of the frame before it (a stream's last frame), or None.
+            penalties: instead of the retargeter's own.
+            tol, max_iter: the solver's stopping rule.
+
+        Raises:
+            ValueError: a wrong shape, NaN or inf.
+        """
+        disp, rot = self.displacements(motion)
+        rhs = self.rhs(disp)
+        start = time.perf_counter()
+        weights, info = self.solve(rhs, previous, penalties=penalties, tol=tol, max_iter=max_iter)
+        weights = np.asarray(jax.block_until_ready(weights), np.float64)
+        seconds = time.perf_counter() - start
+        return RetargetResult(weights, rot, head_angles(rot), self.rms_error(disp, weights), int(info.iterations),
+                              seconds)
+
+    def rms_error(self, displacements: Any, weights: np.ndarray) -> float:
+        """Root-mean-square distance (metres) of the fitted rig vertices from the motion."""
+        d = np.asarray(displacements, np.float64)
+        target = np.einsum("nj,tnjc->tnc", self.bary, d[:, self.corners])
+        fit = np.einsum("tk,knc->tnc", weights, self._basis)
+        return float(np.sqrt(np.mean(np.sum((target - fit) ** 2, axis=-1))))
+
+    def init_stream(self) -> StreamState:
+        """The state before a stream's first chunk."""
+        return StreamState(None)
+
+    def stream_step(self, state: StreamState, chunk: np.ndarray, **kw: Any) -> tuple[StreamState, RetargetResult]:
+        """Retarget one chunk of a stream; its first frame is tied to the previous chunk's last by the
+        smoothness term. Returns the new state and the chunk's result."""
+        result = self(chunk, previous=state.previous, **kw)
+        return StreamState(result.weights[-1].copy()), result
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape:
+        return False
+    extent = float(np.ptp(b, axis=0).max()) or 1.0
+    return bool(np.allclose(a, b, rtol=0.0, atol=1e-6 * extent))
+
+
+def _closest_points(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point, the triangle corners and barycentric coordinates of its closest point on the mesh, and the
+    distance."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    closest, distance, tri = trimesh.proximity.closest_point(mesh, points)
+    corners = faces[tri]
+    bary = trimesh.triangles.points_to_barycentric(vertices[corners], closest)
+    bary = np.clip(bary, 0.0, 1.0)
+    bary /= bary.sum(axis=1, keepdims=True)
+    return corners.astype(np.int64), bary, np.asarray(distance, np.float64)
+
+
+def retarget(motion: np.ndarray, rig: Rig, *, face: LinearFaceModel | None = None,
+             mesh: tuple[np.ndarray, np.ndarray] | None = None, smoothness: float = DEFAULT_PENALTIES.smoothness,
+             l1: float = DEFAULT_PENALTIES.l1, l2: float = DEFAULT_PENALTIES.l2,
+             symmetry: float = DEFAULT_PENALTIES.symmetry) -> RetargetResult:
+    """Retarget a clip onto ``rig`` in one call (builds a :class:`Retargeter`; keep one to retarget many).
+
+    Args:
+        motion: ``(T, 56)`` head parameters, or ``(T, V, 3)`` vertices.
+        rig: the blendshape rig.
+        face: the face model parameters are posed on (default: the built-in face).
+        mesh: ``(neutral, faces)`` the vertices were animated on (default: the rig's own mesh when ``V``
+            matches it, else the built-in face of that vertex count).
+        smoothness, l1, l2, symmetry: :class:`Penalties`.
+
+    Raises:
+        ValueError: bad shapes or values, a mesh that matches nothing, a rig that does not register.
+    """
+    from jaxtalk.face import builtin_face
+
+    penalties = Penalties(smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry)
+    x = np.asarray(motion)
+    if x.ndim == 2 and x.shape[1] == PARAM_DIM:
+        return Retargeter.for_face(rig, face if face is not None else builtin_face(0), penalties)(x)
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise ValueError(f"motion must be (frames, {PARAM_DIM}) parameters or (frames, verts, 3) vertices, "
+                         f"got shape {x.shape}")
+    if mesh is None:
+        if x.shape[1] == rig.num_vertices:
+            mesh = (rig.neutral, rig.faces)
+        else:
+            for resolution in ("low", "default", "high"):
+                candidate = builtin_face(0, resolution=resolution)
+                if candidate.num_vertices == x.shape[1]:
+                    return Retargeter.for_mesh(rig, np.asarray(candidate.template), np.asarray(candidate.faces),
+                                               template=candidate, penalties=penalties)(x)
+            else:
+                raise ValueError(f"motion animates {x.shape[1]} vertices, neither the rig's {rig.num_vertices} nor a "
+                                 "built-in face's: give the mesh it was animated on")
+    return Retargeter.for_mesh(rig, *mesh, penalties=penalties)(x)

@@ -1,0 +1,170 @@
+"""Face meshes of the kinds people bring, with known semantic points, for the alignment tests
+(``from face_shapes import ...``; ``experiments/canonical_alignment.py`` prints the same table).
+
+Every builder returns a :class:`Shape`: vertices in metres in the built-in face's frame (+y up, +z out
+of the face), triangles, and a few semantic points with the indices of the 68 iBUG landmarks they are
+(nose tip 30, mouth corners 48 / 54, eye corners 36 / 39 / 42 / 45).
+
+* :func:`mediapipe_face`: MediaPipe's canonical face (``jaxtalk/geometry/data``; a real mask of 468
+  vertices, shipped in centimetres).
+* :func:`procedural_head`: a whole head in the way of FLAME's template: a built-in face of another
+  identity with the back of the skull, a neck and two ears, as separate components.
+* :func:`bfm_mask`: a BFM-style mask cut from that head (:func:`cut_mask`, which cuts any head): in
+  front of the ears, mid-forehead to under the chin, so part of the template's forehead has nothing
+  under it and the cheeks reach past the template's rim.
+* :func:`head_scan`: the head as a scan gives it: 1 mm noise on every vertex and holes.
+* :func:`real_scan` / :func:`flame_template`: menpo3d's head scan (``experiments/fetch_real_scan.sh``)
+  and FLAME's template when a user has it; None otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL_SCAN = ROOT / ".cache" / "assets" / "james.obj"
+# FLAME's template is not redistributable: a user who has it (e.g. DECA's data/head_template.obj and
+# its landmark_embedding as .npz with full_faces / full_bary) puts it here.
+FLAME_TEMPLATE = ROOT / ".cache" / "assets" / "flame_head_template.obj"
+FLAME_LANDMARKS = ROOT / ".cache" / "assets" / "flame_landmarks.npz"
+
+# iBUG-68 indices of the semantic points checked after alignment.
+SEMANTIC = {"nose tip": 30, "mouth corner r": 48, "mouth corner l": 54, "eye outer r": 36, "eye inner r": 39,
+            "eye inner l": 42, "eye outer l": 45}
+# The same points in MediaPipe's face-landmark topology (its vertex indices; 4 is the pronasale, the
+# nose's most prominent point, as iBUG's 30 is).
+MEDIAPIPE_SEMANTIC = (4, 61, 291, 33, 133, 362, 263)
+
+
+@dataclasses.dataclass(frozen=True)
+class Shape:
+    """A face mesh in metres and its semantic points.
+
+    Attributes:
+        name: what it is.
+        vertices: ``(V, 3)`` metres.
+        faces: ``(F, 3)``.
+        points: ``(len(SEMANTIC), 3)`` metres, in :data:`SEMANTIC`'s order.
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    points: np.ndarray
+
+
+def template() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The template STM aligns to (the built-in face, identity 0, ``low``) and its semantic points."""
+    from jaxtalk.face import builtin_face
+    from jaxtalk.models.freetalk.data import neutral_landmarks
+
+    face = builtin_face(0, resolution="low")
+    landmarks = neutral_landmarks(face).astype(np.float64)
+    return np.asarray(face.template, np.float64), np.asarray(face.faces, np.int64), landmarks[list(SEMANTIC.values())]
+
+
+def mediapipe_face() -> Shape:
+    """MediaPipe's canonical face as its OBJ file has it (``jaxtalk/geometry/data``), in metres."""
+    from jaxtalk.geometry.canonical import MEDIAPIPE_FACE_FILE, load_mesh
+
+    v, f = load_mesh(MEDIAPIPE_FACE_FILE)
+    v = v * 0.01
+    return Shape("MediaPipe canonical face", v, f, v[list(MEDIAPIPE_SEMANTIC)])
+
+
+def procedural_head(identity: int = 2) -> Shape:
+    """A built-in face (``default`` resolution) with the back of the skull, a neck and two ears, each
+    its own component (metres)."""
+    import trimesh
+
+    from jaxtalk.face import builtin_face
+    from jaxtalk.models.freetalk.data import neutral_landmarks
+
+    face = builtin_face(identity, resolution="default")
+    parts = [trimesh.Trimesh(np.asarray(face.template, np.float64), np.asarray(face.faces), process=False)]
+    skull = trimesh.creation.icosphere(subdivisions=4)
+    skull.apply_scale([0.08, 0.115, 0.1])
+    skull.apply_translation([0.0, 0.015, -0.005])
+    skull.update_faces(skull.triangles_center[:, 2] < 0.015)  # behind the face
+    neck = trimesh.creation.cylinder(radius=0.052, height=0.128, sections=48)  # open ends below
+    neck.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    neck.apply_translation([0.0, -0.15, -0.03])
+    neck.update_faces(np.abs(neck.face_normals[:, 1]) < 0.5)
+    parts += [skull, neck]
+    for side in (-1.0, 1.0):
+        ear = trimesh.creation.icosphere(subdivisions=3)
+        ear.apply_scale([0.012, 0.03, 0.018])
+        ear.apply_translation([side * 0.082, 0.0, -0.012])
+        parts.append(ear)
+    head = trimesh.util.concatenate(parts)
+    points = neutral_landmarks(face).astype(np.float64)[list(SEMANTIC.values())]
+    return Shape(f"built-in head (identity {identity}): face, skull, neck, ears", np.asarray(head.vertices, np.float64),
+                 np.asarray(head.faces, np.int64), points)
+
+
+def cut_mask(shape: Shape) -> Shape:
+    """A BFM-style mask cut from a head: in front of the ears, from mid-forehead to under the chin
+    (measured in the template's frame, where the head's semantic points put it), so that part of the
+    template's forehead has nothing under it and the cheeks reach past the template's rim."""
+    from jaxtalk.geometry.canonical import _umeyama
+
+    scale, rotation, shift = _umeyama(shape.points, template()[2], np.ones(len(shape.points)), scale=True)
+    centre = (scale * shape.vertices @ rotation.T + shift)[shape.faces].mean(axis=1)
+    keep = (centre[:, 2] > -0.02) & (centre[:, 1] > -0.115) & (centre[:, 1] < 0.065)
+    used, faces = np.unique(shape.faces[keep], return_inverse=True)
+    return Shape(f"BFM-style mask cut from the {shape.name}", shape.vertices[used], faces.reshape(-1, 3), shape.points)
+
+
+def bfm_mask(identity: int = 3) -> Shape:
+    """:func:`cut_mask` of :func:`procedural_head`."""
+    return cut_mask(procedural_head(identity))
+
+
+def head_scan(identity: int = 1, seed: int = 0) -> Shape:
+    """:func:`procedural_head` as a scanner gives it: 1 mm of noise on every vertex and 3% of the
+    triangles missing (holes)."""
+    head = procedural_head(identity)
+    rng = np.random.default_rng(seed)
+    v = head.vertices + rng.normal(scale=0.001, size=head.vertices.shape)
+    f = head.faces[rng.random(len(head.faces)) > 0.03]
+    return Shape(f"built-in head scan (identity {identity}): 1 mm noise, holes", v, f, head.points)
+
+
+def real_scan() -> Shape | None:
+    """menpo3d's ``james.obj`` (a textured head scan with neck and ears, millimetres, its own pose) and
+    its landmarks, or None when ``experiments/fetch_real_scan.sh`` has not fetched it."""
+    from jaxtalk.geometry.canonical import load_mesh
+
+    if not (REAL_SCAN.is_file() and REAL_SCAN.with_suffix(".ljson").is_file()):
+        return None
+    v, f = load_mesh(REAL_SCAN)
+    points = np.asarray(json.loads(REAL_SCAN.with_suffix(".ljson").read_text())["groups"]["LJSON"]["landmarks"]["points"])
+    points = points[np.r_[0:17, 29:34, 43:48, 34:43, 17:23, 23:29, 48:68]]  # menpo's groups -> iBUG order
+    return Shape("menpo3d james.obj head scan", v * 1e-3, f, points[list(SEMANTIC.values())] * 1e-3)
+
+
+def flame_template() -> Shape | None:
+    """FLAME's template head (5,023 vertices, metres, at a standing person's height) with its 68
+    landmarks from the barycentric embedding, or None where the user has not put it there."""
+    from jaxtalk.geometry.canonical import load_mesh
+
+    if not (FLAME_TEMPLATE.is_file() and FLAME_LANDMARKS.is_file()):
+        return None
+    v, f = load_mesh(FLAME_TEMPLATE)
+    emb = np.load(FLAME_LANDMARKS)
+    landmarks = np.einsum("nk,nkd->nd", emb["full_bary"].reshape(-1, 3), v[f[emb["full_faces"].reshape(-1)]])
+    return Shape("FLAME template head", v, f, landmarks[list(SEMANTIC.values())])
+
+
+def posed(seed: int, *arrays: np.ndarray) -> list[np.ndarray]:
+    """``arrays`` (positions, metres) under one random rotation and a shift of up to 1.5 m (a head in a
+    room)."""
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.random(random_state=seed).as_matrix()
+    shift = np.random.default_rng(seed).uniform(-1.5, 1.5, size=3)
+    return [a @ rotation.T + shift for a in arrays]

@@ -1,0 +1,78 @@
+"""``jaxtalk retarget`` end to end: a parameters npz with audio onto the built-in rig and onto a rig file, a
+vertex sequence, and the one-line refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from helpers import cli_error, cli_ok
+
+from jaxtalk.export import (
+    GlbAnimation,
+    arkit_rig,
+    export_rig_animation,
+    read_live_link_csv,
+)
+from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
+
+
+@pytest.fixture(scope="module")
+def talk(tmp_path_factory):
+    """A speech-driven SynthTalk clip with its audio, as ``jaxtalk sample`` writes one."""
+    from jaxtalk.data.formats import MotionClip, save_npz
+    from jaxtalk.data.synthtalk import SizeSpec, generate
+
+    folder = tmp_path_factory.mktemp("talk")
+    corpus = generate(SizeSpec((1, 0, 0, 0), 1, 4.0, (0, 0, 0, 0), 4.0, 8, 1e9, identities=(0,), lazy=True), seed=0)
+    save_npz(folder / "talk.npz", MotionClip(name="talk", fps=25, params=corpus.motion(0), audio=corpus.audio(0)))
+    return folder
+
+
+def test_parameters_onto_the_builtin_rig_write_glb_csv_json_and_audio(talk):
+    out = talk / "talk_rig.glb"
+    printed = cli_ok(["retarget", talk / "talk.npz", "--out", out])
+    assert "52 shapes (52 ARKit-named, 20 left/right pairs)" in printed and "same mesh" in printed
+    for suffix in (".glb", ".csv", ".json", ".glb.wav"):
+        assert (talk / f"talk_rig{suffix}").is_file(), suffix
+    params = np.load(talk / "talk.npz")["params"]
+    glb = GlbAnimation(out)
+    assert glb.target_names == list(ARKIT_NAMES) and glb.num_frames == params.shape[0]
+    weights = glb.morph_weights()
+    assert weights.min() >= 0.0 and weights.max() <= 1.0 + 1e-6
+    assert np.corrcoef(weights[:, ARKIT_NAMES.index("jawOpen")], params[:, 50])[0, 1] > 0.8
+    stamps, values = read_live_link_csv(talk / "talk_rig.csv")
+    assert len(stamps) == params.shape[0] and stamps[1] == "00:00:00:01.000"
+    np.testing.assert_allclose(values[:, :52], weights, atol=1e-5)
+    data = json.loads((talk / "talk_rig.json").read_text())
+    assert data["fps"] == 25 and len(data["weights"]) == params.shape[0] and data["names"] == list(ARKIT_NAMES)
+    np.testing.assert_allclose(values[:, LIVE_LINK_CURVES.index("HeadYaw")], data["head"]["yaw"], atol=1e-5)
+
+
+def test_a_rig_file_and_a_vertex_sequence(talk, tmp_path):
+    from jaxtalk.face import builtin_face
+
+    rig = arkit_rig("low")
+    export_rig_animation(rig, np.zeros((1, 52)), tmp_path / "rig.glb")
+    face = builtin_face(0, resolution="low")
+    verts = np.asarray(face.vertices_seq(np.load(talk / "talk.npz")["params"][:40]))
+    np.save(tmp_path / "talk_vertices.npy", verts)
+    printed = cli_ok(["retarget", tmp_path / "talk_vertices.npy", "--rig", tmp_path / "rig.glb", "--out",
+                      tmp_path / "out.glb"])
+    assert "rig 'rig'" in printed and "no audio" in printed
+    assert GlbAnimation(tmp_path / "out.glb").num_frames == 40
+
+
+def test_bad_inputs_are_refused_in_one_line(talk, tmp_path):
+    np.save(tmp_path / "bad.npy", np.zeros((4, 10, 3)))
+    cli_error(["retarget", tmp_path / "bad.npy", "--out", tmp_path / "a.glb"], "10 vertices", "--mesh")
+    nan = np.load(talk / "talk.npz")["params"].copy()
+    nan[3, 5] = np.nan
+    np.savez(tmp_path / "nan.npz", params=nan, fps=25)
+    cli_error(["retarget", tmp_path / "nan.npz", "--out", tmp_path / "b.glb"], "NaN")
+    (tmp_path / "flat.glb").write_bytes(b"")
+    cli_error(["retarget", talk / "talk.npz", "--rig", tmp_path / "flat.glb", "--out", tmp_path / "c.glb"], "glTF")
+    cli_error(["retarget", talk / "talk.npz", "--out", tmp_path / "x.csv"], ".glb")
+    cli_error(["retarget", talk / "talk.npz", "--out", talk / "talk.npz"], ".glb")
+    cli_error(["retarget", talk / "talk.npz", "--smoothness", "-1", "--out", tmp_path / "d.glb"], "smoothness")
