@@ -11,14 +11,8 @@ import numpy as np
 import pytest
 
 from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
-from jaxtalk.export.livelink import (
-    PACKET_CURVES,
-    LiveLinkSender,
-    curves_from_channels,
-    decode_packet,
-    encode_packet,
-    parse_address,
-)
+from jaxtalk.export.livelink import PACKET_CURVES, LiveLinkSender, decode_packet, encode_packet, parse_address
+from jaxtalk.export.recording import live_link_curves
 
 # Unreal's EARFaceBlendShape, in enum order (AugmentedReality/Public/ARTypes.h): what packet index i means.
 UNREAL_ORDER = """EyeBlinkLeft EyeLookDownLeft EyeLookInLeft EyeLookOutLeft EyeLookUpLeft EyeSquintLeft EyeWideLeft
@@ -100,21 +94,20 @@ def test_a_local_receiver_decodes_every_frame_the_sender_sends():
     np.testing.assert_array_equal(np.stack([f.values for f in got]), frames)
 
 
-def test_named_channels_land_on_their_curves_in_either_spelling():
-    names = ["jawOpen", "MouthLeft", "HeadYaw", "eyeBlinkRight"]
-    values = np.array([[0.5, 0.25, -0.1, 1.0], [0.0, 0.0, 0.0, 0.0]], np.float32)
-    out = curves_from_channels(names, values)
-    assert out.shape == (2, 61)
+def test_a_rigs_weights_and_head_angles_become_the_61_curves_a_packet_carries():
+    # One assembly of the 61 curves for a Live Link Face recording's rows and its UDP packets.
+    names = ["jawOpen", "MouthLeft", "eyeBlink_R", "smile"]  # any spelling a rig uses; an unknown shape is left out
+    weights = np.array([[0.5, 0.25, 1.0, 0.9], [0.0, 0.0, 0.0, 0.0]], np.float32)
+    head = np.array([[-0.1, 0.2, 0.05], [0.0, 0.0, 0.0]], np.float32)
+    out = live_link_curves(names, weights, head)
     index = {name: i for i, name in enumerate(LIVE_LINK_CURVES)}
-    assert out[0, index["JawOpen"]] == 0.5 and out[0, index["MouthLeft"]] == 0.25
-    assert out[0, index["HeadYaw"]] == np.float32(-0.1) and out[0, index["EyeBlinkRight"]] == 1.0
-    assert np.count_nonzero(out) == 4
-    every = curves_from_channels(list(ARKIT_NAMES), np.ones((1, 52), np.float32))
+    assert out.shape == (2, 61) and out[0, index["JawOpen"]] == 0.5 and out[0, index["MouthLeft"]] == 0.25
+    assert out[0, index["EyeBlinkRight"]] == 1.0 and np.count_nonzero(out[0]) == 6
+    np.testing.assert_allclose(out[0, [index["HeadYaw"], index["HeadPitch"], index["HeadRoll"]]], head[0])
+    frame = decode_packet(encode_packet(out[0], frame=0))
+    assert frame.named()["JawOpen"] == 0.5 and frame.named()["HeadPitch"] == np.float32(0.2)
+    every = live_link_curves(list(ARKIT_NAMES), np.ones((1, 52), np.float32))
     assert every[0, :52].min() == 1.0 and not every[0, 52:].any()
-    with pytest.raises(ValueError, match="not a Live Link Face curve"):
-        curves_from_channels(["smile"], np.zeros((1, 1)))
-    with pytest.raises(ValueError, match="twice"):
-        curves_from_channels(["jawOpen", "JawOpen"], np.zeros((1, 2)))
 
 
 @pytest.mark.parametrize("text, want", [

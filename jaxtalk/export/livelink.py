@@ -20,7 +20,8 @@ Unreal reads curve ``i`` as ``EARFaceBlendShape(i)``, whose order differs from t
 PyLiveLinkFace's and LLV's encoders.) Unreal accepts packets of 264 to 774 bytes, which bounds the two
 names to 512 bytes together.
 
-:class:`LiveLinkSender` sends frames to a receiver (Unreal's Live Link, default UDP port 11111).
+:class:`LiveLinkSender` sends frames to a receiver (Unreal's Live Link, default UDP port 11111);
+:func:`jaxtalk.export.recording.live_link_curves` makes the 61 curves from a rig's weights and head angles.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES, live_link_name
+from jaxtalk.export.arkit import LIVE_LINK_CURVES
 from jaxtalk.types import Float
 
 __all__ = [
@@ -42,7 +43,6 @@ __all__ = [
     "PACKET_VERSION",
     "LiveLinkFrame",
     "LiveLinkSender",
-    "curves_from_channels",
     "decode_packet",
     "encode_packet",
     "parse_address",
@@ -167,32 +167,6 @@ def decode_packet(data: bytes) -> LiveLinkFrame:
     values[_TO_PACKET] = packet
     return LiveLinkFrame(values=values, frame=frame, subframe=subframe, fps=(numerator, denominator),
                          subject=names[1], device_id=names[0], version=version)
-
-
-def curves_from_channels(names: Sequence[str], values: Float[np.ndarray, "..."]) -> Float[np.ndarray, "frames 61"]:
-    """Named per-frame values (ARKit's ``jawOpen`` or Live Link's ``JawOpen`` spelling, and the head and
-    eye curves) placed on the 61 curves, in :data:`~jaxtalk.export.arkit.LIVE_LINK_CURVES` order; curves
-    not named are 0.
-
-    Raises:
-        ValueError: a name that is no Live Link Face curve, a repeated one, or values of the wrong width.
-    """
-    values = np.asarray(values, np.float32)
-    if values.ndim != 2 or values.shape[1] != len(names):
-        raise ValueError(f"values must have shape (frames, {len(names)}), got {values.shape}")
-    index = {name: i for i, name in enumerate(LIVE_LINK_CURVES)}
-    columns = []
-    for name in names:
-        curve = live_link_name(name) if name in ARKIT_NAMES else name
-        if curve not in index:
-            raise ValueError(f"{name!r} is not a Live Link Face curve (ARKit's 52 shapes, Head/LeftEye/RightEye "
-                             "Yaw/Pitch/Roll)")
-        columns.append(index[curve])
-    if len(set(columns)) != len(columns):
-        raise ValueError("a curve is named twice")
-    out = np.zeros((values.shape[0], NUM_CURVES), np.float32)
-    out[:, columns] = values
-    return out
 
 
 def parse_address(text: str, *, default_host: str = "127.0.0.1", default_port: int = DEFAULT_PORT) -> tuple[str, int]:

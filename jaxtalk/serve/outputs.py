@@ -140,7 +140,7 @@ def _arkit_output() -> Output:
     # onto the built-in ARKit rig with the per-client state carrying the solver's smoothing across chunks:
     # with jaxtalk.export.retarget, start() = Retargeter.for_face(arkit_rig(), builtin_face(0)).init_stream()
     # and convert(state, params) = stream_step(state, params) -> its weights (in the rig's shape order) and
-    # head_angles. `--live-link` sends the channels by name (export.livelink.curves_from_channels).
+    # head_angles (yaw, pitch, roll). `--live-link` sends the channels by name (export.recording.live_link_curves).
     raise OutputUnavailable("the arkit output is not available in this build: the ARKit retargeting solver "
                             "(jaxtalk.export.retarget) is not wired into the server yet; ask for params or morph")
 

@@ -376,14 +376,18 @@ class LiveServer:
         """Send the frames to Live Link at the frame rate: frame ``f`` at ``anchor + f / fps``, the anchor
         set by the first frames and moved when frames come later than due or over a second early (a
         client sending faster than real time)."""
-        from jaxtalk.export.livelink import curves_from_channels
+        from jaxtalk.export.arkit import LIVE_LINK_HEAD_CURVES
+        from jaxtalk.export.recording import live_link_curves
 
         loop = asyncio.get_running_loop()
         now, fps = loop.time(), self.model.fps
         due = None if client.link_anchor is None else client.link_anchor + frame0 / fps
         if due is None or due < now or due > now + 1.0:
             client.link_anchor = now - frame0 / fps
-        curves = curves_from_channels(self._converters["arkit"].channels, arkit)
+        channels = self._converters["arkit"].channels
+        head = [channels.index(c) for c in LIVE_LINK_HEAD_CURVES] if set(LIVE_LINK_HEAD_CURVES) <= set(channels) else []
+        shapes = [i for i in range(len(channels)) if i not in head]
+        curves = live_link_curves([channels[i] for i in shapes], arkit[:, shapes], arkit[:, head] if head else None)
         sender = client.live_link
         for i in range(curves.shape[0]):
             loop.call_at(client.link_anchor + (frame0 + i) / fps, sender.send, curves[i:i + 1], frame0 + i)
