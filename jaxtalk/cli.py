@@ -545,23 +545,65 @@ def retarget(
 @app.command()
 @_user_errors
 def view(
-    folder: Annotated[Path, typer.Argument(help="Folder of exported .glb files (and the NAME.glb.wav beside each).")],
+    folder: Annotated[Path | None, typer.Argument(help="Folder of exported .glb files (and the NAME.glb.wav beside "
+                                                       "each); not with --live.")] = None,
     port: Annotated[int, typer.Option(help="Port on 127.0.0.1 (0: any free one).")] = 8000,
     open_browser: Annotated[bool, typer.Option("--open", help="Open the page in the default browser.")] = False,
+    live: Annotated[bool, typer.Option("--live", help="Stream the microphone (or a file) to `jaxtalk serve` and drive "
+                                                      "the face with its frames, showing the latency.")] = False,
+    server: Annotated[str, typer.Option(help="With --live: the `jaxtalk serve` to stream to.")] = "ws://127.0.0.1:8765",
 ) -> None:
-    """Play exported animations in sync with their audio on a local web page (three.js, installed by npm)."""
-    from jaxtalk.viewer import start_server
+    """Play exported animations in sync with their audio on a local web page (three.js, installed by npm), or
+    with --live animate the face from the microphone through a running `jaxtalk serve`."""
+    from jaxtalk.viewer import start_live_server, start_server
 
-    server = start_server(folder, port=port)
-    typer.echo(f"jaxtalk view: {server.url} (Ctrl-C stops)")
+    if live:
+        if folder is not None:
+            raise ValueError("--live streams to a server and plays no folder: drop FOLDER, or drop --live")
+        viewer = start_live_server(server, port=port)
+        typer.echo(f"jaxtalk view --live: {viewer.url} streams to {server} (start it with `jaxtalk serve RUN`; "
+                   "Ctrl-C stops)")
+    else:
+        if folder is None:
+            raise ValueError("name a FOLDER of exported .glb files to play, or pass --live to stream to `jaxtalk serve`")
+        viewer = start_server(folder, port=port)
+        typer.echo(f"jaxtalk view: {viewer.url} (Ctrl-C stops)")
     if open_browser:
         import webbrowser
 
-        webbrowser.open(server.url)
+        webbrowser.open(viewer.url)
     try:
-        server.thread.join()
+        viewer.thread.join()
     except KeyboardInterrupt:
-        server.close()
+        viewer.close()
+
+
+@app.command()
+@_user_errors
+def serve(
+    run: Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk).")],
+    host: Annotated[str, typer.Option(help="Interface to listen on (127.0.0.1: this machine only).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port (0: any free one).")] = 8765,
+    style: _STYLE = None, cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, best: _BEST = False,
+    max_clients: Annotated[int, typer.Option(help="Clients served at once; one more is told the server is busy.")] = 8,
+    max_chunk_s: Annotated[float, typer.Option(help="Longest audio message a client may send, in seconds.")] = 1.0,
+    live_link: Annotated[str | None, typer.Option(help="Send every client's ARKit curves as Live Link Face UDP packets "
+                                                       "to HOST:PORT (or PORT on 127.0.0.1; Unreal listens on 11111).")] = None,
+    allow_origin: Annotated[list[str] | None, typer.Option(help="A web page origin allowed to connect besides this "
+                                                                 "machine's own (http://localhost:*); repeatable.")] = None,
+) -> None:
+    """Animate live speech over WebSocket: clients send 16-kHz PCM, each chunk's frames come back (params, glTF
+    morph weights or ARKit weights) with their timestamps and the compute time (protocol: docs/serve.md)."""
+    from jaxtalk.commands.serving import ServeCommandOptions, serve_run
+
+    running = serve_run(ServeCommandOptions(run_dir=run, host=host, port=port, style=style, cfg_scale=cfg_scale,
+                                            sample_steps=sample_steps, best=best, max_clients=max_clients,
+                                            max_chunk_s=max_chunk_s, live_link=live_link,
+                                            origins=tuple(allow_origin or ())), echo=typer.echo)
+    try:
+        running.thread.join()
+    except KeyboardInterrupt:
+        running.close()
 
 
 convert_app = typer.Typer(help="Convert another implementation's checkpoint into a jaxtalk run.", no_args_is_help=True)

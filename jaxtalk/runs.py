@@ -75,6 +75,10 @@ class ModelSpec:
         style_asset: the run keeps a default style clip (a training clip) for sampling.
         legacy_fields: values of config fields added after runs were first written, as those runs
             were trained.
+        live: ``"module:function"`` that makes a live model from a loaded run (``live(run, style=...,
+            cfg_scale=..., sample_steps=...)``: ``open(key)`` streams, ``push(audio)`` returns frames), for
+            models that animate speech as it arrives (``jaxtalk stream`` and ``jaxtalk serve``); None for
+            the others.
     """
 
     name: str
@@ -86,6 +90,7 @@ class ModelSpec:
     windows: str | None = None
     style_asset: bool = False
     legacy_fields: tuple[tuple[str, Any], ...] = ()
+    live: str | None = None
 
     def config_class(self) -> type:
         """The config dataclass (imports the model)."""
@@ -108,6 +113,10 @@ class ModelSpec:
                 return table[preset]
         return _resolve(self.defaults)
 
+    def live_fn(self) -> Callable[..., Any] | None:
+        """The live-model factory (see ``live``), or None when the model does not animate live speech."""
+        return None if self.live is None else _resolve(self.live)
+
 
 _TURN_SPEECH = (("speech_dim", "turn_speech_dim"),)
 REGISTRY: dict[str, ModelSpec] = {
@@ -117,7 +126,7 @@ REGISTRY: dict[str, ModelSpec] = {
                   "jaxtalk.models.toktalk.recipe:DEFAULTS",
                   data_fields=(("speech_dim", "token_dim"), ("token_rate", "token_rate")), style_asset=True,
                   # TokTalk runs recorded before noise_frames existed were trained on white noise.
-                  legacy_fields=(("noise_frames", 0.0),)),
+                  legacy_fields=(("noise_frames", 0.0),), live="jaxtalk.models.toktalk.live:live_model"),
         ModelSpec("ats", "jaxtalk.models.freetalk.config:ATSConfig", "jaxtalk.models.freetalk.recipe:train_ats",
                   "jaxtalk.models.freetalk.recipe:DEFAULTS", "jaxtalk.models.freetalk.recipe:ATS_PRESET_DEFAULTS",
                   data_fields=(("speech_dim", "speech_dim"),)),

@@ -7,7 +7,8 @@ vector-quantised tokenizers.
 * ``resample_features(x, src_rate, dst_rate, num_frames=None, mode="linear"|"previous")``: any stream to
   the motion rate; ``"previous"`` is causal.
 * ``VQTokenizer`` / ``TokenStream``: k-means token ids + embedding tables at a chosen rate and width;
-  ``TokenStream.from_npy`` brings in user-supplied per-frame embeddings (e.g. an audio LLM's).
+  ``TokenStream.from_npy`` brings in user-supplied per-frame embeddings (e.g. an audio LLM's);
+  ``VQTokenizer.stream()`` tokenizes live audio piece by piece (``TokenizerStream``), equal to ``encode``.
 * ``kmeans``: jitted k-means++ / Lloyd used to fit the codebooks.
 """
 
@@ -31,7 +32,7 @@ from jaxtalk.audio.melspec import (
     mel_to_hz,
     num_frames,
 )
-from jaxtalk.audio.tokenizer import TokenStream, VQTokenizer
+from jaxtalk.audio.tokenizer import TokenizerStream, TokenStream, VQTokenizer
 
 __all__ = [
     "load_audio",
@@ -52,4 +53,5 @@ __all__ = [
     "nearest_centroid",
     "VQTokenizer",
     "TokenStream",
+    "TokenizerStream",
 ]

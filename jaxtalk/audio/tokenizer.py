@@ -42,7 +42,7 @@ from jaxtalk.audio.kmeans import kmeans, nearest_centroid
 from jaxtalk.audio.melspec import _log_mel, mel_filterbank, num_frames
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array
 
-__all__ = ["TokenStream", "VQTokenizer"]
+__all__ = ["TokenStream", "TokenizerStream", "VQTokenizer"]
 
 _FORMAT_VERSION = 1
 # Audio is padded to a whole number of these (in seconds, rounded to whole tokens) before the jitted
@@ -159,9 +159,11 @@ def _token_layout(samples: int, sample_rate: int, rate: float | int, hop_length:
 
 @functools.partial(
     jax.jit,
-    static_argnames=("num_tokens", "stack", "sample_rate", "n_mels", "n_fft", "hop_length"),
+    static_argnames=("num_tokens", "stack", "sample_rate", "n_mels", "n_fft", "hop_length", "center"),
 )
-def _pooled_features(audio, segment, *, num_tokens, stack, sample_rate, n_mels, n_fft, hop_length):
+def _pooled_features(audio, segment, *, num_tokens, stack, sample_rate, n_mels, n_fft, hop_length, center=True):
+    # center=False: ``audio`` already starts n_fft // 2 samples before its first frame's centre (a live
+    # window, see TokenizerStream), which is what centring's zero padding gives a whole clip.
     mel = _log_mel(
         audio,
         sample_rate=sample_rate,
@@ -171,7 +173,7 @@ def _pooled_features(audio, segment, *, num_tokens, stack, sample_rate, n_mels, 
         win_length=n_fft,
         f_min=0.0,
         f_max=None,
-        center=True,
+        center=center,
         pad_mode="constant",
         log_floor=1e-10,
     )
@@ -437,6 +439,10 @@ class VQTokenizer:
         ids = self.quantize(self.features(audio))
         return TokenStream(ids=ids, embeddings=self.lookup(ids), rate=self.rate)
 
+    def stream(self, group: int = 1) -> TokenizerStream:
+        """A :class:`TokenizerStream`: tokens of audio pushed piece by piece, ``group`` at a time."""
+        return TokenizerStream(self, group)
+
     def save(self, path: str | os.PathLike) -> Path:
         """Write the tokenizer to an ``.npz`` file (exact round trip through ``load``).
 
@@ -496,6 +502,110 @@ class VQTokenizer:
         except (OSError, EOFError) as err:
             raise ValueError(f"{str(path)!r}: cannot read tokenizer file ({err})") from err
         return cls(**kwargs)
+
+
+class TokenizerStream:
+    """Tokens of audio that arrives piece by piece: the tokens :meth:`VQTokenizer.encode` gives for all
+    the audio pushed so far, each one as soon as the audio it reads has arrived.
+
+    Token ``k`` pools the log-mel frames centred in its window ``[k / rate, (k + 1) / rate)``; the last of
+    them reads ``n_fft / 2`` samples past its centre (:attr:`VQTokenizer.lookahead_s`). :meth:`push` emits
+    tokens in groups of ``group`` (a model chunk's worth), each group once those samples are in;
+    :meth:`finish` emits the rest, the last window padded with silence as ``encode`` pads a clip's end. Each
+    group's frames are computed from a fixed-length window of the audio (one compiled program whatever
+    the group's position), and only the audio later tokens still read is kept.
+
+    Attributes:
+        tokenizer: the :class:`VQTokenizer`.
+        group: tokens per emitted group.
+        samples: samples pushed so far.
+        tokens: tokens emitted so far.
+    """
+
+    def __init__(self, tokenizer: VQTokenizer, group: int = 1):
+        if isinstance(group, bool) or not isinstance(group, (int, np.integer)) or group < 1:
+            raise ValueError(f"group must be a positive integer, got {group!r}")
+        self.tokenizer = tokenizer
+        self.group = int(group)
+        self.samples = 0
+        self.tokens = 0
+        t = tokenizer
+        # Sub-windows advanced per log-mel frame: frame f belongs to sub-window floor(f * step).
+        self._step = Fraction(t.hop_length) * _as_fraction(t.rate, "rate") / t.sample_rate * t.stack
+        self._reach = t.n_fft // 2  # samples a centred frame reads before its centre
+        # Frames of one group, at its widest (the phase of k * stack / step varies when a token is not a
+        # whole number of frames): every group is computed on this many, the extra ones dropped.
+        phases = self._step.denominator
+        self._frames = max(self._first_frame(k + self.group) - self._first_frame(k) for k in range(phases))
+        self._window = (self._frames - 1) * t.hop_length + t.n_fft
+        self._buffer = np.zeros(0, np.float32)
+        self._buffer_start = 0  # absolute index of self._buffer[0] (may be negative: zeros before the clip)
+
+    def _first_frame(self, token: int) -> int:
+        """The first log-mel frame that belongs to ``token`` (or to a later one)."""
+        return math.ceil(token * self.tokenizer.stack / self._step)
+
+    def _needed(self, tokens: int) -> int:
+        """Samples that tokens ``0 .. tokens - 1`` read (the last frame's centre plus its reach)."""
+        last = self._first_frame(tokens) - 1
+        return last * self.tokenizer.hop_length - self._reach + self.tokenizer.n_fft
+
+    @property
+    def samples_needed(self) -> int:
+        """More samples needed before :meth:`push` emits the next group (0: it would now)."""
+        return max(self._needed(self.tokens + self.group) - self.samples, 0)
+
+    def push(self, audio: Float[np.ndarray | Array, "..."]) -> tuple[Int[np.ndarray, " tokens"], Float[np.ndarray, "tokens width"]]:
+        """Add audio; return the ids and embeddings of every group it completes (possibly none).
+
+        Raises:
+            ValueError: a non 1-D or NaN/inf signal (nothing is added).
+        """
+        audio = np.asarray(audio, np.float32)
+        if audio.size:
+            check_audio(audio, self.tokenizer.sample_rate, min_duration=0.0, allow_silence=True, name="audio")
+            self._buffer = np.concatenate([self._buffer, audio])
+            self.samples += int(audio.size)
+        ready = self.tokens
+        while self._needed(ready + self.group) <= self.samples:
+            ready += self.group
+        return self._emit(ready - self.tokens)
+
+    def finish(self) -> tuple[Int[np.ndarray, " tokens"], Float[np.ndarray, "tokens width"]]:
+        """The tokens not emitted yet, up to ``ceil(samples * rate / sample_rate)`` as ``encode`` counts
+        them (silence past the end); afterwards the stream is empty and starts again at sample 0."""
+        total = math.ceil(self.samples * _as_fraction(self.tokenizer.rate, "rate") / self.tokenizer.sample_rate)
+        out = self._emit(max(total - self.tokens, 0))
+        self.samples = self.tokens = self._buffer_start = 0
+        self._buffer = np.zeros(0, np.float32)
+        return out
+
+    def _emit(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        t = self.tokenizer
+        feats = []
+        for k0 in range(self.tokens, self.tokens + count, self.group):
+            f0 = self._first_frame(k0)
+            start = f0 * t.hop_length - self._reach
+            window = np.zeros(self._window, np.float32)
+            lo, hi = max(start, self._buffer_start), min(start + self._window, self._buffer_start + self._buffer.size)
+            if hi > lo:
+                window[lo - start:hi - start] = self._buffer[lo - self._buffer_start:hi - self._buffer_start]
+            frames = f0 + np.arange(self._frames, dtype=np.int64)
+            segment = (frames * self._step.numerator) // self._step.denominator - k0 * t.stack
+            segment = np.where(segment < self.group * t.stack, segment, self.group * t.stack)  # dropped
+            feats.append(np.asarray(_pooled_features(
+                jnp.asarray(window), jnp.asarray(segment, jnp.int32), num_tokens=self.group, stack=t.stack,
+                sample_rate=t.sample_rate, n_mels=t.n_mels, n_fft=t.n_fft, hop_length=t.hop_length, center=False)))
+        if not feats:
+            return np.zeros(0, np.int32), np.zeros((0, t.width), np.float32)
+        features = np.concatenate(feats)[:count]
+        self.tokens += count
+        keep = self._first_frame(self.tokens) * t.hop_length - self._reach  # what later tokens read
+        if keep > self._buffer_start:
+            self._buffer = self._buffer[keep - self._buffer_start:]
+            self._buffer_start = keep
+        ids = t.quantize(features)
+        return ids, t.lookup(ids)
 
 
 def _check_layout(rate: float | int, sample_rate: int, hop_length: int, stack: int) -> None:

@@ -152,48 +152,44 @@ def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
     return load_run(opts.run_dir, best=opts.best), kind
 
 
-def _toktalk_inputs(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """``(tokens (Tt, D), style clip (1, S, 56), audio or None)``."""
-    from jaxtalk.audio import load_audio
+def _toktalk_tokenizer(run: LoadedRun) -> Any:
+    tokenizer = run.tokenizer()
+    if tokenizer is None:
+        config = run.config
+        raise ValueError(f"{run.run_dir} was trained on the data's own token files and has no tokenizer for "
+                         f"audio: pass a .npy of token embeddings ({config.speech_dim} wide at {config.token_rate:g} Hz)")
+    return tokenizer
 
-    config = run.config
-    audio = None
-    if kind == "audio":
-        tokenizer = run.tokenizer()
-        if tokenizer is None:
-            raise ValueError(f"{run.run_dir} was trained on the data's own token files and has no tokenizer for "
-                             f"audio: pass a .npy of token embeddings ({config.speech_dim} wide at {config.token_rate:g} Hz)")
-        audio = load_audio(opts.input)
-        tokens = np.asarray(tokenizer.encode(audio).embeddings, np.float32)
-    else:
-        tokens = np.load(opts.input, allow_pickle=False)
-        if tokens.ndim != 2 or tokens.shape[1] != config.speech_dim or tokens.shape[0] < 1:
-            raise ValueError(f"{str(opts.input)!r}: token embeddings must have shape (tokens, {config.speech_dim}) "
-                             f"at {config.token_rate:g} Hz, got {tokens.shape}")
-        if not np.all(np.isfinite(tokens)):
-            raise ValueError(f"{str(opts.input)!r}: token embeddings contain NaN or inf")
-        tokens = tokens.astype(np.float32)
+
+def _toktalk_style(run: LoadedRun, opts: SampleOptions) -> np.ndarray:
+    """The reference motion ``(S, 56)``: ``--style``, else the training clip saved with the run."""
     if opts.style is not None:
         from jaxtalk.commands.rendering import read_params
 
         style = read_params(opts.style)
     else:
         style = np.asarray(run.default_style(), np.float32)
-    s = 4 * config.style_frames
-    if style.shape[0] < config.style_min_frames:
-        raise ValueError(f"style clip {opts.style} has {style.shape[0]} frames, fewer than {config.style_min_frames}")
-    return tokens, style[None, :s], audio
+    if style.shape[0] < run.config.style_min_frames:
+        raise ValueError(f"style clip {opts.style} has {style.shape[0]} frames, fewer than {run.config.style_min_frames}")
+    return style
 
 
-def _toktalk_frames(config: Any, tokens: np.ndarray, audio: np.ndarray | None) -> int:
-    """Frames to keep: the tokens' span, but no longer than the audio (the tokenizer may round the
-    token count up: 5.0 s of audio gave 126 frames)."""
-    from jaxtalk.types import AUDIO_SAMPLE_RATE
+def _toktalk_tokens(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(tokens (Tt, D), audio or None)``: the audio's tokens from the run's tokenizer, or a ``.npy``'s."""
+    from jaxtalk.audio import load_audio
 
-    frames = int(round(tokens.shape[0] * config.fps / config.token_rate))
-    if audio is not None:
-        frames = min(frames, int(round(audio.shape[0] / AUDIO_SAMPLE_RATE * config.fps)))
-    return frames
+    config = run.config
+    if kind == "audio":
+        tokenizer = _toktalk_tokenizer(run)
+        audio = load_audio(opts.input)
+        return np.asarray(tokenizer.encode(audio).embeddings, np.float32), audio
+    tokens = np.load(opts.input, allow_pickle=False)
+    if tokens.ndim != 2 or tokens.shape[1] != config.speech_dim or tokens.shape[0] < 1:
+        raise ValueError(f"{str(opts.input)!r}: token embeddings must have shape (tokens, {config.speech_dim}) "
+                         f"at {config.token_rate:g} Hz, got {tokens.shape}")
+    if not np.all(np.isfinite(tokens)):
+        raise ValueError(f"{str(opts.input)!r}: token embeddings contain NaN or inf")
+    return tokens.astype(np.float32), None
 
 
 def _timar_inputs(run: LoadedRun, opts: SampleOptions) -> tuple[dict[str, np.ndarray], np.ndarray, int]:
@@ -255,11 +251,14 @@ def sample_run(opts: SampleOptions) -> SampleResult:
     key = jax.random.key(opts.seed)
     if run.record.model == "toktalk":
         from jaxtalk.models import toktalk
+        from jaxtalk.models.toktalk.live import frames_for_audio
 
-        tokens, style, audio = _toktalk_inputs(run, opts, kind)
+        tokens, audio = _toktalk_tokens(run, opts, kind)
+        style = _toktalk_style(run, opts)[None, : 4 * run.config.style_frames]
+        frames = frames_for_audio(run.config, tokens.shape[0], None if audio is None else audio.shape[0])
         # Window by window past a minute: the decoder's attention is O(frames^2) in memory.
         motion = toktalk.sample_long(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
-                                     sample_steps=opts.sample_steps)[:, :_toktalk_frames(run.config, tokens, audio)]
+                                     sample_steps=opts.sample_steps)[:, :frames]
     else:
         from jaxtalk.models.timar.data import Normalizer
         from jaxtalk.models.timar.stream import stream
@@ -285,43 +284,54 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
         See :func:`sample_run`.
     """
     import jax
-    import jax.numpy as jnp
 
     run, kind = _load(opts)
     key = jax.random.key(opts.seed)
     config = run.config
     outs, times = [], []
 
-    def report(i: int, n: int, dt: float, chunk_s: float) -> None:
-        times.append(1e3 * dt)
-        note = " (incl. compile)" if i == 0 else f" (real-time factor {dt / chunk_s:.3f})"
-        echo(f"chunk {i + 1:3d}/{n}: {1e3 * dt:8.1f} ms for {chunk_s:.2f} s{note}")
+    def report(i: int, n: int, dt: float, chunk_s: float, chunks: int = 1) -> None:
+        times.append(1e3 * dt / chunks)
+        note = " (incl. compile)" if i == 0 else f" (real-time factor {dt / chunks / chunk_s:.3f})"
+        which = f"chunk {i + 1:3d}" if chunks == 1 else f"chunks {i + 1}-{i + chunks}"
+        echo(f"{which}/{n}: {1e3 * dt / chunks:8.1f} ms for {chunk_s:.2f} s{note}")
 
     if run.record.model == "toktalk":
-        from jaxtalk.models import toktalk
-        from jaxtalk.samplers import cosine_grid
+        from jaxtalk.models.toktalk import tokens_per_chunk
+        from jaxtalk.models.toktalk.live import LiveModel
 
-        tokens, style, audio = _toktalk_inputs(run, opts, kind)
-        ct = toktalk.tokens_per_chunk(config)
-        frames = _toktalk_frames(config, tokens, audio)
-        n = -(-tokens.shape[0] // ct)
-        tokens = np.concatenate([tokens, np.repeat(tokens[-1:], n * ct - tokens.shape[0], axis=0)], axis=0)
-        style_vec = toktalk.encode_style(run.params, config, style)
-        ts = None if opts.sample_steps is None else jnp.asarray(cosine_grid(opts.sample_steps), jnp.float32)
+        # The live path `jaxtalk serve` runs: the input goes in piece by piece, each piece what completes
+        # the next chunk (for audio: up to the chunk's end plus the tokenizer's look-ahead), as it would live.
+        live = LiveModel.from_run(run, style=_toktalk_style(run, opts), cfg_scale=opts.cfg_scale,
+                                  sample_steps=opts.sample_steps)
+        chunk_s, ct = live.chunk_frames / live.fps, tokens_per_chunk(config)
+        stream = live.open(key)
         if kind == "audio":
-            # The times below are compute; a live stream also waits for the tokenizer's look-ahead.
-            echo(f"note: each token reads {1e3 * run.tokenizer().lookahead_s:.1f} ms of audio past its window "
-                 "(the tokenizer's centred STFT): a live chunk's latency is that plus the times below")
-        # Committed like the restored parameters: an uncommitted first state would compile twice.
-        state = jax.device_put(toktalk.init_stream(config, key), jax.local_devices()[0])
-        chunk_s = config.chunk_frames / config.fps
-        for i in range(n):
-            t0 = time.perf_counter()
-            state, out = toktalk.stream_step(run.params, config, state, tokens[None, i * ct:(i + 1) * ct], style_vec,
-                                             cfg_scale=opts.cfg_scale, ts=ts)
-            outs.append(np.asarray(jax.block_until_ready(out))[0])
-            report(i, n, time.perf_counter() - t0, chunk_s)
-        params = np.concatenate(outs)[:frames]
+            from jaxtalk.audio import load_audio
+
+            _toktalk_tokenizer(run)
+            audio = load_audio(opts.input)
+            echo(f"note: each chunk also waits for {1e3 * live.lookahead_samples / live.sample_rate:.1f} ms of audio "
+                 "past its end (the tokenizer's centred STFT): a live chunk's latency is that plus the times below")
+            n = -(-max(math.ceil(audio.shape[0] * config.token_rate / live.sample_rate), 1) // ct)
+            pos = 0
+            while pos + stream.samples_needed <= audio.shape[0]:  # each piece completes one chunk
+                t0, need = time.perf_counter(), stream.samples_needed
+                outs.append(stream.push(audio[pos:pos + need]))
+                report(len(times), n, time.perf_counter() - t0, chunk_s)
+                pos += need
+            t0 = time.perf_counter()  # the rest of the audio, then the utterance's end: the last chunk(s)
+            outs.append(np.concatenate([stream.push(audio[pos:]), stream.finish()]))
+            report(len(times), n, time.perf_counter() - t0, chunk_s, max(n - len(times), 1))
+        else:
+            tokens, audio = _toktalk_tokens(run, opts, kind)
+            n = -(-tokens.shape[0] // ct)
+            for i in range(n):
+                t0 = time.perf_counter()
+                out = stream.push_tokens(tokens[i * ct:(i + 1) * ct])
+                outs.append(np.concatenate([out, stream.finish()]) if i == n - 1 else out)
+                report(i, n, time.perf_counter() - t0, chunk_s)
+        params = np.concatenate(outs)
     else:
         from jaxtalk.models.timar.data import Normalizer
         from jaxtalk.models.timar.stream import init_stream, stream_step

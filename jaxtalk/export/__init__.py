@@ -6,6 +6,9 @@
   within a stated error;
 * :func:`write_audio_beside`: the audio next to a ``.glb`` (glTF has none);
 * :class:`GlbAnimation`: read a ``.glb`` back and pose its mesh as a glTF player does;
+* :func:`face_model_weights` / :func:`face_model_rotations`: pose a face model's ``.glb`` live;
+* :mod:`jaxtalk.export.arkit`, :mod:`jaxtalk.export.livelink`: ARKit's shape names, Live Link Face's
+  curves and its UDP packets;
 * blendshape rigs (:mod:`~jaxtalk.export.rig`: :class:`Rig`, :func:`load_rig`, the built-in
   :func:`arkit_rig`), retargeting onto them (:mod:`~jaxtalk.export.retarget`: :class:`Retargeter`,
   :func:`retarget`, over :func:`solve_weights`), and their files: :func:`export_rig_animation` (``.glb``),
@@ -20,6 +23,9 @@ from jaxtalk.export.gltf import (
     export_face_model,
     export_rig_animation,
     export_vertex_sequence,
+    face_model_rotations,
+    face_model_targets,
+    face_model_weights,
     one_sided_targets,
     vertex_basis,
     audio_path_for,
@@ -35,4 +41,5 @@ __all__ = ["DEFAULT_MAX_ERROR", "ExportSummary", "GlbAnimation", "export_face_mo
            "one_sided_targets", "vertex_basis", "write_audio_beside", "audio_path_for", "export_rig_animation",
            "Rig", "arkit_rig", "load_rig", "arkit_shape_name", "symmetric_pairs", "Penalties", "solve_weights",
            "Retargeter", "RetargetResult", "StreamState", "retarget", "DEFAULT_PENALTIES", "write_live_link_csv",
-           "read_live_link_csv", "write_weights_json"]
+           "read_live_link_csv", "write_weights_json", "face_model_rotations", "face_model_targets",
+           "face_model_weights"]

@@ -1,10 +1,12 @@
-"""ARKit's 52 blendshape names and the curves of a Live Link Face recording, in their wire order.
+"""ARKit's 52 blendshape names and the curves of a Live Link Face recording, in its CSV order.
 
 Apple's ARKit names its face shapes in camelCase (``jawOpen``, ``mouthSmileLeft``); Epic's Live Link
-Face app records and sends the same 52 shapes, capitalised (``JawOpen``), in one fixed order, followed
-by the head's yaw, pitch and roll and each eye's yaw, pitch and roll: 61 curves in all. That order is
-the one a Live Link Face CSV's header and its UDP packets use, so the names here keep it (note
-``JawRight`` before ``JawLeft`` and ``MouthRight`` before ``MouthLeft``, as the app writes them).
+Face app records the same 52 shapes, capitalised (``JawOpen``), in one fixed order, followed by the
+head's yaw, pitch and roll and each eye's yaw, pitch and roll: 61 curves in all. That order is the one
+a Live Link Face CSV's header uses, so the names here keep it (note ``JawRight`` before ``JawLeft`` and
+``MouthRight`` before ``MouthLeft``, as the app writes them). Its UDP packets carry the same 61 curves
+in Unreal's ``EARFaceBlendShape`` order instead, where those two pairs are the other way round;
+:mod:`jaxtalk.export.livelink` permutes them on the wire.
 
 "Left" and "Right" are the subject's own sides, as in ARKit.
 """
@@ -42,6 +44,7 @@ def arkit_name(name: str) -> str:
     return name[:1].lower() + name[1:]
 
 
-# All 61 curves of a Live Link Face CSV row (after Timecode and BlendShapeCount) and UDP packet.
+# All 61 curves of a Live Link Face CSV row (after Timecode and BlendShapeCount); a UDP packet holds them
+# in Unreal's order (jaxtalk.export.livelink.PACKET_CURVES).
 LIVE_LINK_CURVES: tuple[str, ...] = (tuple(live_link_name(n) for n in ARKIT_NAMES) + LIVE_LINK_HEAD_CURVES
                                      + LIVE_LINK_EYE_CURVES)

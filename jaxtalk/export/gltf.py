@@ -20,6 +20,11 @@ whose weights lie in ``[0, 1]`` (:func:`one_sided_targets`: Blender's importer c
 the mesh's ``extras.jaxtalk`` records each target's component and scale, from which
 :meth:`~jaxtalk.export.GlbAnimation.component_weights` gives the coefficients back.
 
+A face model's file can also be posed live, frame by frame, rather than by its animation:
+:func:`face_model_weights` and :func:`face_model_rotations` give the morph weights of its targets
+(:func:`face_model_targets`) and its joints' rotations for any parameters (what ``jaxtalk serve``'s
+``morph`` output sends for a file of still frames, whose targets have unit scales).
+
 The animation samples every frame at ``frame / fps`` seconds with LINEAR interpolation. glTF has no
 audio: the command line (:mod:`jaxtalk.commands.exporting`) writes the audio beside the ``.glb``.
 """
@@ -33,6 +38,7 @@ import numpy as np
 import pygltflib
 from scipy.spatial.transform import Rotation
 
+from jaxtalk.checks import check_finite
 from jaxtalk.face.model import LinearFaceModel
 from jaxtalk.files import atomic_output, check_output_path
 from jaxtalk.types import MOTION_FPS, Float, Int
@@ -40,8 +46,9 @@ from jaxtalk.types import MOTION_FPS, Float, Int
 # Inputs are annotated loosely ("..."), as in LinearFaceModel, so that a wrong shape reaches the explicit
 # ValueError that names the expected layout; outputs carry their exact shapes.
 
-__all__ = ["ExportSummary", "export_face_model", "export_rig_animation", "export_vertex_sequence", "one_sided_targets", "vertex_basis",
-           "write_audio_beside", "audio_path_for"]
+__all__ = ["ExportSummary", "export_face_model", "export_rig_animation", "export_vertex_sequence", "face_model_rotations",
+           "face_model_targets", "face_model_weights", "one_sided_targets", "vertex_basis", "write_audio_beside",
+           "audio_path_for"]
 
 # Default bound of the vertex-basis layout: 0.1 mm, far below what a renderer shows at face scale.
 DEFAULT_MAX_ERROR = 1e-4
@@ -146,13 +153,19 @@ def one_sided_targets(
         ``(targets (2K, V, 3), weights (T, 2K), signed scales (2K,))``: target ``2k`` is the positive
         side of component ``k``, ``2k + 1`` the negative; ``component weight = sum scale x weight``.
     """
-    positive, negative = np.maximum(weights, 0.0), np.maximum(-weights, 0.0)
-    up = positive.max(axis=0, initial=0.0)
-    down = negative.max(axis=0, initial=0.0)
+    up = np.maximum(weights, 0.0).max(axis=0, initial=0.0)
+    down = np.maximum(-weights, 0.0).max(axis=0, initial=0.0)
     up, down = np.where(up > 0, up, 1.0), np.where(down > 0, down, 1.0)
     scales = np.stack([up, -down], axis=1).reshape(-1)
-    sided = np.stack([positive / up, negative / down], axis=2).reshape(weights.shape[0], -1)
-    return np.repeat(targets, 2, axis=0) * scales[:, None, None], sided, scales
+    return np.repeat(targets, 2, axis=0) * scales[:, None, None], _sided(weights, scales), scales
+
+
+def _sided(weights: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """``(T, K)`` signed component weights -> ``(T, 2K)`` weights of targets with signed ``scales``
+    (positive side first): ``max(w, 0) / s+`` and ``max(-w, 0) / -s-``."""
+    pairs = np.asarray(scales, np.float64).reshape(-1, 2)
+    return np.stack([np.maximum(weights, 0.0) / pairs[:, 0], np.maximum(-weights, 0.0) / -pairs[:, 1]],
+                    axis=2).reshape(weights.shape[0], -1)
 
 
 def _mesh(writer: _GlbWriter, base: np.ndarray, faces: np.ndarray, targets: np.ndarray, weights: np.ndarray,
@@ -267,6 +280,95 @@ def _local_joint_motion(face: LinearFaceModel, params: np.ndarray) -> tuple[np.n
     return local_r, local_t
 
 
+def _component_names(face: LinearFaceModel) -> list[str]:
+    """The signed components :func:`export_face_model` stores, in order: the expression components, then
+    (FLAME) the pose-corrective entries of the non-root joints."""
+    names = [f"exp_{k:02d}" for k in range(int(np.shape(face.exp_basis)[-1]))]
+    if face.pose_basis is not None:
+        joint_names = _joint_names(face)
+        names += [f"pose_{joint_names[j]}_r{a}{b}" for j in range(1, face.num_joints) for a in range(3) for b in range(3)]
+    return names
+
+
+def _component_weights(face: LinearFaceModel, params: np.ndarray) -> np.ndarray:
+    """``(T, K)`` weights of :func:`_component_names` (``params`` already checked)."""
+    weights = [params[:, : int(np.shape(face.exp_basis)[-1])].astype(np.float64)]
+    if face.pose_basis is not None:
+        weights.append(np.asarray(face.pose_features(params), np.float64))
+    return np.concatenate(weights, axis=1)
+
+
+def _rotation_channels(face: LinearFaceModel, local_r: np.ndarray,
+                       previous: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """The animated joints' local rotations as ``(T, 4)`` quaternions ``(x, y, z, w)``, signs continuous
+    across frames (and with ``previous``, the last quaternion of each joint before these frames)."""
+    names = _joint_names(face)
+    out = {}
+    for j in (face.neck_joint, face.jaw_joint):
+        quats = Rotation.from_matrix(local_r[:, j]).as_quat()  # glTF's order
+        last = None if previous is None else previous.get(names[j])
+        if last is not None and np.dot(quats[0], last) < 0:
+            quats[0] = -quats[0]
+        out[names[j]] = _continuous(quats)
+    return out
+
+
+def face_model_targets(face: LinearFaceModel) -> list[str]:
+    """The morph target names :func:`export_face_model` writes for ``face`` (its mesh's
+    ``extras.targetNames``), in order: ``exp_00+``, ``exp_00-``, ``exp_01+``..."""
+    return [f"{n}{side}" for n in _component_names(face) for side in "+-"]
+
+
+def face_model_weights(
+    face: LinearFaceModel, params: Float[np.ndarray, "..."], scales: Float[np.ndarray, " k2"] | None = None,
+) -> Float[np.ndarray, "frames k2"]:
+    """Morph weights that pose a ``.glb`` of ``face`` (written by :func:`export_face_model`) as ``params``.
+
+    A file's targets are the components times its own scales (``extras.jaxtalk.targetScale``, the largest
+    excursion of the clip it was written for); a file of still frames, e.g.
+    ``export_face_model(face, np.zeros((1, 56)), ...)``, has unit scales, and its weights are simply
+    ``max(w, 0)`` and ``max(-w, 0)`` per component: what a live stream drives.
+
+    Args:
+        face: the face model of the file.
+        params: ``(T, 56)`` head vectors.
+        scales: the file's ``(2K,)`` signed target scales (None: unit, ``+1, -1`` per component).
+
+    Returns:
+        ``(T, 2K)`` weights of :func:`face_model_targets`, in order (not clamped to ``[0, 1]``).
+
+    Raises:
+        ValueError: wrong shape or NaN/inf in ``params``; scales of the wrong length or with a zero.
+    """
+    params = np.asarray(params, np.float32)
+    if params.ndim != 2 or params.shape[1] != 56:
+        raise ValueError(f"params must have shape (T, 56) = [exp 50 | jaw 3 | neck 3], got {params.shape}")
+    check_finite(params, "params")
+    weights = _component_weights(face, params)
+    k2 = 2 * weights.shape[1]
+    scales = np.tile([1.0, -1.0], k2 // 2) if scales is None else np.asarray(scales, np.float64)
+    if scales.shape != (k2,) or not np.all(np.isfinite(scales)) or np.any(scales == 0):
+        raise ValueError(f"scales must be {k2} finite non-zero signed target scales, got shape {scales.shape}")
+    return _sided(weights, scales)
+
+
+def face_model_rotations(
+    face: LinearFaceModel, params: Float[np.ndarray, "..."], previous: dict[str, np.ndarray] | None = None,
+) -> dict[str, Float[np.ndarray, "frames 4"]]:
+    """The rotations :func:`export_face_model` animates: each of the neck and jaw nodes' local rotation as
+    ``(T, 4)`` quaternions ``(x, y, z, w)`` (glTF's order), keyed by node name (``"neck"``, ``"jaw"``).
+
+    Consecutive quaternions keep one sign (``q`` and ``-q`` are one rotation; interpolating across a sign
+    flip spins the joint); ``previous`` (each node's last quaternion before these frames) carries that
+    across the chunks of a stream.
+
+    Raises:
+        ValueError: wrong shape or NaN/inf in ``params``.
+    """
+    local_r, _ = _local_joint_motion(face, np.asarray(params, np.float32))
+    return _rotation_channels(face, local_r, previous)
+
+
 def export_face_model(
     face: LinearFaceModel, params: Float[np.ndarray, "..."], out: str | Path, *, fps: float | int = MOTION_FPS,
     name: str = "motion", audio_file: str | None = None,
@@ -292,20 +394,14 @@ def export_face_model(
     fps = _check_fps(fps)
     params = np.asarray(params, np.float32)
     local_r, local_t = _local_joint_motion(face, params)  # also checks the shape and finiteness
-    pose = np.asarray(face.pose_features(params), np.float64) if face.pose_basis is not None else None
     frames, num_joints = params.shape[0], face.num_joints
 
     writer = _GlbWriter(audio_file)
     targets = [np.moveaxis(np.asarray(face.exp_basis, np.float64), -1, 0)]
-    names = [f"exp_{k:02d}" for k in range(targets[0].shape[0])]
-    weights = [params[:, : targets[0].shape[0]].astype(np.float64)]
-    if pose is not None:
+    if face.pose_basis is not None:
         targets.append(np.moveaxis(np.asarray(face.pose_basis, np.float64), -1, 0))
-        joint_names = _joint_names(face)
-        names += [f"pose_{joint_names[j]}_r{a}{b}" for j in range(1, num_joints) for a in range(3) for b in range(3)]
-        weights.append(pose)
     morph_weights = _mesh(writer, np.asarray(face.template, np.float64), np.asarray(face.faces),
-                          np.concatenate(targets), np.concatenate(weights, axis=1), names,
+                          np.concatenate(targets), _component_weights(face, params), _component_names(face),
                           _skin_attributes(writer, np.asarray(face.weights, np.float64)))
 
     gltf = writer.gltf
@@ -332,10 +428,10 @@ def export_face_model(
     # The joints move with the expression only where the model regresses them from it (FLAME); for
     # the built-in face the node offsets are exact and no translation is animated.
     moving_joints = np.abs(np.asarray(face.joint_exp_basis)).max() > 0
-    for j in range(num_joints):
-        if j in (face.neck_joint, face.jaw_joint):
-            quats = _continuous(Rotation.from_matrix(local_r[:, j]).as_quat())  # (x, y, z, w): glTF's order
-            _channel(writer, animation, times, joint_nodes[j], "rotation", quats)
+    rotations = _rotation_channels(face, local_r)
+    for j, joint_name in enumerate(_joint_names(face)):
+        if joint_name in rotations:
+            _channel(writer, animation, times, joint_nodes[j], "rotation", rotations[joint_name])
         if moving_joints:
             _channel(writer, animation, times, joint_nodes[j], "translation", local_t[:, j])
     gltf.animations.append(animation)

@@ -22,7 +22,8 @@ from jaxtalk.export.rig import arkit_shape_name
 from jaxtalk.files import atomic_write_json, atomic_write_text, check_output_path
 from jaxtalk.types import Float
 
-__all__ = ["live_link_timecode", "arkit_weights", "write_live_link_csv", "write_weights_json", "read_live_link_csv"]
+__all__ = ["live_link_timecode", "arkit_weights", "live_link_curves", "write_live_link_csv", "write_weights_json",
+           "read_live_link_csv"]
 
 
 def live_link_timecode(frame: int, fps: float | int) -> str:
@@ -54,6 +55,26 @@ def arkit_weights(names: tuple[str, ...] | list[str], weights: Float[np.ndarray,
     return out
 
 
+def live_link_curves(names: tuple[str, ...] | list[str], weights: Float[np.ndarray, "frames k"],
+                     head_angles: Float[np.ndarray, "frames 3"] | None = None) -> Float[np.ndarray, "frames 61"]:
+    """The 61 curves of Live Link Face frames, in :data:`LIVE_LINK_CURVES` order: a rig's weights on ARKit's
+    52 shapes (matched by name, :func:`arkit_weights`), the head's yaw, pitch and roll in radians (zeros
+    without), the eyes' six curves 0. What a Live Link Face recording's rows and UDP packets hold.
+
+    Raises:
+        ValueError: head angles of the wrong shape, NaN or inf.
+    """
+    arkit = arkit_weights(names, weights)
+    frames = arkit.shape[0]
+    head = np.zeros((frames, 3)) if head_angles is None else np.asarray(head_angles, np.float64)
+    if head.shape != (frames, 3):
+        raise ValueError(f"head_angles must have shape ({frames}, 3), got {head.shape}")
+    values = np.concatenate([arkit, head, np.zeros((frames, 6))], axis=1)
+    if not np.all(np.isfinite(values)):
+        raise ValueError("weights or head angles hold NaN or inf")
+    return values
+
+
 def write_live_link_csv(path: str | Path, names: tuple[str, ...] | list[str], weights: Float[np.ndarray, "frames k"],
                         head_angles: Float[np.ndarray, "frames 3"] | None, fps: float | int) -> Path:
     """Write a Live Link Face recording (module docstring), atomically.
@@ -69,14 +90,8 @@ def write_live_link_csv(path: str | Path, names: tuple[str, ...] | list[str], we
         ValueError: mismatched shapes, NaN, a bad path or fps.
     """
     path = check_output_path(path, (".csv",))
-    arkit = arkit_weights(names, weights)
-    frames = arkit.shape[0]
-    head = np.zeros((frames, 3)) if head_angles is None else np.asarray(head_angles, np.float64)
-    if head.shape != (frames, 3):
-        raise ValueError(f"head_angles must have shape ({frames}, 3), got {head.shape}")
-    values = np.concatenate([arkit, head, np.zeros((frames, 6))], axis=1)
-    if not np.all(np.isfinite(values)):
-        raise ValueError("weights or head angles hold NaN or inf")
+    values = live_link_curves(names, weights, head_angles)
+    frames = values.shape[0]
     text = io.StringIO()
     text.write("Timecode,BlendShapeCount," + ",".join(LIVE_LINK_CURVES) + "\n")
     for t in range(frames):

@@ -1,4 +1,7 @@
-"""``jaxtalk view``: a page on localhost that plays the ``.glb`` files of a folder in sync with their audio.
+"""``jaxtalk view``: a page on localhost that plays the ``.glb`` files of a folder in sync with their audio, or
+(``--live``, :func:`start_live_server`) streams the microphone or a file to ``jaxtalk serve`` and drives the
+face with the frames that come back, showing the measured latency (``web/live.html``, ``web/live.js``,
+``web/capture.js``).
 
 The page (``web/index.html``, ``web/viewer.js``) runs three.js, which is not copied into jaxtalk: it is
 installed from the npm registry by ``npm ci`` against ``web/package-lock.json`` into a cache folder
@@ -9,7 +12,8 @@ The server answers only on 127.0.0.1, only to requests whose ``Host`` is this ma
 ``127.0.0.1`` or ``[::1]``, with the server's port or none: a page on another site whose name was
 rebound to 127.0.0.1 gets 403), and serves only: the page, the installed three.js, ``clips.json``
 (the folder's ``.glb`` files and the ``.wav`` beside each) and those files themselves (with byte ranges,
-so the audio element can seek).
+so the audio element can seek); live, the live page, its audio worklet and ``live.json`` (the server's
+address; the face comes from the server itself).
 """
 
 from __future__ import annotations
@@ -25,17 +29,22 @@ import shutil
 import subprocess
 import threading
 import uuid
+from collections.abc import Callable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
-__all__ = ["ViewerError", "ViewerServer", "WEB_DIR", "clips", "install_web_dependencies", "start_server"]
+__all__ = ["ViewerError", "ViewerServer", "WEB_DIR", "clips", "install_web_dependencies", "start_live_server",
+           "start_server"]
 
 WEB_DIR = Path(__file__).with_name("web")
 DEFAULT_CACHE = Path.home() / ".cache" / "jaxtalk" / "viewer"
-_PAGE_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js"}
-_TYPES = {".js": "text/javascript", ".html": "text/html; charset=utf-8", ".glb": "model/gltf-binary",
+_SHARED_FILES = {"/stage.js": "stage.js", "/viewer.css": "viewer.css"}
+_PAGE_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js", **_SHARED_FILES}
+_LIVE_FILES = {"/": "live.html", "/index.html": "live.html", "/live.js": "live.js", "/capture.js": "capture.js",
+               **_SHARED_FILES}
+_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html; charset=utf-8", ".glb": "model/gltf-binary",
           ".wav": "audio/wav", ".json": "application/json"}
 
 
@@ -134,8 +143,10 @@ def _local_host(host: str | None, port: int) -> bool:
     return name in _LOCAL_NAMES and given in ("", str(port))
 
 
-def _handler(folder: Path, modules: Path) -> type[BaseHTTPRequestHandler]:
+def _handler(folder: Path | None, modules: Path, live: str | None = None) -> type[BaseHTTPRequestHandler]:
+    """Folder mode (``folder``) or live mode (``live``: the ``jaxtalk serve`` address the page connects to)."""
     three = (modules / "three").resolve()
+    pages = _PAGE_FILES if live is None else _LIVE_FILES
 
     class Handler(BaseHTTPRequestHandler):
         def log_message(self, format: str, *args) -> None:  # noqa: A002  (the base class's name)
@@ -172,17 +183,17 @@ def _handler(folder: Path, modules: Path) -> type[BaseHTTPRequestHandler]:
                 self.send_error(HTTPStatus.FORBIDDEN, "jaxtalk view answers only to localhost")
                 return None
             route = unquote(urlparse(self.path).path)
-            if route in _PAGE_FILES:
-                return self._file(WEB_DIR / _PAGE_FILES[route])
-            if route == "/clips.json":
-                body = json.dumps(clips(folder)).encode()
+            if route in pages:
+                return self._file(WEB_DIR / pages[route])
+            if route in ("/clips.json", "/live.json") and (route == "/live.json") == (live is not None):
+                body = json.dumps(clips(folder) if live is None else {"server": live}).encode()
                 self.send_response(HTTPStatus.OK)
                 self.send_header("Content-Type", "application/json")
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 self.wfile.write(body)
                 return None
-            if route.startswith("/data/"):
+            if route.startswith("/data/") and folder is not None:
                 target = folder / route[len("/data/"):]
                 if target.parent == folder and target.suffix in (".glb", ".wav") and target.is_file():
                     return self._file(target)
@@ -211,6 +222,11 @@ def start_server(folder: str | os.PathLike, *, port: int = 8000, cache_dir: str 
     if not clips(folder):
         raise ValueError(f"{str(folder)!r} holds no .glb file: write one with `jaxtalk export INPUT --out "
                          f"{folder}/anim.glb`")
+    return _serve(port, lambda modules: _handler(folder, modules), cache_dir, npm)
+
+
+def _serve(port: int, handler: Callable[[Path], type[BaseHTTPRequestHandler]], cache_dir: str | os.PathLike | None,
+           npm: str | None) -> ViewerServer:
     try:  # bound before installing anything; the handler is set once three.js is there
         httpd = ThreadingHTTPServer(("127.0.0.1", port), BaseHTTPRequestHandler)
     except OSError as err:
@@ -219,10 +235,25 @@ def start_server(folder: str | os.PathLike, *, port: int = 8000, cache_dir: str 
         raise ViewerError(f"port {port} on 127.0.0.1 is in use: pass --port 0 for any free port, or another "
                           "--port") from None
     try:
-        httpd.RequestHandlerClass = _handler(folder, install_web_dependencies(cache_dir, npm=npm))
+        httpd.RequestHandlerClass = handler(install_web_dependencies(cache_dir, npm=npm))
     except BaseException:
         httpd.server_close()
         raise
     thread = threading.Thread(target=httpd.serve_forever, name="jaxtalk-view", daemon=True)
     thread.start()
     return ViewerServer(httpd, thread)
+
+
+def start_live_server(server: str = "ws://127.0.0.1:8765", *, port: int = 8000,
+                      cache_dir: str | os.PathLike | None = None, npm: str | None = None) -> ViewerServer:
+    """Serve the live page (``jaxtalk view --live``) on ``127.0.0.1:port`` in a background thread; the page
+    connects to the ``jaxtalk serve`` at ``server`` (which must let this page's origin in: a local one is).
+
+    Raises:
+        ValueError: ``server`` is not a ``ws://`` or ``wss://`` URL.
+        ViewerError: see :func:`install_web_dependencies`; the port is taken.
+    """
+    parsed = urlparse(server)
+    if parsed.scheme not in ("ws", "wss") or not parsed.hostname:
+        raise ValueError(f"--server must be a WebSocket URL such as ws://127.0.0.1:8765, got {server!r}")
+    return _serve(port, lambda modules: _handler(None, modules, live=server), cache_dir, npm)

@@ -6,7 +6,7 @@
 // While playing, `window.jaxtalkClock()` reports the audio clock and the time last drawn (for tests).
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
-import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { stage } from "/stage.js";
 
 const query = new URLSearchParams(location.search);
 const still = query.has("t") ? Number(query.get("t")) : null;
@@ -23,30 +23,8 @@ const clip = clips.find((c) => c.name === query.get("clip")) ?? clips[0];
 for (const c of clips) picker.add(new Option(c.name, c.name, false, c === clip));
 picker.onchange = () => { query.set("clip", picker.value); location.search = query.toString(); };
 
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-renderer.setPixelRatio(window.devicePixelRatio);
-renderer.setSize(window.innerWidth, window.innerHeight);
-document.getElementById("scene").appendChild(renderer.domElement);
-
-const scene = new THREE.Scene();
-scene.background = new THREE.Color(0x202428);
-scene.add(new THREE.HemisphereLight(0xffffff, 0x404050, 1.6));
-const key = new THREE.DirectionalLight(0xffffff, 2.0);
-key.position.set(0.4, 0.6, 1.0);
-scene.add(key);
-
 const gltf = await new GLTFLoader().loadAsync(clip.glb);
-scene.add(gltf.scene);
-// Frame the neutral mesh once (a per-frame fit would zoom with the jaw): the face looks down +z.
-const box = new THREE.Box3().setFromObject(gltf.scene);
-const centre = box.getCenter(new THREE.Vector3());
-const size = box.getSize(new THREE.Vector3());
-const camera = new THREE.PerspectiveCamera(30, window.innerWidth / window.innerHeight, 0.01, 100);
-const distance = 1.3 * Math.max(size.x, size.y) / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)));
-camera.position.set(centre.x, centre.y, box.max.z + distance);
-camera.lookAt(centre);
-const controls = new OrbitControls(camera, renderer.domElement);
-controls.target.copy(centre);
+const { renderer, draw } = stage(document.getElementById("scene"), gltf.scene);
 
 const animation = gltf.animations[0];
 const mixer = new THREE.AnimationMixer(gltf.scene);
@@ -55,16 +33,10 @@ action.setLoop(THREE.LoopOnce);
 action.clampWhenFinished = true;
 action.play();
 
-window.addEventListener("resize", () => {
-  camera.aspect = window.innerWidth / window.innerHeight;
-  camera.updateProjectionMatrix();
-  renderer.setSize(window.innerWidth, window.innerHeight);
-});
-
 if (still !== null) {
   document.body.classList.add("still");
   mixer.setTime(Math.min(Math.max(still, 0), animation.duration));
-  renderer.render(scene, camera);
+  draw();
   // Two animation frames: the canvas is composited before a screenshot is taken.
   requestAnimationFrame(() => requestAnimationFrame(() => { window.jaxtalkReady = true; }));
 } else {
@@ -89,8 +61,7 @@ if (still !== null) {
     const t = Math.min(time(), animation.duration);
     mixer.setTime(t);
     shown = t;
-    controls.update();
-    renderer.render(scene, camera);
+    draw();
     playButton.textContent = playing() ? "Pause" : "Play";
     status.textContent = `${clip.name}  ${t.toFixed(2)} / ${animation.duration.toFixed(2)} s${audio ? "" : "  (no audio)"}`;
   });
