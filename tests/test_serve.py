@@ -248,13 +248,10 @@ def test_malformed_messages_are_answered_and_leave_the_stream_as_it_was(server, 
             ({"type": "hello", "format": "f32le"}, "bad_hello"),
             ({"type": "hello", "sample_rate": 16000, "format": "mp3"}, "bad_format"),
             ({"type": "hello", "sample_rate": 16000, "outputs": ["params", "mesh"]}, "unknown_output"),
-            ({"type": "hello", "sample_rate": 16000, "outputs": ["arkit"]}, "output_unavailable"),
             ({"type": "hello", "sample_rate": 16000, "outputs": "params"}, "bad_hello"),
         ):
             reply = answer(json.dumps(message))
             assert reply["type"] == "error" and reply["code"] == code, (message, reply)
-        assert "not available" in answer(json.dumps({"type": "hello", "sample_rate": 16000, "outputs": ["arkit"]}))[
-            "message"]
         hello(ws, ("params",), seed=3)
         frames = []
         good = [audio[i:i + 3000] for i in range(0, audio.size, 3000)]
@@ -344,8 +341,8 @@ def test_a_full_server_tells_the_next_client_it_is_busy(live):
 
 
 class LinearARKit:
-    """A stand-in ARKit converter (the real solver is another module's): fixed linear weights per
-    channel, so that what reaches Live Link can be checked value by value."""
+    """A stand-in ARKit converter with fixed linear weights per channel, so that what reaches Live Link can
+    be checked value by value (the real converter's values are tested in test_serve_protocol.py)."""
 
     name = "arkit"
     channels = (*ARKIT_NAMES, "HeadYaw", "HeadPitch", "HeadRoll")
@@ -395,9 +392,3 @@ def test_live_link_sends_each_frame_of_the_arkit_output_to_a_local_receiver(live
     np.testing.assert_allclose(values[:, index], sent, atol=2e-6)
     assert not np.delete(values, index, axis=1).any()  # the eyes' curves: 0
     assert elapsed >= 0.9  # paced at 25 fps, not sent in bursts
-
-
-def test_serve_refuses_live_link_while_the_arkit_output_is_not_available(trained_toktalk):
-    from helpers import cli_error
-
-    cli_error(["serve", str(trained_toktalk.dir), "--live-link", "127.0.0.1:11111"], "arkit output is not available")

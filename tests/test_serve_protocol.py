@@ -70,14 +70,43 @@ def test_a_full_outbox_drops_its_oldest_frames_reply_and_keeps_the_rest_in_order
     assert [m.get("seq", m["type"]) for m in got] == ["ready", 5, "error"] and dropped == 4
 
 
-def test_the_arkit_output_is_unavailable_until_its_converter_is_registered():
-    with pytest.raises(OutputUnavailable, match="not available"):
-        build_outputs(("arkit",), {})
+def test_outputs_are_built_once_per_server_and_an_unavailable_one_says_why():
+    def unavailable():
+        raise OutputUnavailable("this output is not available here")
+
+    with pytest.raises(OutputUnavailable, match="not available here"):
+        build_outputs(("gone",), {}, {**OUTPUTS, "gone": unavailable})
     cache = {}
     outputs = build_outputs(("params", "morph"), cache)
     assert isinstance(outputs["params"], ParamsOutput) and outputs["params"].channels == PARAM_CHANNELS
     assert build_outputs(("morph",), cache)["morph"] is outputs["morph"]  # built once per server
     assert set(OUTPUTS) == {"params", "morph", "arkit"}
+
+
+def test_the_arkit_output_opens_jaw_open_with_the_jaw_and_turns_the_head_with_the_neck_across_chunks():
+    from jaxtalk.export.arkit import ARKIT_NAMES
+
+    arkit = build_outputs(("arkit",), {})["arkit"]
+    assert arkit.channels == (*ARKIT_NAMES, "HeadYaw", "HeadPitch", "HeadRoll")
+    frames = 40
+    params = np.zeros((frames, 56), np.float32)
+    opening = 0.15 * (1 - np.cos(np.linspace(0, 4 * np.pi, frames))) / 2  # two jaw openings, 0..0.15 rad
+    params[:, 50] = opening
+    params[:, 54] = np.linspace(-0.2, 0.2, frames)  # the neck turns about its vertical axis
+    state, chunks = arkit.start(), []
+    for lo in range(0, frames, 10):  # a stream's chunks
+        state, values = arkit.convert(state, params[lo:lo + 10])
+        chunks.append(values)
+    values = np.concatenate(chunks)
+    assert values.shape == (frames, 55) and np.isfinite(values).all()
+    weights = values[:, :52]
+    assert weights.min() >= 0.0 and weights.max() <= 1.0
+    jaw_open = weights[:, ARKIT_NAMES.index("jawOpen")]
+    assert np.corrcoef(jaw_open, opening)[0, 1] > 0.95
+    assert jaw_open.max() > 0.3  # 0.15 rad is half the rig's jawOpen (0.3 rad)
+    yaw = values[:, 52]
+    assert abs(np.corrcoef(yaw, params[:, 54])[0, 1]) > 0.99 and np.abs(yaw).max() > 0.1
+    np.testing.assert_allclose(np.abs(values[:, 53:]), 0.0, atol=0.02)  # no pitch or roll asked for
 
 
 @pytest.mark.slow

@@ -11,8 +11,8 @@ that cannot build one raises :class:`OutputUnavailable`, which the client receiv
 * ``morph``: the morph weights of the built-in face's glTF export and its jaw and neck rotations, i.e.
   what poses ``export_face_model(builtin_face(0), ...)``'s file written from still frames (unit target
   scales; the server serves that file at ``/face.glb``).
-* ``arkit``: the 52 ARKit shape weights and the head's yaw, pitch and roll (not available yet: see
-  :func:`_arkit_output`).
+* ``arkit``: the 52 ARKit shape weights and the head's yaw, pitch and roll, retargeted per chunk onto
+  the built-in ARKit rig (:class:`ArkitOutput`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["OUTPUTS", "PARAM_CHANNELS", "MorphOutput", "Output", "OutputUnavailable", "ParamsOutput", "build_outputs"]
+__all__ = ["OUTPUTS", "PARAM_CHANNELS", "ArkitOutput", "MorphOutput", "Output", "OutputUnavailable", "ParamsOutput", "build_outputs"]
 
 PARAM_CHANNELS: tuple[str, ...] = (tuple(f"exp_{k:02d}" for k in range(50))
                                    + tuple(f"{joint}_{axis}" for joint in ("jaw", "neck") for axis in "xyz"))
@@ -134,15 +134,42 @@ def _morph_output() -> MorphOutput:
     return MorphOutput(builtin_face(0))
 
 
-def _arkit_output() -> Output:
-    # ARKIT: the one place the ARKit converter is registered. It returns an Output whose channels are the 52
-    # ARKit names (jaxtalk.export.arkit.ARKIT_NAMES) and "HeadYaw", "HeadPitch", "HeadRoll", solved per chunk
-    # onto the built-in ARKit rig with the per-client state carrying the solver's smoothing across chunks:
-    # with jaxtalk.export.retarget, start() = Retargeter.for_face(arkit_rig(), builtin_face(0)).init_stream()
-    # and convert(state, params) = stream_step(state, params) -> its weights (in the rig's shape order) and
-    # head_angles (yaw, pitch, roll). `--live-link` sends the channels by name (export.recording.live_link_curves).
-    raise OutputUnavailable("the arkit output is not available in this build: the ARKit retargeting solver "
-                            "(jaxtalk.export.retarget) is not wired into the server yet; ask for params or morph")
+class ArkitOutput:
+    """The 52 ARKit shape weights (in Live Link Face's order) and the head's yaw, pitch and roll (radians),
+    solved per chunk onto the built-in ARKit rig (:func:`~jaxtalk.export.arkit_rig`) by the retargeting
+    solver (:class:`~jaxtalk.export.Retargeter`). The per-client state is the solver's last frame, which
+    the smoothness term ties the next chunk's first frame to, so a stream has no jumps at chunk seams.
+    """
+
+    name = "arkit"
+    head_channels = ("HeadYaw", "HeadPitch", "HeadRoll")
+
+    def __init__(self, face: Any):
+        from jaxtalk.export import Retargeter, arkit_rig
+
+        rig = arkit_rig()
+        self.retargeter = Retargeter.for_face(rig, face)
+        self.channels = tuple(rig.names) + self.head_channels
+
+    def start(self) -> Any:
+        return self.retargeter.init_stream()
+
+    def convert(self, state: Any, params: np.ndarray) -> tuple[Any, np.ndarray]:
+        params = np.asarray(params, np.float32)
+        if params.shape[0] == 0:
+            return state, np.zeros((0, len(self.channels)), np.float32)
+        state, result = self.retargeter.stream_step(state, params)
+        return state, np.concatenate([result.weights, result.head_angles], axis=1).astype(np.float32)
+
+    def describe(self) -> dict[str, Any]:
+        return {"channels": list(self.channels), "rig": "built-in ARKit rig (jaxtalk.export.arkit_rig)",
+                "weights": "[0, 1]", "head": "yaw, pitch, roll in radians (Live Link Face's HeadYaw/Pitch/Roll)"}
+
+
+def _arkit_output() -> ArkitOutput:
+    from jaxtalk.face import builtin_face
+
+    return ArkitOutput(builtin_face(0))
 
 
 OUTPUTS: dict[str, Callable[[], Output]] = {
