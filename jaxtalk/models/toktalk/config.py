@@ -57,6 +57,13 @@ class TokTalkConfig:
             mean alone halves the mean-pose LVE on held-out speakers (small test, 186 -> 86 mm^2)
             while the learned encoder latent did not transfer it to unseen speakers. The style vector
             is then ``style_dim + param_dim`` wide (:attr:`style_vector_dim`).
+        anchor_input: with ``style_anchor``, also show the anchor pose to the decoder as part of the style
+            condition (True), or only centre the flow on it (False: the decoder sees the style latent
+            alone). Under investigation: on SynthTalk ``small`` (24 training speakers) the held-out
+            speakers' streamed lip error rises with training while the training speakers' falls, and
+            a trained model's output rest pose follows the style clip on training speakers but misses
+            it by 70-120 mm^2 on several held-out ones; a decoder that reads the anchor as an input can
+            fit an arbitrary function of 24 anchor values that extrapolates badly to new ones.
         style_source: where a training example's reference clip comes from: ``"target"``, a crop of
             the target clip itself (the paper's objective), or ``"other_clip"``, a crop of ANOTHER clip
             of the same speaker (a departure: the style vector cannot copy the target, so training
@@ -119,6 +126,7 @@ class TokTalkConfig:
     causal: bool = True
     style_dim: int = 256
     style_anchor: bool = True
+    anchor_input: bool = True
     style_source: str = "other_clip"
     style_hidden: int = 512
     style_heads: int = 8
