@@ -79,18 +79,13 @@ def serve_run(opts: ServeCommandOptions, *, echo: Callable[[str], None] = print)
         ``--live-link`` while the ``arkit`` output is not available.
     """
     from jaxtalk.export.livelink import parse_address
-    from jaxtalk.serve import OUTPUTS, OutputUnavailable, ServeOptions, start_server
+    from jaxtalk.serve import OutputUnavailable, ServeOptions, start_server
 
     if not 1 <= opts.max_clients <= 1024:
         raise ValueError(f"--max-clients must lie in 1..1024, got {opts.max_clients}")
     if not 0.01 <= opts.max_chunk_s <= 60:
         raise ValueError(f"--max-chunk-s must lie in 0.01..60, got {opts.max_chunk_s}")
     link = parse_address(opts.live_link) if opts.live_link is not None else None
-    if link is not None:
-        try:
-            OUTPUTS["arkit"]()
-        except OutputUnavailable as err:
-            raise ValueError(f"--live-link sends ARKit curves, and {err}") from None
     model = live_model_of_run(opts)
     info = model.describe()
     echo(f"jaxtalk serve: {info['model']} run {opts.run_dir}: {info['fps']} fps in chunks of {info['chunk_frames']} frames "
@@ -100,6 +95,8 @@ def serve_run(opts: ServeCommandOptions, *, echo: Callable[[str], None] = print)
                            live_link=link, origins=tuple(opts.origins))
     try:
         running = start_server(model, options)
+    except OutputUnavailable as err:  # the server builds the arkit output once, for --live-link, and refuses here
+        raise ValueError(f"--live-link sends ARKit curves, and {err}") from None
     except OSError as err:
         if err.errno == errno.EADDRINUSE:
             raise ValueError(f"port {opts.port} on {opts.host} is in use: pass --port 0 for any free port, or another "
