@@ -70,7 +70,7 @@ def main() -> None:
           "| floor max / mean (mm) | seconds |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for k, shape in enumerate(_shapes()):
-        s, rot, t = cn._umeyama(shape.points, points, np.ones(len(points)), scale=True)
+        s, rot, t = cn.umeyama(shape.points, points, scale=True)
         floor = np.linalg.norm(s * shape.points @ rot.T + t - points, axis=1) * 1000
         for unit in args.units:
             vertices, semantic = fs.posed(args.seed * 100 + k, shape.vertices, shape.points)

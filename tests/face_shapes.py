@@ -110,9 +110,9 @@ def cut_mask(shape: Shape) -> Shape:
     """A BFM-style mask cut from a head: in front of the ears, from mid-forehead to under the chin
     (measured in the template's frame, where the head's semantic points put it), so that part of the
     template's forehead has nothing under it and the cheeks reach past the template's rim."""
-    from jaxtalk.geometry.canonical import _umeyama
+    from jaxtalk.geometry.canonical import umeyama
 
-    scale, rotation, shift = _umeyama(shape.points, template()[2], np.ones(len(shape.points)), scale=True)
+    scale, rotation, shift = umeyama(shape.points, template()[2], scale=True)
     centre = (scale * shape.vertices @ rotation.T + shift)[shape.faces].mean(axis=1)
     keep = (centre[:, 2] > -0.02) & (centre[:, 1] > -0.115) & (centre[:, 1] < 0.065)
     used, faces = np.unique(shape.faces[keep], return_inverse=True)

@@ -78,7 +78,7 @@ def test_a_face_of_another_size_aligns_at_the_scale_that_fits_its_features(facto
     shape = fs.mediapipe_face()
     sized = fs.Shape(shape.name, shape.vertices * factor, shape.faces, shape.points * factor)
     canon, error_mm = _align(sized, "cm", 50, template)
-    expected, _, _ = cn._umeyama(sized.points, template[3], np.ones(len(sized.points)), scale=True)
+    expected, _, _ = cn.umeyama(sized.points, template[3], scale=True)
     assert abs(canon.fitted_scale / expected - 1) < 0.04, (canon.fitted_scale, expected)
     assert error_mm.max() < MAX_ERROR_MM["mediapipe"]
 
@@ -167,7 +167,7 @@ def test_the_reference_faces_landmark_vertices_are_where_a_faces_landmarks_are(t
     assert at[27][1] > at[30][1] > at[33][1] > at[51][1] > at[57][1] > at[8][1]
     assert at[30][2] == v[:, 2].max()
     ibug = list(MEDIAPIPE_IBUG)
-    s, rot, t = cn._umeyama(template[2][ibug], np.stack([at[i] for i in ibug]), np.ones(len(ibug)), scale=True)
+    s, rot, t = cn.umeyama(template[2][ibug], np.stack([at[i] for i in ibug]), scale=True)
     moved = s * template[2][ibug] @ rot.T + t
     assert np.linalg.norm(moved - np.stack([at[i] for i in ibug]), axis=1).max() < 0.01
 

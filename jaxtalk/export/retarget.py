@@ -120,23 +120,6 @@ def head_angles(rotations: Float[np.ndarray, "*frames 3 3"]) -> Float[np.ndarray
     return flat.reshape(*r.shape[:-2], 3)
 
 
-def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame, the rotation ``R`` and translation ``t`` with ``target ~ R source + t`` (least squares).
-
-    Args:
-        source: ``(N, 3)``; target: ``(T, N, 3)``.
-    """
-    cs = source.mean(axis=0)
-    ct = target.mean(axis=1)
-    cov = np.einsum("tni,nj->tij", target - ct[:, None], source - cs)
-    u, _, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(u @ vt))
-    fix = np.ones((target.shape[0], 3))
-    fix[:, 2] = d
-    rot = (u * fix[:, None, :]) @ vt
-    return rot, ct - np.einsum("tij,j->ti", rot, cs)
-
-
 def _boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     unique, counts = np.unique(edges, axis=0, return_counts=True)
@@ -340,9 +323,11 @@ class Retargeter:
         x = np.asarray(x, np.float64)
         if self._to_template is not None:
             x = self._to_template.to_template(x)
+        from jaxtalk.geometry.canonical import umeyama
+
         corners, bary = self.corners[self.rigid], self.bary[self.rigid]
         rest = np.einsum("nj,njc->nc", bary, self.neutral[corners])
-        rot, shift = _kabsch(rest, np.einsum("nj,tnjc->tnc", bary, x[:, corners]))
+        _, rot, shift = umeyama(rest, np.einsum("nj,tnjc->tnc", bary, x[:, corners]))
         still = np.einsum("tji,tvj->tvi", rot, x - shift[:, None])  # R^T (x - t)
         return still - self.neutral, rot
 

@@ -54,6 +54,7 @@ from jaxtalk.types import Float, Int
 
 __all__ = [
     "UNITS",
+    "umeyama",
     "MESH_SUFFIXES",
     "FACE_EXTENT_M",
     "MEDIAPIPE_FACE_FILE",
@@ -387,18 +388,33 @@ def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray, np
     return (np.repeat(scales, count), np.tile(rotations, (len(scales) * 2, 1, 1)), translations.reshape(-1, 3))
 
 
-def _umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, scale: bool) -> Pose:
+def umeyama(src: Float[np.ndarray, "n 3"], dst: Float[np.ndarray, "*frames n 3"],
+            weights: Float[np.ndarray, " n"] | None = None, *, scale: bool = False
+            ) -> tuple[Any, np.ndarray, np.ndarray]:
     """Weighted least-squares ``dst ~ s * R @ src + t`` (Umeyama 1991): a proper rotation, and a scale
-    when ``scale`` (else 1)."""
-    w = weights / weights.sum()
-    mu_s, mu_d = w @ src, w @ dst
-    a, b = src - mu_s, dst - mu_d
-    u, sig, vt = np.linalg.svd((b * w[:, None]).T @ a)
-    d = np.ones(3)
-    d[2] = np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0
-    rot = (u * d) @ vt
-    s = float((sig * d).sum() / (w @ (a**2).sum(axis=1))) if scale else 1.0
-    return s, rot, mu_d - s * rot @ mu_s
+    when ``scale`` (else 1); for each frame of a batch of ``dst`` point sets.
+
+    Args:
+        src: ``(N, 3)`` points.
+        dst: ``(N, 3)`` or ``(T, N, 3)`` corresponding points.
+        weights: ``(N,)`` point weights (default: equal).
+        scale: fit a scale too.
+
+    Returns:
+        ``(s, R, t)``: a float, ``(3, 3)`` and ``(3,)`` for one point set; ``(T,)``, ``(T, 3, 3)`` and
+        ``(T, 3)`` for a batch.
+    """
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64)
+    w = w / w.sum()
+    mu_s, mu_d = w @ src, np.einsum("n,...nc->...c", w, dst)
+    a, b = src - mu_s, dst - mu_d[..., None, :]
+    u, sig, vt = np.linalg.svd(np.einsum("...ni,nj->...ij", b * w[:, None], a))
+    d = np.ones(sig.shape)
+    d[..., 2] = np.where(np.linalg.det(u) * np.linalg.det(vt) < 0, -1.0, 1.0)
+    rot = (u * d[..., None, :]) @ vt
+    s = (sig * d).sum(axis=-1) / (w @ (a**2).sum(axis=1)) if scale else np.ones(sig.shape[:-1])
+    trans = mu_d - s[..., None] * np.einsum("...ij,j->...i", rot, mu_s)
+    return (float(s), rot, trans) if dst.ndim == 2 else (s, rot, trans)
 
 
 def _compose(outer: Pose, inner: Pose) -> Pose:
@@ -624,7 +640,7 @@ def canonicalize(
         if not np.all(np.isfinite(lm)):
             raise ValueError("landmarks contain NaN or inf")
         # The landmarks say where the features are; a surface fit of another face would pull them off.
-        s, rot, trans = _umeyama(lm * unit, tl, np.ones(len(tl)), scale=True)  # user (m) -> template (m)
+        s, rot, trans = umeyama(lm * unit, tl, scale=True)  # user (m) -> template (m)
         residual = float(np.linalg.norm(s * lm * unit @ rot.T + trans - tl, axis=1).mean())
         canon = Canonicalization(units, unit * s, rot, trans, residual, "landmarks", "landmarks")
         return _checked(canon, None, canon.fitted_scale)
@@ -635,7 +651,7 @@ def canonicalize(
         mp_vertices, mp_faces = reference_face()
         ibug, index = zip(*MEDIAPIPE_IBUG.items())
         # template -> MediaPipe's face, by their landmarks
-        to_reference = _umeyama(tl[list(ibug)], mp_vertices[list(index)], np.ones(len(ibug)), scale=True)
+        to_reference = umeyama(tl[list(ibug)], mp_vertices[list(index)], scale=True)
         references.append(("mediapipe", _face(mp_vertices, mp_faces), to_reference))
     best = None
     for name, face, to_reference in references:
