@@ -112,6 +112,23 @@ def test_a_live_stream_equals_the_offline_engine_over_the_whole_audio_for_any_pi
 
 
 @pytest.mark.slow
+def test_a_live_streams_frames_so_far_stay_bitwise_when_the_later_audio_changes(live, synthtalk_tiny):
+    audio = np.asarray(synthtalk_tiny.audio(synthtalk_tiny.split("test")[1]), np.float32)[: int(SR * 2.0)]
+    cut = 4 * live.chunk_samples + live.lookahead_samples  # four chunks and their look-ahead are in
+    other = audio.copy()
+    other[cut:] = speechy((audio.size - cut) / SR, seed=7)[: audio.size - cut]
+    emitted = {}
+    for name, signal in (("same", audio), ("changed", other)):
+        stream = live.open(jax.random.key(4))
+        past = stream.push(signal[:cut])
+        future = np.concatenate([stream.push(signal[cut:]), stream.finish()])
+        emitted[name] = past, future
+    assert emitted["same"][0].shape[0] == 4 * live.chunk_frames
+    np.testing.assert_array_equal(emitted["changed"][0], emitted["same"][0])  # the past: bitwise the same
+    assert not np.allclose(emitted["changed"][1], emitted["same"][1])  # the future follows the new audio
+
+
+@pytest.mark.slow
 def test_jaxtalk_stream_on_a_wav_runs_the_live_stream_chunk_by_chunk(live, trained_toktalk, synthtalk_tiny, tmp_path):
     from helpers import cli_ok
 
