@@ -21,6 +21,19 @@ from pathlib import Path
 # Keep CPU tests deterministic and avoid oversubscribing the 2 CI cores.
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+# One persistent XLA compilation cache for the session: modules (whose in-memory caches are dropped
+# after each, see _release_compiled_programs), xdist workers and the CLI subprocesses compile many of
+# the same programs (the tiny models' train steps, samplers and initialisers). Made fresh by the
+# controller, which the workers and subprocesses inherit it from, and removed at its end, so every
+# session compiles from scratch. Measured on the four CLI modules (2 workers): 381 s -> 333 s.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _XLA_CACHE = tempfile.mkdtemp(prefix="jaxtalk-tests-xla-")
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+else:
+    _XLA_CACHE = None
 
 import jax
 import pytest
@@ -28,6 +41,11 @@ import pytest
 from helpers import jax_flag
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+def pytest_unconfigure(config):
+    if _XLA_CACHE is not None:  # the process that made the session's compilation cache
+        shutil.rmtree(_XLA_CACHE, ignore_errors=True)
 
 
 @pytest.fixture

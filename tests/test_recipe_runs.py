@@ -30,8 +30,8 @@ SMALL = {
     "ats": ("small", {"width": 32, "num_layers": 1, "num_heads": 2, "ff_dim": 32, "sample_steps": 4}),
     "stm": ("small", {"encoder_blocks": 1, "decoder_blocks": 1, "num_eigenpairs": 16}),
 }
-# STM on one small mesh: rendering the default three takes minutes.
-RECIPE_KW = {"stm": {"meshes": ((1, "decimated"),)}}
+# STM on one small mesh: rendering the default three takes minutes. TokTalk streams one validation clip.
+RECIPE_KW = {"stm": {"meshes": ((1, "decimated"),)}, "toktalk": {"val_clips": 1}}
 
 
 def _config(model: str, data):

@@ -105,7 +105,7 @@ def test_streamed_small_model_beats_the_mean_pose_on_held_out_monologues(prepare
     cfg = tt.TokTalkConfig.small()
     result = recipe.train(cfg, data, OptimConfig(lr=recipe.DEFAULTS.lr, warmup_steps=50, total_steps=LEARN_STEPS,
                                                  ema_decay=recipe.DEFAULTS.ema_decay),
-                          key=jax.random.key(0), batch_size=16, progress=False)
+                          key=jax.random.key(0), batch_size=16, progress=False, val_clips=0)  # scored below
     params = result.state.eval_params
     face = builtin_face(0)
     lips = np.asarray(face.regions["lips"])

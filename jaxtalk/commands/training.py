@@ -20,6 +20,7 @@ trained on TIMAR's windows with TIMAR's settings.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -251,6 +252,10 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         if settings.batch_size % local:
             raise ValueError(f"batch_size {settings.batch_size} must divide by the {local} local devices")
     kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames is not None else {}
+    if settings.val_clips is not None:
+        if "val_clips" not in inspect.signature(train_fn).parameters:
+            raise ValueError(f"val_clips is not a {opts.model} setting: its validation scores the loss only")
+        kw["val_clips"] = settings.val_clips
     if init is not None:
         kw["params"] = init.params
         echo(f"fine-tuning from {opts.init} (step {init.step})")

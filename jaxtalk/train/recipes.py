@@ -45,6 +45,8 @@ class TrainSettings:
         window_frames: frames per training window (None: the model's default; 0: whole clips, padded
             and masked: ATS's ``paper`` preset).
         eval_every: validation period in steps (None: five evaluations per run).
+        val_clips: held-out clips sampled and scored at each evaluation by a model whose validation
+            samples (TokTalk, streamed); None: the model's default, 0: the validation loss only.
     """
 
     lr: float = 1e-3
@@ -56,12 +58,15 @@ class TrainSettings:
     batch_size: int = 16
     window_frames: int | None = None
     eval_every: int | None = None
+    val_clips: int | None = None
 
     def __post_init__(self) -> None:
         if self.batch_size < 1 or self.warmup_steps < 0 or (self.window_frames is not None and self.window_frames < 0):
             raise ValueError(f"batch_size must be >= 1, window_frames >= 0 and warmup_steps >= 0: {self}")
         if self.eval_every is not None and self.eval_every < 1:
             raise ValueError(f"eval_every must be >= 1 or None, got {self.eval_every}")
+        if self.val_clips is not None and self.val_clips < 0:
+            raise ValueError(f"val_clips must be >= 0 or None, got {self.val_clips}")
 
     def optim(self, steps: int) -> Any:
         """The :class:`~jaxtalk.train.OptimConfig` of a ``steps``-long run.
