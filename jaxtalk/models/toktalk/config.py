@@ -64,6 +64,11 @@ class TokTalkConfig:
             a trained model's output rest pose follows the style clip on training speakers but misses
             it by 70-120 mm^2 on several held-out ones; a decoder that reads the anchor as an input can
             fit an arbitrary function of 24 anchor values that extrapolates badly to new ones.
+        latent_input: show the style encoder's latent to the decoder (True), or not (False: the decoder
+            sees no style at all unless ``anchor_input``; with ``style_anchor`` the anchor still centres
+            the flow). The held-out test of the learned latent: 24 training speakers' latents are
+            few enough to memorise, and a decoder that keys the rest pose on them misplaces it for
+            speakers it never saw.
         style_source: where a training example's reference clip comes from: ``"target"``, a crop of
             the target clip itself (the paper's objective), or ``"other_clip"``, a crop of ANOTHER clip
             of the same speaker (a departure: the style vector cannot copy the target, so training
@@ -127,6 +132,7 @@ class TokTalkConfig:
     style_dim: int = 256
     style_anchor: bool = True
     anchor_input: bool = True
+    latent_input: bool = True
     style_source: str = "other_clip"
     style_hidden: int = 512
     style_heads: int = 8

@@ -229,6 +229,8 @@ def velocity(
     rngs = None if dropout_key is None else {"dropout": dropout_key}
     if config.style_anchor and not config.anchor_input:  # the anchor centres the flow; the decoder sees the latent
         cond = cond._replace(style=cond.style.at[:, config.style_dim :].set(0.0))
+    if not config.latent_input:  # the decoder sees no learned style latent
+        cond = cond._replace(style=cond.style.at[:, : config.style_dim].set(0.0))
     if not config.precondition:
         return compute_in(config.compute_dtype, Decoder(config).apply)(
             {"params": params["decoder"]}, x, t, *cond, deterministic=dropout_key is None, rngs=rngs
