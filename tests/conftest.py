@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import json
 import os
 import shutil
 from pathlib import Path
@@ -41,6 +42,18 @@ import pytest
 from helpers import jax_flag
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m selects: the measured-slow marks must be there by then
+def pytest_collection_modifyitems(config, items):
+    """Marks every test measured at 3 s or more ``slow`` and starts the longest modules first (see
+    ``tests/durations.py``, which records both in ``durations.json``)."""
+    recorded = json.loads((Path(__file__).parent / "durations.json").read_text())
+    for item in items:
+        if item.nodeid in recorded["slow_tests"] and item.get_closest_marker("slow") is None:
+            item.add_marker(pytest.mark.slow)
+    modules = recorded["modules"]
+    items.sort(key=lambda item: -modules.get(item.path.name, 0.0))  # stable: a module keeps its order
 
 
 def pytest_unconfigure(config):
