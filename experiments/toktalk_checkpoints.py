@@ -6,7 +6,8 @@ chunk by chunk at 1 and ``sample_steps`` Euler steps, exactly as the run's own v
 LVE (mm^2, lips), MVE (mm), jitter (mm/frame^2). Beside each split it scores the mean pose (the
 training mean repeated) on the same clips, so "beats the mean pose" is read from one table. Options
 vary what can change after training without retraining: the overlap frames fed back between chunks
-(``--overlap 0,5``) and the EMA against the raw weights (``--raw``).
+(``--overlap 0,5``), the guidance weight (``--cfg``), the sampling temperature (``--temperature 1,0.5``)
+and the EMA against the raw weights (``--raw``).
 
     python experiments/toktalk_checkpoints.py runs/toktalk --splits train,val,test --overlap 0,5 \
         --out experiments/results/toktalk_checkpoints.json
@@ -54,6 +55,7 @@ def main() -> None:
     parser.add_argument("--splits", default="train,val,test")
     parser.add_argument("--overlap", default="", help="overlap_frames values to stream with (default: the run's)")
     parser.add_argument("--cfg", default="", help="cfg_scale values to stream with (default: the run's)")
+    parser.add_argument("--temperature", default="", help="temperatures to stream with (default: the run's)")
     parser.add_argument("--raw", action="store_true", help="also score the raw (non-EMA) weights")
     parser.add_argument("--clips", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
@@ -82,6 +84,7 @@ def main() -> None:
     steps = [int(s) for s in args.steps.split(",") if s] or saved
     overlaps = [int(o) for o in args.overlap.split(",") if o] or [config.overlap_frames]
     scales = [float(w) for w in args.cfg.split(",") if w] or [config.cfg_scale]
+    taus = [float(t) for t in args.temperature.split(",") if t] or [config.temperature]
     splits = [s for s in args.splits.split(",") if s]
     key = jax.random.key(args.seed)
     rows = []
@@ -93,20 +96,20 @@ def main() -> None:
         weights = {"ema": state.get("ema_params")} if state.get("ema_params") is not None else {}
         if args.raw or not weights:
             weights["raw"] = state["params"]
-        for overlap, scale in [(o, w) for o in overlaps for w in scales]:
-            cfg = dataclasses.replace(config, overlap_frames=overlap, cfg_scale=scale)
+        for overlap, scale, tau in [(o, w, t) for o in overlaps for w in scales for t in taus]:
+            cfg = dataclasses.replace(config, overlap_frames=overlap, cfg_scale=scale, temperature=tau)
             for split in splits:
                 evaluate = streamed_validation(cfg, data, split, key=key, clips=args.clips)
                 for which, params in weights.items():
                     t0 = time.perf_counter()
                     scores = evaluate(params, None, step)
                     row = {"step": step, "split": split, "overlap_frames": overlap, "cfg_scale": scale,
-                           "weights": which,
+                           "temperature": tau, "weights": which,
                            **{k: round(v, 3) for k, v in scores.items()},
                            "mean_pose_LVE_mm2": round(baselines[split]["LVE_mm2"], 3)}
                     rows.append(row)
                     lves = " ".join(f"{k[8:]}={v:.1f}" for k, v in scores.items() if k.startswith("LVE_mm2_"))
-                    print(f"step {step:>5} {split:<5} overlap {overlap} cfg {scale:g} {which:<3}: LVE {lves} "
+                    print(f"step {step:>5} {split:<5} overlap {overlap} cfg {scale:g} T {tau:g} {which:<3}: LVE {lves} "
                           f"(mean pose {baselines[split]['LVE_mm2']:.1f}) [{time.perf_counter() - t0:.0f} s]",
                           flush=True)
     if args.out:

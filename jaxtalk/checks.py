@@ -1,4 +1,4 @@
-"""The one finite-value check of jaxtalk's public entry points.
+"""The value checks of jaxtalk's public entry points: finite arrays, and the samplers' temperature.
 
 Values are checked only when they are known: inside a caller's ``jit``/``vmap``/``grad`` an array is
 a tracer and passes, so a metric can serve as a training loss and a sampler can be differentiated,
@@ -11,9 +11,10 @@ from __future__ import annotations
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["check_finite"]
+__all__ = ["check_finite", "check_temperature"]
 
 
 def check_finite(x: Any, name: str) -> None:
@@ -33,3 +34,24 @@ def check_finite(x: Any, name: str) -> None:
     if not finite.all():
         bad = int(values.size - np.count_nonzero(finite))
         raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf); shape {values.shape}")
+
+
+def check_temperature(temperature: Any, dtype: Any = jnp.float32) -> jax.Array:
+    """A sampler's temperature (the scale of its starting or step noise) as a ``()`` array.
+
+    Args:
+        temperature: a scalar >= 0 (a tracer passes unchecked, as in :func:`check_finite`).
+        dtype: the floating dtype to return.
+
+    Returns:
+        ``()`` array of ``dtype``.
+
+    Raises:
+        ValueError: a non-scalar, negative, NaN or infinite value.
+    """
+    tau = jnp.asarray(temperature, dtype)
+    if tau.ndim:
+        raise ValueError(f"temperature must be a scalar, got shape {tau.shape}")
+    if not isinstance(tau, jax.core.Tracer) and not (np.isfinite(float(tau)) and float(tau) >= 0):
+        raise ValueError(f"temperature must be a finite number >= 0, got {float(tau)}")
+    return tau

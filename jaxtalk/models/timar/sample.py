@@ -31,6 +31,7 @@ from jaxtalk.models.timar.head import (
     head_modulations,
     time_embedding,
 )
+from jaxtalk.checks import check_temperature
 from jaxtalk.data.turns import check_streams, from_turns, to_turns
 from jaxtalk.models.timar.model import encode_window
 from jaxtalk.samplers import make_schedule, respace, sample_ddim, sample_ddpm
@@ -41,7 +42,6 @@ __all__ = [
     "SAMPLERS",
     "MODULATION_TABLE_BYTES",
     "respaced_schedule",
-    "check_temperature",
     "resolve_sampler",
     "conditions",
     "sample_frames",
@@ -277,26 +277,6 @@ def _head_at_last_timestep(config: TimarConfig, head_params: Any, z: Array, nois
     about x0: the posterior mean ``E[x0 | z]`` of an x0-predicting head."""
     t_last = jnp.full(noise.shape[:-1], config.num_timesteps - 1.0)
     return apply_head(head_params, config, z, noise, t_last)[..., : config.param_dim]
-
-
-def check_temperature(temperature: Any) -> Array:
-    """The sampling temperature as a float32 scalar.
-
-    Args:
-        temperature: a scalar >= 0 (a traced value is passed through unchecked).
-
-    Returns:
-        ``()`` float32.
-
-    Raises:
-        ValueError: a non-scalar, negative or NaN value.
-    """
-    tau = jnp.asarray(temperature, jnp.float32)
-    if tau.ndim:
-        raise ValueError(f"temperature must be a scalar, got shape {tau.shape}")
-    if not isinstance(tau, jax.core.Tracer) and not bool(tau >= 0):
-        raise ValueError(f"temperature must be >= 0, got {float(tau)}")
-    return tau
 
 
 @functools.partial(jax.jit, static_argnames=("config", "sample_steps", "sampler", "guidance"))

@@ -37,7 +37,8 @@ import numpy as np
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.data.turns import check_streams
-from jaxtalk.models.timar.sample import check_temperature, resolve_sampler, sample_frames
+from jaxtalk.checks import check_temperature
+from jaxtalk.models.timar.sample import resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.masks import mask_to_bias
 from jaxtalk.nn.precision import compute_in

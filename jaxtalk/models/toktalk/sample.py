@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.checks import check_finite
+from jaxtalk.checks import check_finite, check_temperature
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import (
     Condition,
@@ -93,6 +93,7 @@ def sample(
     sample_steps: int | None = None,
     ts: Any = None,
     cfg_scale: Float[Array, ""] | float | None = None,
+    temperature: Float[Array, ""] | float | None = None,
     known: Any = None,
     known_mask: Any = None,
     mask: Any = None,
@@ -112,6 +113,7 @@ def sample(
         sample_steps: Euler steps (default ``config.sample_steps``; static).
         ts: explicit ``(N + 1,)`` time grid (traced values); default: the cosine grid.
         cfg_scale: guidance weight w (traced; default ``config.cfg_scale``).
+        temperature: scale of the starting noise, drawn or given (traced; default ``config.temperature``).
         known: ``(B, T, param_dim)`` frames to inpaint, with ``known_mask`` ``(B, T)`` bool.
         known_mask: see ``known``.
         mask: ``(B, T)`` True on real frames (None: all real).
@@ -157,11 +159,12 @@ def sample(
         check_finite(known, "known")
         known, known_mask = jnp.asarray(known), km
     w = config.cfg_scale if cfg_scale is None else cfg_scale
+    tau = check_temperature(config.temperature if temperature is None else temperature, jnp.asarray(noise).dtype)
     return _sample(
         params,
         jnp.asarray(tokens),
         style_vec,
-        jnp.asarray(noise),
+        jnp.asarray(noise) * tau,
         ts,
         jnp.asarray(w, jnp.asarray(noise).dtype),
         known,
@@ -182,6 +185,7 @@ def sample_long(
     *,
     sample_steps: int | None = None,
     cfg_scale: Float[Array, ""] | float | None = None,
+    temperature: Float[Array, ""] | float | None = None,
     window_frames: int = LONG_WINDOW_FRAMES,
     context_frames: int = LONG_CONTEXT_FRAMES,
 ) -> Float[np.ndarray, "batch frames param"]:
@@ -200,7 +204,8 @@ def sample_long(
     Memory is O(window^2) for attention plus O(T) for the tokens and the output.
 
     Args:
-        params, config, tokens, style, key, sample_steps, cfg_scale: as :func:`sample` (batch of any size).
+        params, config, tokens, style, key, sample_steps, cfg_scale, temperature: as :func:`sample` (batch
+            of any size).
         window_frames: frames per window (rounded down to whole tokens).
         context_frames: known frames re-read at the start of each later window (rounded down to whole
             tokens; less than ``window_frames``).
@@ -213,7 +218,8 @@ def sample_long(
     """
     frames = check_tokens(tokens, width=config.speech_dim, rate=config.token_rate, fps=config.fps)
     if frames <= window_frames:
-        return np.asarray(sample(params, config, tokens, style, key, sample_steps=sample_steps, cfg_scale=cfg_scale))
+        return np.asarray(sample(params, config, tokens, style, key, sample_steps=sample_steps, cfg_scale=cfg_scale,
+                                 temperature=temperature))
     # Windows start on tokens whose first frame is a whole frame: q tokens span p frames exactly.
     per_token = Fraction(config.fps) / Fraction(str(float(config.token_rate)))
     p, q = per_token.numerator, per_token.denominator
@@ -236,7 +242,7 @@ def sample_long(
         known_mask[:, :known_f] = True
         motion = sample(params, config, tokens[:, start_t:stop_t], style_vec,
                         key if k == 0 else jax.random.fold_in(key, k), sample_steps=sample_steps, cfg_scale=cfg_scale,
-                        known=out[:, start_f:start_f + win_f], known_mask=known_mask)
+                        temperature=temperature, known=out[:, start_f:start_f + win_f], known_mask=known_mask)
         out[:, start_f + known_f:start_f + win_f] = np.asarray(motion)[:, known_f:]
         done_t, k = stop_t, k + 1
     return out

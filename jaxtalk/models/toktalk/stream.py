@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.checks import check_finite
+from jaxtalk.checks import check_finite, check_temperature
 from jaxtalk.audio.framerate import default_num_frames
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.adapter import receptive_field
@@ -215,6 +215,7 @@ def stream_step(
     cfg_scale: Float[Array, ""] | float | None = None,
     ts: Any = None,
     src_rate: float | int | None = None,
+    temperature: Float[Array, ""] | float | None = None,
 ) -> tuple[StreamState, Float[Array, "batch chunk param"]]:
     """Generates the next chunk of motion from its tokens.
 
@@ -230,6 +231,7 @@ def stream_step(
         cfg_scale: guidance weight (traced; default ``config.cfg_scale``).
         ts: time grid (traced values; its length sets the step count; default the cosine grid).
         src_rate: the source tokens' rate in Hz (required with a source-token state, static).
+        temperature: scale of the starting noise (traced; default ``config.temperature``).
 
     Returns:
         ``(new_state, motion)`` with ``motion`` ``(B, chunk_frames, param_dim)``.
@@ -264,7 +266,8 @@ def stream_step(
     ts = jnp.asarray(default_grid(config) if ts is None else ts, state.motion.dtype)
     check_finite(ts, "ts")
     w = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, state.motion.dtype)
-    return _stream_step(params, state, jnp.asarray(chunk_tokens, state.tokens.dtype), style_vec, w, ts, config,
+    tau = check_temperature(config.temperature if temperature is None else temperature, state.motion.dtype)
+    return _stream_step(params, state, jnp.asarray(chunk_tokens, state.tokens.dtype), style_vec, w, tau, ts, config,
                         src_rate)
 
 
@@ -281,7 +284,7 @@ def _adapter_step(params, config, state: AdapterState, chunk_src, src_rate):
 
 
 @functools.partial(jax.jit, static_argnames=("config", "src_rate"))
-def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, ts, config, src_rate):
+def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, temperature, ts, config, src_rate):
     adapter = state.adapter
     if adapter is not None:
         adapter, chunk_tokens = _adapter_step(params, config, adapter, chunk_tokens, src_rate)
@@ -292,10 +295,9 @@ def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, ts, config, 
     tokens = jnp.concatenate([state.tokens[:, ct:], chunk_tokens], axis=1)
     valid = jnp.concatenate([state.valid[:, c:], jnp.ones((batch, c), bool)], axis=1)
     motion = jnp.concatenate([state.motion[:, c:], jnp.zeros((batch, c, config.param_dim), state.motion.dtype)], axis=1)
-    frames = jnp.arange(w)
     known_mask = valid & overlap_window_mask(config)[None, :]
-    noise = frame_noise(state.noise_key, state.position - ctx, w, batch, config.param_dim, config.noise_frames,
-                        state.motion.dtype)
+    noise = temperature * frame_noise(state.noise_key, state.position - ctx, w, batch, config.param_dim,
+                                      config.noise_frames, state.motion.dtype)
     x = generate_frames(
         params, config, tokens, style_vec, noise, ts, cfg_scale,
         known=motion, known_mask=known_mask, mask=valid, chunked=jnp.ones((), bool),
@@ -319,6 +321,7 @@ def stream(
     cfg_scale: Float[Array, ""] | float | None = None,
     ts: Any = None,
     src_rate: float | int | None = None,
+    temperature: Float[Array, ""] | float | None = None,
 ) -> Float[Array, "batch frames param"]:
     """Runs the streaming engine over a whole token sequence, chunk by chunk (as a live stream would).
 
@@ -330,7 +333,7 @@ def stream(
             source-space tokens, adapted chunk by chunk by the streaming adaptation layer.
         style: style vector or reference clip (encoded once).
         key: PRNG key of the starting noise (:func:`stream_noise`).
-        cfg_scale, ts: see :func:`stream_step`.
+        cfg_scale, ts, temperature: see :func:`stream_step`.
         src_rate: the rate of source-space ``tokens`` (None: base-space tokens).
 
     Returns:
@@ -363,6 +366,6 @@ def stream(
     outs = []
     for i in range(num_chunks):  # one host call per chunk, exactly as chunks would arrive live
         state, out = stream_step(params, config, state, tokens[:, i * ct : (i + 1) * ct], style_vec,
-                                 cfg_scale=cfg_scale, ts=ts, src_rate=src_rate)
+                                 cfg_scale=cfg_scale, ts=ts, src_rate=src_rate, temperature=temperature)
         outs.append(out)
     return jnp.concatenate(outs, axis=1)[:, :frames]
