@@ -70,7 +70,7 @@ def _recipe_losses(config, data, steps):
 def test_a_short_bf16_run_reaches_the_float32_loss_with_float32_state(prepared_tiny, fast_compile):
     from jaxtalk.models.toktalk import TokTalkConfig
 
-    config = TokTalkConfig.tiny(speech_dim=prepared_tiny.manifest["token_dim"],
+    config = TokTalkConfig.tiny(num_mid_blocks=0, speech_dim=prepared_tiny.manifest["token_dim"],
                                 token_rate=prepared_tiny.manifest["token_rate"])
     steps = 40
     _, f32 = _recipe_losses(config, prepared_tiny, steps)
