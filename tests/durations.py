@@ -16,7 +16,8 @@ Regenerate after adding heavy tests:
     python -m pytest -q -p no:cacheprovider --durations=0 -m "not slow and not external and not multiprocess" > quick.log
     python tests/durations.py suite.log quick.log > tests/durations.json
 
-(the second run only adds: a module's fixtures fall to the first test the quick loop keeps).
+(the second run only adds: a module's fixtures fall to the first test the quick loop keeps; further logs,
+quick or whole, may follow, and a test slow in any of them is marked).
 
 Stale numbers only change the order and the quick tier; they never change what ``pytest`` runs.
 """
@@ -47,8 +48,9 @@ def _parse(log: str) -> tuple[dict[str, float], dict[str, float]]:
 def summarise(full_log: str, *quick_logs: str) -> dict:
     """``{"modules": {file name: seconds}, "slow_tests": {node id: seconds}}`` from ``--durations=0``
     logs: each module's total in the whole-suite run ``full_log``, and the tests of at least
-    :data:`SLOW_S` (setup + call + teardown) in it or in any run of the quick loop (``quick_logs``):
-    there a module's fixtures fall to its first quick test, which then is measured slow too."""
+    :data:`SLOW_S` (setup + call + teardown) in it or in any other run (``quick_logs``: runs of the
+    quick loop, where a module's fixtures fall to its first quick test, which then is measured slow
+    too, and earlier whole-suite runs, whose slow tests stay marked when a cache makes them faster)."""
     modules, tests = _parse(full_log)
     for log in quick_logs:
         for k, v in _parse(log)[1].items():
