@@ -49,9 +49,12 @@ def check_temperature(temperature: Any, dtype: Any = jnp.float32) -> jax.Array:
     Raises:
         ValueError: a non-scalar, negative, NaN or infinite value.
     """
-    tau = jnp.asarray(temperature, dtype)
-    if tau.ndim:
-        raise ValueError(f"temperature must be a scalar, got shape {tau.shape}")
-    if not isinstance(tau, jax.core.Tracer) and not (np.isfinite(float(tau)) and float(tau) >= 0):
-        raise ValueError(f"temperature must be a finite number >= 0, got {float(tau)}")
-    return tau
+    if np.ndim(temperature):
+        raise ValueError(f"temperature must be a scalar, got shape {np.shape(temperature)}")
+    if not isinstance(temperature, jax.core.Tracer):
+        # Checked on the host before it becomes a device array: a stream checks it every chunk, and
+        # reading a device scalar back would wait for the device each time.
+        value = float(np.asarray(temperature))
+        if not (np.isfinite(value) and value >= 0):
+            raise ValueError(f"temperature must be a finite number >= 0, got {value}")
+    return jnp.asarray(temperature, dtype)

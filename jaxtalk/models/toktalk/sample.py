@@ -159,14 +159,15 @@ def sample(
         check_finite(known, "known")
         known, known_mask = jnp.asarray(known), km
     w = config.cfg_scale if cfg_scale is None else cfg_scale
-    tau = check_temperature(config.temperature if temperature is None else temperature, jnp.asarray(noise).dtype)
+    noise = jnp.asarray(noise)
     return _sample(
         params,
         jnp.asarray(tokens),
         style_vec,
-        jnp.asarray(noise) * tau,
+        noise,
+        check_temperature(config.temperature if temperature is None else temperature, noise.dtype),
         ts,
-        jnp.asarray(w, jnp.asarray(noise).dtype),
+        jnp.asarray(w, noise.dtype),
         known,
         known_mask,
         mask_arr,
@@ -249,9 +250,10 @@ def sample_long(
 
 
 @functools.partial(jax.jit, static_argnames=("config", "remat"))
-def _sample(params, tokens, style_vec, noise, ts, cfg_scale, known, known_mask, mask, chunked, config, remat):
+def _sample(params, tokens, style_vec, noise, temperature, ts, cfg_scale, known, known_mask, mask, chunked, config,
+            remat):
     return generate_frames(
-        params, config, tokens, style_vec, noise, ts, cfg_scale,
+        params, config, tokens, style_vec, temperature * noise, ts, cfg_scale,
         known=known, known_mask=known_mask, mask=mask, chunked=chunked, remat=remat,
     )
 
