@@ -30,6 +30,7 @@ def corpus(synthtalk_tiny):
 
 
 @pytest.mark.slow
+@pytest.mark.optimized  # hundreds of training steps: run time dominates
 def test_ats_beats_the_mean_pose_on_held_out_clips(corpus, prepared_tiny):
     window = 16  # the recipe hops a quarter window: 4 frames
     test_w = data.ats_windows(corpus, corpus.split("val") + corpus.split("test"), window=window, hop=window)
@@ -62,6 +63,7 @@ def test_ats_beats_the_mean_pose_on_held_out_clips(corpus, prepared_tiny):
 
 
 @pytest.mark.slow
+@pytest.mark.optimized  # hundreds of training steps: run time dominates
 def test_stm_transfers_motion_to_an_unseen_topology_and_identity(corpus, prepared_tiny):
     cfg = STMConfig.small(num_eigenpairs=24)
     base = builtin_face(0, resolution="low")

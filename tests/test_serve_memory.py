@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-pytestmark = pytest.mark.slow
+# Ten minutes of audio through the server: its run time dominates, so XLA optimises it.
+pytestmark = [pytest.mark.slow, pytest.mark.optimized]
 
 AUDIO_S = 600  # ten minutes of audio
 MESSAGE = 16000  # 1 s per message (the server's default limit): six 0.16-s chunks of the tiny model, and some left over

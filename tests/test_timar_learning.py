@@ -29,6 +29,7 @@ STEPS = 450
 
 
 @pytest.mark.slow
+@pytest.mark.optimized  # hundreds of training steps: run time dominates
 def test_posterior_mean_beats_the_mean_pose_on_the_jaw_of_held_out_speakers(synthtalk_tiny, prepared_tiny):
     corpus = synthtalk_tiny
     cfg = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=64, max_turns=1, mask_ratio_min=1.0)

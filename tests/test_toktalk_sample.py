@@ -178,6 +178,7 @@ def test_sample_long_windows_equal_whole_sequence_sample_of_their_tokens_with_ea
 
 
 @pytest.mark.slow
+@pytest.mark.optimized  # ten minutes of sampling: run time dominates
 def test_sample_long_peak_memory_does_not_grow_from_150_s_to_10_minutes():
     # Whole-sequence sample at this preset peaked at 1.6 GB for 150 s and 4.5 GB for 300 s (O(T^2)
     # attention; experiments/bench_long_sample.py); windowed, 10 minutes must fit in what 150 s took.

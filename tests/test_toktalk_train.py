@@ -95,6 +95,7 @@ LEARN_STEPS = 200
 
 
 @pytest.mark.slow
+@pytest.mark.optimized  # hundreds of training steps: run time dominates
 def test_streamed_small_model_beats_the_mean_pose_on_held_out_monologues(prepared_tiny):
     from jaxtalk.face import builtin_face
     from jaxtalk.metrics import lve
