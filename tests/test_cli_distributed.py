@@ -1,14 +1,14 @@
 """``jaxtalk train toktalk --distributed`` with two processes on this machine (issue 15).
 
 Two ``python -m jaxtalk train`` processes, each with 2 forced CPU devices, join one JAX run over
-loopback (gloo collectives) and train TokTalk (tiny) for 2 steps on prepared SynthTalk tiny with 2
+loopback (gloo collectives) and train TokTalk (tiny) for 3 steps on prepared SynthTalk tiny with 2
 windows per process (a global batch of 4). A third, single process with 4 devices trains the same
 run with ``--data-parallel`` and batch size 4: the reference. The loader gives each process its
 contiguous half of every global batch of the one shuffled stream, so both runs see the same batches
 row for row; the parameters, EMA and optimiser state they end with must agree to float32 rounding
 (the cross-process all-reduce sums in another order).
 
-With 2 steps the CLI checkpoints and validates after every step, so the run also exercises, across
+With 3 steps the CLI checkpoints and validates after every step, so the run also exercises, across
 processes: orbax saves (every process takes part), the best-validation checkpoint, the validation
 loss on parameters that span both processes, and the run files only process 0 writes (``run.json``,
 ``history.jsonl``). The distributed run is then read back in this single process (``load_run``).
@@ -35,7 +35,7 @@ from multiprocess_helpers import free_port, gloo_available, run_all, worker_env
 # Per phase, all its processes together. Measured on the 2 shared cores: 170-200 s and 85-135 s
 # while other jobs kept them busy (load 5-9); the whole test uses about 3.5 CPU-minutes.
 DEADLINE_S = 420
-STEPS = 2  # two evaluations (a best checkpoint to choose), and a step to resume
+STEPS = 3
 # Attention key biases: softmax ignores them, so their gradient is zero but for float32 rounding, which
 # differs with the summation order; Adam scales each gradient element to about the learning rate, so
 # they move by rounding noise (~1e-5 here) in both runs, just not the same noise.
