@@ -5,8 +5,8 @@
   analytic-target checks) and restores the previous setting afterwards.
 * XLA's optimisations are off by default (most tests compile tiny programs and run them a few times:
   compile time dominates); a test whose run time dominates (a training that must learn) is marked
-  ``optimized`` and runs with them on. ``fast_compile`` turns them off inside a test that needs it
-  whatever the default (subprocess helpers, an explicit check).
+  ``optimized`` and runs with them on. The ``fast_compile`` fixture (and the modules' own switches,
+  ``helpers.most_optimizations_off``) predate that default and now repeat it.
 * ``synthtalk_tiny``, ``prepared_tiny`` and ``trained_toktalk`` / ``trained_timar`` / ``trained_ats``: the
   tiny corpus, its prepared folder and one two-step run per model, each made once per test session and
   shared by the xdist workers (built under a file lock by the first worker that needs it).
@@ -25,16 +25,16 @@ from pathlib import Path
 # Keep CPU tests deterministic and avoid oversubscribing the 2 CI cores.
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
-# One persistent XLA compilation cache for the session: modules (whose in-memory caches are dropped
-# after each, see _release_compiled_programs), xdist workers and the CLI subprocesses compile many of
-# the same programs (the tiny models' train steps, samplers and initialisers). Made fresh by the
-# controller, which the workers and subprocesses inherit it from, and removed at its end, so every
-# session compiles from scratch. Measured on the four CLI modules (2 workers): 381 s -> 333 s.
 # XLA's optimisations off for every test but those marked ``optimized`` (see _optimized_if_marked): the
 # suite compiles thousands of small programs and runs each a few times. Set before jax is imported so
 # it is the flag's default here and in every subprocess the tests start (the CLI, the notebook, the
 # distributed workers). Measured on six compile-bound modules (2 workers): 196 s -> 170 s.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+# One persistent XLA compilation cache for the session: modules (whose in-memory caches are dropped
+# after each, see _release_compiled_programs), xdist workers and the CLI subprocesses compile many of
+# the same programs (the tiny models' train steps, samplers and initialisers). Made fresh by the
+# controller, which the workers and subprocesses inherit it from, and removed at its end, so every
+# session compiles from scratch. Measured on the four CLI modules (2 workers): 381 s -> 333 s.
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     import tempfile
 
