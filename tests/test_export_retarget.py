@@ -27,7 +27,7 @@ from jaxtalk.export import (
 from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
 from jaxtalk.export.recording import live_link_timecode
 from jaxtalk.export.rig import arkit_shape_name, symmetric_pairs
-from jaxtalk.export.solver import symmetry_matrix
+from jaxtalk.export.solver import DEFAULT_MAX_ITER, symmetry_matrix
 from jaxtalk.face import builtin_face
 
 # The shapes speech drives (cheekPuff is left out: SynthTalk's faces puff their cheeks idly, silent or not).
@@ -368,18 +368,14 @@ def test_jaw_open_tracks_the_jaw_of_speech_and_the_mouth_rests_on_a_silent_clip(
     assert quiet[:, rig.names.index("eyeBlinkLeft")].max() > 0.5  # the clip is not still: it blinks
 
 
-def test_250_frames_solve_quickly():
-    import time
-
+def test_a_250_frame_clip_converges_before_the_iteration_limit():
+    # how fast it converges is measured in experiments/bench_retarget.py; here only that it stops on the
+    # tolerance, not the cap, and fits the clip
     rig = low_rig()
     retargeter = Retargeter.for_mesh(rig, rig.neutral, rig.faces, template=low_face())
-    verts = rig.vertices(rig_animation(250, seed=3))
-    retargeter(verts)  # compiles
-    start = time.perf_counter()
-    result = retargeter(verts)
-    total = time.perf_counter() - start
-    print(f"250 frames: solve {result.seconds * 1e3:.0f} ms ({result.iterations} iterations), whole call {total * 1e3:.0f} ms")
-    assert result.seconds < 2.0
+    result = retargeter(rig.vertices(rig_animation(250, seed=3)))
+    assert result.iterations < DEFAULT_MAX_ITER
+    assert result.rms_error < 1e-3
 
 
 # ---- files -----------------------------------------------------------------------------------------------
