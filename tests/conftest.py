@@ -3,10 +3,10 @@
 * Rank promotion raises, so an accidental (n,) + (n, 1) broadcast is an error, not a silent (n, n).
 * ``float64`` fixture: enables x64 inside one test only (finite-difference gradient checks,
   analytic-target checks) and restores the previous setting afterwards.
-* XLA's optimisations are off by default (most tests compile tiny programs and run them a few times:
-  compile time dominates); a test whose run time dominates (a training that must learn) is marked
-  ``optimized`` and runs with them on. The ``fast_compile`` fixture (and the modules' own switches,
-  ``helpers.most_optimizations_off``) predate that default and now repeat it.
+* XLA's optimisations (and XLA:CPU's fusion emitters) are off by default, here and in every subprocess
+  a test starts: most tests compile tiny programs and run them a few times, so compile time dominates.
+  A test whose run time dominates (a training that must learn) is marked ``optimized`` and runs with
+  them on.
 * ``synthtalk_tiny``, ``prepared_tiny`` and ``trained_toktalk`` / ``trained_timar`` / ``trained_ats``: the
   tiny corpus, its prepared folder and one two-step run per model, each made once per test session and
   shared by the xdist workers (built under a file lock by the first worker that needs it).
@@ -22,8 +22,13 @@ import os
 import shutil
 from pathlib import Path
 
-# Keep CPU tests deterministic and avoid oversubscribing the 2 CI cores.
-os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
+FUSION_EMITTERS_OFF = "--xla_cpu_use_fusion_emitters=false"
+# Keep CPU tests deterministic and avoid oversubscribing the 2 CI cores. XLA:CPU's fusion emitters
+# off: with optimisations off (the suite's default, below) they double the compile time of a small
+# train step (TokTalk tiny's grad step: 4.6 s -> 2.2 s, and it runs 10% faster); three compile-bound
+# modules (2 workers): 138 s -> 102 s. With optimisations on they are the faster choice (the learning
+# tests ran 162 s -> 185 s without them), so a test marked ``optimized`` turns them back on.
+os.environ.setdefault("XLA_FLAGS", f"--xla_cpu_multi_thread_eigen=true {FUSION_EMITTERS_OFF}")
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 # XLA's optimisations off for every test but those marked ``optimized`` (see _optimized_if_marked): the
 # suite compiles thousands of small programs and runs each a few times. Set before jax is imported so
@@ -47,7 +52,7 @@ else:
 import jax
 import pytest
 
-from helpers import jax_flag
+from helpers import jax_flag, xla_options  # after the environment above: helpers imports jax
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
@@ -76,13 +81,6 @@ def float64():
         yield
 
 
-@pytest.fixture
-def fast_compile():
-    """Disable most XLA optimisations for one test (compile time dominates small programs)."""
-    with jax_flag("jax_disable_most_optimizations", True):
-        yield
-
-
 @pytest.fixture(autouse=True)
 def _optimized_if_marked(request, monkeypatch):
     """XLA's optimisations back on for a test marked ``optimized`` (run time dominates: a training that
@@ -92,7 +90,8 @@ def _optimized_if_marked(request, monkeypatch):
         yield
         return
     monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
-    with jax_flag("jax_disable_most_optimizations", False):
+    monkeypatch.setenv("XLA_FLAGS", os.environ["XLA_FLAGS"].replace(FUSION_EMITTERS_OFF, ""))
+    with jax_flag("jax_disable_most_optimizations", False), xla_options(xla_cpu_use_fusion_emitters=True):
         yield
 
 
@@ -212,20 +211,19 @@ class TrainedRun:
 
 
 def _trained_run(tmp_path_factory, prepared_tiny, model: str) -> TrainedRun:
-    """``jaxtalk train MODEL`` on SynthTalk tiny: two steps, batch 2, the smallest graph, XLA's
-    optimisations off. The xdist workers share it: the first trains it under a file lock, the others
-    wait for it and read it."""
-    from helpers import TINY_TRAIN_ARGS, cli_ok, most_optimizations_off
+    """``jaxtalk train MODEL`` on SynthTalk tiny: two steps, batch 2, the smallest graph, the suite's
+    default compilation (a session fixture is made before any test's ``optimized`` switch). The xdist
+    workers share it: the first trains it under a file lock, the others wait for it and read it."""
+    from helpers import TINY_TRAIN_ARGS, cli_ok
 
     folder = _session_shared(tmp_path_factory, f"trained_{model}")
     run, printed = folder / "run", folder / "output.txt"
     with _exclusive(folder):
         if not printed.is_file():  # written last: a run a killed worker left half-made is trained again
             shutil.rmtree(run, ignore_errors=True)
-            with most_optimizations_off():
-                output = cli_ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent,
-                                 "--steps", "2", "--set", "batch_size=2", *TINY_TRAIN_ARGS[model], "--no-progress",
-                                 "--out", run])
+            output = cli_ok(["train", model, "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent,
+                             "--steps", "2", "--set", "batch_size=2", *TINY_TRAIN_ARGS[model], "--no-progress",
+                             "--out", run])
             printed.write_text(output)
     return TrainedRun(run, printed.read_text())
 

@@ -128,9 +128,25 @@ def jax_flag(name: str, value: bool):
         jax.config.update(name, previous)
 
 
-def most_optimizations_off():
-    """XLA's optimisations off while inside (tests dominated by compile time: tiny models, few steps)."""
-    return jax_flag("jax_disable_most_optimizations", True)
+@contextlib.contextmanager
+def xla_options(**options):
+    """XLA compiler options (``DebugOptions`` fields, as ``jax.jit(...).lower().compile(compiler_options)``
+    takes them) for every program compiled while inside, the jitted functions of the library included.
+
+    JAX has no process-wide setting for them, so this wraps its compile-options builder (a private
+    function: if a JAX release renames it, this fails loudly rather than silently doing nothing)."""
+    from jax._src import compiler
+
+    build = compiler.get_compile_options
+
+    def with_options(*args, env_options_overrides=None, **kwargs):
+        return build(*args, env_options_overrides={**options, **(env_options_overrides or {})}, **kwargs)
+
+    compiler.get_compile_options = with_options
+    try:
+        yield
+    finally:
+        compiler.get_compile_options = build
 
 
 def crashing_batches(crash_at: int, *args, **kw):

@@ -40,7 +40,9 @@ def worker_env(device_count: int, extra: dict[str, str] | None = None) -> dict[s
         if not k.startswith(("JAXTALK_", "JAX_COORDINATOR", "JAX_PROCESS", "JAX_NUM_PROCESSES"))
         and "proxy" not in k.lower()
     }
-    env.update({"XLA_FLAGS": f"--xla_force_host_platform_device_count={device_count}", "JAX_PLATFORMS": "cpu"})
+    # The suite's XLA flags (tests/conftest.py) and the forced devices.
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={device_count}".strip()
+    env.update({"XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"})
     env.update(extra or {})
     return env
 

@@ -28,7 +28,7 @@ FIELDS = ("model", "preset", "batch", "params_m", "step_s", "gflops", "gflop_s",
 
 
 @pytest.mark.slow
-def test_every_model_has_a_complete_training_row(prepared_tiny, fast_compile):
+def test_every_model_has_a_complete_training_row(prepared_tiny):
     from jaxtalk.benchmarking import measure_matmul_peak
 
     peak = measure_matmul_peak(n=1024, repeats=3) / 1e9
@@ -47,7 +47,7 @@ def test_every_model_has_a_complete_training_row(prepared_tiny, fast_compile):
 
 
 @pytest.mark.slow
-def test_bench_train_cli_writes_the_json_traces_and_keeps_to_the_selection(prepared_tiny, tmp_path, fast_compile):
+def test_bench_train_cli_writes_the_json_traces_and_keeps_to_the_selection(prepared_tiny, tmp_path):
     out, traces = tmp_path / "bench.json", tmp_path / "trace"
     result = runner.invoke(app, [
         "bench", "--train", "--model", "ats", "--preset", "small", "--no-sampling", "--repeats", "1",
@@ -135,7 +135,7 @@ def test_train_step_rejects_an_unknown_model(prepared_tiny):
         bench.train_step("wavenet", "small", prepared_tiny)
 
 
-def test_train_profile_writes_a_trace_of_the_chosen_steps(prepared_tiny, tmp_path, fast_compile):
+def test_train_profile_writes_a_trace_of_the_chosen_steps(prepared_tiny, tmp_path):
     from jaxtalk.commands.training import PROFILE_DIR
 
     run = tmp_path / "run"
@@ -168,7 +168,7 @@ def test_profile_outside_the_run_is_refused(prepared_tiny, tmp_path):
 
 
 @pytest.mark.slow
-def test_device_check_trains_for_a_time_budget_and_streams(prepared_tiny, fast_compile):
+def test_device_check_trains_for_a_time_budget_and_streams(prepared_tiny):
     from jaxtalk.models.toktalk import TokTalkConfig
 
     check = _experiment("device_check")

@@ -23,7 +23,6 @@ import soundfile as sf
 from helpers import cli_ok as _ok, cli_error as _error
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _speech(path: Path, seconds: float, *, silent: bool = False) -> Path:

@@ -37,7 +37,7 @@ def test_with_peak_divides_and_keeps_unknowns():
 
 
 @pytest.mark.slow
-def test_toktalk_table_rates_and_fraction_of_peak(monkeypatch, fast_compile):
+def test_toktalk_table_rates_and_fraction_of_peak(monkeypatch):
     from jaxtalk import benchmarking
     from jaxtalk.models.toktalk import TokTalkConfig
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from helpers import most_optimizations_off, cli_ok as _ok, cli_error as _user_error
+from helpers import cli_ok as _ok, cli_error as _user_error
 
 
 COMMANDS = ["data", "prepare", "demo", "train", "sample", "stream", "eval", "bench", "render", "export", "view", "convert"]
@@ -24,11 +24,6 @@ def test_every_command_has_help(command):
     output = _ok([command, "--help"])
     assert "Usage" in output and command in output
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-    with most_optimizations_off():  # compile time dominates these tiny runs
-        yield
 
 
 @pytest.fixture(scope="module")

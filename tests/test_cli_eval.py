@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import (DUALTALK_SOURCES, TINY_TRAIN_ARGS, dualtalk_folder, most_optimizations_off, cli_ok as _ok,
+from helpers import (DUALTALK_SOURCES, TINY_TRAIN_ARGS, dualtalk_folder, cli_ok as _ok,
                      cli_error as _user_error)
 
 
@@ -42,11 +42,6 @@ def _table(output: str, title: str) -> tuple[list[str], dict[str, list[str]]]:
         rows[cells[columns.index("method")]] = cells
     return columns, rows
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-    with most_optimizations_off():
-        yield
 
 
 @pytest.fixture(scope="module")

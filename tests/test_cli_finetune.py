@@ -13,7 +13,7 @@ from helpers import cli_error, cli_ok
 from jaxtalk.runs import RunRecord, load_run
 
 # Few-step runs: compile time is what they spend (the shared runs were compiled this way too).
-pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("fast_compile")]
+pytestmark = pytest.mark.slow
 
 
 def test_timar_fine_tune_starts_from_the_runs_weights_and_keeps_its_normaliser(trained_timar, prepared_tiny, tmp_path):

@@ -107,7 +107,7 @@ def test_render_refuses_a_mesh_file_of_another_vertex_count(files, tmp_path):
 
 
 @pytest.mark.slow
-def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path, stm_run, files, fast_compile):
+def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path, stm_run, files):
     """``prepare --features hubert:PATH`` -> ``train ats --preset paper`` (768-d input, displacement
     scale 1 as the preset says) -> ``sample`` onto a mesh through the run's own front end. The HuBERT
     port is randomly initialised with the real base model's 768-d hidden states and one layer; ATS keeps

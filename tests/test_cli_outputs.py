@@ -19,7 +19,7 @@ import soundfile
 
 from jaxtalk.data.formats import MotionClip, save_npz
 
-from helpers import most_optimizations_off, cli_ok as _ok, cli_error as _refused
+from helpers import cli_ok as _ok, cli_error as _refused
 
 
 def _hashes(folder: Path) -> dict[str, str]:
@@ -34,11 +34,6 @@ def _user_files(folder: Path, names: list[str]) -> dict[str, str]:
         (folder / name).write_bytes(f"the user's own {name}".encode())
     return _hashes(folder)
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-    with most_optimizations_off():  # compile time dominates the tiny run's sampling
-        yield
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import shutil
 
-import jax
 import numpy as np
 import pytest
 import soundfile as sf
@@ -36,14 +35,11 @@ def _no_warnings(output: str, caplog, capfd) -> None:
 
 @pytest.fixture(scope="module")
 def trained(prepared_tiny, tmp_path_factory):
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
     cache = str(prepared_tiny.root.parent)
     out = tmp_path_factory.mktemp("run_folder") / "toktalk"
     _ok(["train", "toktalk", "--data", "synthtalk:tiny", "--cache-dir", cache, "--steps", str(STEPS), *TINY,
          "--set", f"eval_every={EVERY}", "--no-progress", "--out", str(out)])
-    yield {"dir": out, "cache": cache}
-    jax.config.update("jax_disable_most_optimizations", previous)
+    return {"dir": out, "cache": cache}
 
 
 @pytest.mark.slow

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from helpers import most_optimizations_off, cli_ok as _ok
+from helpers import cli_ok as _ok
 
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "dualtalk_demo"
@@ -28,11 +28,6 @@ def _train(model: str, data: Path, out: Path, steps: int) -> tuple[str, dict]:
     output = _ok(["train", model, "--data", str(data), "--steps", str(steps), "--no-progress", "--out", str(out)])
     return output, json.loads((out / "run.json").read_text())
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-    with most_optimizations_off():
-        yield
 
 
 @pytest.fixture(scope="module")

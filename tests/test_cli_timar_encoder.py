@@ -43,7 +43,7 @@ def _keep_conversations(folder, splits):
 
 
 @pytest.mark.slow
-def test_paper_timar_trains_and_samples_on_1024_d_wav2vec2_features(tmp_path, fast_compile):
+def test_paper_timar_trains_and_samples_on_1024_d_wav2vec2_features(tmp_path):
     from jaxtalk.audio.encoders import EncoderConfig, Wav2Vec2Model, save_checkpoint
     from jaxtalk.runs import RunRecord
     from jaxtalk.data.formats import read_npz

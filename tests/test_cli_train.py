@@ -15,7 +15,7 @@ import jax
 import numpy as np
 import pytest
 
-from helpers import TINY_TRAIN_ARGS, most_optimizations_off, cli_ok as _ok
+from helpers import TINY_TRAIN_ARGS, cli_ok as _ok
 
 
 # The smallest graphs of each model (compile time dominates two-step runs).
@@ -24,8 +24,7 @@ SMALL = {**TINY_TRAIN_ARGS, "stm": []}
 
 @pytest.fixture(scope="module")
 def cache(prepared_tiny):
-    with most_optimizations_off():
-        yield str(prepared_tiny.root.parent)
+    return str(prepared_tiny.root.parent)
 
 
 @pytest.mark.slow

@@ -14,7 +14,6 @@ from jaxtalk.samplers.schedules import make_schedule, respace
 
 
 # Compile time dominates these small programs.
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 MU = np.array([1.0, -2.0, 0.5])

@@ -10,7 +10,6 @@ import trimesh
 
 from jaxtalk.geometry import diffusionnet as dn
 from jaxtalk.geometry.operators import compute_operators
-from helpers import most_optimizations_off
 
 
 def bumpy_sphere(subdivisions: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -18,12 +17,6 @@ def bumpy_sphere(subdivisions: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     return np.asarray(m.vertices) * (1 + 0.1 * rng.random((len(m.vertices), 1))), np.asarray(m.faces)
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile_module():
-    """XLA optimisations off for this module: these tiny programs are compile-time bound."""
-    with most_optimizations_off():
-        yield
 
 
 @pytest.fixture(scope="module")

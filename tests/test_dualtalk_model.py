@@ -24,7 +24,6 @@ from jaxtalk.models.dualtalk import (
     predict_window,
 )
 from jaxtalk.models.dualtalk.loss import regression_loss
-from helpers import most_optimizations_off
 
 # One small graph for every test (compile time dominates): it also trains on prepared SynthTalk (80-d
 # log-mel, 25-frame turns) in 2-turn windows, and the CLI builds the same config from CLI_SET, so the
@@ -34,12 +33,6 @@ CLI_SET = ["--set", "width=16", "--set", "num_layers=1", "--set", "num_heads=2",
            "--set", "max_turns=2", "--set", "batch_size=2"]
 B, N, F = 2, 2, 25
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-    # Module-wide, unlike the suite's per-test fixture, so that the module-scoped params compile fast too.
-    with most_optimizations_off():
-        yield
 
 
 @pytest.fixture(scope="module")

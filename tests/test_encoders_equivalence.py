@@ -100,7 +100,7 @@ CASES = {
 
 
 @pytest.mark.parametrize("name", list(CASES))
-def test_every_hidden_state_matches_transformers(name, tmp_path, fast_compile):
+def test_every_hidden_state_matches_transformers(name, tmp_path):
     config = CASES[name]
     hf = _hf_model(config)
     hf.save_pretrained(tmp_path)
@@ -116,7 +116,7 @@ def test_every_hidden_state_matches_transformers(name, tmp_path, fast_compile):
 
 
 @pytest.mark.parametrize("name", ["wav2vec2-base", "hubert-large"])
-def test_padded_batch_with_attention_mask_matches_transformers(name, tmp_path, fast_compile):
+def test_padded_batch_with_attention_mask_matches_transformers(name, tmp_path):
     """HF semantics on padded batches: group-norm stats over the padded row (mask_group_norm=False)."""
     config = CASES[name]
     hf = _hf_model(config, seed=3)
@@ -139,7 +139,7 @@ def test_padded_batch_with_attention_mask_matches_transformers(name, tmp_path, f
 
 
 @pytest.mark.parametrize("model_type", ["wav2vec2", "hubert"])
-def test_task_checkpoint_with_prefix_and_head_loads(model_type, tmp_path, fast_compile):
+def test_task_checkpoint_with_prefix_and_head_loads(model_type, tmp_path):
     """A ForCTC checkpoint (encoder under 'wav2vec2.'/'hubert.', plus lm_head) gives the same encoder."""
     config = EncoderConfig.small(model_type, "base")
     cls = {"wav2vec2": transformers.Wav2Vec2ForCTC, "hubert": transformers.HubertForCTC}[model_type]
@@ -189,7 +189,7 @@ def _leaves(tree, prefix=()):
 
 
 @pytest.mark.parametrize("name", ["wav2vec2-large", "hubert-base"])
-def test_interpolated_variant_matches_faceformer_reference(name, tmp_path, fast_compile):
+def test_interpolated_variant_matches_faceformer_reference(name, tmp_path):
     """TIMAR/DualTalk: HF conv features -> F.interpolate(linear, align_corners) -> projection + encoder."""
     config = CASES[name]
     hf = _hf_model(config, seed=13)

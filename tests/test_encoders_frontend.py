@@ -135,7 +135,7 @@ def test_preprocessor_config(checkpoint):
         load_checkpoint(checkpoint)
 
 
-def test_speech_encoder_interfaces(checkpoint, params, fast_compile):
+def test_speech_encoder_interfaces(checkpoint, params):
     encoder = SpeechEncoder.from_pretrained(checkpoint, pad_multiple=4000)
     assert encoder.rate == 16_000 / 20 and encoder.dim == 32 and encoder.num_layers == 2
     audio = _audio(3333, seed=1)
@@ -173,7 +173,7 @@ def test_speech_encoder_interfaces(checkpoint, params, fast_compile):
     )
 
 
-def test_audio_at_another_rate_is_resampled_and_bad_audio_refused(checkpoint, fast_compile):
+def test_audio_at_another_rate_is_resampled_and_bad_audio_refused(checkpoint):
     encoder = SpeechEncoder.from_pretrained(checkpoint, pad_multiple=4000)
     audio_8k = _audio(1500, seed=3)
     np.testing.assert_allclose(

@@ -112,7 +112,7 @@ def _jit_apply(config, **kwargs):
 
 
 @pytest.mark.slow
-def test_padded_batch_equals_single_inputs(small, fast_compile):
+def test_padded_batch_equals_single_inputs(small):
     config, params = small
     lengths = [1600, 1111]
     clips = [_audio(n, seed=n) for n in lengths]
@@ -144,7 +144,7 @@ def test_padded_batch_equals_single_inputs(small, fast_compile):
 
 
 @pytest.mark.slow
-def test_layer_selection(small, fast_compile):
+def test_layer_selection(small):
     config, params = small
     audio = jnp.asarray(_audio(1200, seed=1)[None])
     full = _jit_apply(config)({"params": params}, audio)
@@ -165,7 +165,7 @@ def test_layer_selection(small, fast_compile):
 
 
 @pytest.mark.slow
-def test_frozen_stops_gradients_and_finetuning_gradient_matches_finite_differences(float64, fast_compile):
+def test_frozen_stops_gradients_and_finetuning_gradient_matches_finite_differences(float64):
     config = EncoderConfig.small("hubert", "large", num_hidden_layers=1)
     params = jax.tree.map(lambda a: a.astype(jnp.float64), _params(config, seed=2))
     audio = jnp.asarray(_audio(700, seed=3)[None], jnp.float64)
@@ -191,7 +191,7 @@ def test_frozen_stops_gradients_and_finetuning_gradient_matches_finite_differenc
 
 
 @pytest.mark.slow
-def test_dropout_is_on_only_with_a_key(fast_compile):
+def test_dropout_is_on_only_with_a_key():
     config = EncoderConfig.small("wav2vec2", "base", hidden_dropout=0.3, attention_dropout=0.3)
     params = _params(config)
     audio = jnp.asarray(_audio(900, seed=4)[None])

@@ -2,8 +2,7 @@
 
 Everything runs on the low-resolution built-in face in float64 with few frames; fits that share a
 ``FitConfig`` and shapes share one compiled program (``_fit_core`` is jitted on them). Compile time
-dominates (each distinct config compiles an optimistix loop around the face model), hence
-``fast_compile``.
+dominates (each distinct config compiles an optimistix loop around the face model).
 """
 
 from __future__ import annotations
@@ -64,7 +63,7 @@ def _null_space_of_expressions(model) -> np.ndarray:
 
 
 @pytest.mark.slow
-def test_vertex_fit_recovers_params_up_to_the_model_null_space(float64, fast_compile):
+def test_vertex_fit_recovers_params_up_to_the_model_null_space(float64):
     """All 56 params from vertices: exact geometry; params equal the truth projected off the null space.
 
     The built-in face's expression basis has full rank (50), so the null space is empty and the fit
@@ -85,7 +84,7 @@ def test_vertex_fit_recovers_params_up_to_the_model_null_space(float64, fast_com
 
 
 @pytest.mark.slow
-def test_landmark_fit_recovers_identifiable_subset(float64, fast_compile):
+def test_landmark_fit_recovers_identifiable_subset(float64):
     """Fitting the pivoted-QR subset that 68 landmarks determine recovers those params exactly."""
     model = _face()
     active = identifiable_params(model, target="landmarks")
@@ -99,7 +98,7 @@ def test_landmark_fit_recovers_identifiable_subset(float64, fast_compile):
 
 
 @pytest.mark.slow
-def test_landmark_fit_all_params_reproduces_landmarks_with_masked_nans(float64, fast_compile):
+def test_landmark_fit_all_params_reproduces_landmarks_with_masked_nans(float64):
     """All 56 from landmarks with a prior: the visible geometry is exact, missing points are ignored."""
     model = _face()
     truth = _random_params(FRAMES, seed=2)
@@ -114,7 +113,7 @@ def test_landmark_fit_all_params_reproduces_landmarks_with_masked_nans(float64, 
 
 
 @pytest.mark.slow
-def test_joint_fit_is_a_stationary_point_of_the_documented_objective(float64, fast_compile):
+def test_joint_fit_is_a_stationary_point_of_the_documented_objective(float64):
     """Brute-force check of the joint objective: its gradient, written out here, vanishes at the fit."""
     model = _face()
     truth = _smooth_params(FRAMES, np.arange(56))
@@ -137,7 +136,7 @@ def test_joint_fit_is_a_stationary_point_of_the_documented_objective(float64, fa
 
 
 @pytest.mark.slow
-def test_weights_are_traced_no_recompilation(float64, fast_compile):
+def test_weights_are_traced_no_recompilation(float64):
     model = _face()
     landmarks = model.landmarks_seq(jnp.asarray(_smooth_params(FRAMES, np.arange(56))))
     fit_landmarks(model, landmarks, config=JOINT, prior=1e-3, smoothness=0.1)
@@ -148,7 +147,7 @@ def test_weights_are_traced_no_recompilation(float64, fast_compile):
 
 
 @pytest.mark.slow
-def test_noise_degrades_gracefully_and_smoothing_helps(float64, fast_compile):
+def test_noise_degrades_gracefully_and_smoothing_helps(float64):
     """Error grows about linearly with landmark noise; the temporal term lowers it on a smooth clip."""
     model = _face()
     active = identifiable_params(model, target="landmarks")
@@ -170,7 +169,7 @@ def test_noise_degrades_gracefully_and_smoothing_helps(float64, fast_compile):
 
 
 @pytest.mark.slow
-def test_sequential_mode_warm_starts_and_smooths_causally(float64, fast_compile):
+def test_sequential_mode_warm_starts_and_smooths_causally(float64):
     model = _face()
     active = identifiable_params(model, target="landmarks")
     truth = _random_params(2, seed=4, keep=active)
@@ -187,7 +186,7 @@ def test_sequential_mode_warm_starts_and_smooths_causally(float64, fast_compile)
 
 
 @pytest.mark.slow
-def test_fit_on_topology_variant_through_its_map(float64, fast_compile):
+def test_fit_on_topology_variant_through_its_map(float64):
     model = _face()
     variant = make_variant(np.asarray(model.template), np.asarray(model.faces), "retriangulated", seed=0)
     active = identifiable_params(model, target="vertices")
@@ -199,7 +198,7 @@ def test_fit_on_topology_variant_through_its_map(float64, fast_compile):
 
 
 @pytest.mark.slow
-def test_gauss_newton_option_recovers_identifiable_subset(float64, fast_compile):
+def test_gauss_newton_option_recovers_identifiable_subset(float64):
     model = _face()
     active = identifiable_params(model, target="landmarks")
     truth = _random_params(2, seed=6, keep=active)
@@ -210,7 +209,7 @@ def test_gauss_newton_option_recovers_identifiable_subset(float64, fast_compile)
 
 
 @pytest.mark.slow
-def test_non_converging_fit_raises_with_result_and_residual(float64, fast_compile):
+def test_non_converging_fit_raises_with_result_and_residual(float64):
     model = _face()
     landmarks = model.landmarks_seq(jnp.asarray(_random_params(FRAMES, seed=7)))
     config = FitConfig(mode="joint", max_steps=1)
@@ -222,7 +221,7 @@ def test_non_converging_fit_raises_with_result_and_residual(float64, fast_compil
     assert result_name(int(out.result_code[0])) == "nonlinear_max_steps_reached"
 
 
-def test_residual_above_threshold_raises(float64, fast_compile):
+def test_residual_above_threshold_raises(float64):
     model = _face()
     landmarks = model.landmarks_seq(jnp.asarray(_smooth_params(FRAMES, np.arange(56))))
     noisy = landmarks + 2e-3 * jax.random.normal(jax.random.key(2), landmarks.shape, jnp.float64)

@@ -26,7 +26,6 @@ from jaxtalk.models import toktalk as tt
 from jaxtalk.models.freetalk import ats
 from jaxtalk.models.freetalk.config import ATSConfig
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 # TokTalk: the tiny preset without middle stages (compile time dominates); 8 tokens = 16 frames.
 TT_CFG = tt.TokTalkConfig.tiny(num_mid_blocks=0)
@@ -39,15 +38,14 @@ AB, AT = 3, 12
 TRUE_INTENSITY = np.array([1.7, 2.4, 3.0], np.float32)  # one per segment, and one on the upper bound
 
 
-# Module fixtures hold the models and data; they are built on first use INSIDE a test, so their
-# compilation runs under the fast_compile fixture (a module fixture cannot use a function fixture).
+# Module fixtures hold the models and data; they are built on first use inside a test.
 @pytest.fixture(scope="module")
 def toktalk_cache():
     return SimpleNamespace()
 
 
 @pytest.fixture
-def toktalk(toktalk_cache, fast_compile):
+def toktalk(toktalk_cache):
     d = toktalk_cache
     if not hasattr(d, "params"):
         rng = np.random.default_rng(0)
@@ -73,7 +71,7 @@ def freetalk_cache():
 
 
 @pytest.fixture
-def freetalk(freetalk_cache, fast_compile):
+def freetalk(freetalk_cache):
     d = freetalk_cache
     if not hasattr(d, "target"):
         audio = np.random.default_rng(1).normal(size=(AB, AT, ATS_CFG.speech_dim)).astype(np.float32)

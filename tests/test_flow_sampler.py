@@ -13,7 +13,6 @@ from jaxtalk.samplers.schedules import cosine_grid, uniform_grid
 
 
 # Compile time dominates these small programs.
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 SIGMA_MIN = 1e-6

@@ -12,7 +12,7 @@ from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.models.freetalk.emotions import EMOTIONS, check_intensity, emotion_ids
 from jaxtalk.models.freetalk.loss import motion_loss
 from jaxtalk.samplers.schedules import make_schedule
-from helpers import assert_recipe_resumes_exactly, most_optimizations_off
+from helpers import assert_recipe_resumes_exactly
 
 T = 12
 AUDIO_DIM = 8
@@ -24,15 +24,9 @@ def _config(**kw) -> ATSConfig:
     return ATSConfig(**{**base, **kw})
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-    # Compile time dominates these tiny models on a shared CPU; XLA optimisations do not pay off.
-    with most_optimizations_off():
-        yield
-
 
 @pytest.fixture(scope="module")
-def model(_fast_compile):
+def model():
     cfg = _config()
     return cfg, ats.init_params(cfg, jax.random.key(0))
 

@@ -11,16 +11,10 @@ from jaxtalk.face import builtin_face
 from jaxtalk.geometry.topology import make_variant
 from jaxtalk.models.freetalk import stm
 from jaxtalk.models.freetalk.config import FUSIONS, STMConfig
-from helpers import assert_recipe_resumes_exactly, most_optimizations_off
+from helpers import assert_recipe_resumes_exactly
 
 K = 12
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-    # Compile time dominates these tiny models on a shared CPU; XLA optimisations do not pay off.
-    with most_optimizations_off():
-        yield
 
 
 def _config(**kw) -> STMConfig:
@@ -36,7 +30,7 @@ def face():
 
 
 @pytest.fixture(scope="module")
-def model(face, _fast_compile):
+def model(face):
     cfg = _config()
     mesh = stm.prepare_mesh(*face, cfg)
     return cfg, mesh, stm.init_params(cfg, jax.random.key(0), mesh)

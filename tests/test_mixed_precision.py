@@ -67,7 +67,7 @@ def _recipe_losses(config, data, steps):
 
 
 @pytest.mark.slow
-def test_a_short_bf16_run_reaches_the_float32_loss_with_float32_state(prepared_tiny, fast_compile):
+def test_a_short_bf16_run_reaches_the_float32_loss_with_float32_state(prepared_tiny):
     from jaxtalk.models.toktalk import TokTalkConfig
 
     config = TokTalkConfig.tiny(num_mid_blocks=0, speech_dim=prepared_tiny.manifest["token_dim"],
@@ -137,7 +137,7 @@ def _sampler(model, config):
 
 
 @pytest.mark.parametrize("model", ["toktalk", "ats", "stm", "timar", "dualtalk"])
-def test_samplers_stay_finite_in_bf16_and_near_float32(model, fast_compile):
+def test_samplers_stay_finite_in_bf16_and_near_float32(model):
     config = _tiny(model)
     params, run = _sampler(model, config)
     f32 = np.asarray(run(params, config))

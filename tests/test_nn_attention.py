@@ -22,7 +22,6 @@ from jaxtalk.nn import (
 
 from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _reference_attention(q, k, v, bias):

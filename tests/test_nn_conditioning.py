@@ -20,7 +20,6 @@ from jaxtalk.nn import (
     sinusoidal_embedding,
 )
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 # dim 4, max_period 1e4, freq_shift 0: frequencies [1, 1e4^(-1/2) = 0.01].

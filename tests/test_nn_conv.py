@@ -21,7 +21,6 @@ from jaxtalk.nn import (
 
 from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _np(tree):

@@ -11,7 +11,6 @@ from jaxtalk.nn import GraphConv, normalized_adjacency
 
 from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 S6 = 1 / np.sqrt(6)
 # Path 0 - 1 - 2 with self-loops: degrees (2, 3, 2), entry (i, j) = 1 / sqrt(d_i d_j).

@@ -1,7 +1,7 @@
 """Helpers shared by the ``test_nn_*`` files (this module holds no tests).
 
 The layer tests run many tiny programs, where XLA compile time dominates; two things keep them fast:
-conftest's ``fast_compile`` fixture (most XLA optimisations off, applied module-wide), and
+the suite's default of most XLA optimisations off (tests/conftest.py), and
 
 * ``random_params``: parameters drawn in NumPy for the shapes that ``module.init`` would create,
   found by ``jax.eval_shape`` (tracing only). Compiling the initialisers (truncated normals) costs

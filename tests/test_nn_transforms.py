@@ -20,7 +20,6 @@ from jaxtalk.nn import (
 
 from test_nn_support import random_params
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 T, C = 6, 16
 MASK = jnp.arange(T)[None, :] < jnp.array([[T], [4]])

@@ -35,9 +35,6 @@ def test_quickstart_runs_top_to_bottom(tmp_path, monkeypatch, synthtalk_tiny, pr
     monkeypatch.setenv("JAXTALK_CACHE", str(synthtalk_tiny._cache_dir))
     # ... and its prepared copy, where open_data("synthtalk:tiny:0") finds it (tests/conftest.py).
     monkeypatch.setenv("JAXTALK_PREPARED", str(prepared_tiny.root.parent))
-    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
-    # Compile time dominates a notebook of tiny models (the conftest's fast_compile, for the kernel).
-    monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
     client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
                                      resources={"metadata": {"path": str(tmp_path)}})
     client.execute()

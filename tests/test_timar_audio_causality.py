@@ -18,7 +18,6 @@ from jaxtalk.models.timar import TimarConfig, init_params
 from jaxtalk.models.timar.stream import stream
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 TURNS, CUT = 5, 2  # change the audio of turns 3 and 4
 

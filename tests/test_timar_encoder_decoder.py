@@ -20,7 +20,6 @@ from jaxtalk.models.timar.stream import stream_condition, stream, init_stream
 from jaxtalk.models.timar.tokens import agent_token_mask, turn_layout
 from jaxtalk.masks import mask_to_bias
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 B, N, F = 2, 3, 5
 CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, head_blocks=1, speech_dim=8, max_turns=N,
@@ -29,13 +28,7 @@ CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, head
 
 @pytest.fixture(scope="module")
 def params():
-    # Module-scoped fixtures run before the per-test fast_compile fixture: set it here as well.
-    previous = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
-    try:
-        p = init_params(CFG, jax.random.key(0))
-    finally:
-        jax.config.update("jax_disable_most_optimizations", previous)
+    p = init_params(CFG, jax.random.key(0))
     # Zero-initialised adaLN layers make a fresh head output exactly 0; perturb so tests see signal
     # (NumPy noise: a jitted perturbation of ~100 leaves costs more compile time than the tests).
     rng = np.random.default_rng(5)

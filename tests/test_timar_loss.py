@@ -13,7 +13,6 @@ from jaxtalk.models.timar import TimarConfig, init_params, loss
 from jaxtalk.data.turns import to_turns
 from jaxtalk.models.timar.loss import grouped_mse, masked_loss, random_agent_mask, sample_mask_ratio
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)
 B, N, F = 2, 2, 5

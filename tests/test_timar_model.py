@@ -20,7 +20,6 @@ from jaxtalk.models.timar.head import (
 )
 from jaxtalk.data.turns import to_turns
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)
 B, N, F = 2, 3, 5

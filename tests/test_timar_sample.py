@@ -19,7 +19,6 @@ from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
 conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
 sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler", "precompute"))
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 # The package re-exports the function ``sample``; the module is needed for its jit cache.
 sample_mod = importlib.import_module("jaxtalk.models.timar.sample")

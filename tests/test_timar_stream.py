@@ -17,7 +17,6 @@ from jaxtalk.models.timar.stream import stream_condition, stream, init_stream, s
 conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
 sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler"))
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)
 B, F = 2, 5

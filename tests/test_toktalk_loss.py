@@ -14,7 +14,6 @@ from jaxtalk.models import toktalk as tt
 
 CFG = tt.TokTalkConfig.tiny()
 B, T = 64, 16
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

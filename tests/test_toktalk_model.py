@@ -14,7 +14,6 @@ from jaxtalk.models.toktalk.model import check_tokens
 CFG = tt.TokTalkConfig.tiny()  # the causal (streaming) model, the default
 OFFLINE = tt.TokTalkConfig.tiny(causal=False)
 B, T = 2, 16
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

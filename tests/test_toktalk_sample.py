@@ -16,7 +16,6 @@ from jaxtalk.samplers import cosine_grid, uniform_grid
 
 CFG = tt.TokTalkConfig.tiny()
 B, TT = 2, 8  # 8 tokens at 12.5 Hz = 16 frames
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,6 @@ from jaxtalk.models.toktalk.sample import default_grid, generate_frames
 
 CFG = tt.TokTalkConfig.tiny()  # chunk 4 frames (2 tokens), context 8, overlap 2
 B = 2
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

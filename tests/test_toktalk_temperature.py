@@ -15,7 +15,6 @@ from jaxtalk.models.toktalk.noise import prior_noise
 
 stream_mod = importlib.import_module("jaxtalk.models.toktalk.stream")  # the package re-exports stream()
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 CONFIG = tt.TokTalkConfig.tiny(num_mid_blocks=0)
 
 

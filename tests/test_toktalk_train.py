@@ -52,7 +52,7 @@ def test_adapter_windows_align_the_source_stream_with_the_tokens_and_motion(prep
 
 
 @pytest.mark.slow
-def test_stage2_trains_only_the_adapter_and_writes_a_run(fast_compile, prepared_tiny, stream_b, tmp_path):
+def test_stage2_trains_only_the_adapter_and_writes_a_run(prepared_tiny, stream_b, tmp_path):
     from jaxtalk.runs import load_run
 
     base = tt.init_params(CFG, jax.random.key(0))

@@ -14,7 +14,6 @@ from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.sample import default_grid
 from jaxtalk.models.toktalk.validation import SELECTION_METRIC, streamed_validation
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,6 @@ from jaxtalk.train import (
 from helpers import crashing_batches
 
 # Compile time dominates these tiny programs; all runs compared within a test share the setting.
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 # ---------------------------------------------------------------- tiny problems
 

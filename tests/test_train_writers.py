@@ -24,7 +24,6 @@ from jaxtalk.train.recipes import usable_batch_size
 from jaxtalk.train.writers import METRICS_FILE, RunMetrics
 from helpers import event_files, read_event_file, scalars, crashing_batches
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
 
 CFG = OptimConfig(lr=1e-2, weight_decay=1e-3, warmup_steps=3, total_steps=12, clip_norm=1.0)
 
