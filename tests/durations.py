@@ -3,8 +3,10 @@
 Two uses, both from one run of the whole suite on the 2-core machine:
 
 * **Longest module first.** xdist hands whole modules to the workers (``--dist loadfile``) in collection
-  order; a long module that starts last keeps one worker busy while the other idles. The modules run
-  in the order of their recorded totals (a module not on record, last).
+  order (``--no-loadscope-reorder``: by default it reorders them by their number of tests, which once
+  started the longest module, 3 minutes of a test, 17 minutes into a 20-minute run); a long module that
+  starts last keeps one worker busy while the other idles. The modules run in the order of their
+  recorded totals (a module not on record, last).
 * **The ``slow`` tier by measurement.** The marker means "over ~3 s a test on 2 cores"; besides the
   tests marked by hand, every test recorded at 3 s or more (setup and call together) is marked
   ``slow``, so the quick loop (``-m "not slow and not external and not multiprocess"``) leaves out
