@@ -69,6 +69,28 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: -modules.get(item.path.name, 0.0))  # stable: a module keeps its order
 
 
+def _stray_caches() -> set[str]:
+    """What the commands' default cache folders (``.cache/prepared``, ``.cache/synthtalk``) hold in the
+    folder the suite runs from: a test must give every command a folder of its own."""
+    root = Path.cwd() / ".cache"
+    return {str(p.relative_to(root)) for p in root.glob("*/*")} if root.is_dir() else set()
+
+
+def pytest_sessionstart(session):
+    session.config._stray_caches_before = _stray_caches()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Fails the session if a test wrote into the default cache folders of the folder it ran from (a
+    command called without ``--cache-dir``): the suite writes only under its temporary folders."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return  # the controller checks, once
+    new = sorted(_stray_caches() - session.config._stray_caches_before)
+    if new:
+        print(f"\nerror: tests wrote into {Path.cwd() / '.cache'}: {', '.join(new)} (pass --cache-dir)")
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
 def pytest_unconfigure(config):
     if _XLA_CACHE is not None:  # the process that made the session's compilation cache
         shutil.rmtree(_XLA_CACHE, ignore_errors=True)

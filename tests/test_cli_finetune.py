@@ -50,5 +50,6 @@ def test_init_refusals_are_one_line(trained_timar, trained_toktalk, prepared_tin
     existing = trained_timar.copy(tmp_path / "existing")
     cli_error([*base[:-3], "--steps", "3", "--no-progress", "--init", trained_timar.dir, "--out", existing],
               "--init starts a new one")
-    cli_error(["train", "ats", "--data", "synthtalk:tiny", "--init", trained_timar.dir, "--out", tmp_path / "c"],
+    cli_error(["train", "ats", "--data", "synthtalk:tiny", "--cache-dir", prepared_tiny.root.parent, "--init",
+               trained_timar.dir, "--out", tmp_path / "c"],
               "--init is not available for ats")

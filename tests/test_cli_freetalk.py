@@ -107,7 +107,7 @@ def test_render_refuses_a_mesh_file_of_another_vertex_count(files, tmp_path):
 
 
 @pytest.mark.slow
-def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path, stm_run, files):
+def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path, stm_run, files, synthtalk_tiny):
     """``prepare --features hubert:PATH`` -> ``train ats --preset paper`` (768-d input, displacement
     scale 1 as the preset says) -> ``sample`` onto a mesh through the run's own front end. The HuBERT
     port is randomly initialised with the real base model's 768-d hidden states and one layer; ATS keeps
@@ -125,7 +125,7 @@ def test_paper_ats_trains_on_768_d_hubert_features_and_animates_a_mesh(tmp_path,
     params = jax.jit(Wav2Vec2Model(enc).init)(jax.random.key(0), jnp.zeros((1, enc.receptive_field)))["params"]
     ckpt = save_checkpoint(tmp_path / "hubert-base", enc, params, normalize=False)
     clips = tmp_path / "clips"
-    _ok(["data", "--size", "tiny", "--out", clips])
+    _ok(["data", "--size", "tiny", "--cache-dir", synthtalk_tiny._cache_dir, "--out", clips])  # the session's corpus
     for extra in sorted(clips.glob("*.wav"))[12:]:  # a dozen clips are plenty for one step
         for path in clips.glob(f"{extra.stem}.*"):
             path.unlink()
