@@ -6,7 +6,9 @@ Conventions (:mod:`jaxtalk.benchmarking`): compile time apart from run time, med
 compiled programs, every run ``block_until_ready``-ed. Weights are random (speed does not depend on
 them), drawn on the host from the parameter shapes so that the paper-size models do not spend minutes
 compiling their initialisers. FLOPs come from XLA's cost analysis, which counts the body of a
-``lax.scan`` once: a sampler's FLOPs are one model evaluation (with its CFG batch) times the steps.
+``lax.scan`` once: a sampler's FLOPs are one model evaluation (with its CFG batch) times the steps, and
+a train step's are scaled by :func:`jaxtalk.benchmarking.loop_trip_factor` (its matmul work with each
+scan counted per iteration over that with each counted once).
 
 Per model:
 
@@ -584,13 +586,18 @@ class TrainProbe(StepObserver):
         # On the device once: the timed step is the computation; the loop's per-step transfer of the
         # host batch counts in its wall time (the host's share).
         batch = jax.device_put(batch)
+        from jaxtalk.benchmarking import loop_trip_factor
+
         t0 = time.perf_counter()
-        compiled = step_fn.lower(copy, batch).compile()
+        traced = step_fn.trace(copy, batch)
+        compiled = traced.lower().compile()
         compile_s = time.perf_counter() - t0
         cost = compiled.cost_analysis()
         if isinstance(cost, (list, tuple)):
             cost = cost[0] if cost else None
         flops = float(cost["flops"]) if cost and "flops" in cost and float(cost["flops"]) >= 0 else None
+        if flops is not None:  # XLA counts a scan's body once (STM decodes its window frame by frame)
+            flops *= loop_trip_factor(traced.jaxpr)
         memory = compiled.memory_analysis()
         peak = None
         if memory is not None:

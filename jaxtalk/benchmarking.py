@@ -26,6 +26,8 @@ __all__ = [
     "Timing",
     "time_jitted",
     "xla_flops",
+    "matmul_flops",
+    "loop_trip_factor",
     "measure_matmul_peak",
     "machine_info",
     "format_table",
@@ -115,7 +117,7 @@ def xla_flops(fn: Callable[..., Any], *args: Any) -> float | None:
         The ``"flops"`` entry of the cost analysis, or None when the backend reports none. A dot of
         ``(m, k) x (k, n)`` counts ``2 m k n``. XLA counts the body of a loop (``lax.scan``,
         ``while_loop``) ONCE, not once per trip: for a scanned sampler, measure one step and
-        multiply by the number of steps.
+        multiply by the number of steps, or scale by :func:`loop_trip_factor`.
     """
     compiled, _, _ = _compile(fn, args)
     cost = compiled.cost_analysis()
@@ -125,6 +127,71 @@ def xla_flops(fn: Callable[..., Any], *args: Any) -> float | None:
         return None
     flops = float(cost["flops"])
     return flops if math.isfinite(flops) and flops >= 0 else None
+
+
+def _jaxprs_in(params: dict[str, Any]) -> list[Any]:
+    """The jaxprs an equation's parameters hold (a jitted call's, a custom rule's, a remat's body)."""
+    found = []
+    for value in params.values():
+        for item in value if isinstance(value, (tuple, list)) else (value,):
+            inner = getattr(item, "jaxpr", item)  # a ClosedJaxpr holds its Jaxpr
+            if hasattr(inner, "eqns"):
+                found.append(inner)
+    return found
+
+
+def matmul_flops(jaxpr: Any, *, per_trip: bool = True) -> float:
+    """Matmul and convolution FLOPs of a traced program: 2 per multiply-add of every ``dot_general``
+    and ``conv_general_dilated``, nested calls included.
+
+    Args:
+        jaxpr: a ``Jaxpr`` or ``ClosedJaxpr`` (``jax.make_jaxpr(fn)(*args)``, ``jitted.trace(*args).jaxpr``).
+        per_trip: count a ``lax.scan`` body once per iteration (its ``length``); False counts it once,
+            as XLA's cost analysis does. A ``while_loop``'s trip count is not known when tracing: its
+            body counts once either way. Of a ``lax.cond``, the costliest branch counts.
+
+    Returns:
+        FLOPs (elementwise work is not counted).
+    """
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    total = 0.0
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name == "dot_general":
+            (contract, _), _ = eqn.params["dimension_numbers"]
+            lhs = eqn.invars[0].aval.shape
+            total += 2.0 * eqn.outvars[0].aval.size * math.prod(lhs[d] for d in contract)
+        elif name == "conv_general_dilated":
+            kernel = eqn.invars[1].aval.shape
+            out_features = kernel[eqn.params["dimension_numbers"].rhs_spec[0]]
+            # Each output element: one multiply-add per kernel entry of its feature group.
+            total += 2.0 * eqn.outvars[0].aval.size * math.prod(kernel) / out_features
+        elif name == "scan":
+            total += matmul_flops(eqn.params["jaxpr"], per_trip=per_trip) * (eqn.params["length"] if per_trip else 1)
+        elif name == "cond":
+            total += max(matmul_flops(b, per_trip=per_trip) for b in eqn.params["branches"])
+        else:
+            total += sum(matmul_flops(sub, per_trip=per_trip) for sub in _jaxprs_in(eqn.params))
+    return total
+
+
+def loop_trip_factor(jaxpr: Any) -> float:
+    """How much XLA's cost analysis undercounts a program by counting each ``lax.scan`` body once:
+    its matmul FLOPs with every scan body counted per iteration over those with each counted once
+    (1.0 for a program without scans or without matmuls).
+
+    Multiply :func:`xla_flops` (or a compiled program's ``cost_analysis()["flops"]``) by it to count a
+    program whose work sits in scans, such as a train step that decodes frame by frame in a
+    ``lax.map``; elementwise work inside the loops is scaled by the matmul work's ratio.
+
+    Args:
+        jaxpr: the program, traced (``Jaxpr`` or ``ClosedJaxpr``).
+
+    Returns:
+        The factor (>= 1).
+    """
+    once = matmul_flops(jaxpr, per_trip=False)
+    return matmul_flops(jaxpr) / once if once > 0 else 1.0
 
 
 def measure_matmul_peak(dtype: Any = jnp.float32, n: int = 2048, repeats: int = 10) -> float:

@@ -30,6 +30,46 @@ def test_xla_flops_counts_a_scan_body_once():
     assert bm.xla_flops(f, a) == pytest.approx(2 * 16**3, rel=0.01)
 
 
+def test_matmul_flops_counts_batched_dots_and_grouped_convolutions_by_hand():
+    # (3, 8, 16) x (3, 16, 4) batched over the leading axis: 3 * 8 * 4 outputs, 16 multiply-adds each.
+    dot = jax.make_jaxpr(lambda x, y: jnp.einsum("bmk,bkn->bmn", x, y))(jnp.ones((3, 8, 16)), jnp.ones((3, 16, 4)))
+    assert bm.matmul_flops(dot) == 2 * 3 * 8 * 4 * 16
+    # 1-D convolution, 3 -> 4 channels, kernel 5, 20 -> 16 frames, batch 2: 3 * 5 multiply-adds per output.
+    conv = jax.make_jaxpr(lambda x, w: jax.lax.conv_general_dilated(x, w, (1,), "VALID"))(
+        jnp.ones((2, 3, 20)), jnp.ones((4, 3, 5)))
+    assert bm.matmul_flops(conv) == 2 * (2 * 4 * 16) * (3 * 5)
+    # Depthwise (3 groups of one channel): 5 multiply-adds per output.
+    depthwise = jax.make_jaxpr(lambda x, w: jax.lax.conv_general_dilated(x, w, (1,), "VALID", feature_group_count=3))(
+        jnp.ones((2, 3, 20)), jnp.ones((3, 1, 5)))
+    assert bm.matmul_flops(depthwise) == 2 * (2 * 3 * 16) * 5
+    # Elementwise work is not counted; a cond counts its costlier branch; a jitted call is entered.
+    branchy = jax.make_jaxpr(lambda p, x: jax.lax.cond(p, lambda v: jnp.sin(v), lambda v: jax.jit(jnp.matmul)(v, v), x))(
+        True, jnp.ones((8, 8)))
+    assert bm.matmul_flops(branchy) == 2 * 8**3
+
+
+def test_loop_trip_factor_scales_scans_per_iteration_and_leaves_loop_free_programs_alone():
+    w = jnp.ones((16, 16))
+
+    def scanned(x):
+        return jax.lax.scan(lambda c, _: (jnp.tanh(c @ w), None), x, None, length=5)[0]
+
+    x = jnp.ones((8, 16))
+    program = jax.make_jaxpr(scanned)(x)
+    assert bm.matmul_flops(program) == 5 * 2 * 8 * 16 * 16
+    assert bm.matmul_flops(program, per_trip=False) == 2 * 8 * 16 * 16
+    assert bm.loop_trip_factor(program) == 5.0
+    # Its gradient: 5 forward and 5 backward matmuls per trip, beside a loop-free matmul counted once.
+    step = jax.jit(jax.grad(lambda x: (scanned(x) @ w).sum())).trace(x)
+    assert bm.matmul_flops(step.jaxpr) == (10 + 2) * 2 * 8 * 16 * 16
+    assert bm.loop_trip_factor(step.jaxpr) == pytest.approx(12 / 4)
+    # XLA's count of the scanned program, so scaled, is the count of the program unrolled.
+    unrolled = bm.xla_flops(lambda x: jnp.tanh(jnp.tanh(jnp.tanh(jnp.tanh(jnp.tanh(x @ w) @ w) @ w) @ w) @ w), x)
+    assert bm.xla_flops(scanned, x) * bm.loop_trip_factor(program) == pytest.approx(unrolled, rel=0.02)
+    assert bm.loop_trip_factor(jax.make_jaxpr(jnp.sin)(x)) == 1.0
+    assert bm.loop_trip_factor(jax.make_jaxpr(lambda x: x @ w)(x)) == 1.0
+
+
 def test_time_jitted_record():
     calls = []
 
