@@ -43,7 +43,7 @@ def _keep_conversations(folder, splits):
 
 
 @pytest.mark.slow
-def test_paper_timar_trains_and_samples_on_1024_d_wav2vec2_features(tmp_path):
+def test_paper_timar_trains_and_samples_on_1024_d_wav2vec2_features(tmp_path, synthtalk_tiny):
     from jaxtalk.audio.encoders import EncoderConfig, Wav2Vec2Model, save_checkpoint
     from jaxtalk.runs import RunRecord
     from jaxtalk.data.formats import read_npz
@@ -54,7 +54,7 @@ def test_paper_timar_trains_and_samples_on_1024_d_wav2vec2_features(tmp_path):
     ckpt = save_checkpoint(tmp_path / "wav2vec2-large", enc, params, normalize=True)
 
     clips = tmp_path / "clips"
-    _ok(["data", "--size", "tiny", "--out", str(clips)])
+    _ok(["data", "--size", "tiny", "--cache-dir", synthtalk_tiny._cache_dir, "--out", str(clips)])  # the session's corpus
     _keep_conversations(clips, ("train", "val", "test"))
     _ok(["prepare", str(tmp_path / "clips"), "--out", str(tmp_path / "prepared"), "--features", f"wav2vec2:{ckpt}",
          "--no-progress"])

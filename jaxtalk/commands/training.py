@@ -216,6 +216,10 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     preset = existing.preset if existing is not None else opts.preset or "small"
     train_fn, defaults = recipe_for(opts.model, preset or "small")
     model_items, train_kw = split_overrides(opts.model, opts.overrides)
+    if existing is None and opts.init is None:
+        # A bad --set value is refused before the data is opened (preparing synthtalk:small takes minutes);
+        # the widths the prepared data sets are applied below.
+        build_config(opts.model, preset, model_items)
     # A resumed run reads the prepared folder it started on (a synthtalk: spec would otherwise be looked
     # up again under this call's --cache-dir), and only if it still holds the same data.
     data = _open_data_once(opts, existing.data["path"] if existing is not None else None)
