@@ -4,13 +4,13 @@ the sharded step gives the 1-device loss and parameters, and batch sizes must di
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from multiprocess_helpers import worker_env
 
 SCRIPT = r"""
 import json
@@ -72,8 +72,7 @@ print("RESULT" + json.dumps(out))
 
 
 def _run_on_four_devices() -> dict:
-    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"  # and the suite's
-    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
+    env = worker_env(4)
     root = Path(__file__).resolve().parents[1]
     proc = subprocess.run(
         [sys.executable, "-c", SCRIPT], cwd=root, env=env, capture_output=True, text=True, timeout=300
