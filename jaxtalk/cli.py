@@ -274,7 +274,7 @@ _CFG = Annotated[float | None, typer.Option(help="Guidance scale (default: the m
 _SAMPLE_STEPS = Annotated[int | None, typer.Option("--sample-steps", help="Sampler steps: Euler (TokTalk) or DDIM / DDPM "
                                                                            "(ATS, TIMAR) (default: the model's).")]
 _SEED = Annotated[int, typer.Option(help="Noise seed.")]
-_BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest validation loss).")]
+_BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest selection metric: TokTalk's streamed lip error, else validation loss).")]
 
 
 def _frames(count: int) -> str:

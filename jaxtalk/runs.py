@@ -512,8 +512,9 @@ def load_run(run_dir: str | Path, *, step: int | None = None, best: bool = False
     Args:
         run_dir: the folder ``jaxtalk train`` wrote.
         step: checkpoint step (default: the newest).
-        best: the checkpoint with the lowest validation loss instead (kept when the data has a
-            validation split).
+        best: the checkpoint the run's validation chose instead (kept when the data has a
+            validation split): the lowest value of the run's selection metric (TokTalk: streamed lip
+            error on the validation clips; the other models: validation loss).
 
     Returns:
         :class:`LoadedRun` with the EMA parameters when the run kept an EMA.
