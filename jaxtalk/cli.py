@@ -256,11 +256,12 @@ def prepare(
 
 
 def _sample_options(run: Path, input_: Path, out: Path | None, style: Path | None, partner: Path | None,
-                    cfg_scale: float | None, sample_steps: int | None, seed: int, best: bool, overwrite: bool) -> Any:
+                    cfg_scale: float | None, sample_steps: int | None, temperature: float | None, seed: int, best: bool,
+                    overwrite: bool) -> Any:
     from jaxtalk.commands.inference import SampleOptions
 
     return SampleOptions(run_dir=run, input=input_, out=out, style=style, partner=partner, cfg_scale=cfg_scale,
-                         sample_steps=sample_steps, seed=seed, best=best, overwrite=overwrite)
+                         sample_steps=sample_steps, temperature=temperature, seed=seed, best=best, overwrite=overwrite)
 
 
 _RUN = Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk or timar; ats with --stm).")]
@@ -273,6 +274,9 @@ _PARTNER = Annotated[Path | None, typer.Option(help="TIMAR: the partner's audio 
 _CFG = Annotated[float | None, typer.Option(help="Guidance scale (default: the model's).")]
 _SAMPLE_STEPS = Annotated[int | None, typer.Option("--sample-steps", help="Sampler steps: Euler (TokTalk) or DDIM / DDPM "
                                                                            "(ATS, TIMAR) (default: the model's).")]
+_TEMPERATURE = Annotated[float | None, typer.Option(help="Scale of the sampler's noise, >= 0 (TokTalk: the starting "
+                                                         "noise, default the model's; TIMAR: MAR's temperature, default "
+                                                         "1); below 1 trades diversity for accuracy.")]
 _SEED = Annotated[int, typer.Option(help="Noise seed.")]
 _BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest selection metric: TokTalk's streamed lip error, else validation loss).")]
 
@@ -286,7 +290,8 @@ def _frames(count: int) -> str:
 @_user_errors
 def sample(
     run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-    cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, seed: _SEED = 0, best: _BEST = False, overwrite: _OVERWRITE = False,
+    cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, temperature: _TEMPERATURE = None, seed: _SEED = 0,
+    best: _BEST = False, overwrite: _OVERWRITE = False,
     stm: Annotated[Path | None, typer.Option(help="FreeTalk: the STM run that maps an ATS run's landmarks onto --mesh.")] = None,
     mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).")] = None,
     emotion: Annotated[str | None, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary (default neutral).")] = None,
@@ -299,7 +304,7 @@ def sample(
     run, --stm and --mesh, the mesh's vertices (.npy, 25 fps, the mesh's own units and frame)."""
     from jaxtalk.commands.inference import MeshOptions, animate_run, sample_run
 
-    opts = _sample_options(run, input_, out, style, partner, cfg_scale, sample_steps, seed, best, overwrite)
+    opts = _sample_options(run, input_, out, style, partner, cfg_scale, sample_steps, temperature, seed, best, overwrite)
     freetalk = {"--emotion": emotion, "--intensity": intensity, "--units": units, "--landmarks": landmarks}
     if stm is not None or mesh is not None:
         if stm is None or mesh is None:
@@ -316,13 +321,13 @@ def sample(
 @app.command()
 @_user_errors
 def stream(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, partner: _PARTNER = None,
-           cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, seed: _SEED = 0, best: _BEST = False,
-           overwrite: _OVERWRITE = False) -> None:
+           cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, temperature: _TEMPERATURE = None, seed: _SEED = 0,
+           best: _BEST = False, overwrite: _OVERWRITE = False) -> None:
     """Animate a speech file chunk by chunk as a live stream would, printing each chunk's latency."""
     from jaxtalk.commands.inference import stream_run
 
-    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, sample_steps, seed, best, overwrite),
-                        echo=typer.echo)
+    result = stream_run(_sample_options(run, input_, out, style, partner, cfg_scale, sample_steps, temperature, seed, best,
+                                        overwrite), echo=typer.echo)
     typer.echo(f"{_frames(result.params.shape[0])} written to {result.path}")
 
 
@@ -350,6 +355,7 @@ def eval_(
                                       "run's sample_steps), e.g. 1,10.")
     ] = None,
     offline: Annotated[bool, typer.Option(help="TokTalk: also sample whole clips offline (full attention).")] = False,
+    temperature: _TEMPERATURE = None,
 ) -> None:
     """Score a trained run on a split of prepared data, next to the mean pose (and the oracle where known).
 
@@ -369,7 +375,7 @@ def eval_(
         raise ValueError(f"--sample-steps must be comma-separated integers, got {sample_steps!r}") from None
     report = evaluate_run(EvalOptions(run_dir=run, data=data, split=split, max_clips=max_clips, seed=seed,
                                       flame=flame, cache_dir=cache_dir, best=best, sample_steps=steps,
-                                      offline=offline), echo=typer.echo)
+                                      offline=offline, temperature=temperature), echo=typer.echo)
     for table in report.tables:
         _echo_table(table.rows, table.title)
     if json_out is not None:
@@ -584,7 +590,8 @@ def serve(
     run: Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk).")],
     host: Annotated[str, typer.Option(help="Interface to listen on (127.0.0.1: this machine only).")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="TCP port (0: any free one).")] = 8765,
-    style: _STYLE = None, cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, best: _BEST = False,
+    style: _STYLE = None, cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, temperature: _TEMPERATURE = None,
+    best: _BEST = False,
     max_clients: Annotated[int, typer.Option(help="Clients served at once; one more is told the server is busy.")] = 8,
     max_chunk_s: Annotated[float, typer.Option(help="Longest audio message a client may send, in seconds.")] = 1.0,
     live_link: Annotated[str | None, typer.Option(help="Send every client's ARKit curves as Live Link Face UDP packets "
@@ -597,7 +604,8 @@ def serve(
     from jaxtalk.commands.serving import ServeCommandOptions, serve_run
 
     running = serve_run(ServeCommandOptions(run_dir=run, host=host, port=port, style=style, cfg_scale=cfg_scale,
-                                            sample_steps=sample_steps, best=best, max_clients=max_clients,
+                                            sample_steps=sample_steps, temperature=temperature, best=best,
+                                            max_clients=max_clients,
                                             max_chunk_s=max_chunk_s, live_link=live_link,
                                             origins=tuple(allow_origin or ())), echo=typer.echo)
     try:

@@ -139,11 +139,15 @@ def cache_dir(options: DemoOptions) -> Path:
 
 def train_overrides(options: DemoOptions) -> tuple[str, ...]:
     """``--set`` items that turn the ``small`` preset and TokTalk's recipe defaults into the demo's
-    model (:func:`model_config`) and training settings: only what differs from them."""
+    model (:func:`model_config`) and training settings: only what differs from them.
+
+    The run's ``sample_steps`` is the demo's (``--sample-steps``, 1 by default): what ``jaxtalk stream``
+    on the demo folder uses, and the step count the run's validation streams and selects by (one
+    step: a fifth of the validation time of the preset's 1 and 10)."""
     from jaxtalk.models.toktalk import TokTalkConfig
     from jaxtalk.models.toktalk.recipe import DEFAULTS, default_window
 
-    want, base = model_config(options.chunk_frames), TokTalkConfig.small()
+    want, base = model_config(options.chunk_frames, options.sample_steps), TokTalkConfig.small()
     items = [f"{f.name}={getattr(want, f.name)}" for f in dataclasses.fields(want)
              if getattr(want, f.name) != getattr(base, f.name)]
     if options.learning_rate != DEFAULTS.lr:

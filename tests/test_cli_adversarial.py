@@ -193,6 +193,35 @@ def test_nan_cfg_scale_is_refused_before_the_run_is_loaded(toktalk_run, speech, 
     assert "--cfg-scale must be a finite number, got nan" in _error([command, toktalk_run, speech, "--cfg-scale", "nan"])
 
 
+@pytest.mark.parametrize("command", ["sample", "stream"])
+@pytest.mark.parametrize("value", ["-0.5", "nan", "inf"])
+def test_negative_or_non_finite_temperature_is_refused_before_the_run_is_loaded(toktalk_run, speech, monkeypatch,
+                                                                                command, value):
+    _no_loading(monkeypatch)
+    line = _error([command, toktalk_run, speech, "--temperature", value])
+    assert f"--temperature must be a finite number >= 0, got {float(value)}" in line
+
+
+def test_eval_refuses_a_temperature_for_a_model_without_sampler_noise(ats_run):
+    line = _error(["eval", ats_run, "--temperature", "0.5"])
+    assert f"--temperature scales TokTalk's and TIMAR's sampler noise; {ats_run} is a ats run" in line
+
+
+@pytest.mark.parametrize("command", ["sample", "stream"])
+def test_toktalk_at_temperature_zero_writes_the_same_motion_for_every_seed(toktalk_run, speech, tmp_path, command):
+    """Temperature scales the starting noise: at 0 the seed has nothing left to change; at 1 it does."""
+    from jaxtalk.data.formats import read_npz
+
+    def run(seed: int, temperature: str) -> np.ndarray:
+        out = tmp_path / f"{command}-{seed}-{temperature}.npz"
+        _ok([command, toktalk_run, speech, "--out", out, "--sample-steps", "2", "--seed", seed,
+             "--temperature", temperature])
+        return read_npz(out).params
+
+    np.testing.assert_array_equal(run(0, "0"), run(1, "0"))
+    assert np.abs(run(0, "1") - run(1, "1")).max() > 1e-3
+
+
 @pytest.mark.parametrize(("option", "message"), [
     (["--emotion", "furious"], "--emotion furious: not an emotion of this run; it knows: neutral,"),
     (["--intensity", "0"], "--intensity must lie in [1, 3] for this run, got 0"),
@@ -214,7 +243,8 @@ def test_freetalk_options_are_refused_before_the_mesh_is_aligned(ats_run, stm_ru
 def test_toktalk_run_refuses_freetalk_and_timar_options(toktalk_run, speech, monkeypatch):
     _no_loading(monkeypatch)
     line = _error(["sample", toktalk_run, speech, "--emotion", "happy", "--partner", speech])
-    assert "--partner, --emotion: not options of a TokTalk run (it takes --style, --cfg-scale, --sample-steps, --seed)" in line
+    assert ("--partner, --emotion: not options of a TokTalk run (it takes --style, --cfg-scale, --temperature, "
+            "--sample-steps, --seed)") in line
     line = _error(["stream", toktalk_run, speech, "--partner", speech])
     assert "--partner: not an option of a TokTalk run" in line
 

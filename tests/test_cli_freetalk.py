@@ -94,6 +94,7 @@ def test_sample_onto_a_mesh_user_errors_are_one_line(ats_run, stm_run, files, tm
     _user_error([*base, files["ply"], "--units", "m"], "check the units")
     _user_error([*base, files["ply"], "--out", tmp_path / "x.npz"], "must end in .npy")
     _user_error([*base, files["ply"], "--cfg-scale", "2"], "--cfg-scale: not an option of a FreeTalk run")
+    _user_error([*base, files["ply"], "--temperature", "0.5"], "--temperature: not an option of a FreeTalk run")
     _user_error(["sample", ats_run, files["wav"], "--stm", stm_run], "needs both --stm RUN_STM and --mesh FILE")
     _user_error(["sample", ats_run, files["wav"]], "sample it onto a mesh with --stm RUN_STM --mesh FILE")
     _user_error(["sample", stm_run, files["wav"], "--stm", stm_run, "--mesh", files["ply"]], "is a stm run")

@@ -44,6 +44,7 @@ their frames (FDD: the plain mean over clips, as ``fdd_batch``).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -78,6 +79,8 @@ class EvalOptions:
         best: evaluate the best-validated checkpoint (``checkpoint/best``) instead of the latest.
         sample_steps: TokTalk: Euler step counts, one streamed row each (empty: the config's).
         offline: TokTalk: also sample each clip offline in one pass (full attention), per step count.
+        temperature: scale of the sampler's noise (TokTalk: the starting noise, None: the config's;
+            TIMAR: MAR's temperature, None: 1). Refused for the models that take none.
     """
 
     run_dir: Path
@@ -90,6 +93,7 @@ class EvalOptions:
     best: bool = False
     sample_steps: tuple[int, ...] = ()
     offline: bool = False
+    temperature: float | None = None
 
 
 @dataclasses.dataclass
@@ -344,9 +348,11 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
         for name, mode, steps in variants:
             grid = default_grid(config, steps)
             if mode == "stream":
-                out = toktalk.stream(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid)
+                out = toktalk.stream(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid,
+                                     temperature=opts.temperature)
             else:
-                out = toktalk.sample(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid)
+                out = toktalk.sample(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid,
+                                     temperature=opts.temperature)
             pred = np.asarray(out, np.float32)[0][:t]
             scored = vertex_metrics(pred, gt, face, gt_vertices=vg, template=template)
             per[name].append(scored)
@@ -415,7 +421,8 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
 
             out = predict_turns(run.params, config, *streams, context=context)
         else:
-            out = stream(run.params, config, *streams, jax.random.fold_in(key, n), context=context)
+            out = stream(run.params, config, *streams, jax.random.fold_in(key, n), context=context,
+                         temperature=1.0 if opts.temperature is None else opts.temperature)
         preds.append(fit_length(norm.unmotion(np.asarray(out)[0]), total))
         gts.append(np.asarray(agent["motion"], np.float32)[:total])
         partners.append(user_motion)
@@ -588,6 +595,12 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
             raise ValueError(f"--flame poses TokTalk's parameters on FLAME; {opts.run_dir} is a {record.model} run")
         if not Path(opts.flame).is_file():
             raise FileNotFoundError(f"FLAME model file not found: {str(opts.flame)!r}")
+    if opts.temperature is not None:
+        if record.model not in ("toktalk", "timar"):
+            raise ValueError(f"--temperature scales TokTalk's and TIMAR's sampler noise; {opts.run_dir} is a "
+                             f"{record.model} run")
+        if not (math.isfinite(opts.temperature) and opts.temperature >= 0):
+            raise ValueError(f"--temperature must be a finite number >= 0, got {opts.temperature}")
     data = open_eval_data(record, opts.data, opts.cache_dir)
     data.split(opts.split)  # an unknown split: ValueError naming the known ones
     from jaxtalk.train import latest_checkpoint_step

@@ -44,6 +44,8 @@ class SampleOptions:
         partner: TIMAR: the partner's audio (default: silence).
         cfg_scale: guidance weight (default: the config's).
         sample_steps: sampler steps (default: the config's).
+        temperature: scale of the sampler's noise (TokTalk: the starting noise, default the config's;
+            TIMAR: MAR's temperature, default 1). Below 1 trades diversity for accuracy.
         seed: noise seed.
         best: use the run's best-validated checkpoint instead of its newest.
         overwrite: let the default output name replace an existing file.
@@ -57,6 +59,7 @@ class SampleOptions:
     partner: Path | None = None
     cfg_scale: float | None = None
     sample_steps: int | None = None
+    temperature: float | None = None
     seed: int = 0
     best: bool = False
     overwrite: bool = False
@@ -112,8 +115,8 @@ def _claim_output(opts: SampleOptions, suffix: str, default_suffix: str, *, extr
 # The options of ``jaxtalk sample``/``stream`` each model takes (``--out``, ``--seed``, ``--best`` and
 # ``--sample-steps`` apply to all); any other one given is refused rather than ignored.
 _MODEL_OPTIONS = {
-    "toktalk": ("TokTalk", ("--style", "--cfg-scale")),
-    "timar": ("TIMAR", ("--partner", "--cfg-scale")),
+    "toktalk": ("TokTalk", ("--style", "--cfg-scale", "--temperature")),
+    "timar": ("TIMAR", ("--partner", "--cfg-scale", "--temperature")),
     "ats": ("FreeTalk", ("--stm", "--mesh", "--emotion", "--intensity", "--units", "--landmarks")),
 }
 
@@ -122,7 +125,8 @@ def _check_options(opts: SampleOptions, model: str) -> None:
     """Every option before any work: values in range, none that ``model`` does not take."""
     name, own = _MODEL_OPTIONS[model]
     given = [flag for flag, value in (("--style", opts.style), ("--partner", opts.partner),
-                                      ("--cfg-scale", opts.cfg_scale)) if value is not None]
+                                      ("--cfg-scale", opts.cfg_scale), ("--temperature", opts.temperature))
+             if value is not None]
     unused = [flag for flag in (*given, *opts.mesh_options) if flag not in own]
     if unused:
         raise ValueError(f"{', '.join(unused)}: not {'an option' if len(unused) == 1 else 'options'} of a {name} run "
@@ -131,6 +135,13 @@ def _check_options(opts: SampleOptions, model: str) -> None:
         raise ValueError(f"--cfg-scale must be a finite number, got {opts.cfg_scale}")
     if opts.sample_steps is not None and opts.sample_steps < 1:
         raise ValueError(f"--sample-steps must be >= 1, got {opts.sample_steps}")
+    if opts.temperature is not None and not (math.isfinite(opts.temperature) and opts.temperature >= 0):
+        raise ValueError(f"--temperature must be a finite number >= 0, got {opts.temperature}")
+
+
+def _timar_temperature(opts: SampleOptions) -> float:
+    """TIMAR's samplers take MAR's temperature with no config default: 1 unless given."""
+    return 1.0 if opts.temperature is None else opts.temperature
 
 
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
@@ -258,7 +269,7 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         frames = frames_for_audio(run.config, tokens.shape[0], None if audio is None else audio.shape[0])
         # Window by window past a minute: the decoder's attention is O(frames^2) in memory.
         motion = toktalk.sample_long(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
-                                     sample_steps=opts.sample_steps)[:, :frames]
+                                     sample_steps=opts.sample_steps, temperature=opts.temperature)[:, :frames]
     else:
         from jaxtalk.models.timar.data import Normalizer
         from jaxtalk.models.timar.stream import stream
@@ -267,7 +278,7 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         context = max(run.record.extra.get("num_turns", run.config.max_turns) - 1, 0)
         motion = stream(run.params, run.config, streams["user_speech"], streams["user_motion"],
                                      streams["agent_speech"], key, context=context, cfg_scale=opts.cfg_scale,
-                                     sample_steps=opts.sample_steps)
+                                     sample_steps=opts.sample_steps, temperature=_timar_temperature(opts))
         motion = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(motion)
     params = np.asarray(motion, np.float32)[0]
     return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=[], chunk_s=None)
@@ -303,7 +314,7 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
         # The live path `jaxtalk serve` runs: the input goes in piece by piece, each piece what completes
         # the next chunk (for audio: up to the chunk's end plus the tokenizer's look-ahead), as it would live.
         live = LiveModel.from_run(run, style=_toktalk_style(run, opts), cfg_scale=opts.cfg_scale,
-                                  sample_steps=opts.sample_steps)
+                                  sample_steps=opts.sample_steps, temperature=opts.temperature)
         chunk_s, ct = live.chunk_frames / live.fps, tokens_per_chunk(config)
         stream = live.open(key)
         if kind == "audio":
@@ -345,7 +356,8 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
             t0 = time.perf_counter()
             state, out = stream_step(run.params, config, state, streams["user_speech"][:, sl],
                                      streams["user_motion"][:, sl], streams["agent_speech"][:, sl],
-                                     cfg_scale=opts.cfg_scale, sample_steps=opts.sample_steps)
+                                     cfg_scale=opts.cfg_scale, sample_steps=opts.sample_steps,
+                                     temperature=_timar_temperature(opts))
             outs.append(np.asarray(jax.block_until_ready(out))[0])
             report(i, turns, time.perf_counter() - t0, f / 25)
         params = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(np.concatenate(outs))

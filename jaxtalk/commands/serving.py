@@ -25,6 +25,7 @@ class ServeCommandOptions:
         style: TokTalk reference motion (``.npz`` with ``params``); default: the run's training clip.
         cfg_scale: guidance weight (default: the config's).
         sample_steps: sampler steps (default: the config's).
+        temperature: scale of the starting noise (default: the config's).
         best: the run's best-validated checkpoint instead of its newest.
         max_clients: clients served at once.
         max_chunk_s: the longest audio message, seconds.
@@ -38,6 +39,7 @@ class ServeCommandOptions:
     style: Path | None = None
     cfg_scale: float | None = None
     sample_steps: int | None = None
+    temperature: float | None = None
     best: bool = False
     max_clients: int = 8
     max_chunk_s: float = 1.0
@@ -46,7 +48,8 @@ class ServeCommandOptions:
 
 
 def live_model_of_run(opts: ServeCommandOptions) -> Any:
-    """The run's live model (the registry's ``live`` factory with the style, guidance and steps given).
+    """The run's live model (the registry's ``live`` factory with the style, guidance, steps and
+    temperature given).
 
     Raises:
         FileNotFoundError: not a run, no checkpoint, a missing style file.
@@ -65,7 +68,7 @@ def live_model_of_run(opts: ServeCommandOptions) -> Any:
 
         style = read_params(opts.style)
     return factory(load_run(opts.run_dir, best=opts.best), style=style, cfg_scale=opts.cfg_scale,
-                   sample_steps=opts.sample_steps)
+                   sample_steps=opts.sample_steps, temperature=opts.temperature)
 
 
 def serve_run(opts: ServeCommandOptions, *, echo: Callable[[str], None] = print) -> Any:

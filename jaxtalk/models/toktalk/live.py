@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtalk.checks import check_temperature
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
 from jaxtalk.models.toktalk.stream import init_stream, stream_step, tokens_per_chunk
@@ -54,6 +55,7 @@ class LiveModel:
         style: ``(1, style_vector_dim)`` style vector.
         cfg_scale: guidance weight (None: the config's).
         ts: the time grid (None: the config's cosine grid).
+        temperature: scale of the starting noise (None: the config's).
     """
 
     params: PyTree
@@ -62,10 +64,11 @@ class LiveModel:
     style: Any
     cfg_scale: float | None = None
     ts: Any = None
+    temperature: float | None = None
 
     @classmethod
     def from_run(cls, run: Any, *, style: np.ndarray | None = None, cfg_scale: float | None = None,
-                 sample_steps: int | None = None) -> LiveModel:
+                 sample_steps: int | None = None, temperature: float | None = None) -> LiveModel:
         """The live model of a loaded TokTalk run (:func:`jaxtalk.runs.load_run`).
 
         Args:
@@ -74,9 +77,11 @@ class LiveModel:
                 ``4 * style_frames`` frames are encoded once.
             cfg_scale: guidance weight (default: the config's).
             sample_steps: Euler steps on the cosine grid (default: the config's).
+            temperature: scale of the starting noise (default: the config's).
 
         Raises:
-            ValueError: a style clip shorter than ``style_min_frames`` or NaN; bad ``sample_steps``.
+            ValueError: a style clip shorter than ``style_min_frames`` or NaN; bad ``sample_steps``
+                or ``temperature``.
         """
         config = run.config
         if sample_steps is not None and sample_steps < 1:
@@ -87,7 +92,9 @@ class LiveModel:
                              f"least {config.style_min_frames} frames")
         vector = encode_style(run.params, config, clip[None, : 4 * config.style_frames])
         ts = None if sample_steps is None else jnp.asarray(cosine_grid(sample_steps), jnp.float32)
-        return cls(run.params, config, run.tokenizer(), vector, cfg_scale, ts)
+        if temperature is not None:
+            check_temperature(temperature)
+        return cls(run.params, config, run.tokenizer(), vector, cfg_scale, ts, temperature)
 
     @property
     def fps(self) -> int:
@@ -228,6 +235,6 @@ class LiveStream:
         outs = [np.zeros((0, m.config.param_dim), np.float32)]
         for i in range(0, tokens.shape[0], ct):  # one host call per chunk, as chunks arrive live
             self._state, out = stream_step(m.params, m.config, self._state, tokens[None, i:i + ct], m.style,
-                                           cfg_scale=m.cfg_scale, ts=m.ts)
+                                           cfg_scale=m.cfg_scale, ts=m.ts, temperature=m.temperature)
             outs.append(np.asarray(jax.block_until_ready(out), np.float32)[0])
         return np.concatenate(outs)
