@@ -638,4 +638,5 @@ def _features(audio, sample_rate, rate, n_mels, n_fft, hop_length, stack, name):
         n_fft=n_fft,
         hop_length=hop_length,
     )
-    return np.asarray(pooled[:tokens])
+    # Sliced on the host: slicing the device array compiles a dynamic_slice for every clip length.
+    return np.asarray(pooled)[:tokens]
