@@ -86,10 +86,12 @@ def test_stage2_trains_only_the_adapter_and_writes_a_run(prepared_tiny, stream_b
 #   200 steps (1 min): 0.38 / 0.43 / 0.43 / 0.44 and 0.84 / 0.88 / 0.87 / 0.89;
 #   300 steps: 0.47 / 0.53 / 0.55 / 0.57 and 0.89 / 0.95 / 0.95 / 0.99;
 #   600 steps (seeds 0-1): 0.67 / 0.83 and 0.98 / 1.11.
+# (Those 10-step figures sampled at temperature 1; the small preset now samples at 0.5, and seed 0's
+# 200-step 10-step ratio is 0.52 there against 0.89 at 1, its 1-step ratio 0.38 at both.)
 # Longer training overfits the tiny corpus's training speakers, so the test trains 200 steps and its
-# bars, 0.6 and 0.95, clear every seed measured by at least 0.06. A 10-step sample scores worse than a
-# 1-step one: its samples spread over what so brief a training has not learned (see
-# experiments/toktalk_sample_quality.py). The held-out conversation sides are left out: their head
+# bars, 0.6 at 1 step and 0.75 at 10 (which a temperature-1 sampler misses), hold for the seed it
+# trains. A 10-step sample scores worse than a 1-step one: its samples spread over what so brief a
+# training has not learned (see experiments/toktalk_sample_quality.py). The held-out conversation sides are left out: their head
 # motion repeats the partner's (delayed mimicry), which one voice cannot predict.
 LEARN_STEPS = 200
 
@@ -132,4 +134,4 @@ def test_streamed_small_model_beats_the_mean_pose_on_held_out_monologues(prepare
     ratios = {steps: np.mean(errors[steps]) / base for steps in (1, 10)}
     print("LVE / mean-pose LVE:", ratios)
     assert ratios[1] < 0.6, ratios
-    assert ratios[10] < 0.95, ratios
+    assert ratios[10] < 0.75, ratios

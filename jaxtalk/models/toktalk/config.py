@@ -105,8 +105,9 @@ class TokTalkConfig:
             flow from the mean of the prior. On SynthTalk small (3,000 steps, 2 recipes x 2 seeds, the
             checkpoint of the lowest streamed validation LVE, all 20 test clips; mean pose 181.5 mm^2)
             10 Euler steps at 0.5 beat the mean pose in 4 runs of 4 (LVE 111-129) and at 1 in 1 of 4
-            (176-216); one step is the same at either (91-117): ``--temperature`` of ``sample``,
-            ``stream``, ``serve`` and ``eval``.
+            (176-216); one step is the same at either (91-117). So the ``small`` preset samples at
+            0.5, the ``paper`` preset at the paper's 1 (``tiny``, for unit tests, at 1); ``--temperature`` of ``sample``,
+            ``stream``, ``serve`` and ``eval`` overrides it.
         sigma_min: minimum noise of the CFM path.
         cfg_dropout: probability of dropping audio, style and known frames together (CFG training).
         known_prob: probability that a training example gets a known-frames segment.
@@ -228,7 +229,8 @@ class TokTalkConfig:
 
     @classmethod
     def small(cls, **overrides: object) -> TokTalkConfig:
-        """Learns SynthTalk in minutes on 2 CPU cores and streams in real time there."""
+        """Learns SynthTalk in minutes on 2 CPU cores and streams in real time there; samples at
+        temperature 0.5 (see ``temperature``)."""
         # Width 64 is enough once the decoder is preconditioned (``precondition``): the skip carries
         # the near-identity noise part of the velocity that a 64-wide U-Net alone learned ~20x slower.
         base = cls(
@@ -246,6 +248,7 @@ class TokTalkConfig:
             adapter_layers=1,
             adapter_heads=4,
             context_frames=20,
+            temperature=0.5,
         )
         return dataclasses.replace(base, **overrides)
 
