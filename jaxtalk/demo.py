@@ -508,11 +508,16 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
         _animate_user_audio(params, corpus, style_vec, options, files, echo)
 
     wall_s = time.perf_counter() - wall
+    from jaxtalk.runs import checkpoint_dir
+    from jaxtalk.train import read_best
+
+    shipped_why = (" (the lowest streamed lip error on the validation speakers, `jaxtalk stream --best`)"
+                   if read_best(checkpoint_dir(out)) is not None else "")
     report = [
         "# jaxtalk demo report\n",
         f"SynthTalk `{options.size}` (seed {options.seed}); TokTalk `small` trained {options.train_steps} steps "
-        f"({'this run' if trained else 'loaded from checkpoint'}), the checkpoint of step {shipped_step} used "
-        f"(the lowest streamed lip error on the validation speakers, `jaxtalk stream --best`); held-out test clip {clip} "
+        f"({'this run' if trained else 'loaded from checkpoint'}), the checkpoint of step {shipped_step} used"
+        f"{shipped_why}; held-out test clip {clip} "
         f"({gt.shape[0] / 25:.1f} s, speaker {corpus.clips[clip].speaker}, style from clip {style_ref}).\n",
         "## Quality on the held-out clip\n",
         "LVE in mm^2 (max squared lip-vertex error per frame, mean over frames), MVE in mm, jitter = mean "
