@@ -64,8 +64,8 @@ def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0, chunk_f
     options = DemoOptions(out_dir=CACHE / f"{corpus.key}-causal-n{model_config(chunk_frames).noise_frames:g}-s{steps}-c{chunk_frames}-seed{seed}", size=corpus.size,
                           seed=seed, train_steps=steps, progress=True, cache_dir=DATA, chunk_frames=chunk_frames)
     t0 = time.perf_counter()
-    base, history, _, _ = train_or_load(options)
-    base = jax.tree.map(jnp.asarray, base)
+    trained = train_or_load(options)
+    base, history = jax.tree.map(jnp.asarray, trained.params), trained.history
     t1 = time.perf_counter()
     path = options.out_dir / f"adapter-a{adapter_steps}.npz"
     like = jax.eval_shape(lambda k: tt.init_params(cfg, k, adapter_src_dim=48), jax.random.key(0))

@@ -36,12 +36,13 @@ def check_finite(x: Any, name: str) -> None:
         raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf); shape {values.shape}")
 
 
-def check_temperature(temperature: Any, dtype: Any = jnp.float32) -> jax.Array:
+def check_temperature(temperature: Any, dtype: Any = jnp.float32, name: str = "temperature") -> jax.Array:
     """A sampler's temperature (the scale of its starting or step noise) as a ``()`` array.
 
     Args:
         temperature: a scalar >= 0 (a tracer passes unchecked, as in :func:`check_finite`).
         dtype: the floating dtype to return.
+        name: what the messages call it (a command line says ``--temperature``).
 
     Returns:
         ``()`` array of ``dtype``.
@@ -50,11 +51,11 @@ def check_temperature(temperature: Any, dtype: Any = jnp.float32) -> jax.Array:
         ValueError: a non-scalar, negative, NaN or infinite value.
     """
     if np.ndim(temperature):
-        raise ValueError(f"temperature must be a scalar, got shape {np.shape(temperature)}")
+        raise ValueError(f"{name} must be a scalar, got shape {np.shape(temperature)}")
     if not isinstance(temperature, jax.core.Tracer):
         # Checked on the host before it becomes a device array: a stream checks it every chunk, and
         # reading a device scalar back would wait for the device each time.
         value = float(np.asarray(temperature))
         if not (np.isfinite(value) and value >= 0):
-            raise ValueError(f"temperature must be a finite number >= 0, got {value}")
+            raise ValueError(f"{name} must be a finite number >= 0, got {value}")
     return jnp.asarray(temperature, dtype)

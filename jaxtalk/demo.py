@@ -168,7 +168,28 @@ def _history(run_dir: Path) -> list[dict]:
             if r.get("type") == "train" and r.get("loss") is not None]
 
 
-def train_or_load(options: DemoOptions, echo: Callable[[str], None] = print) -> tuple[Any, list[dict], bool, int]:
+@dataclasses.dataclass(frozen=True)
+class DemoModel:
+    """The model :func:`train_or_load` gives.
+
+    Attributes:
+        params: the EMA parameters.
+        history: the training-loss curve (``step``, ``loss`` rows, from the run's ``history.jsonl``;
+            empty when the loop wrote none).
+        trained: whether any training ran in this call.
+        step: the step of the checkpoint the parameters come from.
+        validated: whether the run's validation chose that checkpoint (False: the newest, for data
+            without a validation split).
+    """
+
+    params: Any
+    history: list[dict]
+    trained: bool
+    step: int
+    validated: bool
+
+
+def train_or_load(options: DemoOptions, echo: Callable[[str], None] = print) -> DemoModel:
     """The demo's TokTalk ``small``, trained with TokTalk's recipe (:func:`jaxtalk.commands.training.train_run`,
     as ``jaxtalk train toktalk``) into the run folder ``options.out_dir`` and loaded from it.
 
@@ -186,9 +207,7 @@ def train_or_load(options: DemoOptions, echo: Callable[[str], None] = print) -> 
         echo: where progress lines go.
 
     Returns:
-        ``(params, history, trained, step)``: the EMA parameters, the training-loss curve (``step``,
-        ``loss`` rows, from the run's ``history.jsonl``; empty when the loop wrote none), whether
-        any training ran, and the step of the checkpoint the parameters come from.
+        The parameters with how they were made (:class:`DemoModel`).
 
     Raises:
         ValueError: ``out_dir`` holds a run of other settings or a checkpoint of an older jaxtalk
@@ -250,7 +269,7 @@ def train_or_load(options: DemoOptions, echo: Callable[[str], None] = print) -> 
     run = load_run(out, best=best is not None)
     if best is not None:
         echo(f"using the checkpoint of step {run.step}: lowest validation {best['metric']} ({best['value']:.4g})")
-    return run.params, _history(out), trained, run.step
+    return DemoModel(run.params, _history(out), trained, run.step, validated=best is not None)
 
 
 def _stream_timed(params: Any, config: Any, tokens: np.ndarray, style_vec: Any, key: Any,
@@ -425,7 +444,8 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     corpus_cache = cache_dir(options) / "synthtalk"
     echo(f"SynthTalk {options.size}: generating or loading from {corpus_cache}")
     corpus = synthtalk.generate(size=options.size, seed=options.seed, cache_dir=corpus_cache)
-    params, history, trained, shipped_step = train_or_load(options, echo)
+    model = train_or_load(options, echo)
+    params, history = model.params, model.history
     files["run"] = out / "run.json"
     files["checkpoint"] = out / "checkpoint"
 
@@ -472,7 +492,7 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     sweep_path = out / "sweep.json"
     sweep_rows: list[dict] = []
     if options.sweep:
-        if sweep_path.exists() and not trained and not options.retrain:
+        if sweep_path.exists() and not model.trained and not options.retrain:
             sweep_rows = json.loads(sweep_path.read_text())["rows"]
             echo(f"chunk x steps sweep: cached in {sweep_path}")
         else:
@@ -508,15 +528,12 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
         _animate_user_audio(params, corpus, style_vec, options, files, echo)
 
     wall_s = time.perf_counter() - wall
-    from jaxtalk.runs import checkpoint_dir
-    from jaxtalk.train import read_best
-
     shipped_why = (" (the lowest streamed lip error on the validation speakers, `jaxtalk stream --best`)"
-                   if read_best(checkpoint_dir(out)) is not None else "")
+                   if model.validated else "")
     report = [
         "# jaxtalk demo report\n",
         f"SynthTalk `{options.size}` (seed {options.seed}); TokTalk `small` trained {options.train_steps} steps "
-        f"({'this run' if trained else 'loaded from checkpoint'}), the checkpoint of step {shipped_step} used"
+        f"({'this run' if model.trained else 'loaded from checkpoint'}), the checkpoint of step {model.step} used"
         f"{shipped_why}; held-out test clip {clip} "
         f"({gt.shape[0] / 25:.1f} s, speaker {corpus.clips[clip].speaker}, style from clip {style_ref}).\n",
         "## Quality on the held-out clip\n",
@@ -534,4 +551,4 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     files["report"] = out / "report.md"
     atomic_write_text(files["report"], "\n".join(report))
     return DemoResult(out_dir=out, files=files, quality=quality, latency=latency, sweep=sweep_rows,
-                      trained=trained, wall_s=wall_s)
+                      trained=model.trained, wall_s=wall_s)

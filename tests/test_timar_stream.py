@@ -132,6 +132,15 @@ def test_stream_causality_future_turn_does_not_change_past_outputs(params):
     assert np.abs(c0 - a).max() > 1e-3
 
 
+def test_stream_without_temperature_samples_at_mars_default_of_one(params):
+    s = _streams(2)
+    default = np.asarray(stream(params, CFG, *s, jax.random.key(2), context=1))
+    one = np.asarray(stream(params, CFG, *s, jax.random.key(2), context=1, temperature=1.0))
+    half = np.asarray(stream(params, CFG, *s, jax.random.key(2), context=1, temperature=0.5))
+    np.testing.assert_array_equal(default, one)
+    assert np.abs(default - half).max() > 1e-3
+
+
 def test_stream_rejects_bad_input(params):
     s = _streams(1)
     with pytest.raises(ValueError, match="max_turns"):

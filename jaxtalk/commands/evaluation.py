@@ -44,13 +44,13 @@ their frames (FDD: the plain mean over clips, as ``fdd_batch``).
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from jaxtalk.checks import check_temperature
 from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec
 
 __all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
@@ -422,7 +422,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
             out = predict_turns(run.params, config, *streams, context=context)
         else:
             out = stream(run.params, config, *streams, jax.random.fold_in(key, n), context=context,
-                         temperature=1.0 if opts.temperature is None else opts.temperature)
+                         temperature=opts.temperature)
         preds.append(fit_length(norm.unmotion(np.asarray(out)[0]), total))
         gts.append(np.asarray(agent["motion"], np.float32)[:total])
         partners.append(user_motion)
@@ -599,8 +599,7 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
         if record.model not in ("toktalk", "timar"):
             raise ValueError(f"--temperature scales TokTalk's and TIMAR's sampler noise; {opts.run_dir} is a "
                              f"{record.model} run")
-        if not (math.isfinite(opts.temperature) and opts.temperature >= 0):
-            raise ValueError(f"--temperature must be a finite number >= 0, got {opts.temperature}")
+        check_temperature(opts.temperature, name="--temperature")
     data = open_eval_data(record, opts.data, opts.cache_dir)
     data.split(opts.split)  # an unknown split: ValueError naming the known ones
     from jaxtalk.train import latest_checkpoint_step

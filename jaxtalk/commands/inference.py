@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxtalk.checks import check_temperature
 from jaxtalk.runs import LoadedRun, RunRecord, load_run
 
 __all__ = ["SampleOptions", "SampleResult", "MeshOptions", "sample_run", "stream_run", "animate_run",
@@ -135,13 +136,8 @@ def _check_options(opts: SampleOptions, model: str) -> None:
         raise ValueError(f"--cfg-scale must be a finite number, got {opts.cfg_scale}")
     if opts.sample_steps is not None and opts.sample_steps < 1:
         raise ValueError(f"--sample-steps must be >= 1, got {opts.sample_steps}")
-    if opts.temperature is not None and not (math.isfinite(opts.temperature) and opts.temperature >= 0):
-        raise ValueError(f"--temperature must be a finite number >= 0, got {opts.temperature}")
-
-
-def _timar_temperature(opts: SampleOptions) -> float:
-    """TIMAR's samplers take MAR's temperature with no config default: 1 unless given."""
-    return 1.0 if opts.temperature is None else opts.temperature
+    if opts.temperature is not None:
+        check_temperature(opts.temperature, name="--temperature")
 
 
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
@@ -278,7 +274,7 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         context = max(run.record.extra.get("num_turns", run.config.max_turns) - 1, 0)
         motion = stream(run.params, run.config, streams["user_speech"], streams["user_motion"],
                                      streams["agent_speech"], key, context=context, cfg_scale=opts.cfg_scale,
-                                     sample_steps=opts.sample_steps, temperature=_timar_temperature(opts))
+                                     sample_steps=opts.sample_steps, temperature=opts.temperature)
         motion = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(motion)
     params = np.asarray(motion, np.float32)[0]
     return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=[], chunk_s=None)
@@ -357,7 +353,7 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
             state, out = stream_step(run.params, config, state, streams["user_speech"][:, sl],
                                      streams["user_motion"][:, sl], streams["agent_speech"][:, sl],
                                      cfg_scale=opts.cfg_scale, sample_steps=opts.sample_steps,
-                                     temperature=_timar_temperature(opts))
+                                     temperature=opts.temperature)
             outs.append(np.asarray(jax.block_until_ready(out))[0])
             report(i, turns, time.perf_counter() - t0, f / 25)
         params = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(np.concatenate(outs))

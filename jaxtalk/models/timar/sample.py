@@ -41,6 +41,7 @@ from jaxtalk.types import Array, Float, PRNGKeyArray, Shaped, StreamLike
 __all__ = [
     "SAMPLERS",
     "MODULATION_TABLE_BYTES",
+    "MAR_TEMPERATURE",
     "respaced_schedule",
     "resolve_sampler",
     "conditions",
@@ -52,6 +53,10 @@ __all__ = [
 # Largest precomputed modulation table (bytes) before the sampler falls back to computing the
 # modulations inside its loop: 100 steps x 2 x 25 frames of the 1024-wide paper head is 225 MB.
 MODULATION_TABLE_BYTES = 512 * 2**20
+
+# The sampling temperature when none is given: MAR's (and TIMAR's public evaluation's) 1, the
+# trained noise scale. It is not a config field because the paper never sets another.
+MAR_TEMPERATURE = 1.0
 
 
 @functools.lru_cache(maxsize=32)
@@ -300,7 +305,7 @@ def sample(
     sample_steps: int | None = None,
     sampler: str | None = None,
     eta: Float[Array, ""] | float = 0.0,
-    temperature: Shaped[Array, "..."] | float = 1.0,
+    temperature: Shaped[Array, "..."] | float | None = None,
     guidance: bool = True,
 ) -> Float[Array, "batch frames param_dim"]:
     """Agent head motion for a whole window of N <= ``max_turns`` turns in one pass.
@@ -319,7 +324,8 @@ def sample(
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"`` (the guided posterior mean); None: the
             config's (see :func:`sample_frames`).
         eta: DDIM stochasticity (traced).
-        temperature: MAR's sampling temperature (traced; see :func:`sample_frames`).
+        temperature: MAR's sampling temperature (traced; see :func:`sample_frames`; None: MAR's
+            default, :data:`MAR_TEMPERATURE`).
         guidance: run the unconditional branch (False: conditional only, ``cfg_scale`` ignored).
 
     Returns:
@@ -345,7 +351,7 @@ def sample(
         params, config,
         jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32),
-        check_temperature(temperature), sample_steps, sampler, bool(guidance),
+        check_temperature(MAR_TEMPERATURE if temperature is None else temperature), sample_steps, sampler, bool(guidance),
     )
 
 

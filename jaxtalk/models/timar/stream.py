@@ -38,7 +38,7 @@ from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.data.turns import check_streams
 from jaxtalk.checks import check_temperature
-from jaxtalk.models.timar.sample import resolve_sampler, sample_frames
+from jaxtalk.models.timar.sample import MAR_TEMPERATURE, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.masks import mask_to_bias
 from jaxtalk.nn.precision import compute_in
@@ -299,7 +299,7 @@ def stream_step(
     sample_steps: int | None = None,
     sampler: str | None = None,
     eta: Float[Array, ""] | float = 0.0,
-    temperature: Shaped[Array, "..."] | float = 1.0,
+    temperature: Shaped[Array, "..."] | float | None = None,
     guidance: bool = True,
     initial_noise: StreamLike | None = None,
     step_noise: StreamLike | None = None,
@@ -319,7 +319,8 @@ def stream_step(
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"``; None: the config's (see
             :func:`~jaxtalk.models.timar.sample.sample_frames`).
         eta: DDIM stochasticity (traced).
-        temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`).
+        temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`;
+            None: MAR's default, :data:`~jaxtalk.models.timar.sample.MAR_TEMPERATURE`).
         guidance: must match the state.
         initial_noise, step_noise: explicit standard normal draws instead of the turn's key (see
             :func:`~jaxtalk.models.timar.sample.sample_frames`; for reproducing another
@@ -341,7 +342,7 @@ def stream_step(
         raise ValueError(f"cfg_scale must be a scalar, got shape {cfg.shape}")
     return _step(
         params, config, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
-        jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature),
+        jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32), check_temperature(MAR_TEMPERATURE if temperature is None else temperature),
         sample_steps, sampler,
         bool(guidance), _mode(config, state),
         None if initial_noise is None else jnp.asarray(initial_noise, jnp.float32),
@@ -361,7 +362,7 @@ def stream(
     cfg_scale: Shaped[Array, "..."] | float | None = None,
     sample_steps: int | None = None,
     sampler: str | None = None,
-    temperature: Shaped[Array, "..."] | float = 1.0,
+    temperature: Shaped[Array, "..."] | float | None = None,
     guidance: bool = True,
 ) -> Float[Array, "batch frames param_dim"]:
     """Stream whole conversations turn by turn (any number of turns; the window slides).
