@@ -51,13 +51,12 @@ from typing import Any
 import numpy as np
 
 from jaxtalk.checks import check_temperature
+from jaxtalk.metrics.landmarks import MOUTH_LANDMARKS, landmark_metrics
 from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec
 
 __all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
            "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS"]
 
-# The 20 mouth landmarks of the 68-point scheme (outer lip 48-59, inner lip 60-67).
-MOUTH_LANDMARKS = np.arange(48, 68)
 # Fixed batch of ATS windows per sampler call (one compiled program for every clip).
 _ATS_BATCH = 8
 # Frames per STM decoder call (STM decodes frame by frame, so chunks of a fixed size compile once).
@@ -169,19 +168,6 @@ def vertex_metrics(pred: np.ndarray, gt: np.ndarray, face: Any, *, gt_vertices: 
         "MOD_mm": float(mod(vp, vg, regions["mouth_upper"], regions["mouth_lower"])) * 1e3 if has_mouth else None,
         "jitter_mm": float(jitter(vp)) * 1e3,
     }
-
-
-def landmark_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
-    """ATS's columns for one ``(T, 68, 3)`` landmark displacement track (metres) against the truth.
-
-    Returns:
-        ``{"LVE_mm2"`` (max over the mouth landmarks 48-67 of the squared error per frame, averaged),
-        ``"LE_mm"`` (mean landmark error), ``"jitter_mm"`` (mean landmark acceleration)}``.
-    """
-    from jaxtalk.metrics import jitter, lve, mve
-
-    return {"LVE_mm2": float(lve(pred, gt, MOUTH_LANDMARKS)) * 1e6, "LE_mm": float(mve(pred, gt)) * 1e3,
-            "jitter_mm": float(jitter(pred)) * 1e3}
 
 
 def _average(per_item: Sequence[dict[str, float | None]], frames: Sequence[int],

@@ -2,6 +2,7 @@
 
 * Vertex metrics (``vertex``): ``lve``, ``mve``, ``fdd``/``fdd_batch``, ``mod``, ``dtw``, ``dfd``,
   ``delta_m``, ``delta_cd`` (FreeTalk, TokTalk tables) and ``jitter`` (TokTalk Table 5).
+* Landmark metrics (``landmarks``): ``landmark_metrics`` (FreeTalk ATS's columns on 68 landmarks).
 * Trajectory alignment (``alignment``): ``trajectory_dtw``, ``trajectory_dfd`` on any point sequences.
 * Conversation metrics (``conversation``): ``conversation_metrics`` (FD, P-FD, MSE, SID, rPCC of the
   DualTalk benchmark used by TIMAR) and its parts.
@@ -21,6 +22,7 @@ from jaxtalk.metrics.conversation import (
     rpcc,
     sid,
 )
+from jaxtalk.metrics.landmarks import MOUTH_LANDMARKS, landmark_metrics
 from jaxtalk.metrics.vertex import delta_cd, delta_m, dfd, dtw, fdd, fdd_batch, jitter, lve, mod, mve
 
 __all__ = [
@@ -34,6 +36,8 @@ __all__ = [
     "delta_m",
     "delta_cd",
     "jitter",
+    "MOUTH_LANDMARKS",
+    "landmark_metrics",
     "trajectory_dtw",
     "trajectory_dfd",
     "CONVERSATION_GROUPS",

@@ -23,7 +23,7 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation", "fixed_batches", "spread", "evaluation", "merged_eval", "fit_recipe", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation", "fixed_batches", "spread", "host_copy", "evaluation", "merged_eval", "fit_recipe", "VAL_WINDOWS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
@@ -46,7 +46,7 @@ class TrainSettings:
             and masked: ATS's ``paper`` preset).
         eval_every: validation period in steps (None: five evaluations per run).
         val_clips: held-out clips sampled and scored at each evaluation by a model whose validation
-            samples (TokTalk, streamed); None: the model's default, 0: the validation loss only.
+            samples (TokTalk streamed, ATS with DDIM); None: the model's default, 0: the validation loss only.
     """
 
     lr: float = 1e-3
@@ -200,6 +200,17 @@ def fixed_batches(examples: list[dict[str, np.ndarray]], batch_size: int) -> lis
 def spread(n: int, k: int) -> np.ndarray:
     """``min(n, k)`` indices spread evenly over ``range(n)`` (a deterministic subset)."""
     return np.unique(np.linspace(0, n - 1, min(n, k)).round().astype(np.int64)) if n else np.zeros(0, np.int64)
+
+
+def host_copy(tree: Any) -> Any:
+    """Parameters as one full copy on this process, for a validation that samples on one device: a
+    data-parallel run's replicated arrays span several devices (some of another process's)."""
+    def local(x: Any) -> Any:
+        if isinstance(x, jax.Array) and len(x.sharding.device_set) > 1:
+            return np.asarray(x.addressable_data(0))
+        return x
+
+    return jax.tree.map(local, tree)
 
 
 def split_validation(data: Any, recipe: Any, loss_fn: Any, batch_size: int, key: jax.Array,

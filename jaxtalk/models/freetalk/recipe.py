@@ -131,11 +131,17 @@ def train_ats(
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
+    val_clips: int = 8,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train ATS on ``data``'s training split (arguments as every recipe's ``train``).
 
-    The model sees standardised displacements, so ``config.displacement_scale`` must be 1.
+    The model sees standardised displacements, so ``config.displacement_scale`` must be 1. Each
+    evaluation computes the loss on up to :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of the
+    ``val`` split and samples one window of each of ``val_clips`` of its clips with DDIM
+    (:func:`~jaxtalk.models.freetalk.validation.sampled_validation`: LVE over the mouth landmarks, LE,
+    jitter); the best checkpoint is the one of the lowest sampled LVE (the validation loss when
+    nothing is sampled).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the window and the statistics.
@@ -168,8 +174,11 @@ def train_ats(
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = ats.init_params(config, k_init) if params is None else params
     extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}
+    from jaxtalk.models.freetalk.validation import SELECTION_METRIC, sampled_validation
+
+    sample_eval = sampled_validation(config, data, recipe, "val", key=jax.random.fold_in(k_eval, 1), clips=val_clips)
     return fit_recipe(recipe, data, ats.make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
-                      steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra,
+                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra,
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)
 
 

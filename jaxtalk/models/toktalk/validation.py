@@ -24,7 +24,7 @@ from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
 from jaxtalk.models.toktalk.sample import default_grid
 from jaxtalk.models.toktalk.stream import stream
-from jaxtalk.train.recipes import spread
+from jaxtalk.train.recipes import host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["streamed_validation", "SELECTION_METRIC", "VAL_CLIPS"]
@@ -36,17 +36,6 @@ SELECTION_METRIC = "LVE_mm2"
 VAL_CLIPS = 8
 
 EvalFn = Callable[[Any, Any, int], dict[str, float]]
-
-
-def _host_copy(tree: Any) -> Any:
-    """Parameters as one full copy on this process: a data-parallel run's replicated arrays span
-    several devices (some of another process's), while the stream runs on one local device."""
-    def local(x: Any) -> Any:
-        if isinstance(x, jax.Array) and len(x.sharding.device_set) > 1:
-            return np.asarray(x.addressable_data(0))
-        return x
-
-    return jax.tree.map(local, tree)
 
 
 def streamed_validation(
@@ -107,7 +96,7 @@ def streamed_validation(
     grids = {n: default_grid(config, n) for n in steps}
 
     def eval_fn(params: Any, ema_params: Any, step: int) -> dict[str, float]:
-        use = _host_copy(ema_params if ema_params is not None else params)
+        use = host_copy(ema_params if ema_params is not None else params)
         sums = {f"{m}_{n}step": 0.0 for n in steps for m in ("LVE_mm2", "MVE_mm", "jitter_mm")}
         frames = 0
         for k, (tokens, style, gt_vertices, t) in enumerate(items):
