@@ -16,7 +16,7 @@ from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import RecipeResult, TrainSettings
-from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
+from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, VAL_CLIPS, train_on_turn_windows
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "PRESET_DEFAULTS", "TimarWindows", "agent_sides", "fit_data_normalizer", "window_turns", "make_windows",
@@ -44,9 +44,12 @@ def train(
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
+    val_clips: int = VAL_CLIPS,
     **loop_kwargs: Any,
 ) -> RecipeResult:
-    """Train TIMAR on ``data``'s training conversations (arguments as every recipe's ``train``).
+    """Train TIMAR on ``data``'s training conversations (arguments as every recipe's ``train``). Each
+    evaluation also streams ``val_clips`` val conversation sides turn by turn (as ``jaxtalk eval``)
+    and the best checkpoint is the one of the lowest FD (:func:`~jaxtalk.train.turns.conversation_validation`).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the normaliser, the window's
@@ -54,7 +57,12 @@ def train(
     """
     from jaxtalk.models.timar.loss import make_loss_fn
     from jaxtalk.models.timar.model import init_params
+    from jaxtalk.models.timar.stream import stream
+
+    def predict(p: PyTree, streams: Any, key: PRNGKeyArray, context: int) -> Any:
+        return stream(p, config, *streams, key, context=context)
 
     return train_on_turn_windows("timar", config, data, optim, init_params, make_loss_fn, steps=steps, key=key,
-                                 batch_size=batch_size, seed=seed, params=params, run_dir=run_dir, run_info=run_info, ckpt_dir=ckpt_dir, mesh=mesh,
-                                 eval_every=eval_every, **loop_kwargs)
+                                 batch_size=batch_size, seed=seed, params=params, run_dir=run_dir, run_info=run_info,
+                                 ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, predict=predict,
+                                 val_clips=val_clips, **loop_kwargs)
