@@ -225,4 +225,4 @@ def test_recipe_resumes_exactly_from_its_checkpoint(model, prepared_tiny, tmp_pa
     from jaxtalk.models.freetalk.recipe import train_stm
 
     assert_recipe_resumes_exactly(train_stm, model[0], prepared_tiny, tmp_path, window_frames=3,
-                                  meshes=((1, "decimated"),))
+                                  meshes=((1, "decimated"),), held_out=((3, "retriangulated"),), val_clips=1)

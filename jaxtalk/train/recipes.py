@@ -46,7 +46,7 @@ class TrainSettings:
             and masked: ATS's ``paper`` preset).
         eval_every: validation period in steps (None: five evaluations per run).
         val_clips: held-out clips sampled and scored at each evaluation by a model whose validation
-            samples (TokTalk streamed, ATS with DDIM, TIMAR and DualTalk turn by turn); None: the model's default, 0: the validation loss only.
+            samples (TokTalk streamed, ATS with DDIM, TIMAR and DualTalk turn by turn, STM on held-out meshes); None: the model's default, 0: the validation loss only.
     """
 
     lr: float = 1e-3

@@ -224,6 +224,7 @@ def train_stm(
     seed: int = 0,
     window_frames: int | None = None,
     meshes: tuple[tuple[int, str], ...] = STM_MESHES,
+    held_out: tuple[tuple[int, str], ...] = STM_HELD_OUT,
     resolution: str = "low",
     params: Any = None,
     run_dir: str | Path | None = None,
@@ -231,10 +232,17 @@ def train_stm(
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
+    val_clips: int = 8,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train STM on ``data``'s training motion rendered on ``meshes`` (identity, topology) pairs
     (arguments as every recipe's ``train``; ``window_frames`` default 16).
+
+    Each evaluation computes the loss on val windows on the training meshes and maps the true
+    landmarks of ``val_clips`` val clips onto the ``held_out`` meshes
+    (:func:`~jaxtalk.models.freetalk.validation.held_out_mesh_validation`: LVE, MVE, jitter); the best
+    checkpoint is the one of the lowest held-out LVE (the validation loss when ``val_clips`` is 0 or
+    ``held_out`` is empty).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the meshes, resolution and window.
@@ -248,6 +256,10 @@ def train_stm(
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = stm.init_params(config, k_init, prepared[0]) if params is None else params
     extra = {"meshes": [list(m) for m in meshes], "resolution": resolution, "window": recipe.window}
+    from jaxtalk.models.freetalk.validation import SELECTION_METRIC, held_out_mesh_validation
+
+    sample_eval = held_out_mesh_validation(config, data, held_out, "val", window=recipe.window, clips=val_clips,
+                                           resolution=resolution)
     return fit_recipe(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
-                      eval_key=k_eval, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
+                      eval_key=k_eval, sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)

@@ -1,4 +1,5 @@
-"""Validation that samples ATS as its users do: DDIM from noise on fixed held-out windows, scored in landmarks.
+"""FreeTalk's validations as users measure the models: ATS sampled with DDIM and scored in landmarks, STM
+on meshes it never trained on and scored in vertices.
 
 The denoising loss on validation windows says how well the model predicts the noise at random
 timesteps; a user samples the whole DDIM chain and measures the landmarks. :func:`sampled_validation`
@@ -8,11 +9,15 @@ split (the run's own windows: 50-frame windows, or whole clips for a whole-clip 
 same starting noise every time, at the config's DDIM step count, and scores them with
 :func:`~jaxtalk.metrics.landmarks.landmark_metrics`: LVE over the mouth landmarks (mm^2), the mean
 landmark error LE (mm) and jitter (mm/frame^2), frame-weighted over the windows.
+
+STM's validation loss is on the training meshes; :func:`held_out_mesh_validation` maps held-out clips'
+true landmarks onto held-out meshes (other identities and topologies) and scores the vertices with the
+same columns as ``jaxtalk eval``: LVE (lips, mm^2), MVE (mm), jitter. Both select by ``LVE_mm2``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -23,9 +28,10 @@ from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.train.recipes import host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["sampled_validation", "SELECTION_METRIC", "VAL_CLIPS"]
+__all__ = ["sampled_validation", "held_out_mesh_validation", "SELECTION_METRIC", "VAL_CLIPS"]
 
-# The metric an ATS run selects its best checkpoint by: the sampled lip error over the mouth landmarks.
+# The metric an ATS run selects its best checkpoint by: the sampled lip error over the mouth landmarks
+# (an STM run: the lip error on the held-out meshes).
 SELECTION_METRIC = "LVE_mm2"
 # Held-out clips (one window each) sampled at each evaluation.
 VAL_CLIPS = 8
@@ -81,5 +87,72 @@ def sampled_validation(
             for name, value in landmark_metrics(pred[:n], gt).items():
                 sums[name] += n * value
         return {name: value / sum(frames) for name, value in sums.items()}
+
+    return eval_fn
+
+
+def held_out_mesh_validation(
+    config: Any,
+    data: Any,
+    meshes: Sequence[tuple[int, str]],
+    split: str = "val",
+    *,
+    window: int = 16,
+    clips: int = VAL_CLIPS,
+    resolution: str = "low",
+) -> EvalFn | None:
+    """An ``eval_fn`` that maps the true landmarks of ``split`` onto meshes STM never trained on and scores
+    the vertices, FreeTalk's claim that STM animates ANY face mesh.
+
+    Each of ``clips`` clips (evenly spread over the split's clips of at least ``window`` frames) gives
+    its first ``window`` frames (head pose removed), rendered on every mesh of ``meshes`` for the
+    landmarks and the true vertices; STM decodes the landmarks on that mesh. The meshes are prepared
+    (eigenbasis, operators) once, here.
+
+    Args:
+        config: the STM config.
+        data: the prepared dataset.
+        meshes: ``(identity, topology)`` pairs of :func:`~jaxtalk.models.freetalk.data.face_mesh`, the
+            held-out ones (:data:`~jaxtalk.models.freetalk.recipe.STM_HELD_OUT`).
+        split: the split whose motion is mapped.
+        window: frames per clip (the run's training window).
+        clips: how many clips.
+        resolution: the meshes' resolution (the run's).
+
+    Returns:
+        ``eval_fn(params, ema_params, step) -> {"LVE_mm2", "MVE_mm", "jitter_mm"}`` frame-weighted
+        over clips and meshes (the EMA parameters when the run keeps them), or None when ``clips`` is
+        0, no mesh is given or the split has no clip of ``window`` frames.
+    """
+    from jaxtalk.metrics import jitter, lve, mve
+    from jaxtalk.models.freetalk import stm
+    from jaxtalk.models.freetalk.data import face_mesh, without_head_pose
+
+    if clips < 1 or not meshes or not data.split(split):
+        return None
+    usable = [i for i in data.split(split) if data.clips[i]["frames"] >= window]
+    if not usable:
+        return None
+    motions = [without_head_pose(np.asarray(data.record(usable[int(j)], ("motion",))["motion"], np.float32)[:window])
+               for j in spread(len(usable), clips)]
+    targets = []
+    for identity, kind in meshes:
+        fm = face_mesh(int(identity), kind, resolution=resolution)
+        rendered = [fm.motion(m) for m in motions]  # (landmarks, vertices) per clip
+        targets.append((stm.prepare_mesh(fm.vertices, fm.faces, config), fm.region("lips"), rendered))
+
+    def eval_fn(params: Any, ema_params: Any, step: int) -> dict[str, float]:
+        use = host_copy(ema_params if ema_params is not None else params)
+        sums, frames = {"LVE_mm2": 0.0, "MVE_mm": 0.0, "jitter_mm": 0.0}, 0
+        for prepared, lips, rendered in targets:
+            features = stm.stm_mesh_features(use, config, prepared)
+            for landmarks, vertices in rendered:
+                pred = np.asarray(stm.stm_decode(use, config, features, landmarks, prepared))
+                n = vertices.shape[0]
+                sums["LVE_mm2"] += n * float(lve(pred, vertices, lips)) * 1e6
+                sums["MVE_mm"] += n * float(mve(pred, vertices)) * 1e3
+                sums["jitter_mm"] += n * float(jitter(pred)) * 1e3
+                frames += n
+        return {name: value / frames for name, value in sums.items()}
 
     return eval_fn

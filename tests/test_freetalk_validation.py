@@ -1,6 +1,8 @@
-"""ATS's in-training validation samples the model as users do: the DDIM-sampled windows' landmark LVE, LE
-and jitter equal a hand computation on the clips' first windows, repeat exactly at every evaluation,
-reach the run's metrics, and choose the best checkpoint (lowest sampled LVE)."""
+"""FreeTalk's in-training validations score the models as users measure them. ATS: the DDIM-sampled
+windows' landmark LVE, LE and jitter equal a hand computation on the clips' first windows, repeat exactly
+at every evaluation, reach the run's metrics, and choose the best checkpoint (lowest sampled LVE). STM:
+the vertices decoded on a mesh it never trained on score as computed by hand, and choose the best
+checkpoint (lowest held-out LVE)."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ from jaxtalk.metrics import landmark_metrics
 from jaxtalk.models.freetalk import ats
 from jaxtalk.models.freetalk.config import ATSConfig
 from jaxtalk.models.freetalk.recipe import ATSWindows, fit_displacement_stats
-from jaxtalk.models.freetalk.validation import SELECTION_METRIC, sampled_validation
+from jaxtalk.models.freetalk.validation import SELECTION_METRIC, held_out_mesh_validation, sampled_validation
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +75,53 @@ def test_recipe_records_sampled_metrics_and_keeps_the_best_checkpoint_by_sampled
                        val_clips=2, progress=False)
     evals = [h for h in result.history if "eval" in h]
     assert len(evals) == 3 and all({"val_loss", "LVE_mm2", "LE_mm", "jitter_mm"} <= set(h["eval"]) for h in evals)
+    record = read_best(tmp_path / "run" / "checkpoint")
+    assert record["metric"] == SELECTION_METRIC
+    assert record["value"] == pytest.approx(min(h["eval"][SELECTION_METRIC] for h in evals))
+
+
+@pytest.fixture(scope="module")
+def stm_config():
+    from jaxtalk.models.freetalk.config import STMConfig
+
+    return STMConfig.small(encoder_blocks=1, decoder_blocks=1, num_eigenpairs=16)
+
+
+def test_held_out_mesh_validation_equals_a_hand_computation(stm_config, prepared_tiny):
+    from jaxtalk.metrics import jitter, lve, mve
+    from jaxtalk.models.freetalk import stm
+    from jaxtalk.models.freetalk.data import face_mesh, without_head_pose
+
+    data = prepared_tiny
+    fm = face_mesh(3, "retriangulated")
+    prepared = stm.prepare_mesh(fm.vertices, fm.faces, stm_config)
+    params = _perturbed(stm.init_params(stm_config, jax.random.key(0), prepared), jax.random.key(1))
+    eval_fn = held_out_mesh_validation(stm_config, data, ((3, "retriangulated"),), "val", window=6, clips=1)
+    scores = eval_fn(params, None, 0)
+    assert set(scores) == {"LVE_mm2", "MVE_mm", "jitter_mm"}
+
+    first = [i for i in data.split("val") if data.clips[i]["frames"] >= 6][0]
+    landmarks, vertices = fm.motion(without_head_pose(np.asarray(data.record(first, ("motion",))["motion"], np.float32)[:6]))
+    pred = np.asarray(stm.stm_decode(params, stm_config, stm.stm_mesh_features(params, stm_config, prepared), landmarks, prepared))
+    assert scores["LVE_mm2"] == pytest.approx(float(lve(pred, vertices, fm.region("lips"))) * 1e6, rel=1e-4)
+    assert scores["MVE_mm"] == pytest.approx(float(mve(pred, vertices)) * 1e3, rel=1e-4)
+    assert scores["jitter_mm"] == pytest.approx(float(jitter(pred)) * 1e3, rel=1e-4)
+    assert held_out_mesh_validation(stm_config, data, (), "val") is None
+    assert held_out_mesh_validation(stm_config, data, ((3, "base"),), "val", clips=0) is None
+
+
+@pytest.mark.slow
+def test_stm_recipe_keeps_the_best_checkpoint_by_the_held_out_mesh_lve(stm_config, prepared_tiny, tmp_path):
+    from jaxtalk.models.freetalk.recipe import train_stm
+    from jaxtalk.train import OptimConfig
+    from jaxtalk.train.checkpoint import read_best
+
+    result = train_stm(stm_config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2), steps=2,
+                       key=jax.random.key(0), batch_size=2, window_frames=4, meshes=((1, "decimated"),),
+                       held_out=((3, "retriangulated"),), run_dir=tmp_path / "run", eval_every=1, val_clips=1,
+                       progress=False)
+    evals = [h for h in result.history if "eval" in h]
+    assert len(evals) == 2 and all({"val_loss", "LVE_mm2", "MVE_mm", "jitter_mm"} <= set(h["eval"]) for h in evals)
     record = read_best(tmp_path / "run" / "checkpoint")
     assert record["metric"] == SELECTION_METRIC
     assert record["value"] == pytest.approx(min(h["eval"][SELECTION_METRIC] for h in evals))
