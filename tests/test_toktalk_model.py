@@ -44,8 +44,12 @@ def test_presets_and_config_errors():
     assert (paper.chunk_frames, paper.overlap_frames, paper.sample_steps, paper.cfg_scale) == (10, 5, 10, 0.7)
     assert small.width < paper.width and small.window_frames == 30
     # The paper preset is the paper's objective; the small one keeps jaxtalk's named departures.
-    assert (paper.noise_frames, paper.style_anchor, paper.style_source, paper.temperature) == (0.0, False, "target", 1.0)
-    assert (small.noise_frames, small.style_anchor, small.style_source, small.temperature) == (2.0, True, "other_clip", 0.5)
+    assert (paper.noise_frames, paper.style_anchor, paper.style_source, paper.latent_input, paper.temperature) == (
+        0.0, False, "target", True, 1.0)
+    # The small preset: the target's crop as the style, the anchor centring the flow, and the decoder
+    # reading neither the anchor nor the latent (what keeps held-out speakers under the mean pose).
+    assert (small.noise_frames, small.style_anchor, small.style_source, small.temperature) == (2.0, True, "target", 0.5)
+    assert (small.anchor_input, small.latent_input) == (False, False)
     assert tt.TokTalkConfig.paper(noise_frames=2.0).noise_frames == 2.0
     with pytest.raises(ValueError, match="chunk_frames=7 must be even"):
         tt.TokTalkConfig.small(chunk_frames=7)

@@ -86,8 +86,9 @@ def test_stage2_trains_only_the_adapter_and_writes_a_run(prepared_tiny, stream_b
 #   200 steps (1 min): 0.38 / 0.43 / 0.43 / 0.44 and 0.84 / 0.88 / 0.87 / 0.89;
 #   300 steps: 0.47 / 0.53 / 0.55 / 0.57 and 0.89 / 0.95 / 0.95 / 0.99;
 #   600 steps (seeds 0-1): 0.67 / 0.83 and 0.98 / 1.11.
-# (Those 10-step figures sampled at temperature 1; the small preset now samples at 0.5, and seed 0's
-# 200-step 10-step ratio is 0.52 there against 0.89 at 1, its 1-step ratio 0.38 at both.)
+# (Those figures are of the earlier small recipe sampling at temperature 1. At 0.5 seed 0's 200-step
+# ratios were 0.38 and 0.52; with today's small recipe, the target clip's crop as the style and neither
+# the anchor nor the style latent read by the decoder, 0.33 and 0.42.)
 # Longer training overfits the tiny corpus's training speakers, so the test trains 200 steps and its
 # bars, 0.6 at 1 step and 0.75 at 10 (which a temperature-1 sampler misses), hold for the seed it
 # trains. A 10-step sample scores worse than a 1-step one: its samples spread over what so brief a
