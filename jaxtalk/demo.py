@@ -68,7 +68,7 @@ class DemoOptions:
     overwrite: bool = False
     size: str = "small"
     seed: int = 0
-    train_steps: int = 600
+    train_steps: int = 400
     sample_steps: int = 1
     chunk_frames: int = 10
     batch_size: int = 16

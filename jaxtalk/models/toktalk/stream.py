@@ -354,13 +354,20 @@ def stream(
         base = default_num_frames(int(np.shape(tokens)[1]), src_rate, config.token_rate)
         frames = frames_for_tokens(base, config.token_rate, config.fps)
         ct = source_tokens_per_chunk(config, src_rate)
-    tokens = jnp.asarray(tokens)
+    if isinstance(tokens, jax.core.Tracer):
+        xp = jnp
+    else:
+        # Chunks are cut on the host: slices of a device array queue behind the previous chunk's step,
+        # and the next step's input checks would wait for them, so the host could never run ahead
+        # of the device (a compile per clip length, too).
+        xp, tokens = np, np.asarray(tokens)
+        tokens = tokens.astype(jax.dtypes.canonicalize_dtype(tokens.dtype), copy=False)
     batch = tokens.shape[0]
     style_vec = resolve_style(params, config, style, batch)
     num_chunks = -(-tokens.shape[1] // ct)
     pad = num_chunks * ct - tokens.shape[1]
     if pad:
-        tokens = jnp.concatenate([tokens, jnp.repeat(tokens[:, -1:], pad, axis=1)], axis=1)
+        tokens = xp.concatenate([tokens, xp.repeat(tokens[:, -1:], pad, axis=1)], axis=1)
     state = init_stream(config, key, batch=batch, dtype=tokens.dtype,
                         source_dim=source_dim)
     outs = []
