@@ -23,10 +23,13 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation", "fixed_batches", "spread", "host_copy", "evaluation", "merged_eval", "fit_recipe", "VAL_WINDOWS"]
+__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation", "fixed_batches", "spread", "host_copy", "evaluation", "merged_eval", "fit_recipe", "VAL_WINDOWS", "VAL_CLIPS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
+# Held-out clips (conversation sides for the turn models) that a model's validation samples and scores
+# at each evaluation, as users run the model (every recipe's ``val_clips`` default).
+VAL_CLIPS = 8
 
 
 @dataclasses.dataclass(frozen=True)

@@ -21,11 +21,11 @@ from jaxtalk.data.conversation import TimarWindows, agent_sides, make_windows
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.runs import RunInfo
 from jaxtalk.train.optim import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, host_copy, spread
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["TURN_DEFAULTS", "TURN_PRESET_DEFAULTS", "train_on_turn_windows", "conversation_validation",
-           "SELECTION_METRIC", "VAL_CLIPS"]
+           "SELECTION_METRIC"]
 
 PyTree = Any
 # ``predict(params, (user_speech, user_motion, agent_speech), key, context) -> (1, F, 56)``: a turn
@@ -36,8 +36,6 @@ Predict = Callable[[PyTree, tuple[np.ndarray, np.ndarray, np.ndarray], PRNGKeyAr
 # motion to the truth's, at the scale the published tables print, averaged over the three groups
 # (expression, jaw, pose); the metric TIMAR's tables lead with.
 SELECTION_METRIC = "FD"
-# Held-out conversation sides predicted at each evaluation.
-VAL_CLIPS = 8
 
 # What trains TIMAR's small model (and the baseline's) on 2 CPU cores.
 TURN_DEFAULTS = TrainSettings(lr=1e-3, warmup_steps=20, final_lr_ratio=0.1)

@@ -17,8 +17,8 @@ from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings
-from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, VAL_CLIPS, train_on_turn_windows
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings
+from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "PRESET_DEFAULTS", "train"]

@@ -26,7 +26,7 @@ from jaxtalk.models.freetalk.emotions import EMOTIONS
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
 from jaxtalk.data.batching import window_starts
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "ATS_PRESET_DEFAULTS", "STM_PRESET_DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT", "fit_displacement_stats", "train_ats",
@@ -131,7 +131,7 @@ def train_ats(
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
-    val_clips: int = 8,
+    val_clips: int = VAL_CLIPS,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train ATS on ``data``'s training split (arguments as every recipe's ``train``).
@@ -232,7 +232,7 @@ def train_stm(
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
-    val_clips: int = 8,
+    val_clips: int = VAL_CLIPS,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train STM on ``data``'s training motion rendered on ``meshes`` (identity, topology) pairs

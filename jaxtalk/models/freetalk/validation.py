@@ -17,7 +17,7 @@ same columns as ``jaxtalk eval``: LVE (lips, mm^2), MVE (mm), jitter. Both selec
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -25,18 +25,15 @@ import numpy as np
 from jaxtalk.metrics.landmarks import landmark_metrics
 from jaxtalk.models.freetalk import ats
 from jaxtalk.models.freetalk.config import ATSConfig
-from jaxtalk.train.recipes import host_copy, spread
+from jaxtalk.train.loop import EvalFn
+from jaxtalk.train.recipes import VAL_CLIPS, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["sampled_validation", "held_out_mesh_validation", "SELECTION_METRIC", "VAL_CLIPS"]
+__all__ = ["sampled_validation", "held_out_mesh_validation", "SELECTION_METRIC"]
 
 # The metric an ATS run selects its best checkpoint by: the sampled lip error over the mouth landmarks
 # (an STM run: the lip error on the held-out meshes).
 SELECTION_METRIC = "LVE_mm2"
-# Held-out clips (one window each) sampled at each evaluation.
-VAL_CLIPS = 8
-
-EvalFn = Callable[[Any, Any, int], dict[str, float]]
 
 
 def sampled_validation(

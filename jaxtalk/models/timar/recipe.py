@@ -15,8 +15,8 @@ from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings
-from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, VAL_CLIPS, train_on_turn_windows
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings
+from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "PRESET_DEFAULTS", "TimarWindows", "agent_sides", "fit_data_normalizer", "window_turns", "make_windows",

@@ -31,7 +31,7 @@ from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import RecipeResult, TrainSettings, fit_recipe, spread
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TokTalkWindows", "AdapterWindows", "default_window", "check_data", "base_trainable",
@@ -158,7 +158,7 @@ def train(
     ckpt_dir: Any = None,
     mesh: Any = None,
     eval_every: int | None = None,
-    val_clips: int = 8,
+    val_clips: int = VAL_CLIPS,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train the base model (decoder + style encoder) on ``data``'s training split with the CFM loss.

@@ -12,7 +12,7 @@ face (:func:`~jaxtalk.face.builtin_face`) like ``jaxtalk eval``: LVE (mm^2, lips
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -24,18 +24,15 @@ from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
 from jaxtalk.models.toktalk.sample import default_grid
 from jaxtalk.models.toktalk.stream import stream
-from jaxtalk.train.recipes import host_copy, spread
+from jaxtalk.train.loop import EvalFn
+from jaxtalk.train.recipes import VAL_CLIPS, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["streamed_validation", "SELECTION_METRIC", "VAL_CLIPS"]
+__all__ = ["streamed_validation", "SELECTION_METRIC"]
 
 # The metric a TokTalk run selects its best checkpoint by: the streamed lip error, averaged over the
 # run's sampler step counts.
 SELECTION_METRIC = "LVE_mm2"
-# Held-out clips streamed at each evaluation.
-VAL_CLIPS = 8
-
-EvalFn = Callable[[Any, Any, int], dict[str, float]]
 
 
 def streamed_validation(
