@@ -208,12 +208,12 @@ def assert_recipe_resumes_exactly(train, config, data, folder: Path, **kw) -> No
 # The smallest graph of each model that ``jaxtalk train`` builds, as ``--preset`` / ``--set`` arguments
 # (compile time dominates the suite's few-step runs); the session's shared runs use them.
 TINY_TRAIN_ARGS = {
-    # One streamed validation clip: the streamed metrics are recorded, at an eighth of the default cost.
+    # One sampled validation clip (side): the sampled metrics are recorded, at an eighth of the default cost.
     "toktalk": ["--preset", "tiny", "--set", "num_mid_blocks=0", "--set", "val_clips=1"],
     "timar": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "head_width=32",
-              "--set", "head_blocks=1", "--set", "max_turns=2"],
+              "--set", "head_blocks=1", "--set", "max_turns=2", "--set", "val_clips=1"],
     "ats": ["--set", "width=32", "--set", "num_layers=1", "--set", "num_heads=2", "--set", "ff_dim=32",
-            "--set", "sample_steps=4"],
+            "--set", "sample_steps=4", "--set", "val_clips=1"],
 }
 
 

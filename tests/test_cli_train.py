@@ -19,7 +19,7 @@ from helpers import TINY_TRAIN_ARGS, cli_ok as _ok
 
 
 # The smallest graphs of each model (compile time dominates two-step runs).
-SMALL = {**TINY_TRAIN_ARGS, "stm": []}
+SMALL = {**TINY_TRAIN_ARGS, "stm": ["--set", "val_clips=1"]}
 
 
 @pytest.fixture(scope="module")
