@@ -77,7 +77,7 @@ class TokTalkConfig:
             speaker. On SynthTalk ``small`` (24 training speakers; 6,000 steps, validation every 500
             on all 20 val clips, temperature 0.5; mean pose 251.1 mm^2) "target" with neither the
             anchor nor the latent as decoder inputs stayed under the mean pose at every evaluation in
-            2 seeds of 2 (LVE 126-196 at 1 Euler step, 144-185 at 10), where the earlier default
+            2 seeds of 2 (LVE 126-196 at 1 Euler step, 143-185 at 10), where the earlier default
             (other clip, latent and anchor as inputs) passed it from ~3,000 steps (248.8 / 307.9 at
             3,000, seed 0). So the ``small`` preset trains on the target's crop and shows the decoder
             neither; the anchor pose still centres the flow, so a new speaker's rest pose comes
@@ -238,7 +238,7 @@ class TokTalkConfig:
     def small(cls, **overrides: object) -> TokTalkConfig:
         """Learns SynthTalk in minutes on 2 CPU cores and streams in real time there; trains on the
         target clip's own crop as the style and shows the decoder neither the anchor nor the style
-        latent (held-out speakers stay under the mean pose however long it trains; see
+        latent (held-out speakers stayed under the mean pose through 6,000 steps in 2 seeds; see
         ``style_source``); samples at temperature 0.5 (see ``temperature``)."""
         # Width 64 is enough once the decoder is preconditioned (``precondition``): the skip carries
         # the near-identity noise part of the velocity that a 64-wide U-Net alone learned ~20x slower.
