@@ -364,6 +364,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     from jaxtalk.data.batching import fit_length
     from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
     from jaxtalk.models.timar.data import Normalizer
+    from jaxtalk.data.conversation import side_streams
     from jaxtalk.models.timar.recipe import agent_sides
     from jaxtalk.models.timar.stream import stream
 
@@ -386,33 +387,27 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
          f"with {title} (step {run.step})")
     preds, gts, partners, oracles, still_partners, padded_frames = [], [], [], [], 0, 0
     for n, (i, j) in enumerate(chosen):
-        agent = data.record(i, ("turn_speech", "motion", "oracle"))
-        user = data.record(j, ("turn_speech", "motion"))
         # Scored over the agent's whole side (as far as the partner's motion goes); the model predicts
         # whole turns, and the frames after the last whole one repeat its last prediction (the paper's
         # protocol, TIMAR Sec. 4.4).
-        total = agent["motion"].shape[0] if "motion" not in user else min(agent["motion"].shape[0], user["motion"].shape[0])
-        usable = min(agent["turn_speech"].shape[0], user["turn_speech"].shape[0], total) // f * f
-        if usable == 0:
+        side = side_streams(data, i, j, norm, still, f)
+        if side is None:
             continue
-        if "motion" in user:
-            user_motion = np.asarray(user["motion"], np.float32)[:total]
-        else:
-            user_motion, still_partners = np.broadcast_to(still, (total, still.shape[0])).copy(), still_partners + 1
-        padded_frames += total - usable
-        streams = (norm.speech(user["turn_speech"][:usable])[None], norm.motion(user_motion[:usable])[None],
-                   norm.speech(agent["turn_speech"][:usable])[None])
+        still_partners += side.still_partner
+        padded_frames += side.padded_frames
         if baseline:
             from jaxtalk.models.dualtalk import predict_turns
 
-            out = predict_turns(run.params, config, *streams, context=context)
+            out = predict_turns(run.params, config, *side.streams, context=context)
         else:
-            out = stream(run.params, config, *streams, jax.random.fold_in(key, n), context=context,
+            out = stream(run.params, config, *side.streams, jax.random.fold_in(key, n), context=context,
                          temperature=opts.temperature)
+        total = side.truth.shape[0]
         preds.append(fit_length(norm.unmotion(np.asarray(out)[0]), total))
-        gts.append(np.asarray(agent["motion"], np.float32)[:total])
-        partners.append(user_motion)
-        oracles.append(np.asarray(agent["oracle"], np.float32)[:total] if "oracle" in agent else None)
+        gts.append(side.truth)
+        partners.append(side.partner)
+        oracle = data.record(i, ("oracle",)).get("oracle")
+        oracles.append(None if oracle is None else np.asarray(oracle, np.float32)[:total])
     if not preds:
         raise ValueError(f"split {split!r} of {data.root} has no conversation side of a whole {f}-frame turn")
     if padded_frames:

@@ -25,7 +25,8 @@ from jaxtalk.data.standardize import fit_standardizer, standardize, unstandardiz
 from jaxtalk.data.turns import TurnConfig
 from jaxtalk.types import Float
 
-__all__ = ["Normalizer", "TimarWindows", "agent_sides", "fit_data_normalizer", "window_turns", "make_windows"]
+__all__ = ["Normalizer", "TimarWindows", "ConversationSide", "agent_sides", "side_streams", "fit_data_normalizer",
+           "window_turns", "make_windows"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +85,49 @@ def agent_sides(data: PreparedData, split: str) -> list[tuple[int, int]]:
         if j is not None and data.clips[i]["frames"] >= data.manifest["turn_frames"]:
             out.append((i, j))
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class ConversationSide:
+    """One agent side as a turn model is scored on it (``jaxtalk eval`` and in-training validation).
+
+    Attributes:
+        streams: ``(user_speech, user_motion, agent_speech)``, each ``(1, usable, D)`` in the
+            training normalisation, over the side's whole turns.
+        truth: ``(total, 56)`` the agent's motion over the whole side (as far as the partner's
+            motion goes): the frames after the last whole turn are scored too (TIMAR's protocol pads
+            them with the last prediction).
+        partner: ``(total, 56)`` the user's motion, or the still pose where it has none.
+        still_partner: the partner has no tracked motion (``partner`` is the still pose).
+    """
+
+    streams: tuple[np.ndarray, np.ndarray, np.ndarray]
+    truth: np.ndarray
+    partner: np.ndarray
+    still_partner: bool
+
+    @property
+    def padded_frames(self) -> int:
+        """Frames after the side's last whole turn (scored as repeats of the last prediction)."""
+        return self.truth.shape[0] - self.streams[0].shape[1]
+
+
+def side_streams(data: PreparedData, agent: int, user: int, normalizer: Normalizer,
+                 still: np.ndarray | Sequence[float], frames_per_turn: int) -> ConversationSide | None:
+    """The side of clip ``agent`` talking with clip ``user`` (:func:`agent_sides`), or None when it has no
+    whole ``frames_per_turn``-frame turn."""
+    a = data.record(agent, ("turn_speech", "motion"))
+    u = data.record(user, ("turn_speech", "motion"))
+    total = a["motion"].shape[0] if "motion" not in u else min(a["motion"].shape[0], u["motion"].shape[0])
+    usable = min(a["turn_speech"].shape[0], u["turn_speech"].shape[0], total) // frames_per_turn * frames_per_turn
+    if usable == 0:
+        return None
+    still = np.asarray(still, np.float32)
+    partner = (np.asarray(u["motion"], np.float32)[:total] if "motion" in u
+               else np.broadcast_to(still, (total, still.shape[0])).copy())
+    streams = (normalizer.speech(u["turn_speech"][:usable])[None], normalizer.motion(partner[:usable])[None],
+               normalizer.speech(a["turn_speech"][:usable])[None])
+    return ConversationSide(streams, np.asarray(a["motion"], np.float32)[:total], partner, "motion" not in u)
 
 
 def fit_data_normalizer(data: PreparedData, *, floor: float = 1e-3) -> Normalizer:

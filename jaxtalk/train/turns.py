@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from jaxtalk.data.batching import fit_length
-from jaxtalk.data.conversation import TimarWindows, agent_sides, make_windows
+from jaxtalk.data.conversation import TimarWindows, agent_sides, make_windows, side_streams
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.runs import RunInfo
 from jaxtalk.train.optim import OptimConfig
@@ -144,31 +144,19 @@ def conversation_validation(
 
     if clips < 1 or not data.split(split):
         return None
-    norm, f = windows.normalizer, windows.config.frames_per_turn
-    still = np.asarray(windows.still, np.float32)
+    norm = windows.normalizer
     context = max(windows.num_turns - 1, 0)
-    sides = []
-    for i, j in agent_sides(data, split):
-        agent = data.record(i, ("turn_speech", "motion"))
-        user = data.record(j, ("turn_speech", "motion"))
-        total = agent["motion"].shape[0] if "motion" not in user else min(agent["motion"].shape[0], user["motion"].shape[0])
-        usable = min(agent["turn_speech"].shape[0], user["turn_speech"].shape[0], total) // f * f
-        if usable == 0:
-            continue
-        partner = (np.asarray(user["motion"], np.float32)[:total] if "motion" in user
-                   else np.broadcast_to(still, (total, still.shape[0])).copy())
-        streams = (norm.speech(user["turn_speech"][:usable])[None], norm.motion(partner[:usable])[None],
-                   norm.speech(agent["turn_speech"][:usable])[None])
-        sides.append((streams, np.asarray(agent["motion"], np.float32)[:total], partner))
+    sides = [side for i, j in agent_sides(data, split)
+             if (side := side_streams(data, i, j, norm, windows.still, windows.config.frames_per_turn)) is not None]
     if not sides:
         return None
     sides = [sides[int(k)] for k in spread(len(sides), clips)]
 
     def eval_fn(params: Any, ema_params: Any, step: int) -> dict[str, float]:
         use = host_copy(ema_params if ema_params is not None else params)
-        preds = [fit_length(norm.unmotion(np.asarray(predict(use, streams, jax.random.fold_in(key, n), context))[0]),
-                            gt.shape[0]) for n, (streams, gt, _) in enumerate(sides)]
-        scores = conversation_metrics(preds, [gt for _, gt, _ in sides], [p for _, _, p in sides], scaled=True,
+        preds = [fit_length(norm.unmotion(np.asarray(predict(use, s.streams, jax.random.fold_in(key, n), context))[0]),
+                            s.truth.shape[0]) for n, s in enumerate(sides)]
+        scores = conversation_metrics(preds, [s.truth for s in sides], [s.partner for s in sides], scaled=True,
                                       sid_convention=None)
         scores[SELECTION_METRIC] = float(np.mean([scores[f"FD_{g}"] for g in ("exp", "jaw", "pose")]))
         return scores
