@@ -536,8 +536,10 @@ class _WindowDone(Exception):
 class TrainProbe(StepObserver):
     """Measures a real recipe run from inside the shared loop (a :class:`~jaxtalk.train.StepObserver`).
 
-    * At the start: ``loader_batches`` batches drawn from the loop's own loader, each timed (the
-      first, which builds the pipeline, untimed).
+    * At the start: the loader's sustained rate, from the loop's own loader: the first batch (which
+      builds the pipeline) and the read-ahead buffer's worth after it are drawn untimed, then
+      ``loader_batches`` more back to back, timed together. Draws from a full buffer cost nothing,
+      so timing the first few measures how full the buffer happened to be, not how fast it fills.
     * Before update 1: the loop's jitted step, on a copy of the loop's state and the first batch (put
       on the device first):
       ``lower`` + ``compile`` timed, XLA's cost analysis (FLOPs) and memory analysis, then
@@ -553,7 +555,7 @@ class TrainProbe(StepObserver):
     """
 
     def __init__(self, *, repeats: int = 5, warmup: int = 2, loop_warmup: int = 2, loop_steps: int = 10,
-                 loader_batches: int = 10, profile_dir: Any = None) -> None:
+                 loader_batches: int = 20, profile_dir: Any = None) -> None:
         if min(repeats, loop_steps, loader_batches) < 1 or min(warmup, loop_warmup) < 0:
             raise ValueError("repeats, loop_steps and loader_batches must be >= 1, warm-ups >= 0")
         self.repeats, self.warmup = repeats, warmup
@@ -569,13 +571,14 @@ class TrainProbe(StepObserver):
         return self.loop_warmup + self.loop_steps
 
     def start(self, data_iter: Any) -> None:
-        next(data_iter)  # builds grain's pipeline
-        times = []
-        for _ in range(self.loader_batches):
-            t0 = time.perf_counter()
+        from jaxtalk.data.loader import PREFETCH_BATCHES
+
+        for _ in range(1 + PREFETCH_BATCHES):  # builds grain's pipeline, then empties the read-ahead
             next(data_iter)
-            times.append(time.perf_counter() - t0)
-        self.result["loader_s"] = float(np.median(times))
+        t0 = time.perf_counter()
+        for _ in range(self.loader_batches):
+            next(data_iter)
+        self.result["loader_s"] = (time.perf_counter() - t0) / self.loader_batches
 
     def before_step(self, step: int, state: Any, batch: Any, step_fn: Callable[..., Any]) -> None:
         import jax
@@ -717,7 +720,7 @@ def train_step(
     repeats: int = 5,
     loop_steps: int = 10,
     loop_warmup: int = 2,
-    loader_batches: int = 10,
+    loader_batches: int = 20,
     profile_dir: Any = None,
 ) -> dict[str, Any]:
     """One training row: the model's recipe run for a few steps on ``data`` with a :class:`TrainProbe`.
@@ -735,7 +738,7 @@ def train_step(
         repeats: timed runs of the compiled step.
         loop_steps: updates of the loop timed for its wall time per step.
         loop_warmup: updates of the loop before those.
-        loader_batches: batches timed from the loop's loader.
+        loader_batches: batches timed from the loop's loader (after its read-ahead is emptied).
         profile_dir: write a :mod:`jax.profiler` trace of the timed compiled steps here.
 
     Returns:

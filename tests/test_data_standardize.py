@@ -56,3 +56,15 @@ def test_mask_of_the_wrong_shape_is_rejected():
     # Under the jaxtyping import hook the annotation catches it first (TypeError); without it, our check.
     with pytest.raises((ValueError, TypeError), match="mask|batch"):
         fit_standardizer(np.zeros((4, 3)), np.ones((3,), bool))
+
+
+def test_numpy_input_is_standardised_in_numpy_to_float32_rounding_of_jax():
+    rng = np.random.default_rng(0)
+    x = rng.normal(3.0, 2.0, (4, 7, 5)).astype(np.float32)
+    stats = fit_standardizer(x.reshape(-1, 5))
+    z = standardize(stats, x)
+    assert isinstance(z, np.ndarray) and z.dtype == np.float32
+    np.testing.assert_allclose(z, np.asarray(standardize(stats, jnp.asarray(x))), rtol=3e-7, atol=0)
+    back = unstandardize(stats, z)
+    assert isinstance(back, np.ndarray) and back.dtype == np.float32
+    np.testing.assert_allclose(back, np.asarray(unstandardize(stats, jnp.asarray(z))), rtol=3e-7, atol=0)

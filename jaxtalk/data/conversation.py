@@ -17,7 +17,6 @@ import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.data.loader import PreparedData
@@ -59,15 +58,15 @@ class Normalizer:
 
     def speech(self, x: Float[np.ndarray, "*frames dim"]) -> np.ndarray:
         """Raw speech features -> standardised (float32 NumPy)."""
-        return np.asarray(standardize(self.speech_stats, jnp.asarray(x, jnp.float32)))
+        return standardize(self.speech_stats, np.asarray(x, np.float32))
 
     def motion(self, x: Float[np.ndarray, "*frames 56"]) -> np.ndarray:
         """Raw head parameters -> standardised (float32 NumPy)."""
-        return np.asarray(standardize(self.motion_stats, jnp.asarray(x, jnp.float32)))
+        return standardize(self.motion_stats, np.asarray(x, np.float32))
 
     def unmotion(self, x: Any) -> np.ndarray:
         """Normalised motion back to raw head parameters."""
-        return np.asarray(unstandardize(self.motion_stats, jnp.asarray(x, jnp.float32)))
+        return unstandardize(self.motion_stats, np.asarray(x, np.float32))
 
     def to_dict(self) -> dict[str, list[float]]:
         return {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(self).items()}

@@ -92,9 +92,10 @@ class DisplacementStats:
         return self._map(unstandardize, standardized)
 
     def _map(self, fn: Any, x: Any) -> Any:
-        flat = jnp.asarray(x, jnp.float32).reshape(*np.shape(x)[:-2], -1)
-        out = fn(self.as_standardizer(), flat).reshape(np.shape(x))
-        return np.asarray(out) if isinstance(x, np.ndarray) else out
+        # NumPy stays NumPy (the loader's path; see jaxtalk.data.standardize), anything else is JAX.
+        xp = np if isinstance(x, np.ndarray) else jnp
+        flat = xp.asarray(x, xp.float32).reshape(*np.shape(x)[:-2], -1)
+        return fn(self.as_standardizer(), flat).reshape(np.shape(x))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
