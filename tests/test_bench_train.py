@@ -119,6 +119,22 @@ def test_bench_selection_maps_models_and_presets(monkeypatch, tmp_path):
     assert calls == {"train": (["timar"], ["paper"], {"timar": ()}, None)}
 
 
+def test_bench_rows_use_the_better_of_the_peaks_measured_at_start_and_end(monkeypatch, tmp_path):
+    from jaxtalk import benchmarking
+
+    peaks = iter([10e9, 40e9])  # a slow spell at the start
+    monkeypatch.setattr(benchmarking, "measure_matmul_peak", lambda *a, **k: next(peaks))
+    monkeypatch.setattr(bench, "run_train_benchmarks",
+                        lambda models, presets, **kw: bench.BenchTable("train", bench.with_peak([{"gflop_s": 8.0}], kw["peak_gflop_s"])))
+    monkeypatch.setattr("jaxtalk.data.loader.open_data", lambda *a, **k: None)
+    out = tmp_path / "b.json"
+    result = runner.invoke(app, ["bench", "--train", "--model", "ats", "--no-sampling", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    payload = json.loads(out.read_text())
+    assert payload["matmul_peaks_gflop_s"] == [10.0, 40.0] and payload["matmul_peak_gflop_s"] == 40.0
+    assert payload["tables"][0]["rows"][0]["of_peak"] == 0.2
+
+
 @pytest.mark.parametrize("args, message", [
     (["--train", "--model", "wavenet"], "unknown benchmark model(s) ['wavenet']"),
     (["--profile", "x"], "--profile traces the train steps: add --train"),
