@@ -129,3 +129,22 @@ def test_seven_past_turns_raise_the_true_event_ceiling_on_neck_and_upper_face_by
     assert seven["upper_face"] - none["upper_face"] >= 0.15, (none, seven)
     # Monologues carry neither effect: a monologue's motion is its speech's alone.
     assert not any(corpus.clips[i].is_conversation for i in corpus.split("train")[:1])
+
+
+def test_a_size_spec_with_other_effects_changes_only_the_conversations_by_exactly_those_effects():
+    from jaxtalk.data.synthtalk import corpus as corpus_module
+    from jaxtalk.data.synthtalk.conversation import conversation_motion
+
+    base = synthtalk.SizeSpec((2, 0, 0, 0), 1, 3.0, (1, 0, 0, 0), 8.0, 32, 1e9, lazy=True)
+    strong = dyadic.DyadicEffects(mimicry=1.2, mood=16.0, mood_tau=10.0)
+    plain, control = synthtalk.generate(base, 0), synthtalk.generate(dataclasses.replace(base, effects=strong), 0)
+    monologue = next(i for i, c in enumerate(plain.clips) if not c.is_conversation)
+    np.testing.assert_array_equal(plain.motion_without_audio(monologue)[0], control.motion_without_audio(monologue)[0])
+    a, b = plain.conversations("train")[0]
+    assert not np.allclose(plain.motion_without_audio(a)[0], control.motion_without_audio(a)[0])
+    # The control corpus's conversation is the generator's motion with exactly those strengths.
+    unit = control._units[control.clips[a].unit]
+    timelines, styles, emotions, _, motion_rngs = corpus_module._unit_args(0, control.clips[a].unit, unit, control.clips)
+    expected = conversation_motion(timelines, styles, emotions, motion_rngs, strong)
+    for i in (a, b):
+        np.testing.assert_array_equal(control.motion_without_audio(i)[0], expected[unit.clips.index(i)].motion)

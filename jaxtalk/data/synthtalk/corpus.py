@@ -29,6 +29,7 @@ from jaxtalk.data.synthtalk.conversation import (
     render_channel,
     render_conversation,
 )
+from jaxtalk.data.synthtalk.dyadic import DEFAULT_EFFECTS, DyadicEffects
 from jaxtalk.data.synthtalk.emotions import EMOTIONS
 from jaxtalk.data.synthtalk.motion import MotionParts
 from jaxtalk.data.synthtalk.phones import PHONES
@@ -73,6 +74,10 @@ class SizeSpec:
         tokenizer_seconds: at most this much train audio fits the tokenizers.
         identities: face identities offered for geometry.
         lazy: render units on first access (else all at ``generate``).
+        effects: strengths of the conversations' long-range dyadic effects (mimicry, shared mood).
+            The built-in sizes use :data:`~jaxtalk.data.synthtalk.dyadic.DEFAULT_EFFECTS`; a control
+            corpus for a context experiment raises them (``dataclasses.replace(SIZES["small"],
+            effects=DyadicEffects(...))``), and, being a custom spec, is cached under its own name.
     """
 
     speakers: tuple[int, int, int, int]
@@ -84,6 +89,7 @@ class SizeSpec:
     tokenizer_seconds: float
     identities: tuple[int, ...] = (0, 1, 2, 3)
     lazy: bool = False
+    effects: DyadicEffects = DEFAULT_EFFECTS
 
 
 SIZES: dict[str, SizeSpec] = {
@@ -221,19 +227,19 @@ def _unit_args(seed: int, unit: int, u: _Unit, clips: list[ClipInfo]) -> tuple:
             tuple(_rng(seed, _MOTION, unit, ch) for ch in range(len(infos))))
 
 
-def _render_unit(seed: int, unit: int, u: _Unit, clips: list[ClipInfo]) -> list[Channel]:
+def _render_unit(seed: int, unit: int, u: _Unit, clips: list[ClipInfo], effects: DyadicEffects) -> list[Channel]:
     timelines, styles, emotions, audio_rngs, motion_rngs = _unit_args(seed, unit, u, clips)
     if len(timelines) == 1:
         return [render_channel(timelines[0], styles[0], emotions[0], audio_rngs[0], motion_rngs[0])]
-    return list(render_conversation(timelines, styles, emotions, audio_rngs, motion_rngs))
+    return list(render_conversation(timelines, styles, emotions, audio_rngs, motion_rngs, effects=effects))
 
 
-def _unit_motion(seed: int, unit: int, u: _Unit, clips: list[ClipInfo]) -> list[MotionParts]:
+def _unit_motion(seed: int, unit: int, u: _Unit, clips: list[ClipInfo], effects: DyadicEffects) -> list[MotionParts]:
     # The motion of _render_unit without the audio (its random streams are separate).
     timelines, styles, emotions, _, motion_rngs = _unit_args(seed, unit, u, clips)
     if len(timelines) == 1:
         return [monologue_motion(timelines[0], styles[0], emotions[0], motion_rngs[0])]
-    return list(conversation_motion(timelines, styles, emotions, motion_rngs))
+    return list(conversation_motion(timelines, styles, emotions, motion_rngs, effects))
 
 
 def _digest(clips: list[ClipInfo]) -> str:
@@ -343,7 +349,7 @@ class SynthTalkCorpus:
                     for k, ci in enumerate(u.clips):
                         self._channels[ci] = Channel(z[f"audio{k}"], z[f"motion{k}"], z[f"oracle{k}"])
                     return
-        chans = _render_unit(self.seed, unit, u, self.clips)
+        chans = _render_unit(self.seed, unit, u, self.clips, self.spec.effects)
         for ci, ch in zip(u.clips, chans):
             self._channels[ci] = ch
         if path is not None:
@@ -376,7 +382,7 @@ class SynthTalkCorpus:
         if i in self._channels:
             return self._channels[i].motion, self._channels[i].oracle
         unit = self.clips[i].unit
-        parts = _unit_motion(self.seed, unit, self._units[unit], self.clips)
+        parts = _unit_motion(self.seed, unit, self._units[unit], self.clips, self.spec.effects)
         m = parts[self._units[unit].clips.index(i)]
         return m.motion, m.oracle
 
