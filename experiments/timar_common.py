@@ -21,6 +21,8 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxtalk.data.synthtalk import DEFAULT_EFFECTS
+from jaxtalk.data.synthtalk.dyadic import DyadicEffects
 from jaxtalk.layout import GROUPS
 from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar import TimarConfig
@@ -45,13 +47,54 @@ def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None
     ap.add_argument("--head-width", type=int, default=128)
     ap.add_argument("--warmup", type=int, default=20, help="learning-rate warm-up steps")
     ap.add_argument("--batch-mul", type=int, default=1, help="diffusion (t, noise) draws per frame (MAR: 4)")
+    ap.add_argument("--effects", default="default", choices=sorted(EFFECTS),
+                    help="the corpus's dyadic effect strengths: default, or a control corpus (see EFFECTS)")
+
+
+# SynthTalk's dyadic strengths: the built-in ones, none, and control corpora with each raised (mimicry
+# stays below 1.25: the per-speaker gains are 0.5-0.8 x mimicry, and an echo of an echo must decay).
+EFFECTS: dict[str, DyadicEffects] = {
+    "default": DEFAULT_EFFECTS,
+    "off": DyadicEffects(mimicry=0.0, mood=0.0),
+    "mood_x4": DyadicEffects(mood=4 * DEFAULT_EFFECTS.mood),
+    "mood_x4_tau10": DyadicEffects(mood=4 * DEFAULT_EFFECTS.mood, mood_tau=10.0),
+    "mimicry_1.2": DyadicEffects(mimicry=1.2),
+    "all_raised": DyadicEffects(mimicry=1.2, mood=4 * DEFAULT_EFFECTS.mood, mood_tau=10.0),
+}
+
+
+def _spec(args):
+    from jaxtalk.data.synthtalk.corpus import SIZES
+
+    return dataclasses.replace(SIZES[args.size], effects=EFFECTS[getattr(args, "effects", "default")])
 
 
 def load_corpus(args):
-    """The SynthTalk corpus of ``--size`` from the cache the prepared copy is made from (one generation)."""
+    """The SynthTalk corpus of ``--size`` (with ``--effects``) from the cache the prepared copy is made from
+    (one generation)."""
     from jaxtalk.data.synthtalk import generate
 
-    return generate(args.size, 0, cache_dir=Path(args.cache_dir) / "synthtalk")
+    name = getattr(args, "effects", "default")
+    return generate(args.size if name == "default" else _spec(args), 0, cache_dir=Path(args.cache_dir) / "synthtalk")
+
+
+def open_prepared(args):
+    """The prepared corpus of ``--size`` and ``--effects`` (a control corpus is prepared once, beside
+    ``jaxtalk train``'s ``synthtalk:SIZE``)."""
+    from jaxtalk.data.loader import PreparedData, open_data
+
+    name = getattr(args, "effects", "default")
+    if name == "default":
+        return open_data(f"synthtalk:{args.size}", cache_dir=args.cache_dir)
+    out = Path(args.cache_dir) / f"synthtalk-{args.size}-effects-{name}-seed0"
+    if not (out / "manifest.json").is_file():
+        from jaxtalk.data.prepare import prepare
+        from jaxtalk.data.sources import Source, synthtalk_entries
+
+        corpus = load_corpus(args)
+        prepare(Source(spec=f"synthtalk:{args.size}:0 effects={EFFECTS[name]}", layout="synthtalk",
+                       entries=tuple(synthtalk_entries(corpus)), tokenizer=lambda: corpus.tokenizer("A")), out)
+    return PreparedData(out)
 
 
 def model_config(args, **overrides) -> TimarConfig:
@@ -69,11 +112,10 @@ def train_model(args, config: TimarConfig, *, ckpt_dir=None, max_steps: int | No
     Returns:
         ``(loop result, normaliser, training windows)``.
     """
-    from jaxtalk.data.loader import open_data
     from jaxtalk.models.timar import recipe
 
     optim = TrainSettings(lr=args.lr, warmup_steps=args.warmup, final_lr_ratio=0.1).optim(args.steps)
-    data = open_data(f"synthtalk:{args.size}", cache_dir=args.cache_dir)
+    data = open_prepared(args)
     result = recipe.train(config, data, optim, steps=max_steps or args.steps, key=jax.random.key(seed),
                           batch_size=args.batch, seed=seed, ckpt_dir=ckpt_dir, progress=True)
     return result, Normalizer.from_dict(result.extra["normalizer"]), result.windows
