@@ -36,20 +36,27 @@ def check_finite(x: Any, name: str) -> None:
         raise ValueError(f"{name} contains {bad} non-finite value(s) (NaN or inf); shape {values.shape}")
 
 
-def check_temperature(temperature: Any, dtype: Any = jnp.float32, name: str = "temperature") -> jax.Array:
+def check_temperature(temperature: Any, dtype: Any = jnp.float32, name: str = "temperature", *,
+                      default: float | None = None) -> jax.Array:
     """A sampler's temperature (the scale of its starting or step noise) as a ``()`` array.
 
     Args:
-        temperature: a scalar >= 0 (a tracer passes unchecked, as in :func:`check_finite`).
+        temperature: a scalar >= 0 (a tracer passes unchecked, as in :func:`check_finite`), or None
+            for ``default``.
         dtype: the floating dtype to return.
         name: what the messages call it (a command line says ``--temperature``).
+        default: the model's own temperature, which None stands for.
 
     Returns:
         ``()`` array of ``dtype``.
 
     Raises:
-        ValueError: a non-scalar, negative, NaN or infinite value.
+        ValueError: a non-scalar, negative, NaN or infinite value, or None without a default.
     """
+    if temperature is None:
+        if default is None:
+            raise ValueError(f"{name} is required (this sampler has no default)")
+        temperature = default
     if np.ndim(temperature):
         raise ValueError(f"{name} must be a scalar, got shape {np.shape(temperature)}")
     if not isinstance(temperature, jax.core.Tracer):

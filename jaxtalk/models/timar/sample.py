@@ -351,7 +351,7 @@ def sample(
         params, config,
         jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32),
-        check_temperature(MAR_TEMPERATURE if temperature is None else temperature), sample_steps, sampler, bool(guidance),
+        check_temperature(temperature, default=MAR_TEMPERATURE), sample_steps, sampler, bool(guidance),
     )
 
 

@@ -342,7 +342,7 @@ def stream_step(
         raise ValueError(f"cfg_scale must be a scalar, got shape {cfg.shape}")
     return _step(
         params, config, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
-        jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32), check_temperature(MAR_TEMPERATURE if temperature is None else temperature),
+        jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature, default=MAR_TEMPERATURE),
         sample_steps, sampler,
         bool(guidance), _mode(config, state),
         None if initial_noise is None else jnp.asarray(initial_noise, jnp.float32),

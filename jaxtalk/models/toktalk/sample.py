@@ -165,7 +165,7 @@ def sample(
         jnp.asarray(tokens),
         style_vec,
         noise,
-        check_temperature(config.temperature if temperature is None else temperature, noise.dtype),
+        check_temperature(temperature, noise.dtype, default=config.temperature),
         ts,
         jnp.asarray(w, noise.dtype),
         known,

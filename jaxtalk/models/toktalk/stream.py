@@ -266,7 +266,7 @@ def stream_step(
     ts = jnp.asarray(default_grid(config) if ts is None else ts, state.motion.dtype)
     check_finite(ts, "ts")
     w = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, state.motion.dtype)
-    tau = check_temperature(config.temperature if temperature is None else temperature, state.motion.dtype)
+    tau = check_temperature(temperature, state.motion.dtype, default=config.temperature)
     return _stream_step(params, state, jnp.asarray(chunk_tokens, state.tokens.dtype), style_vec, w, tau, ts, config,
                         src_rate)
 
