@@ -95,7 +95,7 @@ def main() -> None:
             label = VARIANTS[name][0]
             cfg = variant_config(name, config)
             t0 = time.perf_counter()
-            res, norm, _ = train_model(args, cfg)
+            res, norm, _ = train_model(args, cfg, seed=args.seed)
             train_s = time.perf_counter() - t0
             trained[name] = (cfg, res.state.eval_params, norm)
             m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=1.5,

@@ -47,6 +47,7 @@ def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None
     ap.add_argument("--head-width", type=int, default=128)
     ap.add_argument("--warmup", type=int, default=20, help="learning-rate warm-up steps")
     ap.add_argument("--batch-mul", type=int, default=1, help="diffusion (t, noise) draws per frame (MAR: 4)")
+    ap.add_argument("--seed", type=int, default=0, help="training seed (initialisation, batches, diffusion noise)")
     ap.add_argument("--effects", default="default", choices=sorted(EFFECTS),
                     help="the corpus's dyadic effect strengths: default, or a control corpus (see EFFECTS)")
 

@@ -60,7 +60,8 @@ def main() -> None:
         print(f"training on 8-turn windows: {config}")
         t0 = time.perf_counter()
         ckpt_dir = Path(args.ckpt_dir).resolve() if args.ckpt_dir else None
-        result, norm, num_windows = train_model(args, config, ckpt_dir=ckpt_dir, max_steps=args.max_steps)
+        result, norm, num_windows = train_model(args, config, ckpt_dir=ckpt_dir, max_steps=args.max_steps,
+                                                  seed=args.seed)
         train_s = time.perf_counter() - t0
         print(f"trained on {num_windows} windows of 8 turns")
         # This run's steps only (a resumed run starts its history at the checkpoint).
