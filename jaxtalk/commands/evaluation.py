@@ -406,8 +406,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
         preds.append(fit_length(norm.unmotion(np.asarray(out)[0]), total))
         gts.append(side.truth)
         partners.append(side.partner)
-        oracle = data.record(i, ("oracle",)).get("oracle")
-        oracles.append(None if oracle is None else np.asarray(oracle, np.float32)[:total])
+        oracles.append(side.oracle)
     if not preds:
         raise ValueError(f"split {split!r} of {data.root} has no conversation side of a whole {f}-frame turn")
     if padded_frames:

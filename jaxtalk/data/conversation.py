@@ -98,12 +98,14 @@ class ConversationSide:
             them with the last prediction).
         partner: ``(total, 56)`` the user's motion, or the still pose where it has none.
         still_partner: the partner has no tracked motion (``partner`` is the still pose).
+        oracle: ``(total, 56)`` the agent's oracle motion where the dataset has one (SynthTalk), else None.
     """
 
     streams: tuple[np.ndarray, np.ndarray, np.ndarray]
     truth: np.ndarray
     partner: np.ndarray
     still_partner: bool
+    oracle: np.ndarray | None = None
 
     @property
     def padded_frames(self) -> int:
@@ -115,7 +117,7 @@ def side_streams(data: PreparedData, agent: int, user: int, normalizer: Normaliz
                  still: np.ndarray | Sequence[float], frames_per_turn: int) -> ConversationSide | None:
     """The side of clip ``agent`` talking with clip ``user`` (:func:`agent_sides`), or None when it has no
     whole ``frames_per_turn``-frame turn."""
-    a = data.record(agent, ("turn_speech", "motion"))
+    a = data.record(agent, ("turn_speech", "motion", "oracle"))
     u = data.record(user, ("turn_speech", "motion"))
     total = a["motion"].shape[0] if "motion" not in u else min(a["motion"].shape[0], u["motion"].shape[0])
     usable = min(a["turn_speech"].shape[0], u["turn_speech"].shape[0], total) // frames_per_turn * frames_per_turn
@@ -126,7 +128,8 @@ def side_streams(data: PreparedData, agent: int, user: int, normalizer: Normaliz
                else np.broadcast_to(still, (total, still.shape[0])).copy())
     streams = (normalizer.speech(u["turn_speech"][:usable])[None], normalizer.motion(partner[:usable])[None],
                normalizer.speech(a["turn_speech"][:usable])[None])
-    return ConversationSide(streams, np.asarray(a["motion"], np.float32)[:total], partner, "motion" not in u)
+    oracle = np.asarray(a["oracle"], np.float32)[:total] if "oracle" in a else None
+    return ConversationSide(streams, np.asarray(a["motion"], np.float32)[:total], partner, "motion" not in u, oracle)
 
 
 def fit_data_normalizer(data: PreparedData, *, floor: float = 1e-3) -> Normalizer:
