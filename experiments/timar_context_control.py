@@ -44,8 +44,6 @@ FRAMES_PER_TURN = 25
 BIN_S = 0.2
 MAX_LAG_S = 8.0
 GROUP_CHANNELS = {"neck": np.arange(NECK_SLICE.start, NECK_SLICE.stop), "upper_face": np.asarray(GROUPS["upper_face"])}
-# The corpora: default strengths, none, and each effect raised (the TIMAR experiments' --effects).
-SETTINGS = EFFECTS
 
 
 def lag_features(x: np.ndarray, visible_from: np.ndarray, visible_to: np.ndarray) -> np.ndarray:
@@ -133,14 +131,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="small")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--settings", default=",".join(SETTINGS), help="comma-separated names of SETTINGS")
+    ap.add_argument("--settings", default=",".join(EFFECTS), help="comma-separated names of timar_common.EFFECTS "
+                    "(default strengths, none, and each effect raised: the TIMAR experiments' --effects)")
     ap.add_argument("--observe", default="user,both", help="what the probe reads: user (the partner's motion "
                     "only: what free-running generation can use), both (also the agent's TRUE past motion)")
     ap.add_argument("--out", default="experiments/results/timar_context_control.json")
     args = ap.parse_args()
+    labels = args.settings.split(",")
+    unknown = [v for v in labels if v not in EFFECTS]
+    if unknown:
+        ap.error(f"unknown --settings {unknown}; known: {', '.join(EFFECTS)}")
     rows = []
-    for label in args.settings.split(","):
-        spec = dataclasses.replace(SIZES[args.size], lazy=True, effects=SETTINGS[label])
+    for label in labels:
+        spec = dataclasses.replace(SIZES[args.size], lazy=True, effects=EFFECTS[label])
         corpus = generate(spec, args.seed)
         sides = {s: [p for a, b in corpus.conversations(s) for p in ((a, b), (b, a))] for s in ("train", "val", "test")}
         for observe in args.observe.split(","):
@@ -154,7 +157,7 @@ def main() -> None:
     print_table(rows, f"Observable linear probe of the agent's motion (SynthTalk-{args.size}, seed {args.seed}; "
                       f"lags 0-{MAX_LAG_S:g} s in {BIN_S:g}-s bins)")
     write_json(args.out, {"machine": machine_info(), "args": vars(args),
-                          "settings": {k: dataclasses.asdict(v) for k, v in SETTINGS.items()}, "rows": rows})
+                          "settings": {k: dataclasses.asdict(v) for k, v in EFFECTS.items()}, "rows": rows})
 
 
 if __name__ == "__main__":
