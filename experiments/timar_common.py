@@ -88,7 +88,9 @@ def open_prepared(args):
     if name == "default":
         return open_data(f"synthtalk:{args.size}", cache_dir=args.cache_dir)
     out = Path(args.cache_dir) / f"synthtalk-{args.size}-effects-{name}-seed0"
-    if not (out / "manifest.json").is_file():
+    from jaxtalk.data.prepare import is_current
+
+    if not is_current(out):
         from jaxtalk.data.prepare import prepare
         from jaxtalk.data.sources import Source, synthtalk_entries
 

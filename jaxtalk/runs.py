@@ -360,7 +360,7 @@ def save_run_assets(run_dir: str | Path, model: str, data: Any, config: Any) -> 
     if model_spec(model).style_asset:
         train = data.split("train")
         clip = max(train, key=lambda i: data.clips[i]["frames"])
-        style = data.record(clip, ("motion",))["motion"][: 4 * config.style_frames]
+        style = data.record(clip, ("motion",), frames=(0, 4 * config.style_frames))["motion"]
         atomic_save_npy(run_dir / STYLE_FILE, style.astype(np.float32))
 
 

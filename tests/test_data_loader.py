@@ -281,6 +281,68 @@ def test_prepared_data_survives_pickling_after_reading(data):
     assert stats["mean"].shape == stats["std"].shape == (56,)
 
 
+# ------------------------------------------------------------------------------------------ chunked records
+class _CountingReader:
+    """An ArrayRecord reader that logs the record indices of every read."""
+
+    def __init__(self, reader, reads):
+        self.reader, self.reads = reader, reads
+
+    def read(self, indices):
+        self.reads.append(list(indices))
+        return self.reader.read(indices)
+
+
+def _counting(data):
+    """``data`` (a copy with its own readers) whose reads are logged in the returned list."""
+    reads = []
+    data.__dict__["_readers"] = {k: _CountingReader(v, reads) for k, v in data._readers.items()}
+    return data, reads
+
+
+def test_frames_reads_only_the_chunks_it_overlaps_and_gives_the_rows_of_the_whole_record(data):
+    whole = data.record(0)
+    size, n = data.manifest["chunk_frames"], data.clips[0]["frames"]
+    chunks = data.clips[0]["records"] - 1
+    assert size == 25 and chunks == -(-n // size) and n > 2 * size
+    copy, reads = _counting(pickle.loads(pickle.dumps(data)))
+    base = copy.clips[0]["index"]
+    cases = {(0, size): [0], (size - 1, size + 1): [0, 1], (13, 63): [0, 1, 2], (n - 5, n + 40): list(range((n - 5) // size, chunks)),
+             (n + 3, n + 9): [chunks - 1], (0, n): list(range(chunks)), (30, 30): [1]}
+    for (start, stop), expected in cases.items():
+        reads.clear()
+        got = copy.record(0, ("motion", "landmarks", "tokens"), frames=(start, stop))
+        assert reads == [[base] + [base + 1 + k for k in expected]], (start, stop)
+        for k in ("motion", "landmarks"):
+            assert got[k].dtype == whole[k].dtype and got[k].tobytes() == whole[k][start:stop].tobytes(), (start, stop, k)
+            assert got[k].shape == whole[k][start:stop].shape
+        np.testing.assert_array_equal(got["tokens"], whole["tokens"])
+    reads.clear()
+    assert sorted(copy.record(0, ("speech",), frames=(30, 45))) == ["speech"]
+    assert reads == [[base + 2]]  # per-frame keys only: no head
+    with pytest.raises(ValueError, match="0 <= start <= stop"):
+        copy.record(0, ("motion",), frames=(10, 5))
+
+
+def test_cached_reads_equal_uncached_bitwise_and_repeat_reads_touch_no_record(data):
+    cached, reads = _counting(data.cached())
+    for frames in [(13, 63), (13, 63), (0, 90), None]:
+        reads.clear()
+        got = cached.record(0, ("motion", "speech", "tokens"), frames=frames)
+        want = data.record(0, ("motion", "speech", "tokens"), frames=frames)
+        assert sorted(got) == sorted(want)
+        for k in want:
+            assert got[k].tobytes() == want[k].tobytes() and got[k].shape == want[k].shape, (frames, k)
+    reads.clear()
+    got = cached.record(0, ("motion", "speech", "tokens"), frames=(13, 63))
+    assert reads == []
+    with pytest.raises(ValueError, match="read-only"):
+        got["tokens"][0, 0] = 1.0  # a cached array: writing into it would change later windows
+    reads.clear()
+    cached.record(0, ("oracle",), frames=(13, 63))  # a key not read yet: those chunks again
+    assert len(reads) == 1 and len(reads[0]) == 3
+
+
 # ------------------------------------------------------------------------------------------ threads
 @dataclasses.dataclass(frozen=True, eq=False)
 class CountingRows(Rows):

@@ -288,6 +288,49 @@ def test_changed_feature_settings_reprepare_every_clip(six_clips, tmp_path):
     assert [p.name for p in sorted((out / "shards").iterdir())] == ["00000.array_record", "00000.json"]
 
 
+def test_preparation_of_an_older_format_is_refused_by_the_reader_and_prepared_again_in_full(six_clips, tmp_path):
+    out = tmp_path / "out"
+    _quiet(six_clips, out, FAST)
+    before = _records(out)
+    # What format 1 left: a manifest and shard indices without the format field.
+    manifest = _manifest(out)
+    (out / "manifest.json").write_text(json.dumps({**manifest, "format": 1}))
+    index = out / "shards" / "00000.json"
+    index.write_text(json.dumps({k: v for k, v in json.loads(index.read_text()).items() if k != "format"}))
+    assert not prepare_mod.is_current(out)
+    with pytest.raises(ValueError, match="format 1, this jaxtalk reads 2; prepare again"):
+        PreparedData(out)
+    result = _quiet(six_clips, out, FAST)
+    assert (result.new, result.clips) == (6, 6) and prepare_mod.is_current(out)
+    after = _records(out)
+    for name in before:
+        _assert_records_equal(before[name], after[name])
+
+
+def test_clip_records_are_a_head_and_chunks_whose_rows_concatenate_back_to_each_array():
+    from jaxtalk.data.prepare import decode_record, encode_clip
+
+    rng = np.random.default_rng(0)
+    arrays = {"motion": rng.standard_normal((60, 56)).astype(np.float32),
+              "speech": rng.standard_normal((60, 8)).astype(np.float32),
+              "oracle": rng.standard_normal((47, 56)).astype(np.float32),  # shorter than the clip
+              "tokens": rng.standard_normal((30, 4)).astype(np.float32), "template": np.ones((5, 3), np.float32)}
+    parts = [decode_record(p) for p in encode_clip(arrays, chunk_frames=25)]
+    assert len(parts) == 1 + 3
+    assert sorted(parts[0]) == ["template", "tokens"]
+    for k, v in parts[0].items():
+        np.testing.assert_array_equal(v, arrays[k])
+    assert [parts[c]["motion"].shape[0] for c in (1, 2, 3)] == [25, 25, 10]
+    assert [parts[c]["oracle"].shape[0] for c in (1, 2, 3)] == [25, 22, 0]
+    for k in ("motion", "speech", "oracle"):
+        whole = np.concatenate([parts[c][k] for c in (1, 2, 3)])
+        assert whole.dtype == arrays[k].dtype and whole.tobytes() == arrays[k].tobytes(), k
+    # A clip without per-frame arrays still has one (empty) chunk; a chunk size below 1 is refused.
+    assert len(encode_clip({"tokens": arrays["tokens"]})) == 2
+    with pytest.raises(ValueError, match="chunk_frames must be >= 1"):
+        encode_clip(arrays, chunk_frames=0)
+
+
 def test_killed_run_keeps_its_first_shard_and_the_rerun_prepares_only_the_rest(six_clips, tmp_path):
     src = open_source(six_clips)
 

@@ -11,7 +11,8 @@
   interrupted run resumes on the same batch.
 
 Memory stays bounded by the batch, not the dataset: windows are read from disk when they are needed,
-and each loader keeps at most ``cache_bytes`` (:data:`CACHE_BYTES`, 256 MiB) of decoded clips.
+and each loader keeps at most ``cache_bytes`` (:data:`CACHE_BYTES`, 256 MiB) of decoded records. A
+window reads only the one-second chunks of its clip that it overlaps (``record(..., frames=...)``).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from jaxtalk.data.prepare import FORMAT_VERSION, MANIFEST, SHARDS, decode_record
+from jaxtalk.data.prepare import FORMAT_VERSION, FRAME_KEYS, MANIFEST, SHARDS, decode_record, is_current
 
 __all__ = ["PreparedData", "WindowRecipe", "WindowLoader", "make_loader", "open_data", "iter_windows"]
 
@@ -39,21 +40,22 @@ PREFETCH_BATCHES = 8
 READ_THREADS = 4
 # Decoded arrays a loader keeps, per process (LRU, by bytes). Neighbouring windows overlap (TokTalk and
 # ATS hop a quarter window, STM reads each clip once per mesh) and TokTalk reads a second clip per
-# window for its style, so without it every window reads and decompresses whole records again.
+# window for its style, so without it every window reads and decodes its chunks again.
 CACHE_BYTES = 256 * 2**20
 
 
-class _ClipCache:
-    """Least-recently-used decoded arrays of clips, at most ``budget`` bytes of them (thread-safe).
+class _RecordCache:
+    """Least-recently-used decoded arrays of records, at most ``budget`` bytes of them (thread-safe).
 
-    Per clip, the arrays of the keys asked for so far (None: the record has no such key). Cached
-    arrays are read-only, so a caller that writes into one fails instead of changing later windows.
-    A copy (e.g. pickled into a grain worker process) starts empty.
+    Per record (a ``(clip, part)`` pair: part -1 is the clip's head, k its k-th chunk), the arrays of
+    the keys asked for so far (None: the record has no such key). Cached arrays are read-only, so a
+    caller that writes into one fails instead of changing later windows. A copy (e.g. pickled into a
+    grain worker process) starts empty.
     """
 
     def __init__(self, budget: int) -> None:
         self.budget = int(budget)
-        self._clips: collections.OrderedDict[int, dict[str, np.ndarray | None]] = collections.OrderedDict()
+        self._records: collections.OrderedDict[tuple[int, int], dict[str, np.ndarray | None]] = collections.OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
@@ -63,29 +65,29 @@ class _ClipCache:
     def __setstate__(self, state: dict) -> None:
         self.__init__(state["budget"])
 
-    def get(self, i: int, keys: Sequence[str]) -> dict[str, np.ndarray] | None:
+    def get(self, key: tuple[int, int], names: Sequence[str]) -> dict[str, np.ndarray] | None:
         with self._lock:
-            arrays = self._clips.get(i)
-            if arrays is None or any(k not in arrays for k in keys):
+            arrays = self._records.get(key)
+            if arrays is None or any(k not in arrays for k in names):
                 return None
-            self._clips.move_to_end(i)
-            return {k: arrays[k] for k in keys if arrays[k] is not None}
+            self._records.move_to_end(key)
+            return {k: arrays[k] for k in names if arrays[k] is not None}
 
-    def put(self, i: int, arrays: dict[str, np.ndarray | None]) -> None:
+    def put(self, key: tuple[int, int], arrays: dict[str, np.ndarray | None]) -> None:
         for a in arrays.values():
             if a is not None:
                 a.flags.writeable = False
         with self._lock:
-            old = self._clips.pop(i, {})
+            old = self._records.pop(key, {})
             merged = {**old, **arrays}
             size = sum(a.nbytes for a in merged.values() if a is not None)
             self._bytes -= sum(a.nbytes for a in old.values() if a is not None)
             if size > self.budget:
                 return
-            self._clips[i] = merged
+            self._records[key] = merged
             self._bytes += size
             while self._bytes > self.budget:
-                _, dropped = self._clips.popitem(last=False)
+                _, dropped = self._records.popitem(last=False)
                 self._bytes -= sum(a.nbytes for a in dropped.values() if a is not None)
 
 
@@ -167,7 +169,7 @@ class PreparedData:
 
         return {s: ArrayRecordReader(str(self.root / SHARDS / s)) for s in self.manifest["shards"]}
 
-    _cache: _ClipCache | None = None
+    _cache: _RecordCache | None = None
 
     def cached(self, budget: int = CACHE_BYTES) -> PreparedData:
         """This dataset with a cache of up to ``budget`` bytes of decoded arrays (LRU, per process).
@@ -176,20 +178,65 @@ class PreparedData:
         returns is bitwise what the uncached one does. ``budget <= 0``: no cache.
         """
         other = copy.copy(self)  # shares the manifest; opens its own readers
-        other._cache = _ClipCache(budget) if budget > 0 else None
+        other._cache = _RecordCache(budget) if budget > 0 else None
         return other
 
-    def record(self, i: int, keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
-        """The arrays of clip ``i`` (only ``keys`` when given; absent keys are left out)."""
-        cache = self._cache if keys is not None else None
-        if cache is not None and (hit := cache.get(i, keys)) is not None:
-            return hit
+    def record(self, i: int, keys: Sequence[str] | None = None, frames: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+        """The arrays of clip ``i``.
+
+        Args:
+            i: the clip's position.
+            keys: only these arrays (default all); absent keys are left out.
+            frames: ``(start, stop)``: the per-frame arrays (:data:`~jaxtalk.data.prepare.FRAME_KEYS`)
+                cut to rows ``[start, stop)`` (as ``array[start:stop]``), read from the chunks that
+                hold them and no others; the other arrays are whole.
+
+        Raises:
+            ValueError: ``frames`` with ``start < 0`` or ``stop < start``.
+        """
         c = self.clips[i]
-        data = self._readers[c["shard"]].read([c["index"]])[0]
-        arrays = decode_record(data, keys)
-        if cache is not None:
-            cache.put(i, {k: arrays.get(k) for k in keys})
-        return arrays
+        size, chunks = self.manifest["chunk_frames"], c["records"] - 1
+        if frames is None:
+            start, stop = 0, chunks * size
+        else:
+            start, stop = (int(v) for v in frames)
+            if start < 0 or stop < start:
+                raise ValueError(f"frames must be (start, stop) with 0 <= start <= stop, got {frames}")
+        head_keys = None if keys is None else tuple(k for k in keys if k not in FRAME_KEYS)
+        frame_keys = None if keys is None else tuple(k for k in keys if k in FRAME_KEYS)
+        # At least one chunk, so that a range past the clip's end gives empty arrays, as slicing does.
+        first = min(start // size, chunks - 1)
+        last = max(min(-(-stop // size), chunks), first + 1)
+        parts = ([-1] if head_keys is None or head_keys else []) + (list(range(first, last)) if frame_keys is None or frame_keys else [])
+        got = self._read_parts(i, parts, head_keys, frame_keys)
+        out = dict(got.get(-1, {}))
+        pieces = [got[p] for p in parts if p >= 0]
+        for k in {k: None for piece in pieces for k in piece}:  # in the record's order
+            whole = np.concatenate([piece[k] for piece in pieces if k in piece])
+            out[k] = whole[start - first * size:stop - first * size]
+        return out
+
+    def _read_parts(self, i: int, parts: Sequence[int], head_keys: tuple[str, ...] | None,
+                    frame_keys: tuple[str, ...] | None) -> dict[int, dict[str, np.ndarray]]:
+        """The decoded records ``parts`` of clip ``i`` (-1: the head; k: chunk k), the cache's first,
+        the others read in one call."""
+        c = self.clips[i]
+        cache = self._cache if head_keys is not None else None
+        got: dict[int, dict[str, np.ndarray]] = {}
+        missing = []
+        for p in parts:
+            hit = cache.get((i, p), head_keys if p < 0 else frame_keys) if cache is not None else None
+            if hit is None:
+                missing.append(p)
+            else:
+                got[p] = hit
+        if missing:
+            for p, data in zip(missing, self._readers[c["shard"]].read([c["index"] + 1 + p for p in missing])):
+                names = head_keys if p < 0 else frame_keys
+                got[p] = decode_record(data, names)
+                if cache is not None:
+                    cache.put((i, p), {k: got[p].get(k) for k in names})
+        return got
 
     def motion_stats(self, floor: float = 0.05) -> dict[str, np.ndarray]:
         """Mean and std of the training split's 56-d motion (per channel), a standardizer.
@@ -232,7 +279,7 @@ def open_data(spec: str | Path, *, cache_dir: str | Path = ".cache/prepared", pr
         parts = text.split(":")
         seed = parts[2] if len(parts) > 2 else "0"
         out = Path(cache_dir) / f"synthtalk-{parts[1]}-seed{seed}"
-        if not (out / MANIFEST).is_file():
+        if not is_current(out):  # not prepared, or prepared by an older jaxtalk
             prepare(open_source(text, cache_dir=Path(cache_dir) / "synthtalk"), out, progress=progress)
         return PreparedData(out)
     return PreparedData(spec)

@@ -6,14 +6,20 @@ Layout of ``DATA``::
     manifest.json          source, feature settings and their hash, fps, clips (name, speaker,
                            split, frames, partner, emotion, intensity, record index), splits,
                            normalisation statistics, token rate/width, feature widths
-    shards/NNNNN.array_record   one record per clip (an uncompressed .npz of its arrays)
-    shards/NNNNN.json      the shard's clip entries (name, content hash, settings hash, sums)
+    shards/NNNNN.array_record   each clip as consecutive records, each an uncompressed .npz: a
+                           head with the arrays that are not per frame, then its per-frame arrays
+                           cut into chunks of ``chunk_frames`` (25) frames
+    shards/NNNNN.json      the shard's clip entries (name, content hash, settings hash, sums,
+                           first record and record count)
     tokenizer.npz          the VQ tokenizer fitted on the training split (``--tokens vq``)
     report.csv             every clip that was skipped: file, reason
 
 A record holds ``motion (T, 56)`` (or ``vertices (T, V, 3)`` + ``template``), ``speech (T, D)``,
 ``turn_speech (turns*25, D)``, ``landmarks (T, 68, 3)`` (displacements on the built-in face, for
-FreeTalk), ``tokens (Tt, W)`` and ``oracle (T, 56)`` where known; T is at 25 fps.
+FreeTalk), ``tokens (Tt, W)`` and ``oracle (T, 56)`` where known; T is at 25 fps. The per-frame arrays
+(:data:`FRAME_KEYS`) are stored in chunks so that a window reads the chunks it overlaps, not the whole
+clip: on data larger than the loader's cache every window is read from disk, and reading (and
+checking) a long clip's whole record per window made ATS's loader slower than five times its step.
 
 Incremental and resumable: each shard is written under a temporary name and renamed, then its
 ``.json`` index (also atomically); a run killed half way keeps every finished shard. A second run
@@ -43,14 +49,20 @@ from jaxtalk.data.sources import BadClip, ClipEntry, RawClip, Source, check_clip
 from jaxtalk.files import atomic_output, atomic_write_text
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
-__all__ = ["PrepareSettings", "PrepareResult", "prepare", "MANIFEST", "REPORT", "FORMAT_VERSION",
-           "encode_record", "decode_record", "clip_record"]
+__all__ = ["PrepareSettings", "PrepareResult", "prepare", "MANIFEST", "REPORT", "FORMAT_VERSION", "FRAME_KEYS",
+           "CHUNK_FRAMES", "is_current", "encode_record", "decode_record", "encode_clip", "clip_record"]
 
 MANIFEST = "manifest.json"
 REPORT = "report.csv"
 SHARDS = "shards"
 TOKENIZER = "tokenizer.npz"
-FORMAT_VERSION = 1
+# 2: a clip is a head record plus chunk records of CHUNK_FRAMES frames (1: one record per clip).
+FORMAT_VERSION = 2
+# The arrays with one row per 25-fps frame, stored in chunks; every other array is in the head record.
+FRAME_KEYS = ("motion", "vertices", "oracle", "speech", "landmarks")
+# One second: a 50-frame window (ATS) reads 2-3 chunks, a 100-frame one (TokTalk) 4-5, and a clip of
+# a few hundred frames is still read in one call of a dozen records.
+CHUNK_FRAMES = 25
 SPLITS = ("train", "val", "test", "ood")
 
 
@@ -146,6 +158,21 @@ def _read_npy(buf: bytes) -> np.ndarray:
             flat = np.frombuffer(buf, dtype, count=int(np.prod(shape, dtype=np.int64)), offset=start + size)
             return flat.reshape(shape, order="F" if m[2] == "True" else "C").copy()
     return np.lib.format.read_array(io.BytesIO(buf), allow_pickle=False)
+
+
+def encode_clip(arrays: dict[str, np.ndarray], chunk_frames: int = CHUNK_FRAMES) -> list[bytes]:
+    """A clip's records: the head (the arrays not in :data:`FRAME_KEYS`), then one record per chunk of
+    ``chunk_frames`` frames holding rows ``[k * chunk_frames, (k + 1) * chunk_frames)`` of each
+    per-frame array (an array shorter than the clip has empty rows in its last chunks, so that
+    concatenating a key's chunks gives it back exactly)."""
+    if chunk_frames < 1:
+        raise ValueError(f"chunk_frames must be >= 1, got {chunk_frames}")
+    framed = {k: v for k, v in arrays.items() if k in FRAME_KEYS}
+    frames = max((v.shape[0] for v in framed.values()), default=0)
+    chunks = max(-(-frames // chunk_frames), 1)
+    head = encode_record({k: v for k, v in arrays.items() if k not in FRAME_KEYS})
+    return [head] + [encode_record({k: v[c * chunk_frames:(c + 1) * chunk_frames] for k, v in framed.items()})
+                     for c in range(chunks)]
 
 
 def decode_record(data: bytes, keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
@@ -245,7 +272,8 @@ def _read_checked(entry: ClipEntry, settings: PrepareSettings, names: set[str]) 
 
 
 def _existing(shard_dir: Path, digest: str) -> dict[str, dict[str, Any]]:
-    """Clip entries of finished shards of this settings digest; other shards and leftovers removed."""
+    """Clip entries of finished shards of this settings digest and format; other shards (another
+    digest, or an older format, prepared again) and leftovers removed."""
     kept: dict[str, dict[str, Any]] = {}
     if not shard_dir.is_dir():
         return kept
@@ -253,7 +281,7 @@ def _existing(shard_dir: Path, digest: str) -> dict[str, dict[str, Any]]:
     for index in sorted(shard_dir.glob("[0-9]*.json")):
         info = json.loads(index.read_text())
         shard = index.with_suffix(".array_record")
-        if info.get("settings") != digest or not shard.is_file():
+        if info.get("settings") != digest or info.get("format") != FORMAT_VERSION or not shard.is_file():
             index.unlink()
             shard.unlink(missing_ok=True)
             continue
@@ -266,19 +294,22 @@ def _existing(shard_dir: Path, digest: str) -> dict[str, dict[str, Any]]:
     return kept
 
 
-def _write_shard(shard_dir: Path, number: int, records: list[tuple[dict, bytes]], digest: str) -> str:
+def _write_shard(shard_dir: Path, number: int, records: list[tuple[dict, list[bytes]]], digest: str) -> str:
     from array_record.python.array_record_module import ArrayRecordWriter
 
     name = f"{number:05d}.array_record"
     with atomic_output(shard_dir / name) as tmp:
         # Uncompressed: ArrayRecord's default (zstd) saves only ~25% on float features and doubles the
-        # loader's cost of reading a record (a whole record is read per clip).
+        # loader's cost of reading a record.
         writer = ArrayRecordWriter(str(tmp), "group_size:1,uncompressed")
-        for _, data in records:
-            writer.write(data)
+        clips, index = [], 0
+        for meta, parts in records:
+            for data in parts:
+                writer.write(data)
+            clips.append({**meta, "index": index, "records": len(parts)})
+            index += len(parts)
         writer.close()
-    clips = [{**meta, "index": i} for i, (meta, _) in enumerate(records)]
-    atomic_write_text(shard_dir / f"{number:05d}.json", json.dumps({"settings": digest, "clips": clips}))
+    atomic_write_text(shard_dir / f"{number:05d}.json", json.dumps({"settings": digest, "format": FORMAT_VERSION, "clips": clips}))
     return name
 
 
@@ -313,14 +344,18 @@ def _fit_tokenizer(entries: Sequence[ClipEntry], splits: dict[str, str], setting
     return tok
 
 
+def is_current(out: str | os.PathLike) -> bool:
+    """``out`` holds a finished preparation in this jaxtalk's format (an older one is prepared again:
+    ``prepare`` keeps nothing of it but the tokenizer)."""
+    try:
+        return json.loads((Path(out) / MANIFEST).read_text()).get("format") == FORMAT_VERSION
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def _is_prepared_folder(out: Path) -> bool:
     """``out`` holds a preparation: jaxtalk's manifest, or shard indices of an interrupted run."""
-    try:
-        if json.loads((out / MANIFEST).read_text()).get("format") == FORMAT_VERSION:
-            return True
-    except (OSError, ValueError, AttributeError):
-        pass
-    return any((out / SHARDS).glob("[0-9]*.json"))
+    return is_current(out) or any((out / SHARDS).glob("[0-9]*.json"))
 
 
 def claim_prepared_folder(out: Path, src: Source, *, overwrite: bool = False) -> None:
@@ -413,7 +448,7 @@ def prepare(
         src.tokenizer().save(out / TOKENIZER)
 
     skipped: list[tuple[str, str]] = []
-    buffer: list[tuple[dict, bytes]] = []
+    buffer: list[tuple[dict, list[bytes]]] = []
     number = max((int(p.stem) for p in shard_dir.glob("[0-9]*.json")), default=-1) + 1
     new = 0
     good: dict[str, str] = {}  # content hash of every clip that is usable in this run
@@ -444,7 +479,7 @@ def prepare(
             "sum": motion.sum(0, dtype=np.float64).tolist() if motion is not None else None,
             "sumsq": np.square(motion, dtype=np.float64).sum(0).tolist() if motion is not None else None,
         }
-        buffer.append((meta, encode_record(arrays)))
+        buffer.append((meta, encode_clip(arrays)))
         new += 1
         good[entry.name] = chash
         fresh.add(entry.name)
@@ -538,7 +573,7 @@ def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mo
             "name": name, "speaker": entry.speaker, "split": splits[name], "frames": meta["frames"],
             "has_motion": meta["has_motion"], "has_vertices": meta["has_vertices"], "tokens": meta["tokens"],
             "partner": entry.partner, "emotion": entry.emotion, "intensity": entry.intensity,
-            "shard": meta["shard"], "index": meta["index"], "hash": meta["hash"],
+            "shard": meta["shard"], "index": meta["index"], "records": meta["records"], "hash": meta["hash"],
             "sum": meta["sum"], "sumsq": meta["sumsq"],
         })
     present = {c["name"] for c in clips}
@@ -559,6 +594,7 @@ def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mo
         "settings": {**dataclasses.asdict(settings), "tokens": tokens_mode},
         "settings_hash": digest,
         "fps": MOTION_FPS,
+        "chunk_frames": CHUNK_FRAMES,
         "sample_rate": AUDIO_SAMPLE_RATE,
         "turn_frames": TURN_FRAMES,
         "speech_dim": int(sample["speech"].shape[1]) if "speech" in sample else None,
@@ -594,8 +630,9 @@ def _first_record(shard_dir: Path, clips: list[dict]) -> dict[str, np.ndarray]:
         return {}
     c = clips[0]
     reader = ArrayRecordReader(str(shard_dir / c["shard"]))
-    try:
-        return decode_record(reader.read([c["index"]])[0])
+    try:  # the head and the first chunk: every array, for its width
+        head, chunk = reader.read([c["index"], c["index"] + 1])
+        return {**decode_record(head), **decode_record(chunk)}
     finally:
         reader.close()
 

@@ -98,11 +98,10 @@ class ATSWindows:
         from jaxtalk.models.freetalk.emotions import NEUTRAL, emotion_ids
 
         i, s = (int(v) for v in row)
-        rec = data.record(i, ("landmarks", "speech"))
+        rec = data.record(i, ("landmarks", "speech"), frames=(s, s + (self.pad_to if self.whole else self.window)))
         clip = data.clips[i]
-        sl = slice(s, s + (self.pad_to if self.whole else self.window))
-        example = {"displacements": np.asarray(self.stats.normalize(rec["landmarks"][sl]), np.float32),
-                   "audio": rec["speech"][sl].astype(np.float32),
+        example = {"displacements": np.asarray(self.stats.normalize(rec["landmarks"]), np.float32),
+                   "audio": rec["speech"].astype(np.float32),
                    "emotion": np.asarray(emotion_ids(clip["emotion"] or NEUTRAL, self.emotions)[0], np.int32),
                    "intensity": np.asarray(clip["intensity"] if clip["intensity"] is not None else 1.0, np.float32)}
         if self.whole:
@@ -207,7 +206,7 @@ class STMWindows:
         from jaxtalk.models.freetalk.data import without_head_pose
 
         k, i, s = (int(v) for v in row)
-        motion = data.record(i, ("motion",))["motion"][s:s + self.window]
+        motion = data.record(i, ("motion",), frames=(s, s + self.window))["motion"]
         lms, verts = self.meshes[k].motion(without_head_pose(motion))
         return {"mesh": np.asarray(k, np.int32), "landmarks": lms.astype(np.float32),
                 "vertices": np.pad(verts, ((0, 0), (0, self.num_vertices - verts.shape[1]), (0, 0))).astype(np.float32)}

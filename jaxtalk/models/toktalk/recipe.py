@@ -122,13 +122,13 @@ class TokTalkWindows:
 
     def example(self, data: PreparedData, row: np.ndarray) -> dict[str, np.ndarray]:
         i, st, ref, r0 = (int(v) for v in row)
-        rec = data.record(i, ("motion", "tokens"))
-        motion, tokens = rec["motion"], rec["tokens"]
         w = self.window_frames
-        length = min(w, motion.shape[0] - st)
+        rec = data.record(i, ("motion", "tokens"), frames=(st, st + w))
+        motion, tokens = rec["motion"], rec["tokens"]
+        length = motion.shape[0]
         seg = np.zeros((w, motion.shape[1]), np.float32)
-        seg[:length] = motion[st:st + length]
-        style = (data.record(ref, ("motion",))["motion"] if ref != i else motion)[r0:r0 + self.config.style_frames]
+        seg[:length] = motion
+        style = data.record(ref, ("motion",), frames=(r0, r0 + self.config.style_frames))["motion"]
         # A reference clip shorter than style_frames is zero-padded and masked: edge-padding would
         # repeat its last pose and weight the anchor pose (the clip's mean) towards it.
         style_clip = np.zeros((self.config.style_frames, motion.shape[1]), np.float32)
