@@ -300,26 +300,31 @@ def _counting(data):
     return data, reads
 
 
-def test_frames_reads_only_the_chunks_it_overlaps_and_gives_the_rows_of_the_whole_record(data):
+def test_frames_reads_only_the_asked_arrays_in_the_chunks_it_overlaps_and_gives_the_whole_arrays_rows(data):
+    from jaxtalk.data.prepare import record_positions
+
     whole = data.record(0)
-    size, n = data.manifest["chunk_frames"], data.clips[0]["frames"]
-    chunks = data.clips[0]["records"] - 1
+    c = data.clips[0]
+    size, n, chunks = data.manifest["chunk_frames"], c["frames"], c["chunks"]
     assert size == 25 and chunks == -(-n // size) and n > 2 * size
+    assert sorted(whole) == sorted(c["head"] + c["framed"])
     copy, reads = _counting(pickle.loads(pickle.dumps(data)))
-    base = copy.clips[0]["index"]
-    cases = {(0, size): [0], (size - 1, size + 1): [0, 1], (13, 63): [0, 1, 2], (n - 5, n + 40): list(range((n - 5) // size, chunks)),
-             (n + 3, n + 9): [chunks - 1], (0, n): list(range(chunks)), (30, 30): [1]}
+    keys = ("motion", "landmarks", "tokens")
+    cases = {(0, size): [0], (size - 1, size + 1): [0, 1], (13, 63): [0, 1, 2],
+             (n - 5, n + 40): list(range((n - 5) // size, chunks)), (n + 3, n + 9): [chunks - 1],
+             (0, n): list(range(chunks)), (30, 30): [1]}
     for (start, stop), expected in cases.items():
         reads.clear()
-        got = copy.record(0, ("motion", "landmarks", "tokens"), frames=(start, stop))
-        assert reads == [[base] + [base + 1 + k for k in expected]], (start, stop)
+        got = copy.record(0, keys, frames=(start, stop))
+        assert reads == [[index for _, _, index in record_positions(c, keys, expected)]], (start, stop)
+        assert len(reads[0]) == 1 + 2 * len(expected)
         for k in ("motion", "landmarks"):
             assert got[k].dtype == whole[k].dtype and got[k].tobytes() == whole[k][start:stop].tobytes(), (start, stop, k)
-            assert got[k].shape == whole[k][start:stop].shape
+            assert got[k].shape == whole[k][start:stop].shape and got[k].flags.writeable
         np.testing.assert_array_equal(got["tokens"], whole["tokens"])
     reads.clear()
-    assert sorted(copy.record(0, ("speech",), frames=(30, 45))) == ["speech"]
-    assert reads == [[base + 2]]  # per-frame keys only: no head
+    assert sorted(copy.record(0, ("speech", "nope"), frames=(30, 45))) == ["speech"]
+    assert reads == [[index for _, _, index in record_positions(c, ["speech"], [1])]]
     with pytest.raises(ValueError, match="0 <= start <= stop"):
         copy.record(0, ("motion",), frames=(10, 5))
 
@@ -327,7 +332,6 @@ def test_frames_reads_only_the_chunks_it_overlaps_and_gives_the_rows_of_the_whol
 def test_cached_reads_equal_uncached_bitwise_and_repeat_reads_touch_no_record(data):
     cached, reads = _counting(data.cached())
     for frames in [(13, 63), (13, 63), (0, 90), None]:
-        reads.clear()
         got = cached.record(0, ("motion", "speech", "tokens"), frames=frames)
         want = data.record(0, ("motion", "speech", "tokens"), frames=frames)
         assert sorted(got) == sorted(want)
@@ -338,8 +342,7 @@ def test_cached_reads_equal_uncached_bitwise_and_repeat_reads_touch_no_record(da
     assert reads == []
     with pytest.raises(ValueError, match="read-only"):
         got["tokens"][0, 0] = 1.0  # a cached array: writing into it would change later windows
-    reads.clear()
-    cached.record(0, ("oracle",), frames=(13, 63))  # a key not read yet: those chunks again
+    cached.record(0, ("oracle",), frames=(13, 63))  # an array not read yet: its three chunks
     assert len(reads) == 1 and len(reads[0]) == 3
 
 

@@ -62,21 +62,22 @@ def _assert_records_equal(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) ->
 
 
 # ------------------------------------------------------------------------------------------ records
-def test_record_encoding_round_trips_every_array_bitwise_and_decodes_only_the_asked_keys():
-    from jaxtalk.data.prepare import decode_record, encode_record
+def test_record_encoding_round_trips_every_array_bitwise():
+    from jaxtalk.data.prepare import decode_array, encode_array
 
     rng = np.random.default_rng(0)
     arrays = {"motion": rng.standard_normal((50, 56)).astype(np.float32), "index": np.arange(7),
-              "scalar": np.float32(3.5), "fortran": np.asfortranarray(rng.standard_normal((3, 4))),
+              "scalar": np.asarray(np.float32(3.5)), "fortran": np.asfortranarray(rng.standard_normal((3, 4))),
               "empty": np.zeros((0, 5), np.float32), "mask": np.arange(10) < 3,
               "big_endian": rng.standard_normal((3, 4, 5)).astype(">f8"), "half": np.ones((2, 3), np.float16)}
-    got = decode_record(encode_record(arrays))
-    assert list(got) == list(arrays)
     for k, v in arrays.items():
-        assert got[k].dtype == v.dtype and got[k].shape == v.shape, k
-        np.testing.assert_array_equal(got[k], v)
-        assert got[k].flags.writeable
-    assert list(decode_record(encode_record(arrays), ["mask", "nope", "index"])) == ["mask", "index"]
+        got = decode_array(encode_array(v))
+        assert got.dtype == np.asarray(v).dtype and got.shape == np.shape(v), k
+        np.testing.assert_array_equal(got, v)
+        assert got.flags.writeable
+        view = decode_array(encode_array(v), copy=False)
+        np.testing.assert_array_equal(view, v)
+        assert not view.flags.writeable
 
 
 # ------------------------------------------------------------------------------------------ broken clips
@@ -307,26 +308,31 @@ def test_preparation_of_an_older_format_is_refused_by_the_reader_and_prepared_ag
         _assert_records_equal(before[name], after[name])
 
 
-def test_clip_records_are_a_head_and_chunks_whose_rows_concatenate_back_to_each_array():
-    from jaxtalk.data.prepare import decode_record, encode_clip
+def test_clip_records_are_one_array_each_and_an_arrays_chunks_concatenate_back_to_it():
+    from jaxtalk.data.prepare import decode_array, encode_clip, record_positions
 
     rng = np.random.default_rng(0)
     arrays = {"motion": rng.standard_normal((60, 56)).astype(np.float32),
+              "tokens": rng.standard_normal((30, 4)).astype(np.float32),
               "speech": rng.standard_normal((60, 8)).astype(np.float32),
               "oracle": rng.standard_normal((47, 56)).astype(np.float32),  # shorter than the clip
-              "tokens": rng.standard_normal((30, 4)).astype(np.float32), "template": np.ones((5, 3), np.float32)}
-    parts = [decode_record(p) for p in encode_clip(arrays, chunk_frames=25)]
-    assert len(parts) == 1 + 3
-    assert sorted(parts[0]) == ["template", "tokens"]
-    for k, v in parts[0].items():
-        np.testing.assert_array_equal(v, arrays[k])
-    assert [parts[c]["motion"].shape[0] for c in (1, 2, 3)] == [25, 25, 10]
-    assert [parts[c]["oracle"].shape[0] for c in (1, 2, 3)] == [25, 22, 0]
+              "template": np.ones((5, 3), np.float32)}
+    records, layout = encode_clip(arrays, chunk_frames=25)
+    assert layout == {"head": ["tokens", "template"], "framed": ["motion", "speech", "oracle"], "chunks": 3}
+    assert len(records) == 2 + 3 * 3
+    clip = {**layout, "index": 10}
+    where = record_positions(clip, ["oracle", "tokens", "nope", "motion"], range(1, 3))
+    assert where == [("tokens", -1, 10), ("oracle", 1, 17), ("motion", 1, 15), ("oracle", 2, 20), ("motion", 2, 18)]
+    for k in ("tokens", "template"):
+        (_, _, index), = record_positions(clip, [k], range(0))
+        assert decode_array(records[index - 10]).tobytes() == arrays[k].tobytes()
     for k in ("motion", "speech", "oracle"):
-        whole = np.concatenate([parts[c][k] for c in (1, 2, 3)])
+        pieces = [decode_array(records[index - 10]) for _, _, index in record_positions(clip, [k], range(3))]
+        assert [len(p) for p in pieces] == ([25, 22, 0] if k == "oracle" else [25, 25, 10])
+        whole = np.concatenate(pieces)
         assert whole.dtype == arrays[k].dtype and whole.tobytes() == arrays[k].tobytes(), k
-    # A clip without per-frame arrays still has one (empty) chunk; a chunk size below 1 is refused.
-    assert len(encode_clip({"tokens": arrays["tokens"]})) == 2
+    # A clip without per-frame arrays still has one chunk (of nothing); a chunk size below 1 is refused.
+    assert encode_clip({"tokens": arrays["tokens"]})[1] == {"head": ["tokens"], "framed": [], "chunks": 1}
     with pytest.raises(ValueError, match="chunk_frames must be >= 1"):
         encode_clip(arrays, chunk_frames=0)
 

@@ -29,7 +29,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from jaxtalk.data.prepare import FORMAT_VERSION, FRAME_KEYS, MANIFEST, SHARDS, decode_record, is_current
+from jaxtalk.data.prepare import FORMAT_VERSION, MANIFEST, SHARDS, decode_array, is_current, record_positions
 
 __all__ = ["PreparedData", "WindowRecipe", "WindowLoader", "make_loader", "open_data", "iter_windows"]
 
@@ -45,17 +45,16 @@ CACHE_BYTES = 256 * 2**20
 
 
 class _RecordCache:
-    """Least-recently-used decoded arrays of records, at most ``budget`` bytes of them (thread-safe).
+    """Least-recently-used decoded records, at most ``budget`` bytes of them (thread-safe).
 
-    Per record (a ``(clip, part)`` pair: part -1 is the clip's head, k its k-th chunk), the arrays of
-    the keys asked for so far (None: the record has no such key). Cached arrays are read-only, so a
-    caller that writes into one fails instead of changing later windows. A copy (e.g. pickled into a
-    grain worker process) starts empty.
+    Keyed by ``(clip, key, chunk)`` (chunk -1 for an array that is not per frame). Cached arrays are
+    read-only, so a caller that writes into one fails instead of changing later windows. A copy
+    (e.g. pickled into a grain worker process) starts empty.
     """
 
     def __init__(self, budget: int) -> None:
         self.budget = int(budget)
-        self._records: collections.OrderedDict[tuple[int, int], dict[str, np.ndarray | None]] = collections.OrderedDict()
+        self._arrays: collections.OrderedDict[tuple[int, str, int], np.ndarray] = collections.OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
@@ -65,30 +64,24 @@ class _RecordCache:
     def __setstate__(self, state: dict) -> None:
         self.__init__(state["budget"])
 
-    def get(self, key: tuple[int, int], names: Sequence[str]) -> dict[str, np.ndarray] | None:
+    def get(self, key: tuple[int, str, int]) -> np.ndarray | None:
         with self._lock:
-            arrays = self._records.get(key)
-            if arrays is None or any(k not in arrays for k in names):
-                return None
-            self._records.move_to_end(key)
-            return {k: arrays[k] for k in names if arrays[k] is not None}
+            array = self._arrays.get(key)
+            if array is not None:
+                self._arrays.move_to_end(key)
+            return array
 
-    def put(self, key: tuple[int, int], arrays: dict[str, np.ndarray | None]) -> None:
-        for a in arrays.values():
-            if a is not None:
-                a.flags.writeable = False
+    def put(self, key: tuple[int, str, int], array: np.ndarray) -> None:
+        array.flags.writeable = False
+        if array.nbytes > self.budget:
+            return
         with self._lock:
-            old = self._records.pop(key, {})
-            merged = {**old, **arrays}
-            size = sum(a.nbytes for a in merged.values() if a is not None)
-            self._bytes -= sum(a.nbytes for a in old.values() if a is not None)
-            if size > self.budget:
-                return
-            self._records[key] = merged
-            self._bytes += size
+            old = self._arrays.pop(key, None)
+            self._bytes += array.nbytes - (0 if old is None else old.nbytes)
+            self._arrays[key] = array
             while self._bytes > self.budget:
-                _, dropped = self._records.popitem(last=False)
-                self._bytes -= sum(a.nbytes for a in dropped.values() if a is not None)
+                _, dropped = self._arrays.popitem(last=False)
+                self._bytes -= dropped.nbytes
 
 
 class PreparedData:
@@ -174,8 +167,9 @@ class PreparedData:
     def cached(self, budget: int = CACHE_BYTES) -> PreparedData:
         """This dataset with a cache of up to ``budget`` bytes of decoded arrays (LRU, per process).
 
-        Its :meth:`record` returns READ-ONLY arrays for ``keys`` (copy before writing); what it
-        returns is bitwise what the uncached one does. ``budget <= 0``: no cache.
+        Called with ``keys``, its :meth:`record` returns the arrays that are not per frame READ-ONLY
+        (copy before writing); what it returns is bitwise what the uncached one does. ``budget <= 0``:
+        no cache.
         """
         other = copy.copy(self)  # shares the manifest; opens its own readers
         other._cache = _RecordCache(budget) if budget > 0 else None
@@ -195,47 +189,45 @@ class PreparedData:
             ValueError: ``frames`` with ``start < 0`` or ``stop < start``.
         """
         c = self.clips[i]
-        size, chunks = self.manifest["chunk_frames"], c["records"] - 1
+        size, chunks = self.manifest["chunk_frames"], c["chunks"]
         if frames is None:
             start, stop = 0, chunks * size
         else:
             start, stop = (int(v) for v in frames)
             if start < 0 or stop < start:
                 raise ValueError(f"frames must be (start, stop) with 0 <= start <= stop, got {frames}")
-        head_keys = None if keys is None else tuple(k for k in keys if k not in FRAME_KEYS)
-        frame_keys = None if keys is None else tuple(k for k in keys if k in FRAME_KEYS)
         # At least one chunk, so that a range past the clip's end gives empty arrays, as slicing does.
         first = min(start // size, chunks - 1)
         last = max(min(-(-stop // size), chunks), first + 1)
-        parts = ([-1] if head_keys is None or head_keys else []) + (list(range(first, last)) if frame_keys is None or frame_keys else [])
-        got = self._read_parts(i, parts, head_keys, frame_keys)
-        out = dict(got.get(-1, {}))
-        pieces = [got[p] for p in parts if p >= 0]
-        for k in {k: None for piece in pieces for k in piece}:  # in the record's order
-            whole = np.concatenate([piece[k] for piece in pieces if k in piece])
-            out[k] = whole[start - first * size:stop - first * size]
+        names = c["head"] + c["framed"] if keys is None else list(dict.fromkeys(keys))
+        got = self._read(i, record_positions(c, names, range(first, last)), cached=keys is not None)
+        out = {k: got[(k, -1)] for k in names if k in c["head"]}
+        for k in names:
+            if k in c["framed"]:
+                whole = np.concatenate([got[(k, ch)] for ch in range(first, last)])
+                out[k] = whole[start - first * size:stop - first * size]
         return out
 
-    def _read_parts(self, i: int, parts: Sequence[int], head_keys: tuple[str, ...] | None,
-                    frame_keys: tuple[str, ...] | None) -> dict[int, dict[str, np.ndarray]]:
-        """The decoded records ``parts`` of clip ``i`` (-1: the head; k: chunk k), the cache's first,
-        the others read in one call."""
-        c = self.clips[i]
-        cache = self._cache if head_keys is not None else None
-        got: dict[int, dict[str, np.ndarray]] = {}
+    def _read(self, i: int, where: list[tuple[str, int, int]], *, cached: bool) -> dict[tuple[str, int], np.ndarray]:
+        """The arrays of records ``where`` (:func:`~jaxtalk.data.prepare.record_positions`) of clip
+        ``i`` by ``(key, chunk)``: the cache's (when ``cached``), the others read in one call."""
+        cache = self._cache if cached else None
+        got: dict[tuple[str, int], np.ndarray] = {}
         missing = []
-        for p in parts:
-            hit = cache.get((i, p), head_keys if p < 0 else frame_keys) if cache is not None else None
+        for k, ch, index in where:
+            hit = cache.get((i, k, ch)) if cache is not None else None
             if hit is None:
-                missing.append(p)
+                missing.append((k, ch, index))
             else:
-                got[p] = hit
+                got[(k, ch)] = hit
         if missing:
-            for p, data in zip(missing, self._readers[c["shard"]].read([c["index"] + 1 + p for p in missing])):
-                names = head_keys if p < 0 else frame_keys
-                got[p] = decode_record(data, names)
+            records = self._readers[self.clips[i]["shard"]].read([index for _, _, index in missing])
+            for (k, ch), data in zip(((k, ch) for k, ch, _ in missing), records):
+                # Chunks are concatenated (copied) by the caller; a head array is returned as it is.
+                array = decode_array(data, copy=ch < 0 and cache is None)
+                got[(k, ch)] = array
                 if cache is not None:
-                    cache.put((i, p), {k: got[p].get(k) for k in names})
+                    cache.put((i, k, ch), array)
         return got
 
     def motion_stats(self, floor: float = 0.05) -> dict[str, np.ndarray]:

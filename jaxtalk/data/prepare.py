@@ -4,22 +4,23 @@ written as sharded ArrayRecord files plus a manifest that the grain loader reads
 Layout of ``DATA``::
 
     manifest.json          source, feature settings and their hash, fps, clips (name, speaker,
-                           split, frames, partner, emotion, intensity, record index), splits,
-                           normalisation statistics, token rate/width, feature widths
-    shards/NNNNN.array_record   each clip as consecutive records, each an uncompressed .npz: a
-                           head with the arrays that are not per frame, then its per-frame arrays
-                           cut into chunks of ``chunk_frames`` (25) frames
+                           split, frames, partner, emotion, intensity, where its records are),
+                           splits, normalisation statistics, token rate/width, feature widths
+    shards/NNNNN.array_record   each clip as consecutive records, each one array as a .npy: first
+                           the arrays that are not per frame, then its per-frame arrays cut into
+                           chunks of ``chunk_frames`` (25) frames, chunk by chunk
     shards/NNNNN.json      the shard's clip entries (name, content hash, settings hash, sums,
-                           first record and record count)
+                           first record, array names, chunk count)
     tokenizer.npz          the VQ tokenizer fitted on the training split (``--tokens vq``)
     report.csv             every clip that was skipped: file, reason
 
 A record holds ``motion (T, 56)`` (or ``vertices (T, V, 3)`` + ``template``), ``speech (T, D)``,
 ``turn_speech (turns*25, D)``, ``landmarks (T, 68, 3)`` (displacements on the built-in face, for
 FreeTalk), ``tokens (Tt, W)`` and ``oracle (T, 56)`` where known; T is at 25 fps. The per-frame arrays
-(:data:`FRAME_KEYS`) are stored in chunks so that a window reads the chunks it overlaps, not the whole
-clip: on data larger than the loader's cache every window is read from disk, and reading (and
-checking) a long clip's whole record per window made ATS's loader slower than five times its step.
+(:data:`FRAME_KEYS`) are stored in chunks, one array per record, so that a window reads the arrays it
+needs in the chunks it overlaps, not the whole clip: on data larger than the loader's cache every
+window is read from disk, and reading and unzipping a clip's whole record (an .npz of every array,
+format 1) per window made ATS's loader slower than five times its step.
 
 Incremental and resumable: each shard is written under a temporary name and renamed, then its
 ``.json`` index (also atomically); a run killed half way keeps every finished shard. A second run
@@ -37,7 +38,6 @@ import json
 import os
 import re
 import time
-import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -50,13 +50,13 @@ from jaxtalk.files import atomic_output, atomic_write_text
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
 __all__ = ["PrepareSettings", "PrepareResult", "prepare", "MANIFEST", "REPORT", "FORMAT_VERSION", "FRAME_KEYS",
-           "CHUNK_FRAMES", "is_current", "encode_record", "decode_record", "encode_clip", "clip_record"]
+           "CHUNK_FRAMES", "is_current", "encode_array", "decode_array", "encode_clip", "record_positions", "clip_record"]
 
 MANIFEST = "manifest.json"
 REPORT = "report.csv"
 SHARDS = "shards"
 TOKENIZER = "tokenizer.npz"
-# 2: a clip is a head record plus chunk records of CHUNK_FRAMES frames (1: one record per clip).
+# 2: a record per array, per-frame arrays cut in chunks of CHUNK_FRAMES frames (1: an .npz per clip).
 FORMAT_VERSION = 2
 # The arrays with one row per 25-fps frame, stored in chunks; every other array is in the head record.
 FRAME_KEYS = ("motion", "vertices", "oracle", "speech", "landmarks")
@@ -129,10 +129,10 @@ class PrepareResult:
     seconds: float
 
 
-def encode_record(arrays: dict[str, np.ndarray]) -> bytes:
-    """A clip's arrays as the bytes of an uncompressed .npz (random access to each array on read)."""
+def encode_array(array: np.ndarray) -> bytes:
+    """One array as the bytes of a ``.npy`` file: what a record holds."""
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
+    np.save(buf, np.asarray(array), allow_pickle=False)
     return buf.getvalue()
 
 
@@ -140,8 +140,9 @@ def encode_record(arrays: dict[str, np.ndarray]) -> bytes:
 _NPY_HEADER = re.compile(r"\{'descr': '([<>|=][a-zA-Z][0-9]*)', 'fortran_order': (False|True), 'shape': \(([0-9, ]*)\), \}\s*")
 
 
-def _read_npy(buf: bytes) -> np.ndarray:
-    """One ``.npy`` of a record, parsed without ``ast``.
+def decode_array(buf: bytes, *, copy: bool = True) -> np.ndarray:
+    """The array of a record (:func:`encode_array`), parsed without ``ast``; ``copy=False``: a
+    read-only view of ``buf`` (for a caller that copies it anyway).
 
     NumPy parses the header with ``ast.literal_eval``, and CPython before 3.11.8 / 3.12.1 keeps the
     AST converter's recursion depth per interpreter, not per thread (gh-106905): grain's prefetch
@@ -156,30 +157,41 @@ def _read_npy(buf: bytes) -> np.ndarray:
             dtype = np.dtype(m[1])
             shape = tuple(int(v) for v in m[3].replace(" ", "").split(",") if v)
             flat = np.frombuffer(buf, dtype, count=int(np.prod(shape, dtype=np.int64)), offset=start + size)
-            return flat.reshape(shape, order="F" if m[2] == "True" else "C").copy()
+            array = flat.reshape(shape, order="F" if m[2] == "True" else "C")
+            return array.copy() if copy else array
     return np.lib.format.read_array(io.BytesIO(buf), allow_pickle=False)
 
 
-def encode_clip(arrays: dict[str, np.ndarray], chunk_frames: int = CHUNK_FRAMES) -> list[bytes]:
-    """A clip's records: the head (the arrays not in :data:`FRAME_KEYS`), then one record per chunk of
-    ``chunk_frames`` frames holding rows ``[k * chunk_frames, (k + 1) * chunk_frames)`` of each
-    per-frame array (an array shorter than the clip has empty rows in its last chunks, so that
-    concatenating a key's chunks gives it back exactly)."""
+def encode_clip(arrays: dict[str, np.ndarray], chunk_frames: int = CHUNK_FRAMES) -> tuple[list[bytes], dict[str, Any]]:
+    """A clip's records and their layout (see :func:`record_positions`).
+
+    Returns:
+        ``(records, layout)``: one record per array that is not per frame (``layout["head"]``, in
+        order), then, chunk by chunk (``layout["chunks"]`` of them), one record per per-frame array
+        (``layout["framed"]``, in order) holding its rows ``[k * chunk_frames, (k + 1) * chunk_frames)``.
+        An array shorter than the clip has empty rows in its last chunks, so concatenating an
+        array's chunks gives it back exactly.
+    """
     if chunk_frames < 1:
         raise ValueError(f"chunk_frames must be >= 1, got {chunk_frames}")
-    framed = {k: v for k, v in arrays.items() if k in FRAME_KEYS}
-    frames = max((v.shape[0] for v in framed.values()), default=0)
+    head = [k for k in arrays if k not in FRAME_KEYS]
+    framed = [k for k in arrays if k in FRAME_KEYS]
+    frames = max((arrays[k].shape[0] for k in framed), default=0)
     chunks = max(-(-frames // chunk_frames), 1)
-    head = encode_record({k: v for k, v in arrays.items() if k not in FRAME_KEYS})
-    return [head] + [encode_record({k: v[c * chunk_frames:(c + 1) * chunk_frames] for k, v in framed.items()})
-                     for c in range(chunks)]
+    records = [encode_array(arrays[k]) for k in head]
+    records += [encode_array(arrays[k][c * chunk_frames:(c + 1) * chunk_frames]) for c in range(chunks) for k in framed]
+    return records, {"head": head, "framed": framed, "chunks": chunks}
 
 
-def decode_record(data: bytes, keys: Sequence[str] | None = None) -> dict[str, np.ndarray]:
-    """The arrays of a record (only ``keys`` when given: the others are not decoded)."""
-    with zipfile.ZipFile(io.BytesIO(data)) as z:
-        names = [n[: -len(".npy")] for n in z.namelist() if n.endswith(".npy")]
-        return {k: _read_npy(z.read(f"{k}.npy")) for k in (names if keys is None else keys) if k in names}
+def record_positions(clip: dict[str, Any], keys: Sequence[str], chunks: Sequence[int]) -> list[tuple[str, int, int]]:
+    """``(key, chunk, record index)`` of the records holding ``keys`` of a clip entry (its ``index``,
+    ``head``, ``framed``): each head key once (chunk -1), each per-frame key in every chunk of
+    ``chunks``; keys the clip does not have are left out."""
+    head, framed = clip["head"], clip["framed"]
+    out = [(k, -1, clip["index"] + head.index(k)) for k in keys if k in head]
+    base = clip["index"] + len(head)
+    out += [(k, c, base + c * len(framed) + framed.index(k)) for c in chunks for k in keys if k in framed]
+    return out
 
 
 def _to_motion_rate(x: np.ndarray, fps: float) -> np.ndarray:
@@ -294,7 +306,7 @@ def _existing(shard_dir: Path, digest: str) -> dict[str, dict[str, Any]]:
     return kept
 
 
-def _write_shard(shard_dir: Path, number: int, records: list[tuple[dict, list[bytes]]], digest: str) -> str:
+def _write_shard(shard_dir: Path, number: int, records: list[tuple[dict, tuple[list[bytes], dict]]], digest: str) -> str:
     from array_record.python.array_record_module import ArrayRecordWriter
 
     name = f"{number:05d}.array_record"
@@ -303,10 +315,10 @@ def _write_shard(shard_dir: Path, number: int, records: list[tuple[dict, list[by
         # loader's cost of reading a record.
         writer = ArrayRecordWriter(str(tmp), "group_size:1,uncompressed")
         clips, index = [], 0
-        for meta, parts in records:
+        for meta, (parts, layout) in records:
             for data in parts:
                 writer.write(data)
-            clips.append({**meta, "index": index, "records": len(parts)})
+            clips.append({**meta, **layout, "index": index})
             index += len(parts)
         writer.close()
     atomic_write_text(shard_dir / f"{number:05d}.json", json.dumps({"settings": digest, "format": FORMAT_VERSION, "clips": clips}))
@@ -448,7 +460,7 @@ def prepare(
         src.tokenizer().save(out / TOKENIZER)
 
     skipped: list[tuple[str, str]] = []
-    buffer: list[tuple[dict, list[bytes]]] = []
+    buffer: list[tuple[dict, tuple[list[bytes], dict]]] = []
     number = max((int(p.stem) for p in shard_dir.glob("[0-9]*.json")), default=-1) + 1
     new = 0
     good: dict[str, str] = {}  # content hash of every clip that is usable in this run
@@ -573,7 +585,8 @@ def _write_manifest(out: Path, src: Source, settings: PrepareSettings, tokens_mo
             "name": name, "speaker": entry.speaker, "split": splits[name], "frames": meta["frames"],
             "has_motion": meta["has_motion"], "has_vertices": meta["has_vertices"], "tokens": meta["tokens"],
             "partner": entry.partner, "emotion": entry.emotion, "intensity": entry.intensity,
-            "shard": meta["shard"], "index": meta["index"], "records": meta["records"], "hash": meta["hash"],
+            "shard": meta["shard"], "index": meta["index"], "head": meta["head"], "framed": meta["framed"],
+            "chunks": meta["chunks"], "hash": meta["hash"],
             "sum": meta["sum"], "sumsq": meta["sumsq"],
         })
     present = {c["name"] for c in clips}
@@ -630,9 +643,9 @@ def _first_record(shard_dir: Path, clips: list[dict]) -> dict[str, np.ndarray]:
         return {}
     c = clips[0]
     reader = ArrayRecordReader(str(shard_dir / c["shard"]))
-    try:  # the head and the first chunk: every array, for its width
-        head, chunk = reader.read([c["index"], c["index"] + 1])
-        return {**decode_record(head), **decode_record(chunk)}
+    try:  # every array once (the first chunk of the per-frame ones), for its width
+        where = record_positions(c, c["head"] + c["framed"], range(1))
+        return {k: decode_array(data) for (k, _, _), data in zip(where, reader.read([i for _, _, i in where]))}
     finally:
         reader.close()
 
