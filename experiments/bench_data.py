@@ -23,11 +23,11 @@ model recipe beside that model's training step rate, and resident memory while s
    to give bitwise identical windows.
 3. Streaming memory: the prepared corpus's shards are replicated (renamed clips and speakers, every
    clip in the train split) into >= ``--stream-gb`` GB under a temporary folder; per recipe
-   (``--stream-models``: TokTalk, which reads two records per window, and ATS, whose decoded arrays
+   (``--stream-models``: TokTalk, which reads two clips per window, and ATS, whose decoded arrays
    outgrow the loader's cache) a fresh process iterates its loader over one full epoch (every record
    read, most many times), reporting resident memory (RSS, and the peak: VmHWM) at the start
    and after 25/50/75/100 % of it. The loader keeps at most ``jaxtalk.data.loader.CACHE_BYTES`` of
-   decoded clips, so RSS may rise by up to that much and then stays flat. The folder is deleted
+   decoded records, so RSS may rise by up to that much and then stays flat. The folder is deleted
    afterwards.
 
 Timings are wall clock on a shared machine: every row carries the 1-minute load average.
@@ -290,7 +290,7 @@ def loader_vs_step(data: Any, seconds: float, repeats: int) -> list[dict]:
             continue
         lr = loader_rate(data, setup["recipe"], seconds)
         batch = lr.pop("_batch")
-        # The same loader without its cache of decoded clips: every window reads its records again
+        # The same loader without its cache of decoded records: every window reads its records again
         # (what a dataset much larger than the cache gets; also the loader before the cache).
         raw = loader_rate(data, setup["recipe"], seconds, cache_bytes=0)
         raw.pop("_batch")

@@ -385,8 +385,8 @@ def make_loader(
             on an endless loader (``num_epochs=None``, as the recipes do), or a collective step
             would wait forever for them.
         cache_bytes: decoded arrays the loader keeps (:meth:`PreparedData.cached`; 0: none). The
-            batches are the same either way; the cache saves reading and decompressing a clip's
-            whole record again for each window of it.
+            batches are the same either way; the cache saves reading and decoding a clip's chunks
+            again for each window that overlaps them.
 
     Returns:
         :class:`WindowLoader`.
