@@ -22,7 +22,8 @@ TRAIN_COLUMNS = (("model", "model"), ("preset", "preset"), ("batch", "batch"), (
                  ("host_share", "host share"), ("loader_x", "loader / step rate"))
 SAMPLE_COLUMNS = (("model", "model"), ("case", "case"), ("steps", "steps"), ("compile_s", "compile (s)"),
                   ("latency_s", "latency (s)"), ("rtf", "real-time factor"), ("frames_per_s", "frames/s"),
-                  ("gflops", "GFLOP"), ("gflop_s", "GFLOP/s"), ("of_peak", "of peak"))
+                  ("gflops", "GFLOP"), ("gflop_s", "GFLOP/s"), ("of_peak", "of peak"), ("weight_gb", "weights read (GB)"),
+                  ("of_bandwidth", "of bandwidth"), ("of_roofline", "of roofline"))
 
 
 def cell(value: Any) -> str:
@@ -49,7 +50,8 @@ def performance_section(payload: dict[str, Any]) -> str:
     head = (f"Measured by `{recorded.get('command', 'jaxtalk bench')}` on {recorded.get('date_utc', '?')}: "
             f"{m['cpu_model']}, {m['cpu_cores']} cores, backend {m['backend']} ({m['device_kind']}), "
             f"jax {m['jax']}, 1-minute load average {m['load_avg_1m']}; float32 matmul peak measured in the same "
-            f"run: {payload['matmul_peak_gflop_s']:.0f} GFLOP/s.")
+            f"run: {payload['matmul_peak_gflop_s']:.0f} GFLOP/s"
+            + (f", memory bandwidth {payload['memory_bandwidth_gb_s']:.1f} GB/s." if payload.get("memory_bandwidth_gb_s") else "."))
     parts = [head]
     for table in payload["tables"]:
         columns = TRAIN_COLUMNS if table["title"].startswith("Training") else SAMPLE_COLUMNS

@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 
 from jaxtalk.bench import toktalk_chunk, toktalk_growth, toktalk_window, with_peak
-from jaxtalk.benchmarking import machine_info, measure_matmul_peak, print_table, write_json
+from jaxtalk.benchmarking import machine_info, measure_matmul_peak, measure_memory_bandwidth, print_table, write_json
 from jaxtalk.models.toktalk import TokTalkConfig
 
 
@@ -38,14 +38,14 @@ def main() -> None:
     if not args.skip_paper:
         rows.append(toktalk_chunk(TokTalkConfig.paper(context_frames=0, overlap_frames=0), "paper, 10 frames", few))
         rows.append(toktalk_chunk(TokTalkConfig.paper(context_frames=40), "paper, 50 frames", few))
-    peak = measure_matmul_peak() / 1e9
-    rows = with_peak(rows, peak)
+    peak, bandwidth = measure_matmul_peak() / 1e9, measure_memory_bandwidth() / 1e9
+    rows = with_peak(rows, peak, bandwidth)
     print_table(rows, f"TokTalk per-chunk latency (Euler steps + CFG); matmul peak {peak:.0f} GFLOP/s")
     decoders = [toktalk_window(TokTalkConfig.small(causal=c), "small, chunk 0.4 s", args.repeats) for c in (True, False)]
     print_table(decoders, "one chunk's sampler on the streaming window: the causal decoder vs the offline one")
     growth = toktalk_growth(TokTalkConfig.small(), 50, args.repeats)
     print_table([growth], "small preset: per-chunk latency at chunk 2 vs chunk 50 (target ratio <= 1.10)")
-    write_json(args.out, {"machine": machine_info(), "matmul_peak_gflop_s": peak, "latency": rows,
+    write_json(args.out, {"machine": machine_info(), "matmul_peak_gflop_s": peak, "memory_bandwidth_gb_s": bandwidth, "latency": rows,
                           "growth": growth, "decoders": decoders})
 
 

@@ -99,17 +99,18 @@ def toktalk_stream(repeats: int = 20, configs: dict[str, Any] | None = None) -> 
         configs: ``{case name: TokTalkConfig}`` instead of the two paper cases (for a quick test).
 
     Returns:
-        ``{"matmul_peak_gflop_s", "rows"}``; rows as :func:`jaxtalk.bench.toktalk_chunk` plus ``of_peak``.
+        ``{"matmul_peak_gflop_s", "memory_bandwidth_gb_s", "rows"}``; rows as
+        :func:`jaxtalk.bench.toktalk_chunk` plus ``of_peak``, ``of_bandwidth`` and ``of_roofline``.
     """
     from jaxtalk.bench import toktalk_chunk, with_peak
-    from jaxtalk.benchmarking import measure_matmul_peak
+    from jaxtalk.benchmarking import measure_matmul_peak, measure_memory_bandwidth
     from jaxtalk.models.toktalk import TokTalkConfig
 
     configs = configs or {"paper, 10-frame window": TokTalkConfig.paper(context_frames=0, overlap_frames=0),
                           "paper, 50-frame window": TokTalkConfig.paper(context_frames=40)}
-    peak = measure_matmul_peak() / 1e9
+    peak, bandwidth = measure_matmul_peak() / 1e9, measure_memory_bandwidth() / 1e9
     rows = [toktalk_chunk(config, name, repeats) for name, config in configs.items()]
-    return {"matmul_peak_gflop_s": peak, "rows": with_peak(rows, peak)}
+    return {"matmul_peak_gflop_s": peak, "memory_bandwidth_gb_s": bandwidth, "rows": with_peak(rows, peak, bandwidth)}
 
 
 def main() -> None:

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxtalk.benchmarking import machine_info, measure_matmul_peak, print_table, write_json
+from jaxtalk.benchmarking import machine_info, measure_matmul_peak, measure_memory_bandwidth, print_table, write_json
 
 
 def paper_params(model: str) -> tuple[object, object]:
@@ -96,19 +96,6 @@ def update_row(model: str, repeats: int) -> dict:
             "achieved_gb_s": 4 * n * arrays / seconds / 1e9}
 
 
-def stream_bandwidth(repeats: int) -> float:
-    """GB/s of ``x * c`` over 256 MiB of float32 (one read and one write per element), best run."""
-    x = jnp.ones((64 * 2**20,), jnp.float32)
-    scale = jax.jit(lambda x: x * 1.0001)
-    scale(x).block_until_ready()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        scale(x).block_until_ready()
-        times.append(time.perf_counter() - t0)
-    return 2 * x.nbytes / min(times) / 1e9
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", default="toktalk,ats,timar")
@@ -117,7 +104,7 @@ def main() -> None:
     ap.add_argument("--out", default="experiments/results/optimizer_share.json")
     args = ap.parse_args()
     peak = measure_matmul_peak() / 1e9
-    bandwidth = stream_bandwidth(args.repeats)
+    bandwidth = measure_memory_bandwidth(repeats=args.repeats) / 1e9
     rows = [update_row(m, args.repeats) for m in args.models.split(",")]
     steps = []
     for path in args.bench:

@@ -118,12 +118,14 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
 
     Returns:
         Row: ``window_frames``, ``chunk_s``, ``compile_s`` (first call), ``latency_s``, ``rtf``
-        (latency / chunk duration), ``gflops`` per chunk and ``gflop_s`` achieved.
+        (latency / chunk duration), ``gflops`` per chunk and ``gflop_s`` achieved, ``weight_gb``: the
+        decoder's weights read once per Euler step (the guided pair is one batch of 2) and
+        ``weight_gb_s`` achieved (see :func:`with_peak`).
     """
     import jax
     import jax.numpy as jnp
 
-    from jaxtalk.benchmarking import xla_flops
+    from jaxtalk.benchmarking import parameter_bytes_read, xla_flops
     from jaxtalk.models import toktalk as tt
     from jaxtalk.models.toktalk.model import Condition, velocity
     from jaxtalk.models.toktalk.sample import default_grid
@@ -151,13 +153,16 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
         keep=jnp.ones((2,)), mask=jnp.ones((2, wf), bool), chunked=jnp.ones((2,), bool),
     )
     x = jnp.zeros((2, wf, config.param_dim))
-    per_eval = xla_flops(lambda p, x, c: velocity(p, config, x, jnp.full((2,), 0.5), c), params, x, cond)
+    guided = lambda p, x, c: velocity(p, config, x, jnp.full((2,), 0.5), c)  # noqa: E731
+    per_eval = xla_flops(guided, params, x, cond)
     flops = None if per_eval is None else per_eval * config.sample_steps
+    weight_gb = parameter_bytes_read(guided, params, x, cond) * config.sample_steps / 1e9
     duration = config.chunk_frames / config.fps
     return {
         "model": "TokTalk", "case": name, "window_frames": wf, "chunk_s": duration, "compile_s": compile_s,
         "latency_s": latency, "rtf": latency / duration,
         "gflops": None if flops is None else flops / 1e9, "gflop_s": _rate(flops, latency),
+        "weight_gb": weight_gb, "weight_gb_s": weight_gb / latency,
     }
 
 
@@ -359,12 +364,13 @@ def ats_clip(config: Any, name: str, *, steps: int = 100, frames: int = 100, rep
     clip, which this counts once per step (a small over-count).
 
     Returns:
-        Row with ``clip_s``, ``steps``, ``compile_s``, ``latency_s``, ``rtf``, ``gflops``, ``gflop_s``.
+        Row with ``clip_s``, ``steps``, ``compile_s``, ``latency_s``, ``rtf``, ``gflops``, ``gflop_s``,
+        ``weight_gb`` (the denoiser's weights read once per step) and ``weight_gb_s``.
     """
     import jax
     import jax.numpy as jnp
 
-    from jaxtalk.benchmarking import time_jitted, xla_flops
+    from jaxtalk.benchmarking import parameter_bytes_read, time_jitted, xla_flops
     from jaxtalk.models.freetalk import ats
 
     params = random_params(lambda k: ats.init_params(config, k))
@@ -374,13 +380,16 @@ def ats_clip(config: Any, name: str, *, steps: int = 100, frames: int = 100, rep
     timing = time_jitted(lambda p, c, k, e: sample(p, cond=c, key=k, eta=e), params, cond, jax.random.key(1),
                          jnp.float32(0.0), repeats=repeats, warmup=1)
     x = jnp.zeros((1, frames, config.motion_dim))
-    per_eval = xla_flops(lambda p, x, c: ats.ats_denoise(p, config, x, jnp.zeros((1,), jnp.int32), c), params, x, cond)
+    denoise = lambda p, x, c: ats.ats_denoise(p, config, x, jnp.zeros((1,), jnp.int32), c)  # noqa: E731
+    per_eval = xla_flops(denoise, params, x, cond)
     flops = None if per_eval is None else per_eval * steps
+    weight_gb = parameter_bytes_read(denoise, params, x, cond) * steps / 1e9
     clip_s = frames / 25
     return {
         "model": "FreeTalk ATS", "case": name, "clip_s": clip_s, "steps": steps, "compile_s": timing.compile_s,
         "latency_s": timing.run_median_s, "rtf": timing.run_median_s / clip_s,
         "gflops": None if flops is None else flops / 1e9, "gflop_s": _rate(flops, timing.run_median_s),
+        "weight_gb": weight_gb, "weight_gb_s": weight_gb / timing.run_median_s,
     }
 
 
@@ -425,19 +434,32 @@ def stm_frames(config: Any, name: str, *, resolution: str = "high", frames: int 
 
 
 # ------------------------------------------------------------------------------------------ all
-def with_peak(rows: list[dict[str, Any]], peak_gflop_s: float) -> list[dict[str, Any]]:
-    """Rows with ``of_peak`` = ``gflop_s / peak_gflop_s`` added right after ``gflop_s`` (at the end where
-    the row has none; None where FLOPs are unknown)."""
+def _put_after(row: dict[str, Any], after: str, key: str, value: Any) -> dict[str, Any]:
+    """``row`` with ``key: value`` right after ``after`` (at the end where the row has no ``after``)."""
+    row = {k: v for k, v in row.items() if k != key}
+    if after not in row:
+        return {**row, key: value}
+    keys = list(row)
+    at = keys.index(after) + 1
+    return {**{k: row[k] for k in keys[:at]}, key: value, **{k: row[k] for k in keys[at:]}}
+
+
+def with_peak(rows: list[dict[str, Any]], peak_gflop_s: float, bandwidth_gb_s: float | None = None) -> list[dict[str, Any]]:
+    """Rows expressed against the machine's limits measured in the same run.
+
+    Adds ``of_peak`` = ``gflop_s / peak_gflop_s`` right after ``gflop_s`` (None where FLOPs are
+    unknown). With ``bandwidth_gb_s``, rows that say how many bytes of weights they must read
+    (``weight_gb``, ``weight_gb_s``) also get ``of_bandwidth`` = ``weight_gb_s / bandwidth_gb_s`` and
+    ``of_roofline``: the roofline's time, the longer of the FLOPs at the peak and the weight bytes at
+    the bandwidth, over the measured latency (1.0: as fast as either limit allows).
+    """
     out = []
     for r in rows:
-        value = None if r.get("gflop_s") is None else r["gflop_s"] / peak_gflop_s
-        row = {k: v for k, v in r.items() if k != "of_peak"}
-        if "gflop_s" in row:
-            keys = list(row)
-            at = keys.index("gflop_s") + 1
-            row = {**{k: row[k] for k in keys[:at]}, "of_peak": value, **{k: row[k] for k in keys[at:]}}
-        else:
-            row["of_peak"] = value
+        row = _put_after(r, "gflop_s", "of_peak", None if r.get("gflop_s") is None else r["gflop_s"] / peak_gflop_s)
+        if bandwidth_gb_s is not None and row.get("weight_gb_s") is not None:
+            row = _put_after(row, "weight_gb_s", "of_bandwidth", row["weight_gb_s"] / bandwidth_gb_s)
+            bound = max(row["weight_gb"] / bandwidth_gb_s, (row.get("gflops") or 0.0) / peak_gflop_s)
+            row = _put_after(row, "of_bandwidth", "of_roofline", bound / row["latency_s"])
         out.append(row)
     return out
 
@@ -457,8 +479,8 @@ def run_benchmarks(
     repeats: int = 5,
     configs: dict[str, Any] | None = None,
     echo: Callable[[str], None] = print,
-) -> tuple[float, list[BenchTable]]:
-    """The speed tables of the chosen models, with one matmul peak for all of them.
+) -> tuple[float, float, list[BenchTable]]:
+    """The speed tables of the chosen models, with one matmul peak and memory bandwidth for all of them.
 
     Args:
         models: any of ``toktalk``, ``timar``, ``freetalk``.
@@ -469,12 +491,12 @@ def run_benchmarks(
         echo: progress lines.
 
     Returns:
-        ``(matmul peak in GFLOP/s, tables)``.
+        ``(matmul peak in GFLOP/s, memory bandwidth in GB/s, tables)``.
 
     Raises:
         ValueError: an unknown model name or ``repeats < 1``.
     """
-    from jaxtalk.benchmarking import measure_matmul_peak
+    from jaxtalk.benchmarking import measure_matmul_peak, measure_memory_bandwidth
     from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
     from jaxtalk.models.timar import TimarConfig
     from jaxtalk.models.toktalk import TokTalkConfig
@@ -486,8 +508,9 @@ def run_benchmarks(
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     small = {"toktalk": TokTalkConfig.small(), "timar": TimarConfig.small(), "ats": ATSConfig.small(),
              "stm": STMConfig.small(), **(configs or {})}
-    echo("measuring the float32 matmul peak")
+    echo("measuring the float32 matmul peak and the memory bandwidth")
     peak = measure_matmul_peak() / 1e9
+    bandwidth = measure_memory_bandwidth() / 1e9
     tables: list[BenchTable] = []
     few = max(1, repeats // 2)
     if "toktalk" in models:
@@ -496,7 +519,7 @@ def run_benchmarks(
         if paper:
             rows.append(toktalk_chunk(TokTalkConfig.paper(context_frames=0, overlap_frames=0), "paper, 10 frames", few))
             rows.append(toktalk_chunk(TokTalkConfig.paper(context_frames=40), "paper, 50 frames", few))
-        tables.append(BenchTable("TokTalk: one streaming chunk (Euler steps + CFG)", with_peak(rows, peak)))
+        tables.append(BenchTable("TokTalk: one streaming chunk (Euler steps + CFG)", with_peak(rows, peak, bandwidth)))
     if "timar" in models:
         echo("TIMAR: streamed turns")
         cfg = small["timar"]
@@ -507,18 +530,18 @@ def run_benchmarks(
                            repeats=repeats)]
         if paper:
             rows.append(timar_turn(TimarConfig.paper(), "paper, turn 8 (window slides, n=7)", turn=8, repeats=few))
-        tables.append(BenchTable("TIMAR: one streamed 1-s turn (DDIM + CFG)", with_peak(rows, peak)))
+        tables.append(BenchTable("TIMAR: one streamed 1-s turn (DDIM + CFG)", with_peak(rows, peak, bandwidth)))
     if "freetalk" in models:
         echo("FreeTalk: ATS clip, STM frames")
         rows = [ats_clip(small["ats"], "small", steps=s, repeats=few) for s in (10, 100)]
         if paper:
             rows.append(ats_clip(ATSConfig.paper(), "paper", steps=100, repeats=few))
-        tables.append(BenchTable("FreeTalk ATS: DDIM on a 4-s clip", with_peak(rows, peak)))
+        tables.append(BenchTable("FreeTalk ATS: DDIM on a 4-s clip", with_peak(rows, peak, bandwidth)))
         rows = [stm_frames(small["stm"], "small", repeats=repeats)]
         if paper:
             rows.append(stm_frames(STMConfig.paper(), "paper", repeats=few))
-        tables.append(BenchTable("FreeTalk STM: 25 frames per call on the ~5.9k-vertex face", with_peak(rows, peak)))
-    return peak, tables
+        tables.append(BenchTable("FreeTalk STM: 25 frames per call on the ~5.9k-vertex face", with_peak(rows, peak, bandwidth)))
+    return peak, bandwidth, tables
 
 
 # ------------------------------------------------------------------------------------------ training

@@ -29,6 +29,8 @@ __all__ = [
     "matmul_flops",
     "loop_trip_factor",
     "measure_matmul_peak",
+    "measure_memory_bandwidth",
+    "parameter_bytes_read",
     "machine_info",
     "format_table",
     "print_table",
@@ -215,6 +217,46 @@ def measure_matmul_peak(dtype: Any = jnp.float32, n: int = 2048, repeats: int = 
     b = jax.random.normal(k2, (n, n), dtype)
     timing = time_jitted(jnp.matmul, a, b, repeats=repeats, warmup=2)
     return 2.0 * n**3 / timing.run_min_s
+
+
+def measure_memory_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 10) -> float:
+    """Streaming memory bandwidth of the default device: bytes read plus written per second by
+    ``x * c`` over a float32 array of ``nbytes`` (far larger than a CPU's caches), best run.
+
+    Args:
+        nbytes: array size (> 0).
+        repeats: timed runs (> 0); the BEST run is used.
+
+    Returns:
+        Bytes per second (``2 * nbytes / best time``).
+
+    Raises:
+        ValueError: non-positive ``nbytes`` or ``repeats``.
+    """
+    nbytes = _positive("nbytes", nbytes)
+    repeats = _positive("repeats", repeats)
+    x = jnp.ones((max(nbytes // 4, 1),), jnp.float32)
+    timing = time_jitted(lambda x: x * 1.0001, x, repeats=repeats, warmup=2)
+    return 2.0 * x.nbytes / timing.run_min_s
+
+
+def parameter_bytes_read(fn: Callable[..., Any], params: Any, *args: Any) -> int:
+    """Bytes of the arrays of ``params`` that ``fn(params, *args)`` uses (its jaxpr reads them): what
+    one call must bring from memory at least once when they do not fit in the caches.
+
+    Args:
+        fn: a traceable function of ``params`` first.
+        params: a pytree of arrays.
+        *args: the other arguments.
+
+    Returns:
+        The summed ``nbytes`` of the used leaves.
+    """
+    closed = jax.make_jaxpr(fn)(params, *args)
+    jaxpr = closed.jaxpr
+    used = {id(v) for eqn in jaxpr.eqns for v in eqn.invars} | {id(v) for v in jaxpr.outvars}
+    leaves = jax.tree.leaves(params)
+    return int(sum(leaf.nbytes for leaf, var in zip(leaves, jaxpr.invars[:len(leaves)]) if id(var) in used))
 
 
 def _cpu_model() -> str:

@@ -419,7 +419,7 @@ def bench(
     adds each model's training step."""
     from jaxtalk.bench import (BENCH_MODELS, SAMPLER_OF, TRAIN_MODELS, BenchTable, run_benchmarks, run_train_benchmarks,
                                with_peak)
-    from jaxtalk.benchmarking import machine_info, measure_matmul_peak, write_json
+    from jaxtalk.benchmarking import machine_info, measure_matmul_peak, measure_memory_bandwidth, write_json
     from jaxtalk.files import Output, claim_outputs
 
     if profile is not None and not train:
@@ -445,10 +445,10 @@ def bench(
     (out,) = claim_outputs([Output(out or Path("experiments/results/bench_all.json"), named=out is not None)],
                            overwrite=overwrite)
     if sample_models:
-        peak, tables = run_benchmarks(tuple(sample_models), paper=paper, repeats=repeats, echo=typer.echo)
+        peak, bandwidth, tables = run_benchmarks(tuple(sample_models), paper=paper, repeats=repeats, echo=typer.echo)
     else:
-        typer.echo("measuring the float32 matmul peak")
-        peak, tables = measure_matmul_peak() / 1e9, []
+        typer.echo("measuring the float32 matmul peak and the memory bandwidth")
+        peak, bandwidth, tables = measure_matmul_peak() / 1e9, measure_memory_bandwidth() / 1e9, []
     if train_models:
         from jaxtalk.data.loader import open_data
 
@@ -460,16 +460,19 @@ def bench(
     # The peak again at the end, and the better of the two for every row: on a shared machine one
     # measurement can land in a slow spell (102 against 178-204 GFLOP/s in runs of one afternoon),
     # which would put rows above 1.0 of "peak".
-    typer.echo("measuring the float32 matmul peak again")
+    typer.echo("measuring the float32 matmul peak and the memory bandwidth again")
     peaks = [peak, measure_matmul_peak() / 1e9]
-    peak = max(peaks)
-    tables = [BenchTable(t.title, with_peak(t.rows, peak)) for t in tables]
+    bandwidths = [bandwidth, measure_memory_bandwidth() / 1e9]
+    peak, bandwidth = max(peaks), max(bandwidths)
+    tables = [BenchTable(t.title, with_peak(t.rows, peak, bandwidth)) for t in tables]
     info = machine_info()
     typer.echo(f"machine: {info['cpu_model']} ({info['cpu_cores']} cores, {info['backend']}, {info['device_kind']}), "
-               f"load {info['load_avg_1m']}; float32 matmul peak {peak:.1f} GFLOP/s (start {peaks[0]:.1f}, end {peaks[1]:.1f})")
+               f"load {info['load_avg_1m']}; float32 matmul peak {peak:.1f} GFLOP/s (start {peaks[0]:.1f}, end {peaks[1]:.1f}), "
+               f"memory bandwidth {bandwidth:.1f} GB/s (start {bandwidths[0]:.1f}, end {bandwidths[1]:.1f})")
     for table in tables:
         _echo_table(table.rows, table.title)
-    payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "matmul_peaks_gflop_s": peaks, "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
+    payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "matmul_peaks_gflop_s": peaks, "memory_bandwidth_gb_s": bandwidth,
+                               "memory_bandwidths_gb_s": bandwidths, "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
     if train_models:
         payload["train"] = {"data": data, "presets": presets, "models": train_models, "set": list(set_ or ()),
                             "paper_batch": paper_batch}

@@ -96,11 +96,12 @@ def test_bench_selection_maps_models_and_presets(monkeypatch, tmp_path):
 
     def fake_sample(models, *, paper, **kw):
         calls["sample"] = (list(models), paper)
-        return 10.0, [bench.BenchTable("sample", [{"model": m} for m in models])]
+        return 10.0, 5.0, [bench.BenchTable("sample", [{"model": m} for m in models])]
 
     monkeypatch.setattr(bench, "run_train_benchmarks", fake_train)
     monkeypatch.setattr(bench, "run_benchmarks", fake_sample)
     monkeypatch.setattr(benchmarking, "measure_matmul_peak", lambda *a, **k: 10e9)
+    monkeypatch.setattr(benchmarking, "measure_memory_bandwidth", lambda *a, **k: 5e9)
     monkeypatch.setattr("jaxtalk.data.loader.open_data", lambda *a, **k: None)
     out = tmp_path / "b.json"
     result = runner.invoke(app, ["bench", "--train", "--model", "freetalk", "--model", "dualtalk", "--paper",
@@ -123,7 +124,9 @@ def test_bench_rows_use_the_better_of_the_peaks_measured_at_start_and_end(monkey
     from jaxtalk import benchmarking
 
     peaks = iter([10e9, 40e9])  # a slow spell at the start
+    bandwidths = iter([6e9, 3e9])  # and one at the end
     monkeypatch.setattr(benchmarking, "measure_matmul_peak", lambda *a, **k: next(peaks))
+    monkeypatch.setattr(benchmarking, "measure_memory_bandwidth", lambda *a, **k: next(bandwidths))
     monkeypatch.setattr(bench, "run_train_benchmarks",
                         lambda models, presets, **kw: bench.BenchTable("train", bench.with_peak([{"gflop_s": 8.0}], kw["peak_gflop_s"])))
     monkeypatch.setattr("jaxtalk.data.loader.open_data", lambda *a, **k: None)
@@ -132,6 +135,7 @@ def test_bench_rows_use_the_better_of_the_peaks_measured_at_start_and_end(monkey
     assert result.exit_code == 0, result.output
     payload = json.loads(out.read_text())
     assert payload["matmul_peaks_gflop_s"] == [10.0, 40.0] and payload["matmul_peak_gflop_s"] == 40.0
+    assert payload["memory_bandwidths_gb_s"] == [6.0, 3.0] and payload["memory_bandwidth_gb_s"] == 6.0
     assert payload["tables"][0]["rows"][0]["of_peak"] == 0.2
 
 

@@ -96,6 +96,26 @@ def test_measure_matmul_peak_is_plausible():
         bm.measure_matmul_peak(n=0)
 
 
+def test_measure_memory_bandwidth_is_plausible_and_refuses_bad_sizes():
+    bandwidth = bm.measure_memory_bandwidth(nbytes=8 * 2**20, repeats=3)
+    assert 1e7 < bandwidth < 1e13
+    with pytest.raises(ValueError, match="nbytes must"):
+        bm.measure_memory_bandwidth(nbytes=0)
+
+
+def test_parameter_bytes_read_counts_exactly_the_leaves_the_function_uses():
+    params = {"used": jnp.ones((10, 4), jnp.float32), "unused": jnp.ones((1000,), jnp.float32),
+              "half": jnp.ones((6,), jnp.float16), "in_scan": jnp.ones((3, 3), jnp.float32)}
+
+    def fn(p, x):
+        y = x @ p["used"] + p["half"][:4].astype(jnp.float32).sum()
+        carry, _ = jax.lax.scan(lambda c, _: (c @ p["in_scan"], None), jnp.ones((3,)), None, length=5)
+        return y.sum() + carry.sum()
+
+    assert bm.parameter_bytes_read(fn, params, jnp.ones((2, 10))) == 10 * 4 * 4 + 6 * 2 + 3 * 3 * 4
+    assert bm.parameter_bytes_read(lambda p, x: x, params, jnp.ones(3)) == 0
+
+
 def test_format_table_layout():
     rows = [
         {"sampler": "euler", "steps": 1, "run_ms": 1.23456, "note": None},
