@@ -1,10 +1,11 @@
-"""The README's performance tables from one ``jaxtalk bench`` JSON (``--train`` adds the training table).
+"""The README's performance tables from ``jaxtalk bench`` JSON files (``--train`` adds the training table).
 
     jaxtalk bench --train --paper --out experiments/results/bench_all.json
     python experiments/bench_readme.py experiments/results/bench_all.json > /tmp/performance.md
 
-Prints Markdown: the machine and the matmul peak the run measured, then one table per benchmark table
-of the run (every row, the columns that matter to a reader), so the README quotes one run, named.
+Prints Markdown per file: the machine and the limits the run measured, then one table per benchmark
+table of the run (every row, the columns that matter to a reader), so every table the README quotes
+names its run.
 """
 
 from __future__ import annotations
@@ -61,9 +62,9 @@ def performance_section(payload: dict[str, Any]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("json", type=Path, help="a `jaxtalk bench` JSON")
+    parser.add_argument("json", type=Path, nargs="+", help="`jaxtalk bench` JSON files (one section each)")
     args = parser.parse_args()
-    print(performance_section(json.loads(args.json.read_text())), end="")
+    print("\n".join(performance_section(json.loads(path.read_text())) for path in args.json), end="")
 
 
 if __name__ == "__main__":

@@ -45,6 +45,8 @@ def add_training_args(ap: argparse.ArgumentParser, *, steps: int = 2000) -> None
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--layers", type=int, default=4)
     ap.add_argument("--head-width", type=int, default=128)
+    ap.add_argument("--head", default="diffusion", choices=("diffusion", "mlp"),
+                    help="the per-frame head: the paper's diffusion head, or the MLP regression of Table 2's ablation")
     ap.add_argument("--warmup", type=int, default=20, help="learning-rate warm-up steps")
     ap.add_argument("--batch-mul", type=int, default=1, help="diffusion (t, noise) draws per frame (MAR: 4)")
     ap.add_argument("--seed", type=int, default=0, help="training seed (initialisation, batches, diffusion noise)")
@@ -103,7 +105,8 @@ def open_prepared(args):
 def model_config(args, **overrides) -> TimarConfig:
     """The ``small`` preset at the command line's sizes, 8-turn windows."""
     return TimarConfig.small(max_turns=8, width=args.width, num_layers=args.layers, head_width=args.head_width,
-                             num_heads=max(1, args.width // 32), diffusion_batch_mul=args.batch_mul, **overrides)
+                             num_heads=max(1, args.width // 32), diffusion_batch_mul=args.batch_mul,
+                             **{"head": args.head, **overrides})
 
 
 def train_model(args, config: TimarConfig, *, ckpt_dir=None, max_steps: int | None = None,
