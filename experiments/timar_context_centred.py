@@ -1,7 +1,8 @@
 """TIMAR's context gain on the part of the motion context can explain: each side's prediction and truth
 centred on their own means (a per-speaker rest pose, which neither the user's motion nor the speech
 reveals, is left out, as in ``timar_context_control.py``'s probe), scored as pooled R^2 per group
-(neck, upper face) at n = 0, 1, 3, 7 turns of context, for the guided posterior mean.
+(neck, upper face) at n = 0, 1, 3, 7 turns of context, for the guided posterior mean, with its two
+parts: the correlation and the amplitude ratio (``R2 = 2 a rho - a^2``).
 
 Usage: python experiments/timar_context_centred.py MODEL.pkl [--size small] [--effects mimicry_1.2] [--out PATH]
 """
@@ -19,16 +20,18 @@ from timar_common import EFFECTS, load_corpus, load_model, predict  # noqa: E402
 from timar_context_control import GROUP_CHANNELS  # noqa: E402
 
 
-def centred_r2(preds: list[np.ndarray], truths: list[np.ndarray], channels: np.ndarray) -> float:
-    """Pooled ``1 - SSE / SST`` of each side's centred prediction against its centred truth."""
-    sse = sst = 0.0
+def centred_fit(preds: list[np.ndarray], truths: list[np.ndarray], channels: np.ndarray) -> dict[str, float]:
+    """Each side's centred prediction against its centred truth, pooled: ``R2`` (``1 - SSE / SST``),
+    and the two things it is made of, ``corr`` (the pooled correlation rho) and ``amp`` (the
+    prediction's RMS over the truth's, a): ``R2 = 2 a rho - a^2``, so a negative R^2 says whether the
+    prediction moves the wrong way (rho) or too much (a)."""
+    spp = spt = stt = 0.0
     for p, t in zip(preds, truths):
         n = min(len(p), len(t))
         p, t = p[:n, channels].astype(np.float64), t[:n, channels].astype(np.float64)
         p, t = p - p.mean(0), t - t.mean(0)
-        sse += float(np.sum((t - p) ** 2))
-        sst += float(np.sum(t**2))
-    return 1.0 - sse / sst
+        spp, spt, stt = spp + float(np.sum(p * p)), spt + float(np.sum(p * t)), stt + float(np.sum(t * t))
+    return {"R2": 1.0 - (spp - 2 * spt + stt) / stt, "corr": spt / np.sqrt(spp * stt), "amp": np.sqrt(spp / stt)}
 
 
 def main() -> None:
@@ -49,8 +52,8 @@ def main() -> None:
         truths = [c.agent_motion for c in convs]
         for n in (0, 1, 3, 7):
             preds = predict(config, params, norm, convs, context=n, cfg_scale=args.cfg_scale, sampler="mean")
-            rows.append({"split": split, "context": n,
-                         **{f"R2_{g}": centred_r2(preds, truths, ch) for g, ch in GROUP_CHANNELS.items()}})
+            fits = {g: centred_fit(preds, truths, ch) for g, ch in GROUP_CHANNELS.items()}
+            rows.append({"split": split, "context": n, **{f"{k}_{g}": v for g, fit in fits.items() for k, v in fit.items()}})
             print(rows[-1], flush=True)
     print_table(rows, f"TIMAR's centred R^2 (guided posterior mean) on SynthTalk-{args.size}, effects {args.effects}")
     write_json(args.out, {"machine": machine_info(), "args": vars(args), "rows": rows})
