@@ -58,7 +58,7 @@ SHARDS = "shards"
 TOKENIZER = "tokenizer.npz"
 # 2: a record per array, per-frame arrays cut in chunks of CHUNK_FRAMES frames (1: an .npz per clip).
 FORMAT_VERSION = 2
-# The arrays with one row per 25-fps frame, stored in chunks; every other array is in the head record.
+# The arrays with one row per 25-fps frame, stored in chunks; every other array is stored whole.
 FRAME_KEYS = ("motion", "vertices", "oracle", "speech", "landmarks")
 # One second: a 50-frame window (ATS) reads 2-3 chunks, a 100-frame one (TokTalk) 4-5, and a clip of
 # a few hundred frames is still read in one call of a dozen records.
