@@ -93,8 +93,12 @@ def random_params(init: Callable[[Any], PyTree], seed: int = 0) -> PyTree:
 
 
 def _median_time(fn: Callable[[], Any], repeats: int) -> float:
+    """Median seconds of ``repeats`` calls of ``fn``, each ``block_until_ready``-ed, after one untimed
+    call: it waits for anything still queued on the device (JAX dispatches asynchronously), which the
+    first timed call would otherwise include."""
     import jax
 
+    jax.block_until_ready(fn())
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -144,6 +148,7 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     step = functools.partial(tt.stream_step, params, config)
     for _ in range(config.window_frames // config.chunk_frames):  # fill the window
         state, out = step(state, chunk, style, ts=ts)
+    jax.block_until_ready(out)
     latency = _median_time(lambda: step(state, chunk, style, ts=ts)[1], repeats)
     # One guided velocity evaluation (conditional + unconditional as a batch of 2) per Euler step.
     wf = config.window_frames
