@@ -44,8 +44,9 @@ def markdown_table(rows: list[dict[str, Any]], columns: tuple[tuple[str, str], .
     return "\n".join(lines)
 
 
-def performance_section(payload: dict[str, Any]) -> str:
-    """The Markdown of a whole bench JSON: machine line, then every table."""
+def performance_section(payload: dict[str, Any], titles: tuple[str, ...] = ()) -> str:
+    """The Markdown of a bench JSON: machine line, then every table (only those whose title starts
+    with one of ``titles`` when given)."""
     m = payload["machine_info"]
     recorded = payload.get("recorded", {})
     head = (f"Measured by `{recorded.get('command', 'jaxtalk bench')}` on {recorded.get('date_utc', '?')}: "
@@ -55,6 +56,8 @@ def performance_section(payload: dict[str, Any]) -> str:
             + (f", memory bandwidth {payload['memory_bandwidth_gb_s']:.1f} GB/s." if payload.get("memory_bandwidth_gb_s") else "."))
     parts = [head]
     for table in payload["tables"]:
+        if titles and not table["title"].startswith(titles):
+            continue
         columns = TRAIN_COLUMNS if table["title"].startswith("Training") else SAMPLE_COLUMNS
         parts += [f"**{table['title']}**", markdown_table(table["rows"], columns)]
     return "\n\n".join(parts) + "\n"
@@ -63,8 +66,10 @@ def performance_section(payload: dict[str, Any]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("json", type=Path, nargs="+", help="`jaxtalk bench` JSON files (one section each)")
+    parser.add_argument("--titles", nargs="*", default=(), help="only the tables whose titles start with these")
     args = parser.parse_args()
-    print("\n".join(performance_section(json.loads(path.read_text())) for path in args.json), end="")
+    titles = tuple(args.titles)
+    print("\n".join(performance_section(json.loads(path.read_text()), titles) for path in args.json), end="")
 
 
 if __name__ == "__main__":
