@@ -148,7 +148,6 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     step = functools.partial(tt.stream_step, params, config)
     for _ in range(config.window_frames // config.chunk_frames):  # fill the window
         state, out = step(state, chunk, style, ts=ts)
-    jax.block_until_ready(out)
     latency = _median_time(lambda: step(state, chunk, style, ts=ts)[1], repeats)
     # One guided velocity evaluation (conditional + unconditional as a batch of 2) per Euler step.
     wf = config.window_frames
