@@ -222,7 +222,7 @@ class PreparedData:
                 got[(k, ch)] = hit
         if missing:
             records = self._readers[self.clips[i]["shard"]].read([index for _, _, index in missing])
-            for (k, ch), data in zip(((k, ch) for k, ch, _ in missing), records):
+            for (k, ch, _), data in zip(missing, records):
                 # Chunks are concatenated (copied) by the caller; a head array is returned as it is.
                 array = decode_array(data, copy=ch < 0 and cache is None)
                 got[(k, ch)] = array
