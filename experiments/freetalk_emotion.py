@@ -30,7 +30,11 @@ writes and ``jaxtalk sample`` reads) in ``--ckpt-dir`` (default under ``experime
 second run with the same arguments loads it instead of training again, an interrupted one resumes.
 
 Usage: python experiments/freetalk_emotion.py [--size small|tiny] [--steps N] [--ddim-steps N]
-       [--seeds N] [--ckpt-dir DIR] [--cache DIR] [--out PATH]
+       [--seeds N] [--train-seed S] [--ckpt-dir DIR] [--cache DIR] [--out PATH]
+
+The verdict's ``gain_ratio`` (intensity 1 -> 3 along the true direction, over the generator's own gain)
+is the number the scale curve of issue 29 plots against the training budget
+(``experiments/scale_curves.py``).
 """
 
 from __future__ import annotations
@@ -64,7 +68,8 @@ def main() -> None:
     parser.add_argument("--ddim-steps", type=int, default=20)
     parser.add_argument("--cache", type=Path, default=Path(".cache/prepared"),
                         help="SynthTalk and its prepared copy (the default is jaxtalk train's)")
-    parser.add_argument("--seeds", type=int, default=4)
+    parser.add_argument("--seeds", type=int, default=4, help="noise seeds every label is sampled with")
+    parser.add_argument("--train-seed", type=int, default=0, help="ATS initialisation and data-order seed")
     parser.add_argument("--ckpt-dir", type=Path, default=None,
                         help="run folder; default: experiments/results/freetalk_emotion_run/<size>-<steps>-w<window>")
     parser.add_argument("--out", type=Path, default=Path("experiments/results/freetalk_emotion.json"))
@@ -74,7 +79,8 @@ def main() -> None:
     corpus = synthtalk.generate(args.size, seed=0, cache_dir=args.cache / "synthtalk")
     test_clips = corpus.split("val") + corpus.split("test")
     test_w = data.ats_windows(corpus, test_clips, window=args.window, hop=args.window)
-    run_dir = args.ckpt_dir or Path("experiments/results/freetalk_emotion_run") / f"{args.size}-{args.steps}-w{args.window}"
+    run_dir = args.ckpt_dir or Path("experiments/results/freetalk_emotion_run") / (
+        f"{args.size}-{args.steps}-w{args.window}" + (f"-s{args.train_seed}" if args.train_seed else ""))
     fitted = trained_ats(run_dir, args)
     train_s = time.time() - t0
     print(f"ATS at step {args.steps} ready (trained or loaded) in {train_s:.0f} s", flush=True)
@@ -123,13 +129,14 @@ def main() -> None:
             true = reference[emotion]["offset"][level - 1]
             direction = true / np.maximum(np.linalg.norm(true, axis=-1, keepdims=True), 1e-12)
             row[f"along_mm_i{level}"] = float(np.sum(offset * direction, axis=-1).mean() * 1000)
+            row[f"along_seeds_mm_i{level}"] = (np.sum(per_seed * direction, axis=-1).mean(axis=-1) * 1000).tolist()
             # Frame by frame: also counts blinks and brow motion that merely moved in time.
             row[f"frame_mm_i{level}"] = float(np.linalg.norm(diff, axis=-1).mean() * 1000)
             row[f"true_mm_i{level}"] = reference[emotion]["mm"][level - 1]
         row["grows"] = row["upper_mm_i1"] < row["upper_mm_i2"] < row["upper_mm_i3"]
         row["grows_along"] = row["along_mm_i1"] < row["along_mm_i2"] < row["along_mm_i3"]
         rows.append(row)
-    bm.print_table(rows, "Upper-face deviation from neutral (mm) by emotion and intensity "
+    bm.print_table([{k: v for k, v in r.items() if not k.startswith("along_seeds")} for r in rows], "Upper-face deviation from neutral (mm) by emotion and intensity "
                          "(upper: expression offset; frame: per-frame distance; true: SynthTalk's own offset)")
     at3 = np.array([r["upper_mm_i3"] for r in rows])
     true3 = np.array([r["true_mm_i3"] for r in rows])
@@ -140,11 +147,28 @@ def main() -> None:
         "emotion_spread_cv": float(at3.std() / at3.mean()),
         "corr_with_true_offsets_i3": float(np.corrcoef(at3, true3)[0, 1]),
         "ats_beats_mean": accuracy[0]["lip_mm"] < accuracy[1]["lip_mm"],
+        **intensity_gain(rows),
     }
     print(verdict)
     payload = {"args": {k: str(v) for k, v in vars(args).items()}, "train_s": train_s,
                "accuracy": accuracy, "emotion": rows, "verdict": verdict}
     print(f"wrote {bm.write_json(args.out, payload)}")
+
+
+def intensity_gain(rows: list[dict]) -> dict[str, float]:
+    """How much of the true intensity effect the model reproduces, as one number per run.
+
+    ``gain_mm``: the along-the-true-direction offset at intensity 3 minus that at intensity 1, averaged
+    over emotions (mm); ``true_gain_mm``: the same for SynthTalk's own offsets; ``gain_ratio``: their
+    ratio (1: the label scales the face as the generator does; 0: intensity changes nothing). The
+    standard error is across noise seeds (each seed's gain averaged over emotions), so it says how much
+    of the gain is sampling noise, not how much another training seed would differ.
+    """
+    per_seed = np.mean([np.subtract(r["along_seeds_mm_i3"], r["along_seeds_mm_i1"]) for r in rows], axis=0)
+    true_gain = float(np.mean([r["true_mm_i3"] - r["true_mm_i1"] for r in rows]))
+    se = float(per_seed.std(ddof=1) / np.sqrt(len(per_seed))) if len(per_seed) > 1 else float("nan")
+    gain = float(per_seed.mean())
+    return {"gain_mm": gain, "gain_se_mm": se, "true_gain_mm": true_gain, "gain_ratio": gain / true_gain}
 
 
 def trained_ats(run_dir: Path, args: argparse.Namespace) -> FittedATS:
@@ -156,7 +180,7 @@ def trained_ats(run_dir: Path, args: argparse.Namespace) -> FittedATS:
     if done != args.steps or not (run_dir / RUN_FILE).is_file():
         opts = TrainOptions(model="ats", out_dir=run_dir, data=f"synthtalk:{args.size}", preset="small",
                             overrides=(f"max_frames={args.window}", f"window_frames={args.window}"),
-                            steps=args.steps, seed=0, cache_dir=args.cache)
+                            steps=args.steps, seed=args.train_seed, cache_dir=args.cache)
         train_run(opts)
     else:
         print(f"found the finished run {run_dir} (step {done}): not training again", flush=True)
