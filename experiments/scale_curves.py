@@ -1,0 +1,152 @@
+"""Issue 29 §4: each paper claim that did not hold at CPU scale, as a gap against scale, with its verdict.
+
+Reads the result files the claim's own experiment wrote (nothing is retrained here) and plots, per
+claim, the gap in the direction the paper claims (positive = the claim holds) against the training
+budget, one point per training seed. The verdict compares the gap with its spread:
+
+* ``holds at the largest scale``: there every seed's gap is positive and their mean exceeds twice the
+  noise (the seed spread averaged over scales, or ``--floor`` where no scale has two seeds);
+* ``does not hold``: otherwise (``reversed`` where the mean gap is below minus twice the noise);
+* and whether the mean gap moves toward the claim, away from it, or not beyond the noise from the
+  smallest to the largest scale. A verdict resting on one seed says so.
+
+Claims and their files (all under ``experiments/results/``):
+
+* TokTalk, more Euler steps is better: ``toktalk_degradation.json`` (the held-out runs' validation every
+  500 steps, 20 val clips, 1 and 10 steps): gap = LVE(1 step) - LVE(10 steps), and the same for jitter.
+* FreeTalk, intensity grows through the chain: ``freetalk_intensity_scale/*.json``
+  (``freetalk_emotion.py`` at several ATS budgets): gap = the intensity gain along the true direction
+  over the generator's own (``gain_ratio``; 1 = as the generator, 0 = none).
+* TIMAR, more context helps: ``timar_context_centred_full*_cfg1.json`` and
+  ``timar_context_scale/*.json`` (``timar_context_centred.py`` on the mimicry-1.2 control corpus,
+  ``full``): gap = centred neck R^2 at 7 past turns minus at 0, test conversations.
+
+    python experiments/scale_curves.py --out experiments/results/scale_curves.json \
+        --figure experiments/results/scale_curves.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+from jaxtalk.benchmarking import print_table, write_json
+
+RESULTS = Path("experiments/results")
+
+
+def toktalk_steps(metric: str) -> list[dict]:
+    """(training steps, seed, gap) of TokTalk's 1- vs 10-step ``metric`` on the 20 val clips."""
+    runs = json.loads((RESULTS / "toktalk_degradation.json").read_text())["sessions"]["2026-12-04-s19"]["runs"]
+    return [{"scale": e["step"], "seed": run["seed"], "gap": e[f"{metric}_1step"] - e[f"{metric}_10step"]}
+            for run in runs.values() for e in run["evals_val_20_clips"]]
+
+
+def freetalk_intensity() -> list[dict]:
+    """(ATS training steps, seed, intensity gain ratio) from ``freetalk_emotion.py`` runs."""
+    points = []
+    for path in sorted(glob.glob(str(RESULTS / "freetalk_intensity_scale" / "*.json"))):
+        report = json.loads(Path(path).read_text())
+        points.append({"scale": int(report["args"]["steps"]), "seed": int(report["args"].get("train_seed", 0)),
+                       "gap": report["verdict"]["gain_ratio"]})
+    return points
+
+
+def timar_context(split: str = "test") -> list[dict]:
+    """(training steps, seed, neck R^2 gain from 0 to 7 turns) of TIMAR 64x2's diffusion head on the
+    mimicry-1.2 control corpus (``full``)."""
+    files = [RESULTS / "timar_context_centred_full_cfg1.json", RESULTS / "timar_context_centred_full_1500_cfg1.json",
+             *map(Path, sorted(glob.glob(str(RESULTS / "timar_context_scale" / "*.json"))))]
+    points = []
+    for path in files:
+        if not path.is_file():
+            continue
+        report = json.loads(path.read_text())
+        meta = report.get("scale", {"steps": 1500 if "1500" in path.name else 600, "seed": 0})
+        r2 = {r["context"]: r["R2_neck"] for r in report["rows"] if r["split"] == split}
+        points.append({"scale": meta["steps"], "seed": meta["seed"], "gap": r2[max(r2)] - r2[min(r2)]})
+    return points
+
+
+CLAIMS = {
+    "TokTalk: 10 Euler steps beat 1 on lip error (LVE, mm^2)": (lambda: toktalk_steps("LVE_mm2"), "TokTalk steps"),
+    "TokTalk: 10 Euler steps are smoother than 1 (jitter, mm/frame^2)": (lambda: toktalk_steps("jitter_mm"), "TokTalk steps"),
+    "FreeTalk: intensity grows along the emotion (gain / generator's gain)": (freetalk_intensity, "ATS steps"),
+    "TIMAR: 7 past turns beat 0 (centred neck R^2, test, control corpus)": (timar_context, "TIMAR 64x2 steps"),
+}
+
+
+def verdict(points: list[dict], floor: float) -> dict:
+    """The verdict of one claim from its (scale, seed, gap) points; ``floor``: the noise level assumed
+    where one seed gives no spread."""
+    scales = sorted({p["scale"] for p in points})
+    by = {s: np.array([p["gap"] for p in points if p["scale"] == s]) for s in scales}
+    mean = {s: float(v.mean()) for s, v in by.items()}
+    spread = {s: float(v.std(ddof=1)) if len(v) > 1 else float("nan") for s, v in by.items()}
+    seeds_spread = [v for v in spread.values() if np.isfinite(v)]
+    noise = max(float(np.mean(seeds_spread)) if seeds_spread else 0.0, floor)
+    top, bottom = scales[-1], scales[0]
+    change = mean[top] - mean[bottom]
+    trend = ("moves toward the claim" if change > 2 * noise else "moves away from the claim" if change < -2 * noise
+             else "does not change beyond the spread")
+    if mean[top] > 2 * noise and (by[top] > 0).all():
+        text = "holds at the largest scale"
+    else:
+        text = "does not hold" + (", reversed" if mean[top] < -2 * noise else "")
+    text += f"; from the smallest to the largest scale the gap {trend}"
+    if len(by[top]) < 2:
+        text += f" (one seed at the largest scale: noise taken as {noise:.3g})"
+    return {"verdict": text, "scales": scales, "mean_gap": [mean[s] for s in scales],
+            "seed_spread": [spread[s] for s in scales], "seeds": [len(by[s]) for s in scales], "noise": noise}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=RESULTS / "scale_curves.json")
+    ap.add_argument("--figure", type=Path, default=RESULTS / "scale_curves.png")
+    ap.add_argument("--floor", type=float, default=0.0,
+                    help="noise level assumed for a claim measured with one seed per scale (default 0: say so)")
+    args = ap.parse_args()
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    results, rows = {}, []
+    panels = [(name, load(), xlabel) for name, (load, xlabel) in CLAIMS.items()]
+    panels = [p for p in panels if p[1]]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.6), squeeze=False)
+    for ax, (name, points, xlabel) in zip(axes[0], panels):
+        v = verdict(points, args.floor)
+        results[name] = {"points": points, **v}
+        rows.append({"claim": name, "verdict": v["verdict"], "scales": "/".join(map(str, v["scales"])),
+                     "mean_gap": " / ".join(f"{g:.3g}" for g in v["mean_gap"]), "seeds": "/".join(map(str, v["seeds"]))})
+        for seed in sorted({p["seed"] for p in points}):
+            xs = [p["scale"] for p in points if p["seed"] == seed]
+            ax.plot(xs, [p["gap"] for p in points if p["seed"] == seed], "o", alpha=0.6, label=f"seed {seed}")
+        ax.plot(v["scales"], v["mean_gap"], "k-", lw=1.5, label="mean")
+        ax.axhline(0.0, color="grey", lw=0.8)
+        ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xticks(v["scales"] if len(v["scales"]) <= 5 else v["scales"][::3])
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("gap (> 0: the claim holds)")
+        ax.set_title(textwrap.fill(name, 48) + "\n" + textwrap.fill(v["verdict"], 60), fontsize=7.5)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    args.figure.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.figure, dpi=120)
+    print_table(rows, "Paper claims against scale")
+    write_json(args.out, {"claims": results})
+    print(f"wrote {args.out} and {args.figure}")
+
+
+if __name__ == "__main__":
+    main()
