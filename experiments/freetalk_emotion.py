@@ -32,6 +32,10 @@ second run with the same arguments loads it instead of training again, an interr
 Usage: python experiments/freetalk_emotion.py [--size small|tiny] [--steps N] [--ddim-steps N]
        [--seeds N] [--train-seed S] [--ckpt-dir DIR] [--cache DIR] [--out PATH]
 
+``--emotion-gain K`` trains and scores on the positive-control corpus (issue 29 §5): SynthTalk with
+every emotion's face offset K times its own (``SizeSpec.emotion_gain``), so that the label and its
+intensity change the face by a known, large amount; ``true`` and ``along`` use the scaled offsets.
+
 The verdict's ``gain_ratio`` (intensity 1 -> 3 along the true direction, over the generator's own gain)
 is the number the scale curve of issue 29 plots against the training budget
 (``experiments/scale_curves.py``).
@@ -40,6 +44,7 @@ is the number the scale curve of issue 29 plots against the training budget
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -71,6 +76,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=4, help="noise seeds every label is sampled with")
     parser.add_argument("--max-windows", type=int, default=0,
                         help="score at most this many held-out windows, evenly spread (0: all)")
+    parser.add_argument("--emotion-gain", type=float, default=1.0,
+                        help="the control corpus: every emotion's face offset times this (SynthTalk's own: 1)")
     parser.add_argument("--train-seed", type=int, default=0, help="ATS initialisation and data-order seed")
     parser.add_argument("--ckpt-dir", type=Path, default=None,
                         help="run folder; default: experiments/results/freetalk_emotion_run/<size>-<steps>-w<window>")
@@ -78,7 +85,7 @@ def main() -> None:
     args = parser.parse_args()
     t0 = time.time()
     # The corpus cache that open_data prepares the training data from (one generation for both).
-    corpus = synthtalk.generate(args.size, seed=0, cache_dir=args.cache / "synthtalk")
+    corpus = synthtalk.generate(corpus_spec(args), seed=0, cache_dir=args.cache / "synthtalk")
     test_clips = corpus.split("val") + corpus.split("test")
     test_w = data.ats_windows(corpus, test_clips, window=args.window, hop=args.window)
     if args.max_windows and len(test_w["clip"]) > args.max_windows:
@@ -87,8 +94,9 @@ def main() -> None:
         keep = np.linspace(0, len(test_w["clip"]) - 1, args.max_windows).round().astype(int)
         test_w = {k: v[keep] for k, v in test_w.items()}
     run_dir = args.ckpt_dir or Path("experiments/results/freetalk_emotion_run") / (
-        f"{args.size}-{args.steps}-w{args.window}" + (f"-s{args.train_seed}" if args.train_seed else ""))
-    fitted = trained_ats(run_dir, args)
+        f"{args.size}-{args.steps}-w{args.window}" + (f"-s{args.train_seed}" if args.train_seed else "")
+        + (f"-gain{args.emotion_gain:g}" if args.emotion_gain != 1 else ""))
+    fitted = trained_ats(run_dir, args, corpus)
     train_s = time.time() - t0
     print(f"ATS at step {args.steps} ready (trained or loaded) in {train_s:.0f} s", flush=True)
 
@@ -121,7 +129,7 @@ def main() -> None:
                          for k in keys])
 
     neutral = upper_samples("neutral", 1.0)
-    reference = generator_offsets(face)
+    reference = generator_offsets(face, args.emotion_gain)
     rows = []
     for emotion in EMOTIONS[1:]:
         row = {"emotion": emotion}
@@ -178,14 +186,35 @@ def intensity_gain(rows: list[dict]) -> dict[str, float]:
     return {"gain_mm": gain, "gain_se_mm": se, "true_gain_mm": true_gain, "gain_ratio": gain / true_gain}
 
 
-def trained_ats(run_dir: Path, args: argparse.Namespace) -> FittedATS:
+def corpus_spec(args: argparse.Namespace):
+    """The size name (SynthTalk's own emotions) or, with ``--emotion-gain``, the control corpus's spec."""
+    if args.emotion_gain == 1:
+        return args.size
+    return dataclasses.replace(synthtalk.SIZES[args.size], emotion_gain=args.emotion_gain)
+
+
+def training_data(args: argparse.Namespace, corpus) -> str:
+    """``synthtalk:SIZE``, or the control corpus prepared once beside it (a folder ``jaxtalk train`` takes)."""
+    if args.emotion_gain == 1:
+        return f"synthtalk:{args.size}"
+    from jaxtalk.data.prepare import is_current, prepare
+    from jaxtalk.data.sources import Source, synthtalk_entries
+
+    out = args.cache / f"synthtalk-{args.size}-emotion-gain-{args.emotion_gain:g}-seed0"
+    if not is_current(out):
+        prepare(Source(spec=f"synthtalk:{args.size}:0 emotion_gain={args.emotion_gain:g}", layout="synthtalk",
+                       entries=tuple(synthtalk_entries(corpus)), tokenizer=lambda: corpus.tokenizer("A")), out)
+    return str(out)
+
+
+def trained_ats(run_dir: Path, args: argparse.Namespace, corpus) -> FittedATS:
     """ATS ``small`` trained by its recipe through :func:`jaxtalk.commands.training.train_run` (the
     recipe's defaults: AdamW 1e-3, 100 warm-up steps, batch 16; ``window``-frame windows every quarter
     window, displacements standardised with the training split's statistics), or loaded from a
     finished run in ``run_dir``."""
     done = latest_checkpoint_step(checkpoint_dir(run_dir)) if checkpoint_dir(run_dir).exists() else None
     if done != args.steps or not (run_dir / RUN_FILE).is_file():
-        opts = TrainOptions(model="ats", out_dir=run_dir, data=f"synthtalk:{args.size}", preset="small",
+        opts = TrainOptions(model="ats", out_dir=run_dir, data=training_data(args, corpus), preset="small",
                             overrides=(f"max_frames={args.window}", f"window_frames={args.window}"),
                             steps=args.steps, seed=args.train_seed, cache_dir=args.cache)
         train_run(opts)
@@ -198,8 +227,9 @@ def trained_ats(run_dir: Path, args: argparse.Namespace) -> FittedATS:
                      [])
 
 
-def generator_offsets(face) -> dict[str, dict[str, list]]:
-    """SynthTalk's own upper-face emotion offsets on ``face`` at intensities 1-3, head pose removed.
+def generator_offsets(face, gain: float = 1.0) -> dict[str, dict[str, list]]:
+    """SynthTalk's own upper-face emotion offsets on ``face`` at intensities 1-3, head pose removed
+    (times ``gain``, the corpus's ``emotion_gain``).
 
     Returns, per emotion, ``mm`` (mean landmark offset norm in mm, one per intensity) and ``offset``
     (the (22, 3) upper-face landmark offsets in metres, one per intensity).
@@ -209,7 +239,7 @@ def generator_offsets(face) -> dict[str, dict[str, list]]:
     for emotion in EMOTIONS[1:]:
         out[emotion] = {"mm": [], "offset": []}
         for level in (1, 2, 3):
-            offset = data.without_head_pose(face_offset(emotion, level)[None].astype(np.float32))[0]
+            offset = data.without_head_pose((gain * face_offset(emotion, level))[None].astype(np.float32))[0]
             delta = np.asarray(face.landmarks(jax.numpy.asarray(offset)))[UPPER] - neutral[UPPER]
             out[emotion]["mm"].append(float(np.linalg.norm(delta, axis=-1).mean() * 1000))
             out[emotion]["offset"].append(delta)

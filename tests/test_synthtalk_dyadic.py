@@ -148,3 +148,28 @@ def test_a_size_spec_with_other_effects_changes_only_the_conversations_by_exactl
     expected = conversation_motion(timelines, styles, emotions, motion_rngs, strong)
     for i in (a, b):
         np.testing.assert_array_equal(control.motion_without_audio(i)[0], expected[unit.clips.index(i)].motion)
+
+
+def test_emotion_gain_scales_each_monologue_emotion_offset_and_nothing_else():
+    from jaxtalk.data.synthtalk.emotions import face_offset
+    from jaxtalk.data.synthtalk.motion import JAW_OPEN_INDEX
+
+    base = synthtalk.SizeSpec((6, 0, 0, 0), 1, 3.0, (0, 0, 0, 0), 8.0, 32, 1e9, lazy=True)
+    plain, control = synthtalk.generate(base, 0), synthtalk.generate(dataclasses.replace(base, emotion_gain=3.0), 0)
+    assert plain.key != control.key  # a custom spec is cached under its own content's name
+    emotional = [i for i, c in enumerate(plain.clips) if c.emotion != "neutral"]
+    assert emotional, "the test needs a clip with an emotion"
+    for i in emotional:
+        clip = plain.clips[i]
+        offset = face_offset(clip.emotion, clip.intensity)
+        other = np.arange(offset.size) != JAW_OPEN_INDEX  # the jaw opening is clipped after the sum
+        for a, b in zip(plain.motion_without_audio(i), control.motion_without_audio(i)):
+            np.testing.assert_allclose((b - a)[:, other], np.broadcast_to(2.0 * offset[other], a[:, other].shape),
+                                       atol=2e-6)
+
+
+@pytest.mark.parametrize("gain", [-1.0, float("nan"), float("inf")])
+def test_a_negative_or_non_finite_emotion_gain_is_refused_naming_the_field(gain):
+    base = synthtalk.SizeSpec((2, 0, 0, 0), 1, 3.0, (0, 0, 0, 0), 8.0, 32, 1e9, lazy=True)
+    with pytest.raises(ValueError, match="emotion_gain"):
+        synthtalk.generate(dataclasses.replace(base, emotion_gain=gain), 0)

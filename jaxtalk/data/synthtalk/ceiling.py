@@ -54,7 +54,7 @@ def side_features(corpus, agent: int, user: int, past_turns: int, *, frames_per_
     f = np.arange(n)
     # Neck: the user's head movement at the agent's mimicry lag, if inside the window.
     lag = max(1, int(round(a.style.mimic_lag * fps)))
-    static = u.style.rest + face_offset(u.emotion, u.intensity)
+    static = u.style.rest + corpus.spec.emotion_gain * face_offset(u.emotion, u.intensity)
     dev = user_motion[:, NECK_SLICE].astype(np.float64) - static[None, NECK_SLICE]
     src = f - lag
     seen = src >= start

@@ -130,7 +130,7 @@ def conversation_timelines(rng: np.random.Generator, styles: tuple[SpeakerStyle,
 
 
 def monologue_motion(own: Timeline, style: SpeakerStyle, emotion: tuple[str, int],
-                     motion_rng: np.random.Generator) -> motion_lib.MotionParts:
+                     motion_rng: np.random.Generator, emotion_gain: float = 1.0) -> motion_lib.MotionParts:
     """Motion and oracle of a monologue (no audio).
 
     Args:
@@ -139,6 +139,9 @@ def monologue_motion(own: Timeline, style: SpeakerStyle, emotion: tuple[str, int
         emotion: ``(emotion, intensity)``.
         motion_rng: generator for blinks, sway and drift (consumed; its use depends only on the
             number of frames).
+        emotion_gain: the emotion's face offset is multiplied by this (1: SynthTalk's own; a control
+            corpus in which the emotion and its intensity change the face by a known, larger amount
+            raises it). The voice is unchanged.
     """
     num_frames = int(round(own.duration * _FPS))
     parts = [
@@ -146,15 +149,15 @@ def monologue_motion(own: Timeline, style: SpeakerStyle, emotion: tuple[str, int
         motion_lib.prosody(own, style, num_frames, _FPS),
     ]
     noise, noise_mean = motion_lib.stochastic(motion_rng, style, num_frames, _FPS)
-    return motion_lib.compose(style, face_offset(*emotion), parts, noise, noise_mean)
+    return motion_lib.compose(style, emotion_gain * face_offset(*emotion), parts, noise, noise_mean)
 
 
 def render_channel(own: Timeline, style: SpeakerStyle, emotion: tuple[str, int], audio_rng: np.random.Generator,
-                   motion_rng: np.random.Generator, sample_rate: int = 16_000) -> Channel:
+                   motion_rng: np.random.Generator, sample_rate: int = 16_000, emotion_gain: float = 1.0) -> Channel:
     """Audio and motion of a monologue (conversations: :func:`render_conversation`).
 
     Args:
-        own, style, emotion, motion_rng: see :func:`monologue_motion`.
+        own, style, emotion, motion_rng, emotion_gain: see :func:`monologue_motion`.
         audio_rng: generator for the audio noise (consumed).
         sample_rate: audio rate.
 
@@ -162,14 +165,14 @@ def render_channel(own: Timeline, style: SpeakerStyle, emotion: tuple[str, int],
         A ``Channel``.
     """
     audio = synthesize(own, style, voice_change(*emotion), audio_rng, sample_rate)
-    m = monologue_motion(own, style, emotion, motion_rng)
+    m = monologue_motion(own, style, emotion, motion_rng, emotion_gain)
     return Channel(audio, m.motion, m.oracle)
 
 
 def conversation_motion(
     timelines: tuple[Timeline, Timeline], styles: tuple[SpeakerStyle, SpeakerStyle],
     emotions: tuple[tuple[str, int], tuple[str, int]], motion_rngs: tuple[np.random.Generator, np.random.Generator],
-    effects: dyadic.DyadicEffects = dyadic.DEFAULT_EFFECTS,
+    effects: dyadic.DyadicEffects = dyadic.DEFAULT_EFFECTS, emotion_gain: float = 1.0,
 ) -> tuple[motion_lib.MotionParts, motion_lib.MotionParts]:
     """Both speakers' motion and oracle in a conversation (no audio).
 
@@ -182,6 +185,7 @@ def conversation_motion(
         motion_rngs: each speaker's generator for blinks, sway and drift (consumed as in a monologue
             of the same length).
         effects: strengths of the long-range effects.
+        emotion_gain: see :func:`monologue_motion`.
 
     Returns:
         Both speakers' ``MotionParts``.
@@ -189,7 +193,7 @@ def conversation_motion(
     num_frames = int(round(timelines[0].duration * _FPS))
     if abs(timelines[1].duration - timelines[0].duration) > 1e-9:
         raise ValueError(f"conversation channels differ in duration: {timelines[0].duration} vs {timelines[1].duration}")
-    offsets = [face_offset(*e) for e in emotions]
+    offsets = [emotion_gain * face_offset(*e) for e in emotions]
     parts, noise, noise_mean, realised = [], [], [], []
     for s in (0, 1):
         o = 1 - s
@@ -215,15 +219,15 @@ def render_conversation(
     timelines: tuple[Timeline, Timeline], styles: tuple[SpeakerStyle, SpeakerStyle],
     emotions: tuple[tuple[str, int], tuple[str, int]], audio_rngs: tuple[np.random.Generator, np.random.Generator],
     motion_rngs: tuple[np.random.Generator, np.random.Generator], sample_rate: int = 16_000,
-    effects: dyadic.DyadicEffects = dyadic.DEFAULT_EFFECTS,
+    effects: dyadic.DyadicEffects = dyadic.DEFAULT_EFFECTS, emotion_gain: float = 1.0,
 ) -> tuple[Channel, Channel]:
     """Both channels of a conversation: each speaker's audio (their voice only) and motion.
 
     Args:
-        timelines, styles, emotions, motion_rngs, effects: see :func:`conversation_motion`.
+        timelines, styles, emotions, motion_rngs, effects, emotion_gain: see :func:`conversation_motion`.
         audio_rngs: each speaker's generator for the audio noise (consumed).
         sample_rate: audio rate.
     """
-    motions = conversation_motion(timelines, styles, emotions, motion_rngs, effects)
+    motions = conversation_motion(timelines, styles, emotions, motion_rngs, effects, emotion_gain)
     return tuple(Channel(synthesize(timelines[s], styles[s], voice_change(*emotions[s]), audio_rngs[s], sample_rate),
                          motions[s].motion, motions[s].oracle) for s in (0, 1))

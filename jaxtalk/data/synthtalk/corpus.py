@@ -14,6 +14,7 @@ import collections
 import dataclasses
 import hashlib
 import json
+import math
 import os
 from pathlib import Path
 
@@ -78,6 +79,9 @@ class SizeSpec:
             The built-in sizes use :data:`~jaxtalk.data.synthtalk.dyadic.DEFAULT_EFFECTS`; a control
             corpus for a context experiment raises them (``dataclasses.replace(SIZES["small"],
             effects=DyadicEffects(...))``), and, being a custom spec, is cached under its own name.
+        emotion_gain: every emotion's face offset (at every intensity) is multiplied by this; 1 is
+            SynthTalk's own. A control corpus in which the emotion label and its intensity change the
+            face by a known, larger amount raises it (the voice's emotional changes stay as they are).
     """
 
     speakers: tuple[int, int, int, int]
@@ -90,6 +94,7 @@ class SizeSpec:
     identities: tuple[int, ...] = (0, 1, 2, 3)
     lazy: bool = False
     effects: DyadicEffects = DEFAULT_EFFECTS
+    emotion_gain: float = 1.0
 
 
 SIZES: dict[str, SizeSpec] = {
@@ -227,19 +232,21 @@ def _unit_args(seed: int, unit: int, u: _Unit, clips: list[ClipInfo]) -> tuple:
             tuple(_rng(seed, _MOTION, unit, ch) for ch in range(len(infos))))
 
 
-def _render_unit(seed: int, unit: int, u: _Unit, clips: list[ClipInfo], effects: DyadicEffects) -> list[Channel]:
+def _render_unit(seed: int, unit: int, u: _Unit, clips: list[ClipInfo], spec: SizeSpec) -> list[Channel]:
     timelines, styles, emotions, audio_rngs, motion_rngs = _unit_args(seed, unit, u, clips)
     if len(timelines) == 1:
-        return [render_channel(timelines[0], styles[0], emotions[0], audio_rngs[0], motion_rngs[0])]
-    return list(render_conversation(timelines, styles, emotions, audio_rngs, motion_rngs, effects=effects))
+        return [render_channel(timelines[0], styles[0], emotions[0], audio_rngs[0], motion_rngs[0],
+                               emotion_gain=spec.emotion_gain)]
+    return list(render_conversation(timelines, styles, emotions, audio_rngs, motion_rngs, effects=spec.effects,
+                                    emotion_gain=spec.emotion_gain))
 
 
-def _unit_motion(seed: int, unit: int, u: _Unit, clips: list[ClipInfo], effects: DyadicEffects) -> list[MotionParts]:
+def _unit_motion(seed: int, unit: int, u: _Unit, clips: list[ClipInfo], spec: SizeSpec) -> list[MotionParts]:
     # The motion of _render_unit without the audio (its random streams are separate).
     timelines, styles, emotions, _, motion_rngs = _unit_args(seed, unit, u, clips)
     if len(timelines) == 1:
-        return [monologue_motion(timelines[0], styles[0], emotions[0], motion_rngs[0])]
-    return list(conversation_motion(timelines, styles, emotions, motion_rngs, effects))
+        return [monologue_motion(timelines[0], styles[0], emotions[0], motion_rngs[0], spec.emotion_gain)]
+    return list(conversation_motion(timelines, styles, emotions, motion_rngs, spec.effects, spec.emotion_gain))
 
 
 def _digest(clips: list[ClipInfo]) -> str:
@@ -270,6 +277,8 @@ class SynthTalkCorpus:
                 raise ValueError(f"SizeSpec.{name} must give {len(SPLITS)} non-negative counts, got {counts}")
         if spec.speakers[0] < 1 or spec.clips_per_speaker < 1 or spec.clip_seconds <= 0:
             raise ValueError(f"SizeSpec needs train speakers, clips and a positive clip length: {spec}")
+        if not (math.isfinite(spec.emotion_gain) and spec.emotion_gain >= 0):
+            raise ValueError(f"SizeSpec.emotion_gain must be a finite number >= 0, got {spec.emotion_gain}")
         self.size, self.seed, self.spec = size, seed, spec
         self.speakers, self.clips, self._units = _plan(spec, seed)
         self.identities = spec.identities
@@ -349,7 +358,7 @@ class SynthTalkCorpus:
                     for k, ci in enumerate(u.clips):
                         self._channels[ci] = Channel(z[f"audio{k}"], z[f"motion{k}"], z[f"oracle{k}"])
                     return
-        chans = _render_unit(self.seed, unit, u, self.clips, self.spec.effects)
+        chans = _render_unit(self.seed, unit, u, self.clips, self.spec)
         for ci, ch in zip(u.clips, chans):
             self._channels[ci] = ch
         if path is not None:
@@ -382,7 +391,7 @@ class SynthTalkCorpus:
         if i in self._channels:
             return self._channels[i].motion, self._channels[i].oracle
         unit = self.clips[i].unit
-        parts = _unit_motion(self.seed, unit, self._units[unit], self.clips, self.spec.effects)
+        parts = _unit_motion(self.seed, unit, self._units[unit], self.clips, self.spec)
         m = parts[self._units[unit].clips.index(i)]
         return m.motion, m.oracle
 
