@@ -121,8 +121,12 @@ def main() -> None:
     results, rows = {}, []
     panels = [(name, load(), xlabel) for name, (load, xlabel) in CLAIMS.items()]
     panels = [p for p in panels if p[1]]
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 4.6), squeeze=False)
-    for ax, (name, points, xlabel) in zip(axes[0], panels):
+    cols = 2 if len(panels) == 4 else min(len(panels), 3)
+    rows_ = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows_, cols, figsize=(5.2 * cols, 4.4 * rows_), squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    for ax, (name, points, xlabel) in zip(axes.flat, panels):
         v = verdict(points, args.floor)
         results[name] = {"points": points, **v}
         rows.append({"claim": name, "verdict": v["verdict"], "scales": "/".join(map(str, v["scales"])),
