@@ -129,9 +129,9 @@ def main() -> None:
 
 
 def table_rows(report: dict) -> list[dict]:
-    """The eval report's rows (method, steps, LVE, MVE, jitter...), flattened to scalars."""
-    rows = report["rows"] if "rows" in report else report
-    return [{k: v for k, v in r.items() if isinstance(v, (int, float, str)) or v is None} for r in rows]
+    """The rows of ``jaxtalk eval --json``'s tables (method, MSE, LVE, MVE, FDD, MOD, jitter), with the
+    checkpoint step."""
+    return [{"step": report["step"], **row} for table in report["tables"] for row in table["rows"]]
 
 
 if __name__ == "__main__":
