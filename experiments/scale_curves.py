@@ -19,7 +19,9 @@ Claims and their files (all under ``experiments/results/``):
   over the generator's own (``gain_ratio``; 1 = as the generator, 0 = none).
 * TIMAR, more context helps: ``timar_context_centred_full*_cfg1.json`` and
   ``timar_context_scale/*.json`` (``timar_context_centred.py`` on the mimicry-1.2 control corpus,
-  ``full``): gap = centred neck R^2 at 7 past turns minus at 0, test conversations.
+  ``full``): gap = centred neck R^2 at 7 past turns minus at 0, test conversations; and the same for
+  its correlation part alone (``R2 = 2 a rho - a^2``: a model can gain R^2 by moving less, without
+  following the truth any better).
 
     python experiments/scale_curves.py --out experiments/results/scale_curves.json \
         --figure experiments/results/scale_curves.png
@@ -57,9 +59,9 @@ def freetalk_intensity() -> list[dict]:
     return points
 
 
-def timar_context(split: str = "test") -> list[dict]:
-    """(training steps, seed, neck R^2 gain from 0 to 7 turns) of TIMAR 64x2's diffusion head on the
-    mimicry-1.2 control corpus (``full``)."""
+def timar_context(split: str = "test", metric: str = "R2_neck") -> list[dict]:
+    """(training steps, seed, gain of ``metric`` from 0 to 7 turns) of TIMAR 64x2's diffusion head on
+    the mimicry-1.2 control corpus (``full``): the centred neck R^2, or its correlation part alone."""
     files = [RESULTS / "timar_context_centred_full_cfg1.json", RESULTS / "timar_context_centred_full_1500_cfg1.json",
              *map(Path, sorted(glob.glob(str(RESULTS / "timar_context_scale" / "*.json"))))]
     points = []
@@ -68,7 +70,7 @@ def timar_context(split: str = "test") -> list[dict]:
             continue
         report = json.loads(path.read_text())
         meta = report.get("scale", {"steps": 1500 if "1500" in path.name else 600, "seed": 0})
-        r2 = {r["context"]: r["R2_neck"] for r in report["rows"] if r["split"] == split}
+        r2 = {r["context"]: r[metric] for r in report["rows"] if r["split"] == split}
         points.append({"scale": meta["steps"], "seed": meta["seed"], "gap": r2[max(r2)] - r2[min(r2)]})
     return points
 
@@ -78,6 +80,8 @@ CLAIMS = {
     "TokTalk: 10 Euler steps are smoother than 1 (jitter, mm/frame^2)": (lambda: toktalk_steps("jitter_mm"), "TokTalk steps"),
     "FreeTalk: intensity grows along the emotion (gain / generator's gain)": (freetalk_intensity, "ATS steps"),
     "TIMAR: 7 past turns beat 0 (centred neck R^2, test, control corpus)": (timar_context, "TIMAR 64x2 steps"),
+    "TIMAR: 7 past turns beat 0 (its correlation part alone, test, control corpus)": (
+        lambda: timar_context(metric="corr_neck"), "TIMAR 64x2 steps"),
 }
 
 
@@ -121,7 +125,7 @@ def main() -> None:
     results, rows = {}, []
     panels = [(name, load(), xlabel) for name, (load, xlabel) in CLAIMS.items()]
     panels = [p for p in panels if p[1]]
-    cols = 2 if len(panels) == 4 else min(len(panels), 3)
+    cols = 2 if len(panels) == 4 else min(len(panels), 3)  # 4 panels: 2 x 2; 5-6: 2 x 3
     rows_ = -(-len(panels) // cols)
     fig, axes = plt.subplots(rows_, cols, figsize=(5.2 * cols, 4.4 * rows_), squeeze=False)
     for ax in axes.flat[len(panels):]:
