@@ -87,7 +87,8 @@ def control_folder(src: Path, dst: Path, *, amplitude: float, dwell_s: float, se
             if not (tmp / name).exists():
                 os.symlink((src / name).resolve(), tmp / name)
     for name in ("metadata.csv", "tokens.json"):
-        os.symlink((src / name).resolve(), tmp / name)
+        if not (tmp / name).exists():  # a rerun after an interrupted one
+            os.symlink((src / name).resolve(), tmp / name)
     tmp.rename(dst)
 
 

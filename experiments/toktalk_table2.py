@@ -82,7 +82,8 @@ def logmel_folder(src: Path, dst: Path) -> None:
             link = tmp / f"{clip}{suffix}"
             if not link.exists():
                 os.symlink((src / f"{clip}{suffix}").resolve(), link)
-    os.symlink((src / "metadata.csv").resolve(), tmp / "metadata.csv")
+    if not (tmp / "metadata.csv").exists():  # a rerun after an interrupted one
+        os.symlink((src / "metadata.csv").resolve(), tmp / "metadata.csv")
     (tmp / "tokens.json").write_text(json.dumps({"rate": LOGMEL_RATE}))
     tmp.rename(dst)
 
