@@ -69,7 +69,7 @@ def timar_context(split: str = "test", metric: str = "R2_neck") -> list[dict]:
         if not path.is_file():
             continue
         report = json.loads(path.read_text())
-        meta = report.get("scale", {"steps": 1500 if "1500" in path.name else 600, "seed": 0})
+        meta = report["scale"]  # the run's budget and seed, added beside timar_context_centred.py's output
         r2 = {r["context"]: r[metric] for r in report["rows"] if r["split"] == split}
         points.append({"scale": meta["steps"], "seed": meta["seed"], "gap": r2[max(r2)] - r2[min(r2)]})
     return points
