@@ -151,8 +151,9 @@ def main() -> None:
         row["grows"] = row["upper_mm_i1"] < row["upper_mm_i2"] < row["upper_mm_i3"]
         row["grows_along"] = row["along_mm_i1"] < row["along_mm_i2"] < row["along_mm_i3"]
         rows.append(row)
-    bm.print_table([{k: v for k, v in r.items() if not k.startswith("along_seeds")} for r in rows], "Upper-face deviation from neutral (mm) by emotion and intensity "
-                         "(upper: expression offset; frame: per-frame distance; true: SynthTalk's own offset)")
+    bm.print_table([{k: v for k, v in r.items() if not k.startswith("along_seeds")} for r in rows],
+                   "Upper-face deviation from neutral (mm) by emotion and intensity "
+                   "(upper: expression offset; frame: per-frame distance; true: SynthTalk's own offset)")
     at3 = np.array([r["upper_mm_i3"] for r in rows])
     true3 = np.array([r["true_mm_i3"] for r in rows])
     verdict = {
@@ -198,12 +199,11 @@ def training_data(args: argparse.Namespace, corpus) -> str:
     if args.emotion_gain == 1:
         return f"synthtalk:{args.size}"
     from jaxtalk.data.prepare import is_current, prepare
-    from jaxtalk.data.sources import Source, synthtalk_entries
+    from jaxtalk.data.sources import synthtalk_source
 
     out = args.cache / f"synthtalk-{args.size}-emotion-gain-{args.emotion_gain:g}-seed0"
     if not is_current(out):
-        prepare(Source(spec=f"synthtalk:{args.size}:0 emotion_gain={args.emotion_gain:g}", layout="synthtalk",
-                       entries=tuple(synthtalk_entries(corpus)), tokenizer=lambda: corpus.tokenizer("A")), out)
+        prepare(synthtalk_source(corpus, f"synthtalk:{args.size}:0 emotion_gain={args.emotion_gain:g}"), out)
     return str(out)
 
 

@@ -94,11 +94,9 @@ def open_prepared(args):
 
     if not is_current(out):
         from jaxtalk.data.prepare import prepare
-        from jaxtalk.data.sources import Source, synthtalk_entries
+        from jaxtalk.data.sources import synthtalk_source
 
-        corpus = load_corpus(args)
-        prepare(Source(spec=f"synthtalk:{args.size}:0 effects={EFFECTS[name]}", layout="synthtalk",
-                       entries=tuple(synthtalk_entries(corpus)), tokenizer=lambda: corpus.tokenizer("A")), out)
+        prepare(synthtalk_source(load_corpus(args), f"synthtalk:{args.size}:0 effects={EFFECTS[name]}"), out)
     return PreparedData(out)
 
 

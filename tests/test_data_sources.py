@@ -374,3 +374,12 @@ def test_check_clip_accepts_skew_within_limit_and_exact_minimum_length():
     check_clip(_raw(params=np.zeros((25, 56), np.float32), audio=np.zeros(16000, np.float32)), min_frames=25)
     check_clip(_raw(fps=60.0, params=None, vertices=np.zeros((120, 5, 3), np.float32)), min_frames=50)
     check_clip(_raw(tokens=np.zeros((25, 8), np.float32), token_rate=12.5), min_frames=25)
+
+
+def test_synthtalk_source_names_a_corpus_by_size_and_seed_unless_told_and_lists_every_clip(synthtalk_tiny):
+    from jaxtalk.data.sources import synthtalk_source
+
+    source = synthtalk_source(synthtalk_tiny)
+    assert source.spec == f"synthtalk:{synthtalk_tiny.size}:{synthtalk_tiny.seed}" and source.layout == "synthtalk"
+    assert len(source.entries) == len(synthtalk_tiny.clips)
+    assert synthtalk_source(synthtalk_tiny, "synthtalk:tiny:0 emotion_gain=5").spec == "synthtalk:tiny:0 emotion_gain=5"

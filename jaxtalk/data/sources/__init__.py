@@ -32,6 +32,7 @@ __all__ = [
     "generic_export_names",
     "export_dualtalk",
     "synthtalk_entries",
+    "synthtalk_source",
     "MAX_SKEW_SECONDS",
 ]
 
@@ -68,9 +69,21 @@ def _synthtalk(spec: str, cache_dir: str | Path | None) -> Source:
             seed = int(parts[2])
         except ValueError:
             raise ValueError(f"{spec!r}: the seed must be an integer, got {parts[2]!r}") from None
-    corpus = synthtalk.generate(parts[1], seed=seed, cache_dir=cache_dir)
-    return Source(spec=f"synthtalk:{parts[1]}:{seed}", layout="synthtalk", entries=tuple(synthtalk_entries(corpus)),
-                  tokenizer=lambda: corpus.tokenizer("A"))
+    return synthtalk_source(synthtalk.generate(parts[1], seed=seed, cache_dir=cache_dir))
+
+
+def synthtalk_source(corpus: Any, spec: str | None = None) -> Source:
+    """A generated SynthTalk corpus as a :class:`Source` (its clips from memory, its base token stream's
+    tokenizer), ready for :func:`jaxtalk.data.prepare.prepare`: also a custom-size control corpus, which
+    ``synthtalk:SIZE`` cannot name.
+
+    Args:
+        corpus: a :class:`~jaxtalk.data.synthtalk.SynthTalkCorpus`.
+        spec: what the prepared manifest records as the source (default ``synthtalk:SIZE:SEED``; a
+            control corpus may say what it changed, e.g. ``synthtalk:full:0 effects=...``).
+    """
+    return Source(spec=spec or f"synthtalk:{corpus.size}:{corpus.seed}", layout="synthtalk",
+                  entries=tuple(synthtalk_entries(corpus)), tokenizer=lambda: corpus.tokenizer("A"))
 
 
 def layout_hint(spec: str | Path) -> str | None:
