@@ -82,10 +82,16 @@ def train(args) -> None:
     settings = dataclasses.replace(PRESET_DEFAULTS["small"], batch_size=args.batch)
     t0 = time.perf_counter()
     result = train_fn(config, data, settings.optim(args.steps), steps=args.steps, key=jax.random.key(args.seed),
-                      batch_size=settings.batch_size, seed=args.seed, progress=True)
+                      batch_size=settings.batch_size, seed=args.seed, eval_every=args.eval_every, progress=True)
     train_s = time.perf_counter() - t0
     losses = [float(h["loss"]) for h in result.history if "loss" in h]
     evals = [h["eval"]["val_loss"] for h in result.history if "eval" in h and "val_loss" in h["eval"]]
+    # The curves (Fig. 7): every step's training loss, and every evaluation (the validation loss and the
+    # streamed val sides' metrics, as the recipe selects its best checkpoint by them).
+    curves = {"loss_step": [int(h["step"]) for h in result.history if "loss" in h], "loss": losses,
+              "evals": [{"step": int(h["step"]), **{k: float(v) for k, v in h["eval"].items()}}
+                        for h in result.history if "eval" in h]}
+    num_params = int(sum(np.size(x) for x in jax.tree_util.tree_leaves(result.state.eval_params)))
     out = run_path(Path(args.runs), args.model, args.seed)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp")
@@ -93,7 +99,8 @@ def train(args) -> None:
         pickle.dump({"name": args.model, "seed": args.seed, "steps": args.steps, "train_s": train_s,
                      "config": dataclasses.asdict(config), "params": jax.device_get(result.state.eval_params),
                      "normalizer": result.extra["normalizer"], "final_loss": float(np.mean(losses[-20:])),
-                     "val_loss": evals[-1] if evals else None, "windows": result.windows}, f)
+                     "val_loss": evals[-1] if evals else None, "windows": result.windows, "curves": curves,
+                     "num_params": num_params, "width": args.width, "layers": args.layers, "batch": args.batch}, f)
     tmp.replace(out)
     print(f"{args.model} seed {args.seed}: {args.steps} steps in {train_s:.0f} s, loss {np.mean(losses[-20:]):.4f}, "
           f"val {evals[-1] if evals else None}; saved {out}")
@@ -147,7 +154,9 @@ def summarise(values: list[dict]) -> dict:
 def evaluate_model(path: Path, corpus, convs_by_split: dict, variants_trained_once: bool) -> dict:
     """One saved model's rows: Table 1 (TIMAR / the baseline) and Table 2 (variants at n = 7, test)."""
     d, config, norm = load(path)
-    out: dict = {"run": {k: d[k] for k in ("name", "seed", "steps", "train_s", "final_loss", "val_loss", "windows")},
+    keys = ("name", "seed", "steps", "train_s", "final_loss", "val_loss", "windows",
+            "num_params", "width", "layers", "batch", "curves")  # the last five: runs saved since session 23
+    out: dict = {"run": {k: d[k] for k in keys if k in d},
                  "table1": {}, "table2": []}
     if d["name"] in ("timar", "dualtalk"):
         modes = ("sample", "mean") if d["name"] == "timar" else ("regression",)
@@ -242,6 +251,7 @@ def main() -> None:
     t.add_argument("--width", type=int, default=64)
     t.add_argument("--layers", type=int, default=2)
     t.add_argument("--batch", type=int, default=8)
+    t.add_argument("--eval-every", type=int, default=None, help="validation period in steps (default: five per run)")
     t.add_argument("--runs", default="runs/timar_tables")
     e = sub.add_parser("eval", help="evaluate every saved model")
     e.add_argument("--runs", default="runs/timar_tables")
