@@ -22,6 +22,11 @@ Claims and their files (all under ``experiments/results/``):
   ``full``): gap = centred neck R^2 at 7 past turns minus at 0, test conversations; and the same for
   its correlation part alone (``R2 = 2 a rho - a^2``: a model can gain R^2 by moving less, without
   following the truth any better).
+* TIMAR beats the DualTalk-style baseline, the diffusion head beats the MLP head, encoder-only beats the
+  MAE-style encoder-decoder: ``timar_tables/*.json`` (``timar_tables.py eval`` at each budget and size):
+  gap = the share of the other model's FD that TIMAR's default removes, averaged over expression, jaw
+  and pose (test, n = 7 past turns), paired seed by seed; against the budget (64 x 2 models) and, for
+  the baseline, against the parameter count (every size at 500 steps, as TIMAR's Fig. 6).
 
     python experiments/scale_curves.py --out experiments/results/scale_curves.json \
         --figure experiments/results/scale_curves.png
@@ -75,6 +80,44 @@ def timar_context(split: str = "test", metric: str = "R2_neck") -> list[dict]:
     return points
 
 
+TIMAR_TABLES = RESULTS / "timar_tables"
+FD_GROUPS = ("FD_exp", "FD_jaw", "FD_pose")
+
+
+def _fd_rows(model: dict, table: str) -> dict:
+    """One model's test metrics at n = 7: Table 1's row (TIMAR sampled, the baseline's regression) or
+    the mean of its Table 2 rows (one per noise seed for a variant trained once)."""
+    if table == "table1":
+        (row,) = [v for k, v in model["table1"]["test"].items() if k.endswith(("sample n=7", "regression n=7"))]
+        return row
+    return {g: float(np.mean([r[g] for r in model["table2"]])) for g in FD_GROUPS}
+
+
+def timar_tables(baseline: str, axis: str = "steps") -> list[dict]:
+    """(scale, seed, gap) of TIMAR's default against ``baseline`` (``dualtalk``, ``mlp``, ``mae``) from
+    ``timar_tables.py`` eval JSONs in ``timar_tables/``: the gap is the share of the baseline's FD that
+    TIMAR removes, averaged over the expression, jaw and pose (test, n = 7), seed by seed. ``axis``:
+    ``steps`` (the 64 x 2 models at each training budget) or ``params`` (every size at 500 steps)."""
+    points = []
+    for path in sorted(glob.glob(str(TIMAR_TABLES / "*.json"))):
+        models = json.loads(Path(path).read_text())["models"]
+        for stem, model in models.items():
+            run = model["run"]
+            other = models.get(f"{baseline}_s{run['seed']}")
+            if run["name"] != "timar" or other is None:
+                continue
+            if axis == "steps" and (run["width"], run["layers"]) != (64, 2):
+                continue
+            if axis == "params" and run["steps"] != 500:
+                continue
+            table = "table1" if baseline == "dualtalk" else "table2"
+            ours, theirs = _fd_rows(model, table), _fd_rows(other, table)
+            gap = float(np.mean([(theirs[g] - ours[g]) / theirs[g] for g in FD_GROUPS]))
+            points.append({"scale": run["steps"] if axis == "steps" else run["num_params"], "seed": run["seed"],
+                           "gap": gap})
+    return points
+
+
 CLAIMS = {
     "TokTalk: 10 Euler steps beat 1 on lip error (LVE, mm^2)": (lambda: toktalk_steps("LVE_mm2"), "TokTalk steps"),
     "TokTalk: 10 Euler steps are smoother than 1 (jitter, mm/frame^2)": (lambda: toktalk_steps("jitter_mm"), "TokTalk steps"),
@@ -82,6 +125,14 @@ CLAIMS = {
     "TIMAR: 7 past turns beat 0 (centred neck R^2, test, control corpus)": (timar_context, "TIMAR 64x2 steps"),
     "TIMAR: 7 past turns beat 0 (its correlation part alone, test, control corpus)": (
         lambda: timar_context(metric="corr_neck"), "TIMAR 64x2 steps"),
+    "TIMAR beats the DualTalk-style baseline (share of its FD removed, test, n = 7)": (
+        lambda: timar_tables("dualtalk"), "TIMAR 64x2 steps"),
+    "... against model size, both at the same size (share of FD removed)": (
+        lambda: timar_tables("dualtalk", axis="params"), "TIMAR parameters (500 steps)"),
+    "TIMAR: the diffusion head beats the MLP head (share of FD removed)": (
+        lambda: timar_tables("mlp"), "TIMAR 64x2 steps"),
+    "TIMAR: encoder-only beats the MAE-style encoder-decoder (share of FD removed)": (
+        lambda: timar_tables("mae"), "TIMAR 64x2 steps"),
 }
 
 
@@ -125,7 +176,7 @@ def main() -> None:
     results, rows = {}, []
     panels = [(name, load(), xlabel) for name, (load, xlabel) in CLAIMS.items()]
     panels = [p for p in panels if p[1]]
-    cols = 2 if len(panels) == 4 else min(len(panels), 3)  # 4 panels: 2 x 2; 5-6: 2 x 3
+    cols = 2 if len(panels) == 4 else min(len(panels), 3)  # 4 panels: 2 x 2; 5 or more: rows of 3
     rows_ = -(-len(panels) // cols)
     fig, axes = plt.subplots(rows_, cols, figsize=(5.2 * cols, 4.4 * rows_), squeeze=False)
     for ax in axes.flat[len(panels):]:

@@ -199,7 +199,9 @@ def evaluate(args) -> None:
                 write_json(done, evaluate_model(path, corpus, convs_by_split, len(paths) == 1 and name != "timar"))
             results.setdefault(name, []).append(json.loads(done.read_text()))
     record: dict = {"machine": machine_info(), "args": vars(args), "table1": {}, "table2": {},
-                    "runs": [r["run"] for rs in results.values() for r in rs]}
+                    "runs": [r["run"] for rs in results.values() for r in rs],
+                    # every model's own rows, by run (name_sSEED): what pairs models seed by seed
+                    "models": {f"{r['run']['name']}_s{r['run']['seed']}": r for rs in results.values() for r in rs}}
     # Reference rows (every model is trained on the same data, so one normaliser's mean pose serves all).
     _, _, norm = load(next(iter(found.values()))[0])
     for split, convs in convs_by_split.items():
@@ -241,6 +243,88 @@ def report(args) -> None:
         print(f"| {name} | {n} {entry['seeds']} | " + " | ".join(cell(entry, k) for k in GROUP_KEYS) + " |")
 
 
+TABLE1_N7 = {"timar": "timar sample n=7", "dualtalk": "dualtalk regression n=7"}
+
+
+def figure6_rows(records: list[dict]) -> list[dict]:
+    """Fig. 6's points: every TIMAR and baseline model's size and its test FD / P-FD of the expression
+    at n = 7 past turns (TIMAR sampled as users run it), from ``eval`` JSONs of one training budget."""
+    rows = []
+    for rec in records:
+        for stem, model in rec["models"].items():
+            run = model["run"]
+            if run["name"] not in TABLE1_N7 or "num_params" not in run:
+                continue
+            m = model["table1"]["test"][TABLE1_N7[run["name"]]]
+            rows.append({"model": run["name"], "size": f"{run['width']}x{run['layers']}", "params": run["num_params"],
+                         "steps": run["steps"], "seed": run["seed"], "FD_exp": m["FD_exp"], "P-FD_exp": m["P-FD_exp"],
+                         "FD_pose": m["FD_pose"], "MSE_exp": m["MSE_exp"]})
+    return sorted(rows, key=lambda r: (r["model"], r["params"], r["seed"]))
+
+
+def smooth(values: list[float], width: int) -> np.ndarray:
+    """The trailing moving average of ``values`` over ``width`` steps (shorter at the start)."""
+    x = np.asarray(values, np.float64)
+    c = np.concatenate([[0.0], np.cumsum(x)])
+    i = np.arange(1, len(x) + 1)
+    return (c[i] - c[np.maximum(i - width, 0)]) / np.minimum(i, width)
+
+
+def figures(args) -> None:
+    """Fig. 6 (test FD and P-FD of the expression against the parameter count, TIMAR and the baseline at
+    one budget) from ``--fig6`` eval JSONs, and Fig. 7 (the diffusion and MLP heads' training and
+    validation curves, same settings) from the ``--fig7`` eval JSON."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxtalk.benchmarking import print_table
+
+    rows = figure6_rows([json.loads(Path(f).read_text()) for f in args.fig6])
+    if len({r["steps"] for r in rows}) > 1:
+        raise SystemExit(f"--fig6 mixes training budgets {sorted({r['steps'] for r in rows})}: give one budget's files")
+    print_table(rows, "Fig. 6: test, n = 7")
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.8))
+    for ax, key in zip(axes, ("FD_exp", "P-FD_exp")):
+        for name, label, colour in (("timar", "TIMAR", "C0"), ("dualtalk", "DualTalk-style", "C3")):
+            pts = [r for r in rows if r["model"] == name]
+            sizes = sorted({r["params"] for r in pts})
+            ax.plot([r["params"] for r in pts], [r[key] for r in pts], "o", color=colour, alpha=0.5)
+            ax.plot(sizes, [np.mean([r[key] for r in pts if r["params"] == n]) for n in sizes], "-", color=colour,
+                    label=label)
+        ax.set_xscale("log")
+        ax.set_xlabel("parameters")
+        ax.set_ylabel(f"{key} (test, n = 7; lower is better)")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"Model size at {rows[0]['steps']} training steps (SynthTalk full; points: training seeds)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(args.fig6_out, dpi=120)
+    print(f"wrote {args.fig6_out}")
+
+    rec = json.loads(Path(args.fig7).read_text())
+    runs = {stem: m["run"] for stem, m in rec["models"].items() if m["run"]["name"] in ("timar", "mlp") and "curves" in m["run"]}
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for stem, run in sorted(runs.items()):
+        colour = "C0" if run["name"] == "timar" else "C1"
+        label = ("diffusion head" if run["name"] == "timar" else "MLP head") + f", seed {run['seed']}"
+        style = "-" if run["seed"] == 0 else "--"
+        c = run["curves"]
+        axes[0].plot(c["loss_step"], c["loss"], color=colour, alpha=0.15, lw=0.5)
+        axes[0].plot(c["loss_step"], smooth(c["loss"], 25), style, color=colour, label=label)
+        steps = [e["step"] for e in c["evals"]]
+        axes[1].plot(steps, [e["val_loss"] for e in c["evals"]], style + "o", color=colour, ms=3, label=label)
+        axes[2].plot(steps, [e["FD_exp"] for e in c["evals"]], style + "o", color=colour, ms=3, label=label)
+    for ax, title in zip(axes, ("training loss (each step; line: 25-step mean)", "validation loss",
+                                "val sides streamed: FD_exp (lower is better)")):
+        ax.set_xlabel("training step")
+        ax.set_title(title, fontsize=9)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(args.fig7_out, dpi=120)
+    print(f"wrote {args.fig7_out}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command", required=True)
@@ -259,8 +343,13 @@ def main() -> None:
     e.add_argument("--convs", type=int, default=None, help="only the first N conversation sides per split (a smoke run)")
     r = sub.add_parser("report", help="print the tables of an eval JSON")
     r.add_argument("--out", default="experiments/results/timar_tables.json")
+    f = sub.add_parser("figures", help="draw Figs. 6 and 7 from eval JSONs")
+    f.add_argument("--fig6", nargs="+", required=True, help="eval JSONs of one training budget at several sizes")
+    f.add_argument("--fig7", required=True, help="the eval JSON whose TIMAR and MLP-head runs' curves to draw")
+    f.add_argument("--fig6-out", default="experiments/results/timar_fig6.png")
+    f.add_argument("--fig7-out", default="experiments/results/timar_fig7.png")
     args = ap.parse_args()
-    {"train": train, "eval": evaluate, "report": report}[args.command](args)
+    {"train": train, "eval": evaluate, "report": report, "figures": figures}[args.command](args)
 
 
 if __name__ == "__main__":
