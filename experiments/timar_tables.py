@@ -25,6 +25,14 @@ so long runs can be spread out:
     python experiments/timar_tables.py train mae --seed 0
     python experiments/timar_tables.py eval --out experiments/results/timar_tables.json
     python experiments/timar_tables.py report --out experiments/results/timar_tables.json
+
+Each run keeps its curves (every step's training loss, every evaluation's validation loss and streamed
+val metrics) and its parameter count, so ``figures`` draws the paper's Fig. 6 (test FD and P-FD of the
+expression against the parameter count, TIMAR and the baseline trained at several ``--width`` x
+``--layers`` for one budget, one ``--runs`` folder and eval JSON per size) and Fig. 7 (the diffusion and
+MLP heads' curves under the same settings):
+
+    python experiments/timar_tables.py figures --fig6 W32.json W64.json W128.json --fig7 W64_1500.json
 """
 
 from __future__ import annotations
