@@ -289,7 +289,9 @@ def figures(args) -> None:
 
     from jaxtalk.benchmarking import print_table
 
-    rows = figure6_rows([json.loads(Path(f).read_text()) for f in args.fig6])
+    records = [json.loads(Path(f).read_text()) for f in args.fig6]
+    rows = figure6_rows(records)
+    still = records[0]["table1"]["test"]["mean pose"]  # the same test sides and metrics in every file
     if len({r["steps"] for r in rows}) > 1:
         raise SystemExit(f"--fig6 mixes training budgets {sorted({r['steps'] for r in rows})}: give one budget's files")
     print_table(rows, "Fig. 6: test, n = 7")
@@ -301,6 +303,7 @@ def figures(args) -> None:
             ax.plot([r["params"] for r in pts], [r[key] for r in pts], "o", color=colour, alpha=0.5)
             ax.plot(sizes, [np.mean([r[key] for r in pts if r["params"] == n]) for n in sizes], "-", color=colour,
                     label=label)
+        ax.axhline(still[key], color="grey", ls="--", lw=1, label="mean pose")
         ax.set_xscale("log")
         ax.set_xlabel("parameters")
         ax.set_ylabel(f"{key} (test, n = 7; lower is better)")
