@@ -99,32 +99,38 @@ def _r2(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
     return float(1.0 - np.sum((y - x @ w) ** 2) / np.sum(y**2))
 
 
-def probe_r2(corpus, sides: dict[str, list[tuple[int, int]]], past_turns: int, observe: str = "both"
-             ) -> dict[str, dict[str, float]]:
-    """Per group, the pooled ridge probe with ``past_turns`` of context: features scaled to unit spread
-    on the train sides, the penalty (x the number of training frames) chosen among :data:`RIDGES` by R^2
-    on the val sides, and R^2 on the test sides.
+def fit_ridge(train: tuple[np.ndarray, np.ndarray], val: tuple[np.ndarray, np.ndarray],
+              test: tuple[np.ndarray, np.ndarray]) -> dict[str, float]:
+    """The pooled ridge probe of every script here: ``(features, targets)`` per split, features scaled
+    to unit spread on train, the penalty (x the number of training frames) chosen among :data:`RIDGES`
+    by R^2 on val.
 
     Returns:
-        ``{group: {"val": R^2, "test": R^2, "ridge": penalty}}``.
+        ``{"val", "test", "train": R^2, "ridge": penalty}``.
+    """
+    (x, y), (xv, yv), (xt, yt) = train, val, test
+    scale = np.where(x.std(0) > 0, x.std(0), 1.0)
+    x, xv, xt = x / scale, xv / scale, xt / scale
+    gram, rhs = x.T @ x, x.T @ y
+    best = None
+    for ridge in RIDGES:
+        w = np.linalg.solve(gram + ridge * len(x) * np.eye(x.shape[1]), rhs)
+        score = _r2(xv, yv, w)
+        if best is None or score > best[0]:
+            best = (score, ridge, w)
+    return {"val": best[0], "test": _r2(xt, yt, best[2]), "train": _r2(x, y, best[2]), "ridge": best[1]}
+
+
+def probe_r2(corpus, sides: dict[str, list[tuple[int, int]]], past_turns: int, observe: str = "both"
+             ) -> dict[str, dict[str, float]]:
+    """Per group, :func:`fit_ridge` on the lag features of ``past_turns`` of context (train sides; the
+    penalty chosen on the val sides; R^2 on the test sides).
+
+    Returns:
+        ``{group: {"val": R^2, "test": R^2, "train": R^2, "ridge": penalty}}``.
     """
     feats = {k: [side_features(corpus, a, u, past_turns, observe) for a, u in v] for k, v in sides.items()}
-    out = {}
-    for name in GROUP_CHANNELS:
-        x, y = _stack(feats["train"], name)
-        scale = np.where(x.std(0) > 0, x.std(0), 1.0)
-        x = x / scale
-        xv, yv = _stack(feats["val"], name)
-        xt, yt = _stack(feats["test"], name)
-        gram, rhs = x.T @ x, x.T @ y
-        best = None
-        for ridge in RIDGES:
-            w = np.linalg.solve(gram + ridge * len(x) * np.eye(x.shape[1]), rhs)
-            val = _r2(xv / scale, yv, w)
-            if best is None or val > best[0]:
-                best = (val, ridge, w)
-        out[name] = {"val": best[0], "test": _r2(xt / scale, yt, best[2]), "ridge": best[1]}
-    return out
+    return {name: fit_ridge(*(_stack(feats[k], name) for k in ("train", "val", "test"))) for name in GROUP_CHANNELS}
 
 
 def main() -> None:

@@ -36,7 +36,7 @@ from jaxtalk.models.timar.model import init_params
 from jaxtalk.models.timar.stream import init_stream, stream_condition
 
 from timar_common import EFFECTS, load_corpus, load_model  # noqa: E402
-from timar_context_control import GROUP_CHANNELS, RIDGES  # noqa: E402
+from timar_context_control import GROUP_CHANNELS, fit_ridge  # noqa: E402
 
 
 class FirstConversations:
@@ -79,8 +79,8 @@ def conditions(config, params, norm, convs, context: int, batch: int = 64) -> li
 
 
 def probe(z: dict[str, list[np.ndarray]], truth: dict[str, list[np.ndarray]], channels: np.ndarray) -> dict[str, float]:
-    """Ridge from the centred conditions to the centred target channels (as ``timar_context_control``'s
-    probe): fitted on train, penalty by val R^2, R^2 on test."""
+    """:func:`~timar_context_control.fit_ridge` from each side's centred conditions to its centred
+    target channels (the control probe's targets)."""
 
     def stack(split):
         xs, ys = [], []
@@ -91,18 +91,7 @@ def probe(z: dict[str, list[np.ndarray]], truth: dict[str, list[np.ndarray]], ch
             ys.append(y - y.mean(0))
         return np.concatenate(xs), np.concatenate(ys)
 
-    (x, y), (xv, yv), (xt, yt) = stack("train"), stack("val"), stack("test")
-    scale = np.where(x.std(0) > 0, x.std(0), 1.0)
-    x, xv, xt = x / scale, xv / scale, xt / scale
-    gram, rhs = x.T @ x, x.T @ y
-    r2 = lambda a, b, w: float(1.0 - np.sum((b - a @ w) ** 2) / np.sum(b**2))  # noqa: E731
-    best = None
-    for ridge in RIDGES:
-        w = np.linalg.solve(gram + ridge * len(x) * np.eye(x.shape[1]), rhs)
-        val = r2(xv, yv, w)
-        if best is None or val > best[0]:
-            best = (val, ridge, w)
-    return {"val": best[0], "test": r2(xt, yt, best[2]), "train": r2(x, y, best[2]), "ridge": best[1]}
+    return fit_ridge(stack("train"), stack("val"), stack("test"))
 
 
 def main() -> None:
