@@ -163,7 +163,7 @@ def evaluate_model(path: Path, corpus, convs_by_split: dict, variants_trained_on
     """One saved model's rows: Table 1 (TIMAR / the baseline) and Table 2 (variants at n = 7, test)."""
     d, config, norm = load(path)
     keys = ("name", "seed", "steps", "train_s", "final_loss", "val_loss", "windows",
-            "num_params", "width", "layers", "batch", "curves")  # the last five: runs saved since session 23
+            "num_params", "width", "layers", "batch", "curves")  # the last five: absent from older runs
     out: dict = {"run": {k: d[k] for k in keys if k in d},
                  "table1": {}, "table2": []}
     if d["name"] in ("timar", "dualtalk"):
@@ -259,7 +259,7 @@ def figure6_rows(records: list[dict]) -> list[dict]:
     at n = 7 past turns (TIMAR sampled as users run it), from ``eval`` JSONs of one training budget."""
     rows = []
     for rec in records:
-        for stem, model in rec["models"].items():
+        for model in rec["models"].values():
             run = model["run"]
             if run["name"] not in TABLE1_N7 or "num_params" not in run:
                 continue
