@@ -103,7 +103,7 @@ def timar_tables(baseline: str, axis: str = "steps", split: str = "test") -> lis
     points = []
     for path in sorted(glob.glob(str(TIMAR_TABLES / "*.json"))):
         models = json.loads(Path(path).read_text())["models"]
-        for stem, model in models.items():
+        for model in models.values():
             run = model["run"]
             other = models.get(f"{baseline}_s{run['seed']}")
             if run["name"] != "timar" or other is None:

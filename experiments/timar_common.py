@@ -129,6 +129,19 @@ KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_exp", "MSE_exp", "MSE_jaw", "MSE_po
         "SID_fit_gt_exp", "rPCC_exp")
 
 
+def padded_streams(convs, normalizer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(user_speech, user_motion, agent_speech)`` of conversation sides, standardised and stacked
+    into one batch, each side padded with zeros at its end to the longest side. Exact for a turn-causal
+    stream cropped back to each side's length (padding after a side's last turn cannot reach it)."""
+    longest = max(c.num_frames for c in convs)
+
+    def stack(field, scale):
+        return np.stack([np.pad(scale(getattr(c, field)), ((0, longest - c.num_frames), (0, 0))) for c in convs])
+
+    return (stack("user_speech", normalizer.speech), stack("user_motion", normalizer.motion),
+            stack("agent_speech", normalizer.speech))
+
+
 def predict(config, params, normalizer, convs, *, context, cfg_scale, temperature=1.0, sampler="ddim", seed=0):
     """Stream every conversation with ``context`` turns of history; raw (denormalised) motion.
 

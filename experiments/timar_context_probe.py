@@ -35,7 +35,7 @@ from jaxtalk.models.timar.data import conversations
 from jaxtalk.models.timar.model import init_params
 from jaxtalk.models.timar.stream import init_stream, stream_condition
 
-from timar_common import EFFECTS, load_corpus, load_model  # noqa: E402
+from timar_common import EFFECTS, load_corpus, load_model, padded_streams  # noqa: E402
 from timar_context_control import GROUP_CHANNELS, fit_ridge  # noqa: E402
 
 
@@ -61,15 +61,10 @@ def conditions(config, params, norm, convs, context: int, batch: int = 64) -> li
     out = []
     for start in range(0, len(convs), batch):
         group = convs[start:start + batch]
-        longest = max(c.num_frames for c in group)
-
-        def stack(field, scale):
-            return np.stack([np.pad(scale(getattr(c, field)), ((0, longest - c.num_frames), (0, 0))) for c in group])
-
-        us, um, as_ = stack("user_speech", norm.speech), stack("user_motion", norm.motion), stack("agent_speech", norm.speech)
+        us, um, as_ = padded_streams(group, norm)
         state = init_stream(config, jax.random.key(0), batch=len(group), context=context, guidance=False)
         zs = []
-        for i in range(longest // f):
+        for i in range(us.shape[1] // f):
             sl = slice(i * f, (i + 1) * f)
             state, z = stream_condition(params, config, state, us[:, sl], um[:, sl], as_[:, sl], guidance=False)
             zs.append(np.asarray(z))

@@ -52,7 +52,7 @@ from jaxtalk.models.timar import TimarConfig
 from jaxtalk.models.timar.data import Normalizer, conversations
 
 from timar_ablation import VARIANTS, variant_config  # noqa: E402  (sibling script)
-from timar_common import metrics  # noqa: E402
+from timar_common import metrics, padded_streams  # noqa: E402
 
 SIZE = "full"
 CACHE = ".cache/prepared"
@@ -133,12 +133,7 @@ def predictions(d, config, norm, convs, context: int, mode: str, noise_seed: int
     from jaxtalk.models.dualtalk import predict_turns
     from jaxtalk.models.timar.stream import stream
 
-    longest = max(c.num_frames for c in convs)
-
-    def batch(field, scale):
-        return np.stack([np.pad(scale(getattr(c, field)), ((0, longest - c.num_frames), (0, 0))) for c in convs])
-
-    us, um, as_ = batch("user_speech", norm.speech), batch("user_motion", norm.motion), batch("agent_speech", norm.speech)
+    us, um, as_ = padded_streams(convs, norm)
     if d["name"] == "dualtalk":
         x = predict_turns(d["params"], config, us, um, as_, context=context)
     else:
