@@ -156,3 +156,16 @@ def test_stream_rejects_bad_input(params):
         stream_step(params, CFG, state, s[0], np.full_like(s[1], np.nan), s[2])
     with pytest.raises(ValueError, match="stream state"):
         stream_step(params, CFG, state, s[0], s[1], s[2], guidance=False)
+
+
+def test_stream_and_stream_step_leave_every_caller_argument_usable(params):
+    # The step donates its state; nothing the caller passed in may be deleted by that.
+    s = tuple(jnp.asarray(x) for x in _streams(2))
+    key = jax.random.key(5)
+    stream(params, CFG, *s, key, context=1)
+    state = init_stream(CFG, key, batch=B, context=1)
+    stream_step(params, CFG, state, *(x[:, :F] for x in s))
+    for leaf in jax.tree.leaves((params, s)):
+        assert not leaf.is_deleted()
+    assert not key.is_deleted()
+    jax.random.fold_in(key, 1)  # the caller samples offline with the same key afterwards

@@ -211,3 +211,17 @@ def test_source_token_stream_bad_input_errors(params):
                   src_rate=25.0)
     with pytest.raises(ValueError, match="not a whole number of tokens"):
         tt.source_tokens_per_chunk(CFG, 10.0)  # 4 frames at 10 Hz = 1.6 source tokens
+
+
+def test_stream_and_stream_step_leave_every_caller_argument_usable(params):
+    rng = np.random.default_rng(3)
+    tokens = jnp.asarray(rng.normal(size=(B, 5, CFG.speech_dim)).astype(np.float32))
+    style = jnp.asarray(rng.normal(size=(B, CFG.style_vector_dim)).astype(np.float32))
+    key = jax.random.key(4)
+    tt.stream(params, CFG, tokens, style, key)
+    state = tt.init_stream(CFG, key, batch=B)
+    tt.stream_step(params, CFG, state, tokens[:, :2], style)
+    for leaf in jax.tree.leaves((params, tokens, style, state)):
+        assert not leaf.is_deleted()
+    assert not key.is_deleted()
+    jax.random.fold_in(key, 1)

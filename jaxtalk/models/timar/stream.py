@@ -86,7 +86,8 @@ def init_stream(
 
     Args:
         config: model config.
-        key: the stream's PRNG key (carried in the state; :func:`stream_step` takes none).
+        key: the stream's PRNG key (copied into the state, so the caller's key stays usable;
+            :func:`stream_step` takes none).
         batch: B conversations streamed together.
         context: n previous turns kept in the window.
         guidance: keep the unconditional branch too (CFG).
@@ -110,7 +111,8 @@ def init_stream(
         keys=tuple(cache() for _ in range(config.num_layers)),
         values=tuple(cache() for _ in range(config.num_layers)),
         turn=jnp.zeros((), jnp.int32),
-        rng=key,
+        # A copy: stream_step donates the state, which must never delete the caller's own key.
+        rng=jnp.array(key, copy=True),
     )
 
 
