@@ -367,8 +367,8 @@ def eval_(
     from jaxtalk.files import Output, claim_outputs
 
     if json_out is not None:
-        run_files = [p for p in run.iterdir() if p.is_file()] if run.is_dir() else []
-        claim_outputs([Output(json_out, named=True)], inputs=[*run_files, flame])
+        # Every file inside the run folder is an input of eval (its history, checkpoints, assets).
+        claim_outputs([Output(json_out, named=True)], inputs=[run, flame])
     try:
         steps = tuple(int(s) for s in sample_steps.split(",")) if sample_steps else ()
     except ValueError:
@@ -641,7 +641,8 @@ def convert_timar(
                                                     "(default: identity, as the public commands train).")] = None,
     ema: Annotated[bool, typer.Option("--ema/--no-ema", help="Convert the EMA weights (what the public evaluation "
                                                              "loads) or the raw ones.")] = True,
-    overwrite: Annotated[bool, typer.Option(help="Replace an existing run folder at --out.")] = False,
+    overwrite: Annotated[bool, typer.Option(help="Replace an earlier conversion at --out (a folder holding an input "
+                                                 "or a user's files is never replaced).")] = False,
 ) -> None:
     """Convert the public TIMAR code's checkpoint into a run that sample, stream and eval open (needs torch:
     pip install "jaxtalk[torch]")."""

@@ -10,7 +10,12 @@ What may be replaced (checked by :func:`claim_outputs` before a command does any
 * a path the user named (``--out``) may replace an existing file, the usual convention;
 * a name the command picks itself (a default output name, a side file such as the audio beside a
   ``.glb``, a report) never replaces an existing file unless the user passes ``--overwrite``;
-* an output path that is a folder, or whose parent is a file, is refused before any work.
+* an output path that is a folder, or whose parent is a file, is refused before any work;
+* an output inside a folder the command reads (a run folder, an encoder folder) is one of its inputs.
+
+A command that writes a whole folder (:func:`claim_folder`) replaces an existing one only with
+``--overwrite``, only when everything in it is a previous output of the same command, and never when
+it holds one of the command's inputs or the current working folder.
 
 Missing parent folders are created when the file is written.
 """
@@ -39,6 +44,7 @@ __all__ = [
     "atomic_save_npy",
     "atomic_copy",
     "check_output_path",
+    "claim_folder",
     "claim_outputs",
 ]
 
@@ -160,6 +166,24 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` is ``folder`` or lies under it (links resolved)."""
+    try:
+        return path.resolve().is_relative_to(folder.resolve())
+    except OSError:
+        return False
+
+
+def _input_clash(path: Path, src: Path) -> str | None:
+    """Why ``path`` may not be written, as an output, given the input ``src`` (None: it may)."""
+    if _same_file(path, src):
+        return f"{str(path)!r} is an input of this command; it would be overwritten: choose another output name"
+    if src.is_dir() and _inside(path, src):
+        return (f"{str(path)!r} is an input of this command (it is inside {str(src)!r}, which the command reads); "
+                "it would be overwritten: choose another output name")
+    return None
+
+
 def claim_outputs(
     outputs: Iterable[Output],
     inputs: Iterable[str | os.PathLike | None] = (),
@@ -170,7 +194,9 @@ def claim_outputs(
 
     Args:
         outputs: the files the command will write.
-        inputs: the files it reads (None entries are skipped); no output may be one of them.
+        inputs: the files and folders it reads (None entries are skipped); no output may be one of
+            them or lie inside one of the folders (every file of a run folder is an input of every
+            command that reads the run).
         overwrite: the user passed ``--overwrite``: names the command picks may replace files.
 
     Returns:
@@ -187,9 +213,8 @@ def claim_outputs(
     for out in outputs:
         path = check_output_path(out.path, out.suffixes)
         for src in inputs:
-            if _same_file(path, src):
-                raise OutputError(f"{str(path)!r} is an input of this command; it would be overwritten: "
-                                  "choose another output name")
+            if (why := _input_clash(path, src)) is not None:
+                raise OutputError(why)
         for other in claimed:
             if _same_file(path, other):
                 raise OutputError(f"two outputs of this command are both {str(path)!r}; choose another output name")
@@ -197,3 +222,57 @@ def claim_outputs(
             raise OutputError(f"{str(path)!r} exists; pass --overwrite to replace it (or --out to choose another name)")
         claimed.append(path)
     return claimed
+
+
+def claim_folder(
+    folder: str | os.PathLike,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    *,
+    ours: Iterable[str],
+    previous_output: bool,
+    overwrite: bool = False,
+    option: str = "--out",
+) -> Path:
+    """Check, before any work, that a command may write the whole folder ``folder`` (replacing it).
+
+    A folder is never replaced when it holds the current working folder or one of the command's
+    inputs, whatever ``overwrite`` says. An existing non-empty folder is replaced only with
+    ``overwrite`` and only when it is a previous output of the same command (``previous_output``)
+    holding nothing but the names the command writes (``ours``): a user's file beside them is kept
+    by refusing.
+
+    Args:
+        folder: the folder the command writes.
+        inputs: the files and folders the command reads (None entries are skipped).
+        ours: the names (files or folders) the command writes directly inside ``folder``.
+        previous_output: whether ``folder`` holds this command's record (e.g. its ``run.json``).
+        overwrite: the user passed ``--overwrite``.
+        option: the option that named the folder, for the messages.
+
+    Returns:
+        ``folder`` as a ``Path``.
+
+    Raises:
+        OutputError: any of the cases above, naming the folder and what is in the way.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"{option} {str(folder)!r} is a file, not a folder")
+    if _inside(Path.cwd(), folder):
+        raise OutputError(f"{option} {str(folder)!r} is the current folder or holds it; it would be replaced: "
+                          "name a new folder")
+    for src in (Path(p) for p in inputs if p is not None):
+        if _inside(src, folder):
+            raise OutputError(f"{option} {str(folder)!r} holds {str(src)!r}, an input of this command; it would be "
+                              f"lost when the folder is replaced: choose another {option}")
+    entries = sorted(p.name for p in folder.iterdir()) if folder.is_dir() else []
+    if not entries:
+        return folder
+    if not overwrite:
+        raise OutputError(f"{option} {str(folder)!r} exists and is not empty; pass --overwrite to replace it")
+    foreign = [name for name in entries if name not in set(ours)]
+    if not previous_output or foreign:
+        shown = ", ".join(foreign[:5] or entries[:5]) + (" ..." if len(foreign or entries) > 5 else "")
+        raise OutputError(f"{option} {str(folder)!r} holds files this command did not write ({shown}); "
+                          f"--overwrite replaces only its own previous output: choose another {option}")
+    return folder

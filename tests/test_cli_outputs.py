@@ -143,6 +143,8 @@ def test_every_writing_command_leaves_user_files_under_its_names_unchanged(run, 
         (["data", "--size", "tiny", "--no-tokens", "--cache-dir", talk / "cache", "--out", "generic"], "clip00000.wav"),
         (["demo", "--size", "tiny", "--steps", "1"], "jaxtalk-demo/"),
         (["eval", run, "--json", run / "run.json"], "is an input"),
+        (["eval", run, "--best", "--json", run / "checkpoint" / "history.jsonl"], "is an input"),
+        (["sample", run, "talk.wav", "--out", run / "checkpoint" / "mine.npz"], "is an input"),
         (["bench", "--model", "toktalk"], "bench_all.json"),
     ]
     for args, word in commands:

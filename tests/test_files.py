@@ -16,6 +16,7 @@ from jaxtalk.files import (
     atomic_savez,
     atomic_write_text,
     check_output_path,
+    claim_folder,
     claim_outputs,
 )
 
@@ -86,3 +87,47 @@ def test_claim_outputs_lets_named_paths_replace_and_picked_names_only_with_overw
     with pytest.raises(OutputError, match="two outputs"):
         claim_outputs([Output(tmp_path / "n.glb", named=True), Output(tmp_path / "n.glb")])
     assert existing.read_bytes() == b"user"
+
+
+def test_claim_outputs_refuses_any_path_inside_an_input_folder(tmp_path):
+    run = tmp_path / "run"
+    (run / "checkpoint").mkdir(parents=True)
+    (run / "checkpoint" / "history.jsonl").write_text("{}")
+    for out in (run / "checkpoint" / "history.jsonl", run / "new.json"):
+        with pytest.raises(OutputError, match="is an input"):
+            claim_outputs([Output(out, named=True)], inputs=[run], overwrite=True)
+    assert claim_outputs([Output(tmp_path / "r.json", named=True)], inputs=[run]) == [tmp_path / "r.json"]
+
+
+def test_claim_folder_replaces_only_its_own_previous_output_with_overwrite(tmp_path, monkeypatch):
+    out = tmp_path / "ckpts"
+    assert claim_folder(out, ours=("run.json",), previous_output=False) == out  # missing: fine
+    out.mkdir()
+    assert claim_folder(out, ours=("run.json",), previous_output=False) == out  # empty: fine
+    (out / "run.json").write_text("{}")
+    with pytest.raises(OutputError, match="pass --overwrite"):
+        claim_folder(out, ours=("run.json",), previous_output=True)
+    assert claim_folder(out, ours=("run.json",), previous_output=True, overwrite=True) == out
+    # A user's file beside the command's own, or a folder that is no previous output: never replaced.
+    with pytest.raises(OutputError, match="did not write"):
+        claim_folder(out, ours=("run.json",), previous_output=False, overwrite=True)
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match="did not write.*notes.txt"):
+        claim_folder(out, ours=("run.json",), previous_output=True, overwrite=True)
+
+
+def test_claim_folder_never_replaces_a_folder_holding_an_input_or_the_working_folder(tmp_path, monkeypatch):
+    out = tmp_path / "ckpts"
+    (out / "w2v").mkdir(parents=True)
+    ckpt = out / "TIMAR.pth"
+    ckpt.write_bytes(b"weights")
+    for src in (ckpt, out / "w2v"):
+        with pytest.raises(OutputError, match="an input of this command"):
+            claim_folder(out, [src], ours=("TIMAR.pth", "w2v"), previous_output=True, overwrite=True)
+    monkeypatch.chdir(out / "w2v")
+    for folder in (out, out / "w2v", ".", ".."):
+        with pytest.raises(OutputError, match="current folder"):
+            claim_folder(folder, ours=(), previous_output=True, overwrite=True)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputError, match="is a file"):
+        claim_folder(tmp_path / "file", ours=(), previous_output=False)

@@ -331,3 +331,48 @@ def test_current_turn_guidance_drop_is_the_same_offline_and_streamed():
     _, z_window = conditions(params, dataclasses.replace(config, guidance_drop="window"), us, um, as_)
     np.testing.assert_allclose(np.asarray(z_window[0, 0]), np.asarray(z_u[0, 0]), atol=2e-5)  # turn 0: same
     assert np.abs(np.asarray(z_window[0, 2]) - np.asarray(z_u[0, 2])).max() > 1e-3  # later turns: not
+
+
+def _sha(folder: Path) -> dict[str, str]:
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@torch_only
+def test_cli_overwrite_never_replaces_a_folder_holding_its_inputs_or_a_users_files(tmp_path, parity, monkeypatch):
+    import argparse
+
+    import torch
+
+    from helpers import cli_error, cli_ok
+
+    args, state, _ = parity.load_reference(FIXTURES / FIXTURE_NAMES[0])
+    sd = {k: torch.from_numpy(v) for k, v in state.items()}
+    # The README's download step puts the checkpoint and the encoder in ckpts/, beside a user's notes.
+    ckpts = tmp_path / "ckpts"
+    (ckpts / "w2v").mkdir(parents=True)
+    (ckpts / "w2v" / "config.json").write_text("{}")
+    torch.save({"model": sd, "model_ema": sd, "args": argparse.Namespace(**args)}, ckpts / "TIMAR.pth")
+    (ckpts / "notes.txt").write_text("the user's notes")
+    before = _sha(tmp_path)
+    base = ["convert", "timar", ckpts / "TIMAR.pth", "--features", f"wav2vec2:{ckpts / 'w2v'}"]
+    cli_error([*base, "--out", ckpts, "--overwrite"], "holds", "an input of this command")
+    monkeypatch.chdir(ckpts)
+    cli_error([*base, "--out", ".", "--overwrite"], "current folder")
+    monkeypatch.chdir(tmp_path)
+    # A folder of the user's files that holds no input is no previous conversion either.
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    cli_error([*base, "--out", mine, "--overwrite"], "did not write", "notes.txt")
+    assert _sha(tmp_path) == {**before, "mine/notes.txt": _sha(mine)["notes.txt"]}
+    assert not list(tmp_path.glob(".*replaced-*")) and not list(tmp_path.glob(".*converting-*"))
+    # A previous conversion is replaced with --overwrite, and only then.
+    cli_ok([*base, "--out", tmp_path / "run"])
+    cli_error([*base, "--out", tmp_path / "run"], "--overwrite")
+    cli_ok([*base, "--out", tmp_path / "run", "--overwrite"])
+    (tmp_path / "run" / "notes.txt").write_text("added by the user")
+    cli_error([*base, "--out", tmp_path / "run", "--overwrite"], "did not write", "notes.txt")
+    assert (tmp_path / "run" / "notes.txt").read_text() == "added by the user"

@@ -106,8 +106,7 @@ def _claim_output(opts: SampleOptions, suffix: str, default_suffix: str, *, extr
 
     path = Path(opts.input)
     out = Path(opts.out) if opts.out is not None else path.with_name(f"{path.stem}{default_suffix}")
-    run_files = [p for p in Path(opts.run_dir).iterdir() if p.is_file()] if Path(opts.run_dir).is_dir() else []
-    inputs = [opts.input, opts.style, opts.partner, *run_files, *extra_inputs]
+    inputs = [opts.input, opts.style, opts.partner, opts.run_dir, *extra_inputs]
     (out,) = claim_outputs([Output(out, named=opts.out is not None, suffixes=(suffix,))], inputs,
                            overwrite=opts.overwrite)
     return out

@@ -471,15 +471,34 @@ def _normalizer(ckpt: ReferenceCheckpoint, config: TimarConfig, stats: str | Pat
     return Normalizer(*speech, np.zeros(PARAM_DIM, np.float32), np.ones(PARAM_DIM, np.float32)), "identity"
 
 
-def _check_out(out: Path, overwrite: bool, inputs: list[Any]) -> None:
-    from jaxtalk.files import Output, claim_outputs
-    from jaxtalk.runs import RUN_FILE
+# What a converted run folder holds: a folder of exactly these is a previous output of `convert`.
+_CONVERTED_NAMES = ("run.json", "config.json", "features.json", "checkpoint")
 
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {str(out)!r} is a file, not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise ValueError(f"{str(out)!r} exists and is not empty; pass --overwrite to replace it")
-    claim_outputs([Output(out / RUN_FILE, named=True)], inputs, overwrite=overwrite)
+
+def _is_converted_run(out: Path) -> bool:
+    """Whether ``out`` holds a run written by this converter (its ``run.json`` records the source)."""
+    import json
+
+    try:
+        record = json.loads((out / "run.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and isinstance(record.get("extra"), dict) and "converted" in record["extra"]
+
+
+def _feature_folder(features: str) -> Path | None:
+    """The encoder folder a ``wav2vec2:PATH`` / ``hubert:PATH`` spec reads (None: none)."""
+    kind, _, path = features.partition(":")
+    return Path(path) if kind in ("hubert", "wav2vec2") and path else None
+
+
+def _check_out(out: Path, overwrite: bool, inputs: list[Any]) -> None:
+    """Refuse, before any work, an ``--out`` this conversion may not replace (see
+    :func:`jaxtalk.files.claim_folder`): one holding an input or the working folder, a user's
+    folder, or an earlier conversion without ``overwrite``."""
+    from jaxtalk.files import claim_folder
+
+    claim_folder(out, inputs, ours=_CONVERTED_NAMES, previous_output=_is_converted_run(out), overwrite=overwrite)
 
 
 def _check_features(features: str) -> None:
@@ -519,13 +538,15 @@ def write_converted_run(
         source: the checkpoint it came from (recorded).
         weights: ``"ema"`` or ``"model"`` (recorded).
         normalizer_kind: where the normaliser came from (recorded).
-        overwrite: replace an existing folder.
+        overwrite: replace an earlier conversion at ``out``.
 
     Returns:
         The run folder.
 
     Raises:
-        ValueError: an existing non-empty ``out`` without ``overwrite``, or ``out`` a file.
+        ValueError: an existing non-empty ``out`` without ``overwrite``, ``out`` a file, or an ``out``
+            that holds the working folder, an input or files the converter did not write (never
+            replaced, ``overwrite`` or not).
     """
     import jax
     import optax
@@ -534,7 +555,7 @@ def write_converted_run(
     from jaxtalk.train import create_train_state, save_checkpoint
 
     out, args, source = Path(out), dict(args or {}), Path(source)
-    _check_out(out, overwrite, [])
+    _check_out(out, overwrite, [_feature_folder(features)])
     spec = model_spec("timar")
     settings = dataclasses.replace(
         spec.settings("paper"),
@@ -595,7 +616,8 @@ def convert_checkpoint(
             with a warning).
         ema: convert the EMA weights (``model_ema``, what the public evaluation loads); False: the
             raw ``model`` weights.
-        overwrite: replace an existing run folder at ``out``.
+        overwrite: replace an earlier conversion at ``out`` (a folder holding an input or anything
+            else is never replaced).
 
     Returns:
         :class:`ConversionResult`.
@@ -609,7 +631,7 @@ def convert_checkpoint(
     import jax
 
     out = Path(out)
-    _check_out(out, overwrite, [checkpoint, stats])
+    _check_out(out, overwrite, [checkpoint, stats, _feature_folder(features)])
     _check_features(features)
     ckpt = read_checkpoint(checkpoint)
     if ema and ckpt.ema is None:
