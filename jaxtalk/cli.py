@@ -218,6 +218,10 @@ def train(
                         progress=progress, data_parallel=data_parallel, distributed=distributed,
                         profile=None if profile is None else parse_step_range(profile), init=init)
     summary = train_run(opts, echo=typer.echo)
+    if summary.interrupted:
+        typer.echo(f"error: interrupted at step {summary.step}; it is checkpointed in {summary.run_dir / 'checkpoint'}: "
+                   "run the same command again to resume", err=True)
+        raise typer.Exit(code=130)
     loss = "-" if summary.final_loss is None else f"{summary.final_loss:.4f}"
     val = "" if summary.val_loss is None else f", validation loss {summary.val_loss:.4f}"
     typer.echo(f"{model}: step {summary.start_step} -> {summary.step} on {summary.examples} windows, "

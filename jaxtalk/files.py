@@ -18,6 +18,11 @@ A command that writes a whole folder (:func:`claim_folder`) replaces an existing
 it holds one of the command's inputs or the current working folder.
 
 Missing parent folders are created when the file is written.
+
+One writer per folder: a command that keeps writing into a folder for a long time (a training run)
+holds :func:`folder_lock` on it; a second writer is refused with one line naming the process. The
+lock is the operating system's (``flock``), so it ends with its process however that ends: a lock
+left by a killed process is taken over, with no guess about whether its process id still runs.
 """
 
 from __future__ import annotations
@@ -46,6 +51,9 @@ __all__ = [
     "check_output_path",
     "claim_folder",
     "claim_outputs",
+    "FolderInUseError",
+    "LOCK_FILE",
+    "folder_lock",
 ]
 
 
@@ -276,3 +284,84 @@ def claim_folder(
         raise OutputError(f"{option} {str(folder)!r} holds files this command did not write ({shown}); "
                           f"--overwrite replaces only its own previous output: choose another {option}")
     return folder
+
+
+LOCK_FILE = ".jaxtalk.lock"
+
+# Folders this process holds, with their nesting count: the command and the training loop below it
+# both take the lock on a run folder, and the inner one must not refuse its own process.
+_HELD: dict[Path, list[Any]] = {}
+
+
+class FolderInUseError(OutputError):
+    """A folder another process is writing (it holds the folder's lock)."""
+
+
+def _lock_owner(lock: Path) -> str:
+    """Who holds ``lock``, as its holder recorded it (best effort: it may be mid-write)."""
+    try:
+        info = json.loads(lock.read_text())
+        return f"process {info['pid']} on {info['host']} ({info['command']}, since {info['since']})"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "another process"
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike) -> Iterator[Path]:
+    """Hold the write lock of ``folder`` (created if missing) for the ``with`` block.
+
+    Re-entrant within one process. The lock file (:data:`LOCK_FILE`) holds the holder's process
+    id, host, command and start time, for the message a second writer gets; it is removed on
+    release, and a folder this call created is removed again if it is still empty.
+
+    Raises:
+        FolderInUseError: another process holds the lock (the message names it).
+    """
+    import fcntl
+    import platform
+    import sys
+    import time
+
+    folder = Path(folder)
+    key = folder.resolve()
+    if key in _HELD:
+        _HELD[key][1] += 1
+        try:
+            yield folder
+        finally:
+            _HELD[key][1] -= 1
+        return
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / LOCK_FILE
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise FolderInUseError(f"{str(folder)!r} is in use by {_lock_owner(lock)}: wait for it to finish, or "
+                                   "choose another folder") from None
+        # The holder before us may have removed the file between our open and our lock: then the lock
+        # we hold is on a file no one else will open, so try again on the current one.
+        try:
+            if os.stat(lock).st_ino == os.fstat(fd).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    info = {"pid": os.getpid(), "host": platform.node(), "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])[:200],
+            "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+    os.ftruncate(fd, 0)
+    os.write(fd, json.dumps(info).encode())
+    _HELD[key] = [fd, 1]
+    try:
+        yield folder
+    finally:
+        del _HELD[key]
+        with contextlib.suppress(FileNotFoundError):
+            lock.unlink()  # while still locked, so no one locks the file being removed
+        os.close(fd)
+        if created:
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if still empty

@@ -131,3 +131,44 @@ def test_claim_folder_never_replaces_a_folder_holding_an_input_or_the_working_fo
     (tmp_path / "file").write_text("x")
     with pytest.raises(OutputError, match="is a file"):
         claim_folder(tmp_path / "file", ours=(), previous_output=False)
+
+
+_HOLD = """
+import sys, time
+from jaxtalk.files import folder_lock
+with folder_lock(sys.argv[1]):
+    print("held", flush=True)
+    time.sleep(60)
+"""
+
+
+def _holder(folder):
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", _HOLD, str(folder)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_folder_lock_refuses_a_second_process_naming_it_and_is_reentrant_in_one(tmp_path):
+    from jaxtalk.files import LOCK_FILE, FolderInUseError, folder_lock
+
+    run = tmp_path / "run"
+    proc = _holder(run)
+    try:
+        with pytest.raises(FolderInUseError, match=f"in use by process {proc.pid} "):
+            with folder_lock(run):
+                pass
+    finally:
+        proc.kill()
+        proc.communicate()
+    # The killed holder's lock file is left behind, and is taken over.
+    assert (run / LOCK_FILE).is_file()
+    with folder_lock(run), folder_lock(tmp_path / "run" / ".." / "run"):
+        assert str(os.getpid()) in (run / LOCK_FILE).read_text()
+    assert not (run / LOCK_FILE).exists()
+    # A folder the lock created is removed again when nothing else was written into it.
+    with folder_lock(tmp_path / "new"):
+        assert (tmp_path / "new").is_dir()
+    assert not (tmp_path / "new").exists()

@@ -19,16 +19,20 @@ trained on TIMAR's windows with TIMAR's settings.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import inspect
+import os
+import sys
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from jaxtalk.files import LOCK_FILE, folder_lock
 from jaxtalk.runs import (
     MODELS,
     load_run,
@@ -41,6 +45,7 @@ from jaxtalk.runs import (
     parse_overrides,
     preset_names,
 )
+from jaxtalk.train.observers import StopRequest
 
 DEFAULT_DATA = "synthtalk:tiny"
 # Where ``--profile`` writes its trace, inside the run folder.
@@ -112,6 +117,7 @@ class TrainSummary:
         val_loss: the last validation loss (None without a validation split).
         examples: training windows (this process's shard).
         wall_s: seconds.
+        interrupted: stopped early by Ctrl-C (``step`` is checkpointed; run again to resume).
     """
 
     run_dir: Path
@@ -121,6 +127,7 @@ class TrainSummary:
     val_loss: float | None
     examples: int
     wall_s: float
+    interrupted: bool = False
 
 
 def recipe_for(model: str, preset: str = "small") -> tuple[Callable[..., Any], Any]:
@@ -176,10 +183,9 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
             fit the model, an existing run of another model or with other settings, ``--no-resume``
             on an existing run, or ``--steps`` below the step the run already reached.
         FileNotFoundError: a data folder that is not prepared.
+        jaxtalk.files.FolderInUseError: another process is training into ``opts.out_dir``.
     """
     import jax
-
-    from jaxtalk.train import latest_checkpoint_step
 
     start = time.perf_counter()
     spec = model_spec(opts.model)
@@ -193,6 +199,23 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         initialize()
     out = Path(opts.out_dir)
     _check_run_folder(out)
+    stop = StopRequest()
+    with contextlib.ExitStack() as held:
+        # One writer per run folder, taken before anything is read from it (process 0 of a multi-process
+        # run holds it for all); the loop below takes the same lock again, within this process.
+        if jax.process_index() == 0:
+            held.enter_context(folder_lock(out))
+        held.enter_context(_stop_on_interrupt(stop, out))
+        return _train_into(opts, out, spec, stop, start, echo)
+
+
+def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, start: float,
+                echo: Callable[[str], None]) -> TrainSummary:
+    """:func:`train_run` once the run folder is held: read it, open the data, train."""
+    import jax
+
+    from jaxtalk.train import latest_checkpoint_step
+
     existing = RunRecord.load(out) if (out / "run.json").is_file() else None
     done = latest_checkpoint_step(checkpoint_dir(out)) or 0
     if existing is not None and not opts.resume:
@@ -275,6 +298,7 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
             raise ValueError(f"--profile {opts.profile[0]}:{opts.profile[1]} is outside the steps this run trains "
                              f"({done + 1}..{opts.steps})")
         kw["observers"] = [TraceSteps(*opts.profile, out / PROFILE_DIR)]
+    kw["observers"] = [*kw.get("observers", ()), stop]
     info = RunInfo(preset=preset, items=tuple(opts.overrides), data_spec=opts.data, settings=settings)
     with warnings.catch_warnings():
         # The library's warnings (a smaller batch than asked, ...) as one line each, not Python's
@@ -288,7 +312,42 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     evals = [h["eval"]["val_loss"] for h in result.history if "eval" in h and "val_loss" in h["eval"]]
     return TrainSummary(run_dir=out, start_step=done, step=int(result.state.step),
                         final_loss=float(np.mean(losses)) if losses else None, val_loss=evals[-1] if evals else None,
-                        examples=result.windows, wall_s=time.perf_counter() - start)
+                        examples=result.windows, wall_s=time.perf_counter() - start, interrupted=stop.requested)
+
+
+@contextlib.contextmanager
+def _stop_on_interrupt(stop: StopRequest, out: Path) -> Iterator[None]:
+    """Ctrl-C (SIGINT) during training: the first stops the loop after the update in flight (it is
+    checkpointed, the run resumes from it); before the loop runs, or a second time, it ends the process
+    at once with one line. Never a ``KeyboardInterrupt`` unwinding through a compile, a restore or a
+    save: that is what crashed the interpreter on its way out."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers belong to the main thread; a caller's thread keeps its own policy
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        if stop.running and not stop.requested:
+            stop.request()
+            sys.stderr.write("interrupted: stopping after this step and saving it (Ctrl-C again stops at once)\n")
+            sys.stderr.flush()
+            return
+        from jaxtalk.train import latest_checkpoint_step
+
+        step = latest_checkpoint_step(checkpoint_dir(out))
+        kept = f"the last checkpoint (step {step}) is intact" if step else "no checkpoint was written"
+        sys.stdout.flush()
+        sys.stderr.write(f"error: interrupted; {kept} in {checkpoint_dir(out)}\n")
+        sys.stderr.flush()
+        os._exit(130)  # checkpoints are committed atomically; an unfinished save is removed on resume
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _init_run(opts: TrainOptions, existing: Any, model_items: list[str], done: int) -> Any:
@@ -321,8 +380,9 @@ def _check_run_folder(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise OutputError(f"--out {str(out)!r} is a file; a run is a folder: choose another --out")
     # Files, not folders: the demo keeps its corpus cache in a subfolder of its run folder.
+    # The lock file a killed training leaves is no user's file.
     if out.is_dir() and not (out / "run.json").is_file() and not checkpoint_dir(out).is_dir() and any(
-            p.is_file() for p in out.iterdir()):
+            p.is_file() and p.name != LOCK_FILE for p in out.iterdir()):
         raise OutputError(f"--out {str(out)!r} holds files but no jaxtalk run; train into a new or empty folder")
 
 

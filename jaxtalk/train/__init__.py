@@ -29,7 +29,7 @@ from jaxtalk.train.checkpoint import (
 from jaxtalk.train.checks import BatchSpec, check_finite
 from jaxtalk.train.ema import ema_decay_at, ema_update
 from jaxtalk.train.loop import NonFiniteLossError, TrainResult, train
-from jaxtalk.train.observers import StepObserver, TraceSteps
+from jaxtalk.train.observers import StepObserver, StopRequest, TraceSteps
 from jaxtalk.train.optim import OptimConfig, make_optimizer, make_schedule, trainable_mask
 from jaxtalk.train.sharding import make_mesh, replicate, shard_batch
 from jaxtalk.train.state import TrainState, create_train_state
@@ -68,5 +68,6 @@ __all__ = [
     "shard_batch",
     "replicate",
     "StepObserver",
+    "StopRequest",
     "TraceSteps",
 ]

@@ -16,6 +16,7 @@ fetched values, so it never lets a NaN state reach a checkpoint.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -30,7 +31,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from jaxtalk.files import atomic_write_text
+from jaxtalk.files import atomic_write_text, folder_lock
 from jaxtalk.train.checks import BatchSpec, check_finite
 from jaxtalk.train.checkpoint import BEST_DIR, HISTORY_FILE, Checkpointer, best_checkpoint_dir, read_history
 from jaxtalk.train.observers import StepObserver
@@ -160,7 +161,9 @@ def train(
         variable_axes: batch axes allowed to change size between batches (default: the iterator's
             ``variable_axes`` attribute, else none). All other sizes must match the first batch.
         observers: :class:`~jaxtalk.train.observers.StepObserver` s that watch the steps (a profiler
-            trace of some steps, the benchmark's timing probe); each is closed when the loop ends.
+            trace of some steps, the benchmark's timing probe); each is closed when the loop ends. One
+            whose ``should_stop()`` turns true ends the run after the current step: its state is
+            checkpointed (without the final evaluation) and returned, to resume later.
 
     Returns:
         :class:`TrainResult` with the final state, per-step history and best record.
@@ -173,6 +176,8 @@ def train(
             mesh's device count; a corrupt checkpoint (naming the path).
         NonFiniteLossError: the loss became NaN/inf (names the step; nothing after the last good
             checkpoint is saved).
+        jaxtalk.files.FolderInUseError: another process is training into ``log_dir`` (or
+            ``ckpt_dir`` without ``log_dir``).
     """
     max_steps = config.total_steps if max_steps is None else int(max_steps)
     for name, value in (("max_steps", max_steps), ("log_every", log_every)):
@@ -206,9 +211,15 @@ def train(
     metrics_log = None
     spec: BatchSpec | None = None
     has_position = hasattr(data_iter, "get_state") and hasattr(data_iter, "set_state")
-    if ckpt_dir is not None:
-        ckpt = Checkpointer(ckpt_dir, max_to_keep=keep_checkpoints, async_save=async_checkpoints)
+    # One writer per run: a second training into the same folder is refused before it writes anything.
+    # Process 0 holds it; the other processes of a multi-process run write the same folder with it.
+    locks = contextlib.ExitStack()
+    lock_dir = log_dir if log_dir is not None else ckpt_dir
+    if lock_dir is not None and jax.process_index() == 0:
+        locks.enter_context(folder_lock(lock_dir))
     try:
+        if ckpt_dir is not None:
+            ckpt = Checkpointer(ckpt_dir, max_to_keep=keep_checkpoints, async_save=async_checkpoints)
         if best_metric is not None:
             best = _BestKeeper(best_checkpoint_dir(ckpt_dir), best_metric, best_mode, async_checkpoints)
         for existing in (ckpt, None if best is None else best.ckpt):
@@ -272,6 +283,7 @@ def train(
             ckpt.close()
         if best is not None:
             best.ckpt.close()
+        locks.close()
 
 
 @functools.lru_cache(maxsize=16)
@@ -326,6 +338,7 @@ class _Loop:
         # One bar per run: in a multi-process run only process 0 draws it.
         self.bar = tqdm(total=max_steps, initial=step, disable=not self.progress or jax.process_index() != 0,
                         desc="train", unit="step")
+        stopped = False
         try:
             for observer in self.observers:
                 observer.start(self.data_iter)
@@ -352,8 +365,11 @@ class _Loop:
                     self._save(step, data_state)
                 if self.metrics_log is not None:  # after this step's log flush and evaluation: one row
                     self.metrics_log.flush()
+                if any(observer.should_stop() for observer in self.observers):
+                    stopped = True
+                    break
             self._flush()
-            if self.eval_fn is not None and not (self.history and "eval" in self.history[-1]):
+            if not stopped and self.eval_fn is not None and not (self.history and "eval" in self.history[-1]):
                 self._evaluate(step, data_state)
             if self.ckpt is not None and self.last_saved != step and step > 0:
                 self._save(step, data_state)

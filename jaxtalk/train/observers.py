@@ -6,6 +6,7 @@ prepared batch and the step function itself), :meth:`~StepObserver.after_step` j
 dispatched, and :meth:`~StepObserver.close` when the loop ends, however it ends. Steps are counted
 1-based (step ``s`` is the ``s``-th update, the one that makes ``state.step == s``).
 
+* :class:`StopRequest`: ends a run cleanly after the update in flight (``jaxtalk train`` on Ctrl-C).
 * :class:`TraceSteps`: a :mod:`jax.profiler` trace of steps ``start..stop`` (``jaxtalk train
   --profile START:STOP``), viewable in Perfetto or TensorBoard.
 * The benchmark's probe (:mod:`jaxtalk.bench`) times the compiled step, the loader and the loop's
@@ -23,7 +24,7 @@ import jax
 
 from jaxtalk.train.state import TrainState
 
-__all__ = ["StepObserver", "TraceSteps", "parse_step_range", "trace_files"]
+__all__ = ["StepObserver", "StopRequest", "TraceSteps", "parse_step_range", "trace_files"]
 
 PyTree = Any
 
@@ -44,8 +45,41 @@ class StepObserver:
     def after_step(self, step: int, state: TrainState, metrics: dict[str, jax.Array]) -> None:
         """Called just after update number ``step`` was dispatched (its arrays may still be computing)."""
 
+    def should_stop(self) -> bool:
+        """Asked after every update: True ends the run there (checkpointed, to resume later)."""
+        return False
+
     def close(self) -> None:
         """Called once when the loop ends (normally or by an exception)."""
+
+
+class StopRequest(StepObserver):
+    """Ends a run cleanly at the next step boundary once :meth:`request` was called.
+
+    Meant for a signal handler (``jaxtalk train`` asks it on Ctrl-C): the loop finishes the update in
+    flight, checkpoints it and returns, so nothing is torn down in the middle of a compile or a save.
+
+    Attributes:
+        requested: :meth:`request` was called.
+        running: the loop is between its first and last step (a request is then honoured).
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.running = False
+
+    def request(self) -> None:
+        """Ask the loop to stop after the update in flight."""
+        self.requested = True
+
+    def start(self, data_iter: Iterator[PyTree]) -> None:
+        self.running = True
+
+    def should_stop(self) -> bool:
+        return self.requested
+
+    def close(self) -> None:
+        self.running = False
 
 
 def parse_step_range(text: str) -> tuple[int, int]:
