@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import gc
 import json
+import logging
+import queue
+import signal
 import socket
 import threading
 import time
@@ -281,6 +284,59 @@ def test_malformed_messages_are_answered_and_leave_the_stream_as_it_was(server, 
             ws.recv(timeout=30)
         assert closed.value.rcvd.code == 1009
     assert stream_through(server.url, audio[:4000], piece=4000, seed=0)["params"].shape[0] == 6
+
+
+def test_ctrl_c_closes_a_streaming_client_with_going_away_and_stops_the_server_cleanly(trained_toktalk, speech,
+                                                                                     monkeypatch, caplog):
+    """``jaxtalk serve`` interrupted (SIGINT, as Ctrl-C sends it) while it waits and a client streams."""
+    from typer.testing import CliRunner
+
+    from jaxtalk import serve
+    from jaxtalk.cli import app
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("Python raises KeyboardInterrupt in the main thread only")
+    servers: queue.Queue = queue.Queue()
+
+    def recorded(*args, **kw):
+        running = start_server(*args, **kw)
+        servers.put(running)
+        return running
+
+    monkeypatch.setattr(serve, "start_server", recorded)
+    got: dict = {}
+
+    def stream() -> None:
+        try:
+            got["running"] = servers.get(timeout=300)
+            with client(got["running"].url) as ws:
+                hello(ws)
+                deadline, replies = time.monotonic() + 60, 0
+                while time.monotonic() < deadline:
+                    for start in range(0, speech[0].size, 640):
+                        ws.send(pcm(speech[0][start:start + 640]))
+                        assert json.loads(ws.recv(timeout=30))["type"] == "frames"
+                        replies += 1
+                        if replies == 5:  # Ctrl-C, while the command waits for the server
+                            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+        except ConnectionClosed as closed:
+            got["code"] = closed.rcvd.code if closed.rcvd is not None else None
+        except BaseException as err:  # noqa: BLE001  (reported below, in the test's thread)
+            got["error"] = err
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    streamer = threading.Thread(target=stream)
+    streamer.start()
+    try:
+        result = CliRunner().invoke(app, ["serve", str(trained_toktalk.dir), "--port", "0"])
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        streamer.join(90)
+    assert "error" not in got, got
+    assert result.exit_code == 0 and "listening on" in result.output and "Traceback" not in result.output, result.output
+    assert got.get("code") == 1001  # going away, not 1011 (internal error)
+    assert got["running"].done.is_set() and not got["running"].server.clients
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
 
 
 def test_the_server_binds_localhost_refuses_foreign_pages_and_serves_the_face_the_morph_output_drives(server):

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import concurrent.futures
+import contextlib
 import dataclasses
 import functools
 import json
@@ -192,7 +193,8 @@ class LiveServer:
     # ------------------------------------------------------------------ running
 
     async def run(self, stop: asyncio.Future | asyncio.Event, ready: Callable[[LiveServer], None] | None = None) -> None:
-        """Serve until ``stop`` is set (an Event) or done (a Future)."""
+        """Serve until ``stop`` is set (an Event) or done (a Future), then close every client with 1001
+        (going away)."""
         from websockets.asyncio.server import serve
 
         origins = [None, _LOCAL_ORIGIN, *self.options.origins]
@@ -412,6 +414,7 @@ class RunningServer:
     thread: threading.Thread
     loop: asyncio.AbstractEventLoop
     stop: asyncio.Event
+    done: threading.Event  # set once the thread has served its last client and stopped
 
     @property
     def url(self) -> str:
@@ -419,8 +422,17 @@ class RunningServer:
         return f"ws://{f'[{host}]' if ':' in host else host}:{self.server.port}"
 
     def close(self) -> None:
-        if self.thread.is_alive():
-            self.loop.call_soon_threadsafe(self.stop.set)
+        """Stop serving: every client is closed with 1001 (going away), and this returns once the server
+        has stopped (its clients' work done, its device thread ended).
+
+        It waits on :attr:`done`, not on the thread's state: a Ctrl-C that interrupts ``thread.join()``
+        (``jaxtalk serve``'s wait) can leave CPython (3.11, for one) calling the thread finished while it
+        still serves, and then neither ``is_alive()`` nor ``join()`` tells.
+        """
+        if not self.done.is_set():
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: the server has stopped
+                self.loop.call_soon_threadsafe(self.stop.set)
+        self.done.wait()
         self.thread.join()
 
 
@@ -434,7 +446,7 @@ def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up:
     """
     server = LiveServer(model, options, **kw)
     server.warmed_s = server.warm_up() if warm_up else None
-    started = threading.Event()
+    started, done = threading.Event(), threading.Event()
     box: dict[str, Any] = {}
 
     def main() -> None:
@@ -448,6 +460,7 @@ def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up:
             box["error"] = err
         finally:
             started.set()
+            done.set()
 
     thread = threading.Thread(target=main, name="jaxtalk-serve", daemon=True)
     thread.start()
@@ -455,4 +468,4 @@ def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up:
     if "error" in box:
         thread.join()
         raise box["error"]
-    return RunningServer(server, thread, box["loop"], box["stop"])
+    return RunningServer(server, thread, box["loop"], box["stop"], done)
