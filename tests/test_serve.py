@@ -286,6 +286,28 @@ def test_malformed_messages_are_answered_and_leave_the_stream_as_it_was(server, 
     assert stream_through(server.url, audio[:4000], piece=4000, seed=0)["params"].shape[0] == 6
 
 
+def test_a_hello_with_a_number_out_of_range_is_answered_bad_hello_and_the_connection_goes_on(server, caplog):
+    huge = "1" + "0" * 400
+    with client(server.url) as ws:
+
+        def answer(text: str) -> dict:
+            ws.send(text)
+            return json.loads(ws.recv(timeout=30))
+
+        for field, value in (("sample_rate", huge), ("seed", huge), ("seed", "-" + huge), ("sample_rate", "1e400"),
+                             ("seed", "NaN"), ("seed", "-Infinity"), ("sample_rate", "true"), ("sample_rate", "-16000"),
+                             ("seed", str(2**64))):
+            fields = {"sample_rate": "16000", "seed": "0", field: value}
+            reply = answer('{"type": "hello", "format": "f32le", ' + ", ".join(f'"{k}": {v}' for k, v in fields.items())
+                           + "}")
+            assert reply["type"] == "error" and reply["code"] == "bad_hello", (field, value, reply)
+            assert reply["message"].startswith(f"hello.{field} must be an integer in"), reply
+        assert answer('{"type": "hello", "sample_rate": 16000, "format": ["f32le"]}')["code"] == "bad_format"
+        assert answer('{"type": "hello", "sample_rate": 16000, "seed": ' + "9" * 5000 + "}")["code"] == "bad_json"
+        assert hello(ws)["type"] == "ready"  # still connected, and a good hello is served
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
 def test_ctrl_c_closes_a_streaming_client_with_going_away_and_stops_the_server_cleanly(trained_toktalk, speech,
                                                                                      monkeypatch, caplog):
     """``jaxtalk serve`` interrupted (SIGINT, as Ctrl-C sends it) while it waits and a client streams."""
