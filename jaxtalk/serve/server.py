@@ -25,6 +25,7 @@ import functools
 import json
 import os
 import re
+import socket
 import sys
 import threading
 import time
@@ -45,7 +46,7 @@ from jaxtalk.serve.protocol import (
     parse_message,
 )
 
-__all__ = ["LiveServer", "RunningServer", "ServeOptions", "rss_bytes", "start_server"]
+__all__ = ["LiveServer", "RunningServer", "ServeOptions", "listen_socket", "rss_bytes", "start_server"]
 
 _LOCAL_ORIGIN = re.compile(r"https?://(localhost|127\.0\.0\.1|\[::1\])(:\d+)?")
 
@@ -78,6 +79,21 @@ class ServeOptions:
     send_buffer: int = 64 * 1024
     live_link: tuple[str, int] | None = None
     origins: tuple[str, ...] = ()
+
+
+def listen_socket(host: str, port: int) -> socket.socket:
+    """A TCP socket listening on ``host:port`` (0: any free port; the first address ``host`` resolves to),
+    for :func:`start_server`'s ``sock``: bound before the model loads, so that a port in use is said at
+    once, and held until the server takes it over, so that nothing else takes the port in between.
+    Clients that connect before the server serves wait in the kernel's backlog.
+
+    Raises:
+        OSError: the address is in use (errno EADDRINUSE) or cannot be bound (an unknown host, ...).
+    """
+    family, _, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
+    # socket.create_server sets SO_REUSEADDR as asyncio's server does (a restarted server rebinds a port
+    # whose old connections linger in TIME_WAIT) and IPV6_V6ONLY for an IPv6 address.
+    return socket.create_server(address, family=family)
 
 
 def rss_bytes() -> int:
@@ -192,16 +208,19 @@ class LiveServer:
 
     # ------------------------------------------------------------------ running
 
-    async def run(self, stop: asyncio.Future | asyncio.Event, ready: Callable[[LiveServer], None] | None = None) -> None:
-        """Serve until ``stop`` is set (an Event) or done (a Future), then close every client with 1001
-        (going away)."""
+    async def run(self, stop: asyncio.Future | asyncio.Event, ready: Callable[[LiveServer], None] | None = None, *,
+                  sock: socket.socket | None = None) -> None:
+        """Serve until ``stop`` is set (an Event) or done (a Future), on ``sock`` (a listening socket, e.g.
+        :func:`listen_socket`'s; closed when the server stops) or else on the options' host and port;
+        then close every client with 1001 (going away)."""
         from websockets.asyncio.server import serve
 
         origins = [None, _LOCAL_ORIGIN, *self.options.origins]
         # Audio messages are bounded by max_chunk_samples (too_large, answered); websockets itself closes a
         # connection whose message is over 4x that (1009), so nothing unbounded is ever buffered.
         max_size = 4 * 4 * self.max_chunk_samples + 4096
-        async with serve(self._connection, self.options.host, self.options.port, origins=origins,
+        where = {"sock": sock} if sock is not None else {"host": self.options.host, "port": self.options.port}
+        async with serve(self._connection, **where, origins=origins,
                          process_request=self._http, compression=None, max_size=max_size,
                          max_queue=self.options.max_queue, ping_interval=20, ping_timeout=20) as server:
             self.address = next(iter(server.sockets)).getsockname()[:2]
@@ -239,8 +258,6 @@ class LiveServer:
                                                            "once; try again later")))
             await ws.close(1013, "busy")
             return
-        import socket
-
         raw = ws.transport.get_extra_info("socket")
         if raw is not None:
             raw.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.options.send_buffer)
@@ -436,23 +453,35 @@ class RunningServer:
         self.thread.join()
 
 
-def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up: bool = True, **kw: Any) -> RunningServer:
+def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up: bool = True,
+                 sock: socket.socket | None = None, **kw: Any) -> RunningServer:
     """Start a :class:`LiveServer` on a background thread (after :meth:`LiveServer.warm_up`); returns once it
     listens.
+
+    Args:
+        model, options, kw: as :class:`LiveServer` takes them.
+        warm_up: compile the model's step before serving.
+        sock: a listening socket to serve on (:func:`listen_socket`) instead of binding the options' host
+            and port; the server owns it from here on (closed when it stops, or fails to start).
 
     Raises:
         OSError: the address is in use or cannot be bound (errno EADDRINUSE, ...).
         OutputUnavailable: ``live_link`` without an ``arkit`` output.
     """
-    server = LiveServer(model, options, **kw)
-    server.warmed_s = server.warm_up() if warm_up else None
+    try:
+        server = LiveServer(model, options, **kw)
+        server.warmed_s = server.warm_up() if warm_up else None
+    except BaseException:
+        if sock is not None:
+            sock.close()
+        raise
     started, done = threading.Event(), threading.Event()
     box: dict[str, Any] = {}
 
     def main() -> None:
         async def serve() -> None:
             box["loop"], box["stop"] = asyncio.get_running_loop(), asyncio.Event()
-            await server.run(box["stop"], ready=lambda _: started.set())
+            await server.run(box["stop"], ready=lambda _: started.set(), sock=sock)
 
         try:
             asyncio.run(serve())
@@ -467,5 +496,7 @@ def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up:
     started.wait()
     if "error" in box:
         thread.join()
+        if sock is not None:
+            sock.close()
         raise box["error"]
     return RunningServer(server, thread, box["loop"], box["stop"], done)
