@@ -31,7 +31,7 @@ from jaxtalk.export import GlbAnimation
 from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
 from jaxtalk.export.livelink import decode_packet
 from jaxtalk.face import builtin_face
-from jaxtalk.serve import OUTPUTS, ServeOptions, start_server
+from jaxtalk.serve import OUTPUTS, LiveServer, ServeOptions, start_server
 from jaxtalk.serve.outputs import MorphOutput
 
 pytestmark = pytest.mark.slow  # a server on the session's trained run
@@ -359,6 +359,28 @@ def test_ctrl_c_closes_a_streaming_client_with_going_away_and_stops_the_server_c
     assert got.get("code") == 1001  # going away, not 1011 (internal error)
     assert got["running"].done.is_set() and not got["running"].server.clients
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+def test_an_allowed_origin_lets_in_its_pages_on_the_port_it_names_or_on_any_with_star(live):
+    running = start_server(live, ServeOptions(port=0, origins=("https://Studio.example:*", "http://tool.example:8080")),
+                           warm_up=False)
+    try:
+        for origin in ("https://studio.example", "https://studio.example:4443", "http://tool.example:8080"):
+            with client(running.url, origin=origin):
+                pass
+        for origin in ("http://studio.example:4443", "https://studio.example.evil.example", "http://tool.example:8081",
+                       "http://tool.example"):
+            with pytest.raises(InvalidStatus) as refused:
+                client(running.url, origin=origin)
+            assert refused.value.response.status_code == 403, origin
+        request = urllib.request.Request(running.url.replace("ws://", "http://") + "/face.glb",
+                                         headers={"Origin": "https://studio.example:4443"})
+        with urllib.request.urlopen(request, timeout=60) as response:
+            assert response.headers["Access-Control-Allow-Origin"] == "https://studio.example:4443"
+    finally:
+        running.close()
+    with pytest.raises(ValueError, match="--allow-origin 'notaurl' is not a web page origin"):
+        LiveServer(live, ServeOptions(origins=("notaurl",)))
 
 
 def test_the_server_binds_localhost_refuses_foreign_pages_and_serves_the_face_the_morph_output_drives(server):

@@ -29,6 +29,12 @@ def never_loaded(monkeypatch):
     (["--temperature", "nan"], ("--temperature", "finite")),
     (["--max-clients", "0"], ("--max-clients", "1..1024")),
     (["--max-chunk-s", "nan"], ("--max-chunk-s", "0.01..60")),
+    (["--allow-origin", "notaurl"], ("--allow-origin", "'notaurl'", "http(s)://HOST")),
+    (["--allow-origin", "ftp://example.com"], ("--allow-origin", "ftp://example.com")),
+    (["--allow-origin", "https://example.com/page"], ("--allow-origin", "https://example.com/page")),
+    (["--allow-origin", "http://example.com:99999"], ("--allow-origin", "99999")),
+    (["--allow-origin", "http://:8000"], ("--allow-origin", "http://:8000")),
+    (["--allow-origin", "http://localhost:*", "--allow-origin", "http://evil.example:x"], ("evil.example:x",)),
 ])
 def test_a_bad_option_is_one_error_line_before_the_model_loads(tmp_path, never_loaded, options, words):
     cli_error(["serve", tmp_path, *options], *words)

@@ -93,11 +93,13 @@ def serve_run(opts: ServeCommandOptions, *, echo: Callable[[str], None] = print)
 
     Raises:
         See :func:`live_model_of_run`; ValueError: an option out of range, a port in use, a bad
-        ``--live-link`` address, or ``--live-link`` while the ``arkit`` output is not available.
+        ``--live-link`` address or ``--allow-origin``, or ``--live-link`` while the ``arkit`` output is not
+        available.
     """
     from jaxtalk.commands.inference import check_sampling_options
     from jaxtalk.export.livelink import parse_address
     from jaxtalk.serve import OutputUnavailable, ServeOptions, start_server
+    from jaxtalk.serve.server import origin_pattern
 
     # Every option first: loading and warming the model up takes seconds to minutes.
     if not 0 <= opts.port <= 65535:
@@ -107,6 +109,8 @@ def serve_run(opts: ServeCommandOptions, *, echo: Callable[[str], None] = print)
     if not 0.01 <= opts.max_chunk_s <= 60:
         raise ValueError(f"--max-chunk-s must lie in 0.01..60, got {opts.max_chunk_s}")
     check_sampling_options(opts.cfg_scale, opts.sample_steps, opts.temperature)
+    for origin in opts.origins:
+        origin_pattern(origin)
     link = parse_address(opts.live_link) if opts.live_link is not None else None
     sock = _listen(opts)
     try:

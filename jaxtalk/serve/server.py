@@ -46,9 +46,12 @@ from jaxtalk.serve.protocol import (
     parse_message,
 )
 
-__all__ = ["LiveServer", "RunningServer", "ServeOptions", "listen_socket", "rss_bytes", "start_server"]
+__all__ = ["LiveServer", "RunningServer", "ServeOptions", "listen_socket", "origin_pattern", "rss_bytes",
+           "start_server"]
 
 _LOCAL_ORIGIN = re.compile(r"https?://(localhost|127\.0\.0\.1|\[::1\])(:\d+)?")
+# An origin as browsers send it: scheme, host (a name, an IPv4 address or a bracketed IPv6 one) and port.
+_ORIGIN = re.compile(r"(https?)://(\[[0-9a-f:.]+\]|[a-z0-9]([a-z0-9.-]*[a-z0-9])?)(:(\d{1,5}|\*))?", re.IGNORECASE)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,7 +70,8 @@ class ServeOptions:
             instead of the megabytes Linux would otherwise let queue up).
         live_link: ``(host, port)`` to send every client's ARKit curves to as Live Link Face packets
             (needs the ``arkit`` output), or None.
-        origins: web page origins allowed besides this machine's own (``http://localhost:*``...).
+        origins: web page origins allowed besides this machine's own (``http://localhost:*``...), each
+            as :func:`origin_pattern` takes it.
     """
 
     host: str = "127.0.0.1"
@@ -79,6 +83,31 @@ class ServeOptions:
     send_buffer: int = 64 * 1024
     live_link: tuple[str, int] | None = None
     origins: tuple[str, ...] = ()
+
+
+def origin_pattern(origin: str) -> re.Pattern[str]:
+    """The ``Origin`` headers an allowed origin lets in.
+
+    Args:
+        origin: ``http(s)://HOST`` or ``http(s)://HOST:PORT``, PORT ``*`` for any port (or none), as
+            ``http://localhost:*`` stands for this machine's own pages.
+
+    Raises:
+        ValueError: anything else (another scheme, no host, a path, a port beyond 65535), in one line.
+    """
+    found = _ORIGIN.fullmatch(origin)
+    port = found.group(5) if found else None
+    if found is None or (port not in (None, "*") and not 0 < int(port) <= 65535):
+        raise ValueError(f"--allow-origin {origin!r} is not a web page origin: expected http(s)://HOST or "
+                         "http(s)://HOST:PORT (PORT * for any), e.g. https://example.com or http://localhost:*")
+    # Browsers send the scheme and host in lower case, and no port for the scheme's default one.
+    scheme = found.group(1).lower()
+    base = re.escape(f"{scheme}://{found.group(2)}".lower())
+    if port == "*":
+        return re.compile(base + r"(:\d+)?")
+    if port is None or int(port) == {"http": 80, "https": 443}[scheme]:
+        return re.compile(base + (f"(:{int(port)})?" if port else ""))
+    return re.compile(base + re.escape(f":{int(port)}"))
 
 
 def listen_socket(host: str, port: int) -> socket.socket:
@@ -176,6 +205,7 @@ class LiveServer:
         self.warmed_s: float | None = None  # what warm_up took, when it ran
         self.started = time.monotonic()
         self.max_chunk_samples = max(1, round(options.max_chunk_s * model.sample_rate))
+        self.origins = tuple(origin_pattern(o) for o in options.origins)  # refused here, before serving
         if options.live_link is not None:
             build_outputs(("arkit",), self._converters, self.registry)  # refused here, before serving
 
@@ -215,7 +245,7 @@ class LiveServer:
         then close every client with 1001 (going away)."""
         from websockets.asyncio.server import serve
 
-        origins = [None, _LOCAL_ORIGIN, *self.options.origins]
+        origins = [None, _LOCAL_ORIGIN, *self.origins]
         # Audio messages are bounded by max_chunk_samples (too_large, answered); websockets itself closes a
         # connection whose message is over 4x that (1009), so nothing unbounded is ever buffered.
         max_size = 4 * 4 * self.max_chunk_samples + 4096
@@ -244,7 +274,7 @@ class LiveServer:
         headers = Headers([("Content-Type", "model/gltf-binary"), ("Content-Length", str(len(body))),
                            ("Cache-Control", "no-store")])
         origin = request.headers.get("Origin")
-        if origin and (_LOCAL_ORIGIN.fullmatch(origin) or origin in self.options.origins):
+        if origin and any(p.fullmatch(origin) for p in (_LOCAL_ORIGIN, *self.origins)):
             headers["Access-Control-Allow-Origin"] = origin
         return Response(200, "OK", headers, body)
 
@@ -467,6 +497,7 @@ def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up:
     Raises:
         OSError: the address is in use or cannot be bound (errno EADDRINUSE, ...).
         OutputUnavailable: ``live_link`` without an ``arkit`` output.
+        ValueError: an origin :func:`origin_pattern` refuses.
     """
     try:
         server = LiveServer(model, options, **kw)
