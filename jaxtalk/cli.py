@@ -612,7 +612,8 @@ def serve(
     live_link: Annotated[str | None, typer.Option(help="Send every client's ARKit curves as Live Link Face UDP packets "
                                                        "to HOST:PORT (or PORT on 127.0.0.1; Unreal listens on 11111).")] = None,
     allow_origin: Annotated[list[str] | None, typer.Option(help="A web page origin allowed to connect besides this "
-                                                                 "machine's own (http://localhost:*); repeatable.")] = None,
+                                                                 "machine's own (http://localhost:*): http(s)://HOST or "
+                                                                 "http(s)://HOST:PORT, PORT * for any; repeatable.")] = None,
 ) -> None:
     """Animate live speech over WebSocket: clients send 16-kHz PCM, each chunk's frames come back (params, glTF
     morph weights or ARKit weights) with their timestamps and the compute time (protocol: docs/serve.md)."""

@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import gc
 import json
+import logging
+import queue
+import signal
 import socket
 import threading
 import time
@@ -28,7 +31,7 @@ from jaxtalk.export import GlbAnimation
 from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
 from jaxtalk.export.livelink import decode_packet
 from jaxtalk.face import builtin_face
-from jaxtalk.serve import OUTPUTS, ServeOptions, start_server
+from jaxtalk.serve import OUTPUTS, LiveServer, ServeOptions, start_server
 from jaxtalk.serve.outputs import MorphOutput
 
 pytestmark = pytest.mark.slow  # a server on the session's trained run
@@ -281,6 +284,103 @@ def test_malformed_messages_are_answered_and_leave_the_stream_as_it_was(server, 
             ws.recv(timeout=30)
         assert closed.value.rcvd.code == 1009
     assert stream_through(server.url, audio[:4000], piece=4000, seed=0)["params"].shape[0] == 6
+
+
+def test_a_hello_with_a_number_out_of_range_is_answered_bad_hello_and_the_connection_goes_on(server, caplog):
+    huge = "1" + "0" * 400
+    with client(server.url) as ws:
+
+        def answer(text: str) -> dict:
+            ws.send(text)
+            return json.loads(ws.recv(timeout=30))
+
+        for field, value in (("sample_rate", huge), ("seed", huge), ("seed", "-" + huge), ("sample_rate", "1e400"),
+                             ("seed", "NaN"), ("seed", "-Infinity"), ("sample_rate", "true"), ("sample_rate", "-16000"),
+                             ("seed", str(2**64))):
+            fields = {"sample_rate": "16000", "seed": "0", field: value}
+            reply = answer('{"type": "hello", "format": "f32le", ' + ", ".join(f'"{k}": {v}' for k, v in fields.items())
+                           + "}")
+            assert reply["type"] == "error" and reply["code"] == "bad_hello", (field, value, reply)
+            assert reply["message"].startswith(f"hello.{field} must be an integer in"), reply
+        assert answer('{"type": "hello", "sample_rate": 16000, "format": ["f32le"]}')["code"] == "bad_format"
+        assert answer('{"type": "hello", "sample_rate": 16000, "seed": ' + "9" * 5000 + "}")["code"] == "bad_json"
+        assert hello(ws)["type"] == "ready"  # still connected, and a good hello is served
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+def test_ctrl_c_closes_a_streaming_client_with_going_away_and_stops_the_server_cleanly(trained_toktalk, speech,
+                                                                                     monkeypatch, caplog):
+    """``jaxtalk serve`` interrupted (SIGINT, as Ctrl-C sends it) while it waits and a client streams."""
+    from typer.testing import CliRunner
+
+    from jaxtalk import serve
+    from jaxtalk.cli import app
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("Python raises KeyboardInterrupt in the main thread only")
+    servers: queue.Queue = queue.Queue()
+
+    def recorded(*args, **kw):
+        running = start_server(*args, **kw)
+        servers.put(running)
+        return running
+
+    monkeypatch.setattr(serve, "start_server", recorded)
+    got: dict = {}
+
+    def stream() -> None:
+        try:
+            got["running"] = servers.get(timeout=300)
+            with client(got["running"].url) as ws:
+                hello(ws)
+                deadline, replies = time.monotonic() + 60, 0
+                while time.monotonic() < deadline:
+                    for start in range(0, speech[0].size, 640):
+                        ws.send(pcm(speech[0][start:start + 640]))
+                        assert json.loads(ws.recv(timeout=30))["type"] == "frames"
+                        replies += 1
+                        if replies == 5:  # Ctrl-C, while the command waits for the server
+                            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+        except ConnectionClosed as closed:
+            got["code"] = closed.rcvd.code if closed.rcvd is not None else None
+        except BaseException as err:  # noqa: BLE001  (reported below, in the test's thread)
+            got["error"] = err
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    streamer = threading.Thread(target=stream)
+    streamer.start()
+    try:
+        result = CliRunner().invoke(app, ["serve", str(trained_toktalk.dir), "--port", "0"])
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        streamer.join(90)
+    assert "error" not in got, got
+    assert result.exit_code == 0 and "listening on" in result.output and "Traceback" not in result.output, result.output
+    assert got.get("code") == 1001  # going away, not 1011 (internal error)
+    assert got["running"].done.is_set() and not got["running"].server.clients
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+
+
+def test_an_allowed_origin_lets_in_its_pages_on_the_port_it_names_or_on_any_with_star(live):
+    running = start_server(live, ServeOptions(port=0, origins=("https://Studio.example:*", "http://tool.example:8080")),
+                           warm_up=False)
+    try:
+        for origin in ("https://studio.example", "https://studio.example:4443", "http://tool.example:8080"):
+            with client(running.url, origin=origin):
+                pass
+        for origin in ("http://studio.example:4443", "https://studio.example.evil.example", "http://tool.example:8081",
+                       "http://tool.example"):
+            with pytest.raises(InvalidStatus) as refused:
+                client(running.url, origin=origin)
+            assert refused.value.response.status_code == 403, origin
+        request = urllib.request.Request(running.url.replace("ws://", "http://") + "/face.glb",
+                                         headers={"Origin": "https://studio.example:4443"})
+        with urllib.request.urlopen(request, timeout=60) as response:
+            assert response.headers["Access-Control-Allow-Origin"] == "https://studio.example:4443"
+    finally:
+        running.close()
+    with pytest.raises(ValueError, match="--allow-origin 'notaurl' is not a web page origin"):
+        LiveServer(live, ServeOptions(origins=("notaurl",)))
 
 
 def test_the_server_binds_localhost_refuses_foreign_pages_and_serves_the_face_the_morph_output_drives(server):

@@ -5,6 +5,7 @@ the same frames animates it, chunk after chunk."""
 from __future__ import annotations
 
 import asyncio
+import reprlib
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from jaxtalk.export import GlbAnimation, export_face_model, face_model_rotations
 from jaxtalk.face import builtin_face
 from jaxtalk.serve import ProtocolError
 from jaxtalk.serve.outputs import OUTPUTS, PARAM_CHANNELS, MorphOutput, OutputUnavailable, ParamsOutput, build_outputs
-from jaxtalk.serve.protocol import decode_pcm, parse_hello
+from jaxtalk.serve.protocol import decode_pcm, parse_hello, parse_message
 from jaxtalk.serve.server import _Outbox
 
 
@@ -55,6 +56,30 @@ def test_a_hello_takes_defaults_and_refuses_what_it_cannot_serve():
         with pytest.raises(ProtocolError) as err:
             parse_hello({"type": "hello", **message}, sample_rate=16000, outputs=known)
         assert err.value.code == code, message
+
+
+@pytest.mark.parametrize("field, value", [
+    ("sample_rate", 10**400), ("seed", 10**400), ("seed", -10**400), ("sample_rate", float("nan")),
+    ("seed", float("inf")), ("seed", float("-inf")), ("sample_rate", True), ("seed", False), ("sample_rate", 0),
+    ("sample_rate", -16000), ("sample_rate", 2**31), ("seed", 2**64), ("seed", -2**63 - 1), ("seed", 1e300),
+    ("seed", "7"), ("seed", None), ("seed", [1]),
+], ids=lambda v: v if isinstance(v, str) else reprlib.repr(v))
+def test_a_hello_number_out_of_range_or_not_an_integer_is_bad_hello_naming_its_field(field, value):
+    message = {"type": "hello", "sample_rate": 16000, field: value}
+    with pytest.raises(ProtocolError, match=rf"^hello\.{field} must be an integer in -?\d+\.\.\d+, got ") as err:
+        parse_hello(message, sample_rate=16000, outputs=("params",))
+    assert err.value.code == "bad_hello" and len(str(err.value)) < 200  # a huge number is not echoed whole
+
+
+def test_a_hello_takes_the_edges_of_its_ranges_and_refuses_what_is_no_json_or_no_format():
+    for seed, reduced in ((2**64 - 1, 2**32 - 1), (-2**63, 0), (2.0**40, 0), (-1, 2**32 - 1)):
+        assert parse_hello({"sample_rate": 16000, "seed": seed}, sample_rate=16000, outputs=("params",)).seed == reduced
+    with pytest.raises(ProtocolError) as err:
+        parse_hello({"sample_rate": 16000, "format": ["f32le"]}, sample_rate=16000, outputs=("params",))
+    assert err.value.code == "bad_format"
+    with pytest.raises(ProtocolError) as err:  # over Python's 4300 digits: json.loads itself refuses it
+        parse_message('{"type": "hello", "seed": ' + "9" * 5000 + "}")
+    assert err.value.code == "bad_json"
 
 
 def test_a_full_outbox_drops_its_oldest_frames_reply_and_keeps_the_rest_in_order():

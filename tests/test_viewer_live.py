@@ -48,3 +48,24 @@ def test_view_says_what_is_wrong_with_its_arguments(args, words, cached_three, m
     monkeypatch.setattr("jaxtalk.viewer.DEFAULT_CACHE", cached_three)
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 2 and words in result.output and "Traceback" not in result.output
+
+
+@pytest.mark.parametrize("args", [["--live", "--port", "99999"], ["--live", "--port", "-1"], ["FOLDER", "--port", "70000"],
+                                  ["--live", "--port", "TAKEN"], ["FOLDER", "--port", "TAKEN"]])
+def test_view_refuses_a_bad_or_taken_port_in_one_line_before_installing_anything(args, tmp_path, monkeypatch):
+    import socket
+
+    from helpers import cli_error
+
+    def install(*args, **kw):
+        pytest.fail("three.js was installed before the port was checked")
+
+    monkeypatch.setattr("jaxtalk.viewer.install_web_dependencies", install)
+    (tmp_path / "a.glb").write_bytes(b"")  # a clip to play: the folder is checked before the port
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        given = [str(tmp_path) if a == "FOLDER" else str(port) if a == "TAKEN" else a for a in args]
+        words = (f"port {port} on 127.0.0.1 is in use",) if "TAKEN" in args else ("--port", "0..65535", args[-1])
+        cli_error(["view", *given], *words)

@@ -25,7 +25,7 @@ from jaxtalk.checks import check_temperature
 from jaxtalk.runs import LoadedRun, RunRecord, load_run
 
 __all__ = ["SampleOptions", "SampleResult", "MeshOptions", "sample_run", "stream_run", "animate_run",
-           "AUDIO_SUFFIXES"]
+           "check_sampling_options", "AUDIO_SUFFIXES"]
 
 AUDIO_SUFFIXES = (".wav", ".flac", ".ogg", ".aiff", ".aif")
 _SPEECH_MODELS = ("toktalk", "timar")
@@ -131,12 +131,22 @@ def _check_options(opts: SampleOptions, model: str) -> None:
     if unused:
         raise ValueError(f"{', '.join(unused)}: not {'an option' if len(unused) == 1 else 'options'} of a {name} run "
                          f"(it takes {', '.join(own)}, --sample-steps, --seed)")
-    if opts.cfg_scale is not None and not math.isfinite(opts.cfg_scale):
-        raise ValueError(f"--cfg-scale must be a finite number, got {opts.cfg_scale}")
-    if opts.sample_steps is not None and opts.sample_steps < 1:
-        raise ValueError(f"--sample-steps must be >= 1, got {opts.sample_steps}")
-    if opts.temperature is not None:
-        check_temperature(opts.temperature, name="--temperature")
+    check_sampling_options(opts.cfg_scale, opts.sample_steps, opts.temperature)
+
+
+def check_sampling_options(cfg_scale: float | None, sample_steps: int | None, temperature: float | None) -> None:
+    """The sampler's options as the commands take them (None: the model's own), before any work.
+
+    Raises:
+        ValueError: a NaN or infinite ``--cfg-scale``, ``--sample-steps`` below 1, or a ``--temperature``
+            that is negative, NaN or infinite.
+    """
+    if cfg_scale is not None and not math.isfinite(cfg_scale):
+        raise ValueError(f"--cfg-scale must be a finite number, got {cfg_scale}")
+    if sample_steps is not None and sample_steps < 1:
+        raise ValueError(f"--sample-steps must be >= 1, got {sample_steps}")
+    if temperature is not None:
+        check_temperature(temperature, name="--temperature")
 
 
 def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:

@@ -71,25 +71,53 @@ def live_model_of_run(opts: ServeCommandOptions) -> Any:
                    sample_steps=opts.sample_steps, temperature=opts.temperature)
 
 
+def _listen(opts: ServeCommandOptions) -> Any:
+    """The server's listening socket, bound before the model loads (a port in use is said at once)."""
+    from jaxtalk.serve.server import listen_socket
+
+    try:
+        return listen_socket(opts.host, opts.port)
+    except OSError as err:
+        if err.errno == errno.EADDRINUSE:
+            raise ValueError(f"port {opts.port} on {opts.host} is in use: pass --port 0 for any free port, or another "
+                             "--port") from None
+        raise ValueError(f"cannot listen on {opts.host}:{opts.port}: {err.strerror or err}") from None
+
+
 def serve_run(opts: ServeCommandOptions, *, echo: Callable[[str], None] = print) -> Any:
-    """Load the run, warm its model up, and start the server on a background thread.
+    """Check every option and take the port, then load the run, warm its model up, and start the server on
+    a background thread.
 
     Returns:
         The :class:`~jaxtalk.serve.server.RunningServer` (``close()`` stops it).
 
     Raises:
-        See :func:`live_model_of_run`; ValueError: a port in use, a bad ``--live-link`` address, or
-        ``--live-link`` while the ``arkit`` output is not available.
+        See :func:`live_model_of_run`; ValueError: an option out of range, a port in use, a bad
+        ``--live-link`` address or ``--allow-origin``, or ``--live-link`` while the ``arkit`` output is not
+        available.
     """
+    from jaxtalk.commands.inference import check_sampling_options
     from jaxtalk.export.livelink import parse_address
     from jaxtalk.serve import OutputUnavailable, ServeOptions, start_server
+    from jaxtalk.serve.server import origin_pattern
 
+    # Every option first: loading and warming the model up takes seconds to minutes.
+    if not 0 <= opts.port <= 65535:
+        raise ValueError(f"--port must lie in 0..65535 (0: any free port), got {opts.port}")
     if not 1 <= opts.max_clients <= 1024:
         raise ValueError(f"--max-clients must lie in 1..1024, got {opts.max_clients}")
     if not 0.01 <= opts.max_chunk_s <= 60:
         raise ValueError(f"--max-chunk-s must lie in 0.01..60, got {opts.max_chunk_s}")
+    check_sampling_options(opts.cfg_scale, opts.sample_steps, opts.temperature)
+    for origin in opts.origins:
+        origin_pattern(origin)
     link = parse_address(opts.live_link) if opts.live_link is not None else None
-    model = live_model_of_run(opts)
+    sock = _listen(opts)
+    try:
+        model = live_model_of_run(opts)
+    except BaseException:
+        sock.close()
+        raise
     info = model.describe()
     echo(f"jaxtalk serve: {info['model']} run {opts.run_dir}: {info['fps']} fps in chunks of {info['chunk_frames']} frames "
          f"({1e3 * info['chunk_samples'] / info['sample_rate']:.0f} ms of audio, plus "
@@ -97,14 +125,9 @@ def serve_run(opts: ServeCommandOptions, *, echo: Callable[[str], None] = print)
     options = ServeOptions(host=opts.host, port=opts.port, max_clients=opts.max_clients, max_chunk_s=opts.max_chunk_s,
                            live_link=link, origins=tuple(opts.origins))
     try:
-        running = start_server(model, options)
+        running = start_server(model, options, sock=sock)  # which closes the socket if it fails
     except OutputUnavailable as err:  # the server builds the arkit output once, for --live-link, and refuses here
         raise ValueError(f"--live-link sends ARKit curves, and {err}") from None
-    except OSError as err:
-        if err.errno == errno.EADDRINUSE:
-            raise ValueError(f"port {opts.port} on {opts.host} is in use: pass --port 0 for any free port, or another "
-                             "--port") from None
-        raise ValueError(f"cannot listen on {opts.host}:{opts.port}: {err.strerror or err}") from None
     server = running.server
     outputs = ", ".join(name if reason is None else f"{name} (not available)"
                         for name, reason in server.output_status().items())

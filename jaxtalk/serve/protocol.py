@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
+import reprlib
 from typing import Any
 
 import numpy as np
@@ -36,7 +36,7 @@ MAX_FLOAT_AMPLITUDE = 4.0
 ERROR_CODES = {
     "bad_json": "a text message that is not a JSON object",
     "unknown_type": "a JSON message of a type the server does not know",
-    "bad_hello": "a hello with a missing or ill-typed field",
+    "bad_hello": "a hello with a missing or ill-typed field, or a number out of its range",
     "bad_rate": "a sample rate other than the server's",
     "bad_format": "a sample format the server does not read",
     "unknown_output": "an output the server does not know",
@@ -87,17 +87,26 @@ def parse_message(text: str) -> dict[str, Any]:
     """
     try:
         message = json.loads(text)
-    except (json.JSONDecodeError, RecursionError):
+    except (ValueError, RecursionError):  # ValueError: malformed JSON, or an integer over Python's 4300 digits
         message = None
     if not isinstance(message, dict) or not isinstance(message.get("type"), str):
         raise ProtocolError("bad_json", 'text messages are JSON objects with a "type" (hello, end or stats)')
     return message
 
 
-def _integer(message: dict[str, Any], key: str, default: int | None = None) -> int:
+# The hello's numbers: a sample rate is a positive 32-bit integer, a seed any 64-bit integer (signed or not).
+SAMPLE_RATE_RANGE = (1, 2**31 - 1)
+SEED_RANGE = (-2**63, 2**64 - 1)
+
+
+def _integer(message: dict[str, Any], key: str, bounds: tuple[int, int], default: int | None = None) -> int:
     value = message.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value != int(value):
-        raise ProtocolError("bad_hello", f"hello.{key} must be an integer, got {value!r}")
+    low, high = bounds
+    # JSON's true/false are ints to Python; NaN and infinities are floats that are not integers; an int
+    # of any size compares exactly with the bounds (converting it to a float first would overflow).
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or (isinstance(value, float) and not value.is_integer()) or not low <= value <= high):
+        raise ProtocolError("bad_hello", f"hello.{key} must be an integer in {low}..{high}, got {reprlib.repr(value)}")
     return int(value)
 
 
@@ -107,34 +116,36 @@ def parse_hello(message: dict[str, Any], *, sample_rate: int, outputs: tuple[str
     Args:
         message: ``{"type": "hello", "sample_rate": 16000, "format": "pcm_s16le" | "f32le", "outputs":
             [...], "seed": 0, "subject": "jaxtalk"}`` (``seed``, ``subject`` optional; ``outputs`` default
-            ``["params"]``).
+            ``["params"]``); ``sample_rate`` and ``seed`` are integers in :data:`SAMPLE_RATE_RANGE` and
+            :data:`SEED_RANGE` (a float with an integral value counts; NaN, infinities and booleans do not).
         sample_rate: the rate the server takes.
         outputs: the output names the server knows.
 
     Raises:
         ProtocolError: ``bad_hello``, ``bad_rate``, ``bad_format``, ``unknown_output``.
     """
-    rate = _integer(message, "sample_rate", -1) if "sample_rate" in message else None
+    rate = _integer(message, "sample_rate", SAMPLE_RATE_RANGE) if "sample_rate" in message else None
     if rate is None:
         raise ProtocolError("bad_hello", f"hello.sample_rate is required (this server takes {sample_rate} Hz)")
     if rate != sample_rate:
         raise ProtocolError("bad_rate", f"sample_rate {rate} Hz: this server takes {sample_rate} Hz mono audio; "
                                         "resample on the client")
     fmt = message.get("format", "pcm_s16le")
-    if fmt not in FORMATS:
-        raise ProtocolError("bad_format", f"format {fmt!r}: expected one of {', '.join(FORMATS)}")
+    if not isinstance(fmt, str) or fmt not in FORMATS:  # a list or an object is no format (nor hashable)
+        raise ProtocolError("bad_format", f"format {reprlib.repr(fmt)}: expected one of {', '.join(FORMATS)}")
     wanted = message.get("outputs", ["params"])
     if (not isinstance(wanted, list) or not wanted or not all(isinstance(o, str) for o in wanted)
             or len(set(wanted)) != len(wanted)):
-        raise ProtocolError("bad_hello", f"hello.outputs must be a non-empty list of distinct names, got {wanted!r}")
+        raise ProtocolError("bad_hello", "hello.outputs must be a non-empty list of distinct names, got "
+                                         f"{reprlib.repr(wanted)}")
     unknown = [o for o in wanted if o not in outputs]
     if unknown:
         raise ProtocolError("unknown_output", f"unknown output {unknown[0]!r}: expected some of {', '.join(outputs)}")
     subject = message.get("subject", "jaxtalk")
     if not isinstance(subject, str) or not 0 < len(subject.encode()) <= 200:
         raise ProtocolError("bad_hello", "hello.subject must be a name of 1 to 200 bytes")
-    return Hello(sample_rate=rate, format=fmt, outputs=tuple(wanted), seed=_integer(message, "seed", 0) % 2**32,
-                 subject=subject)
+    return Hello(sample_rate=rate, format=fmt, outputs=tuple(wanted),
+                 seed=_integer(message, "seed", SEED_RANGE, 0) % 2**32, subject=subject)
 
 
 def decode_pcm(data: bytes, fmt: str, max_samples: int) -> np.ndarray:

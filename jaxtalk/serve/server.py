@@ -19,11 +19,13 @@ from __future__ import annotations
 import asyncio
 import collections
 import concurrent.futures
+import contextlib
 import dataclasses
 import functools
 import json
 import os
 import re
+import socket
 import sys
 import threading
 import time
@@ -44,9 +46,12 @@ from jaxtalk.serve.protocol import (
     parse_message,
 )
 
-__all__ = ["LiveServer", "RunningServer", "ServeOptions", "rss_bytes", "start_server"]
+__all__ = ["LiveServer", "RunningServer", "ServeOptions", "listen_socket", "origin_pattern", "rss_bytes",
+           "start_server"]
 
 _LOCAL_ORIGIN = re.compile(r"https?://(localhost|127\.0\.0\.1|\[::1\])(:\d+)?")
+# An origin as browsers send it: scheme, host (a name, an IPv4 address or a bracketed IPv6 one) and port.
+_ORIGIN = re.compile(r"(https?)://(\[[0-9a-f:.]+\]|[a-z0-9]([a-z0-9.-]*[a-z0-9])?)(:(\d{1,5}|\*))?", re.IGNORECASE)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +70,8 @@ class ServeOptions:
             instead of the megabytes Linux would otherwise let queue up).
         live_link: ``(host, port)`` to send every client's ARKit curves to as Live Link Face packets
             (needs the ``arkit`` output), or None.
-        origins: web page origins allowed besides this machine's own (``http://localhost:*``...).
+        origins: web page origins allowed besides this machine's own (``http://localhost:*``...), each
+            as :func:`origin_pattern` takes it.
     """
 
     host: str = "127.0.0.1"
@@ -77,6 +83,46 @@ class ServeOptions:
     send_buffer: int = 64 * 1024
     live_link: tuple[str, int] | None = None
     origins: tuple[str, ...] = ()
+
+
+def origin_pattern(origin: str) -> re.Pattern[str]:
+    """The ``Origin`` headers an allowed origin lets in.
+
+    Args:
+        origin: ``http(s)://HOST`` or ``http(s)://HOST:PORT``, PORT ``*`` for any port (or none), as
+            ``http://localhost:*`` stands for this machine's own pages.
+
+    Raises:
+        ValueError: anything else (another scheme, no host, a path, a port beyond 65535), in one line.
+    """
+    found = _ORIGIN.fullmatch(origin)
+    port = found.group(5) if found else None
+    if found is None or (port not in (None, "*") and not 0 < int(port) <= 65535):
+        raise ValueError(f"--allow-origin {origin!r} is not a web page origin: expected http(s)://HOST or "
+                         "http(s)://HOST:PORT (PORT * for any), e.g. https://example.com or http://localhost:*")
+    # Browsers send the scheme and host in lower case, and no port for the scheme's default one.
+    scheme = found.group(1).lower()
+    base = re.escape(f"{scheme}://{found.group(2)}".lower())
+    if port == "*":
+        return re.compile(base + r"(:\d+)?")
+    if port is None or int(port) == {"http": 80, "https": 443}[scheme]:
+        return re.compile(base + (f"(:{int(port)})?" if port else ""))
+    return re.compile(base + re.escape(f":{int(port)}"))
+
+
+def listen_socket(host: str, port: int) -> socket.socket:
+    """A TCP socket listening on ``host:port`` (0: any free port; the first address ``host`` resolves to),
+    for :func:`start_server`'s ``sock``: bound before the model loads, so that a port in use is said at
+    once, and held until the server takes it over, so that nothing else takes the port in between.
+    Clients that connect before the server serves wait in the kernel's backlog.
+
+    Raises:
+        OSError: the address is in use (errno EADDRINUSE) or cannot be bound (an unknown host, ...).
+    """
+    family, _, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
+    # socket.create_server sets SO_REUSEADDR as asyncio's server does (a restarted server rebinds a port
+    # whose old connections linger in TIME_WAIT) and IPV6_V6ONLY for an IPv6 address.
+    return socket.create_server(address, family=family)
 
 
 def rss_bytes() -> int:
@@ -159,6 +205,7 @@ class LiveServer:
         self.warmed_s: float | None = None  # what warm_up took, when it ran
         self.started = time.monotonic()
         self.max_chunk_samples = max(1, round(options.max_chunk_s * model.sample_rate))
+        self.origins = tuple(origin_pattern(o) for o in options.origins)  # refused here, before serving
         if options.live_link is not None:
             build_outputs(("arkit",), self._converters, self.registry)  # refused here, before serving
 
@@ -191,15 +238,19 @@ class LiveServer:
 
     # ------------------------------------------------------------------ running
 
-    async def run(self, stop: asyncio.Future | asyncio.Event, ready: Callable[[LiveServer], None] | None = None) -> None:
-        """Serve until ``stop`` is set (an Event) or done (a Future)."""
+    async def run(self, stop: asyncio.Future | asyncio.Event, ready: Callable[[LiveServer], None] | None = None, *,
+                  sock: socket.socket | None = None) -> None:
+        """Serve until ``stop`` is set (an Event) or done (a Future), on ``sock`` (a listening socket, e.g.
+        :func:`listen_socket`'s; closed when the server stops) or else on the options' host and port;
+        then close every client with 1001 (going away)."""
         from websockets.asyncio.server import serve
 
-        origins = [None, _LOCAL_ORIGIN, *self.options.origins]
+        origins = [None, _LOCAL_ORIGIN, *self.origins]
         # Audio messages are bounded by max_chunk_samples (too_large, answered); websockets itself closes a
         # connection whose message is over 4x that (1009), so nothing unbounded is ever buffered.
         max_size = 4 * 4 * self.max_chunk_samples + 4096
-        async with serve(self._connection, self.options.host, self.options.port, origins=origins,
+        where = {"sock": sock} if sock is not None else {"host": self.options.host, "port": self.options.port}
+        async with serve(self._connection, **where, origins=origins,
                          process_request=self._http, compression=None, max_size=max_size,
                          max_queue=self.options.max_queue, ping_interval=20, ping_timeout=20) as server:
             self.address = next(iter(server.sockets)).getsockname()[:2]
@@ -223,7 +274,7 @@ class LiveServer:
         headers = Headers([("Content-Type", "model/gltf-binary"), ("Content-Length", str(len(body))),
                            ("Cache-Control", "no-store")])
         origin = request.headers.get("Origin")
-        if origin and (_LOCAL_ORIGIN.fullmatch(origin) or origin in self.options.origins):
+        if origin and any(p.fullmatch(origin) for p in (_LOCAL_ORIGIN, *self.origins)):
             headers["Access-Control-Allow-Origin"] = origin
         return Response(200, "OK", headers, body)
 
@@ -237,8 +288,6 @@ class LiveServer:
                                                            "once; try again later")))
             await ws.close(1013, "busy")
             return
-        import socket
-
         raw = ws.transport.get_extra_info("socket")
         if raw is not None:
             raw.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.options.send_buffer)
@@ -412,6 +461,7 @@ class RunningServer:
     thread: threading.Thread
     loop: asyncio.AbstractEventLoop
     stop: asyncio.Event
+    done: threading.Event  # set once the thread has served its last client and stopped
 
     @property
     def url(self) -> str:
@@ -419,28 +469,50 @@ class RunningServer:
         return f"ws://{f'[{host}]' if ':' in host else host}:{self.server.port}"
 
     def close(self) -> None:
-        if self.thread.is_alive():
-            self.loop.call_soon_threadsafe(self.stop.set)
+        """Stop serving: every client is closed with 1001 (going away), and this returns once the server
+        has stopped (its clients' work done, its device thread ended).
+
+        It waits on :attr:`done`, not on the thread's state: a Ctrl-C that interrupts ``thread.join()``
+        (``jaxtalk serve``'s wait) can leave CPython (3.11, for one) calling the thread finished while it
+        still serves, and then neither ``is_alive()`` nor ``join()`` tells.
+        """
+        if not self.done.is_set():
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: the server has stopped
+                self.loop.call_soon_threadsafe(self.stop.set)
+        self.done.wait()
         self.thread.join()
 
 
-def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up: bool = True, **kw: Any) -> RunningServer:
+def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up: bool = True,
+                 sock: socket.socket | None = None, **kw: Any) -> RunningServer:
     """Start a :class:`LiveServer` on a background thread (after :meth:`LiveServer.warm_up`); returns once it
     listens.
+
+    Args:
+        model, options, kw: as :class:`LiveServer` takes them.
+        warm_up: compile the model's step before serving.
+        sock: a listening socket to serve on (:func:`listen_socket`) instead of binding the options' host
+            and port; the server owns it from here on (closed when it stops, or fails to start).
 
     Raises:
         OSError: the address is in use or cannot be bound (errno EADDRINUSE, ...).
         OutputUnavailable: ``live_link`` without an ``arkit`` output.
+        ValueError: an origin :func:`origin_pattern` refuses.
     """
-    server = LiveServer(model, options, **kw)
-    server.warmed_s = server.warm_up() if warm_up else None
-    started = threading.Event()
+    try:
+        server = LiveServer(model, options, **kw)
+        server.warmed_s = server.warm_up() if warm_up else None
+    except BaseException:
+        if sock is not None:
+            sock.close()
+        raise
+    started, done = threading.Event(), threading.Event()
     box: dict[str, Any] = {}
 
     def main() -> None:
         async def serve() -> None:
             box["loop"], box["stop"] = asyncio.get_running_loop(), asyncio.Event()
-            await server.run(box["stop"], ready=lambda _: started.set())
+            await server.run(box["stop"], ready=lambda _: started.set(), sock=sock)
 
         try:
             asyncio.run(serve())
@@ -448,11 +520,14 @@ def start_server(model: Any, options: ServeOptions = ServeOptions(), *, warm_up:
             box["error"] = err
         finally:
             started.set()
+            done.set()
 
     thread = threading.Thread(target=main, name="jaxtalk-serve", daemon=True)
     thread.start()
     started.wait()
     if "error" in box:
         thread.join()
+        if sock is not None:
+            sock.close()
         raise box["error"]
-    return RunningServer(server, thread, box["loop"], box["stop"])
+    return RunningServer(server, thread, box["loop"], box["stop"], done)

@@ -213,7 +213,7 @@ def start_server(folder: str | os.PathLike, *, port: int = 8000, cache_dir: str 
 
     Raises:
         NotADirectoryError: ``folder`` is not a folder.
-        ValueError: it holds no ``.glb`` file.
+        ValueError: it holds no ``.glb`` file; ``port`` is not in 0..65535.
         ViewerError: see :func:`install_web_dependencies`; the port is taken (checked first).
     """
     folder = Path(folder).resolve()
@@ -227,6 +227,8 @@ def start_server(folder: str | os.PathLike, *, port: int = 8000, cache_dir: str 
 
 def _serve(port: int, handler: Callable[[Path], type[BaseHTTPRequestHandler]], cache_dir: str | os.PathLike | None,
            npm: str | None) -> ViewerServer:
+    if not 0 <= port <= 65535:  # bind() would raise OverflowError, no OSError
+        raise ValueError(f"--port must lie in 0..65535 (0: any free port), got {port}")
     try:  # bound before installing anything; the handler is set once three.js is there
         httpd = ThreadingHTTPServer(("127.0.0.1", port), BaseHTTPRequestHandler)
     except OSError as err:
@@ -250,8 +252,8 @@ def start_live_server(server: str = "ws://127.0.0.1:8765", *, port: int = 8000,
     connects to the ``jaxtalk serve`` at ``server`` (which must let this page's origin in: a local one is).
 
     Raises:
-        ValueError: ``server`` is not a ``ws://`` or ``wss://`` URL.
-        ViewerError: see :func:`install_web_dependencies`; the port is taken.
+        ValueError: ``server`` is not a ``ws://`` or ``wss://`` URL; ``port`` is not in 0..65535.
+        ViewerError: see :func:`install_web_dependencies`; the port is taken (checked first).
     """
     parsed = urlparse(server)
     if parsed.scheme not in ("ws", "wss") or not parsed.hostname:
