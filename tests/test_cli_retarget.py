@@ -76,3 +76,26 @@ def test_bad_inputs_are_refused_in_one_line(talk, tmp_path):
     cli_error(["retarget", talk / "talk.npz", "--out", tmp_path / "x.csv"], ".glb")
     cli_error(["retarget", talk / "talk.npz", "--out", talk / "talk.npz"], ".glb")
     cli_error(["retarget", talk / "talk.npz", "--smoothness", "-1", "--out", tmp_path / "d.glb"], "smoothness")
+
+
+def _hashes(folder) -> dict[str, str]:
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("side", ["talk.csv", "talk.json"])
+def test_the_side_files_of_a_named_glb_replace_a_user_file_only_with_overwrite(talk, tmp_path, side):
+    # --out names the .glb; the CSV and JSON beside it are names the command derives, as the audio's is.
+    folder = tmp_path / "c"
+    folder.mkdir()
+    (folder / side).write_bytes(b"the user's own file")
+    before = _hashes(folder)
+    cli_error(["retarget", talk / "talk.npz", "--out", folder / "talk.glb"], side, "--overwrite")
+    assert _hashes(folder) == before  # nothing replaced, nothing written (not even the .glb)
+    cli_ok(["retarget", talk / "talk.npz", "--out", folder / "talk.glb", "--overwrite"])
+    after = _hashes(folder)
+    assert after[side] != before[side]
+    assert set(after) == {"talk.glb", "talk.csv", "talk.json", "talk.glb.wav"}
+

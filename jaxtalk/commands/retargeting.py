@@ -7,7 +7,9 @@ with morph targets, a folder of OBJ shapes with a ``neutral.obj``, or ``builtin`
 
 ``--out NAME.glb`` names the outputs: ``NAME.glb`` (the rig's mesh, its morph targets and their weights
 over time, the head turning about its pivot), ``NAME.csv`` (a Live Link Face recording), ``NAME.json``,
-and the audio beside the ``.glb`` as ``NAME.glb.wav`` (``--audio``, or the audio stored in the npz).
+and the audio beside the ``.glb`` as ``NAME.glb.wav`` (``--audio``, or the audio stored in the npz). An
+existing ``NAME.glb`` is replaced; the side files are names the command picks, so an existing file under
+one of them is kept unless ``--overwrite`` is given (:mod:`jaxtalk.files`).
 """
 
 from __future__ import annotations
@@ -102,8 +104,9 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     csv, json_path = _outputs(out)
     builtin = str(opts.rig) == BUILTIN_RIG
     rig_path = None if builtin else Path(opts.rig)
-    claim_outputs([Output(out, named=opts.out is not None, suffixes=(".glb",)),
-                   Output(csv, named=opts.out is not None), Output(json_path, named=opts.out is not None),
+    # Only the .glb is a name the user gives; the CSV, the JSON and the audio beside it are names the
+    # command derives from it, which replace no existing file without --overwrite.
+    claim_outputs([Output(out, named=opts.out is not None, suffixes=(".glb",)), Output(csv), Output(json_path),
                    Output(audio_path_for(out))],
                   inputs=[opts.motion, rig_path, opts.audio, opts.mesh, opts.flame], overwrite=opts.overwrite)
     penalties = Penalties(smoothness=opts.smoothness, l1=opts.l1, l2=opts.l2, symmetry=opts.symmetry)
