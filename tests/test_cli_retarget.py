@@ -99,3 +99,35 @@ def test_the_side_files_of_a_named_glb_replace_a_user_file_only_with_overwrite(t
     assert after[side] != before[side]
     assert set(after) == {"talk.glb", "talk.csv", "talk.json", "talk.glb.wav"}
 
+
+def _write_obj(path, vertices, faces):
+    lines = [f"v {x:.9f} {y:.9f} {z:.9f}" for x, y, z in vertices] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_an_obj_folder_with_two_shapes_on_one_arkit_name_is_refused_naming_both_files(talk, tmp_path):
+    rig = arkit_rig("low")
+    folder = tmp_path / "shapes"
+    folder.mkdir()
+    _write_obj(folder / "neutral.obj", rig.neutral, rig.faces)
+    jaw = rig.neutral + rig.deltas[ARKIT_NAMES.index("jawOpen")]
+    for name in ("jawOpen", "JAWOPEN"):  # the solver would give each about half of the jaw's weight
+        _write_obj(folder / f"{name}.obj", jaw, rig.faces)
+    _write_obj(folder / "eyeBlink_L.obj", rig.neutral + rig.deltas[ARKIT_NAMES.index("eyeBlinkLeft")], rig.faces)
+    line = cli_error(["retarget", talk / "talk.npz", "--rig", folder, "--out", tmp_path / "out.glb"],
+                     "jawOpen.obj", "JAWOPEN.obj", "'jawOpen'")
+    assert str(folder) in line
+    assert not (tmp_path / "out.glb").exists()
+
+
+def test_a_gltf_rig_with_two_morph_targets_on_one_arkit_name_is_refused_naming_both(talk, tmp_path):
+    import pygltflib
+
+    export_rig_animation(arkit_rig("low"), np.zeros((1, 52)), tmp_path / "rig.glb")
+    gltf = pygltflib.GLTF2().load(str(tmp_path / "rig.glb"))
+    names = gltf.meshes[0].extras["targetNames"]
+    names[ARKIT_NAMES.index("eyeBlinkRight")] = "EyeBlinkLeft"  # eyeBlinkLeft under a second spelling
+    gltf.save(str(tmp_path / "rig.glb"))
+    cli_error(["retarget", talk / "talk.npz", "--rig", tmp_path / "rig.glb", "--out", tmp_path / "out.glb"],
+              "rig.glb", "'eyeBlinkLeft' and 'EyeBlinkLeft'")
+    assert not (tmp_path / "out.glb").exists()

@@ -420,3 +420,10 @@ def test_json_lists_weights_names_and_head(tmp_path):
     data = json.loads(path.read_text())
     assert data["arkit"] == ["eyeBlinkLeft", None] and data["weights"] == [[0.5, 0.0]]
     assert data["head"]["yaw"] == [0.1] and data["head"]["units"] == "radians" and data["fps"] == 25
+
+
+def test_a_rig_made_in_code_with_two_shapes_on_one_arkit_name_is_refused():
+    rig = low_rig()
+    deltas = rig.deltas[[ARKIT_NAMES.index("jawOpen")] * 2]
+    with pytest.raises(ValueError, match="'mouthSmile_L' and 'MouthSmileLeft' are both ARKit's 'mouthSmileLeft'"):
+        Rig(names=("mouthSmile_L", "MouthSmileLeft"), neutral=rig.neutral, deltas=deltas, faces=rig.faces)
