@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import cli_error, cli_ok
+from helpers import bad_numpy_files, cli_error, cli_ok
 
 from jaxtalk.export import (
     GlbAnimation,
@@ -131,3 +131,12 @@ def test_a_gltf_rig_with_two_morph_targets_on_one_arkit_name_is_refused_naming_b
     cli_error(["retarget", talk / "talk.npz", "--rig", tmp_path / "rig.glb", "--out", tmp_path / "out.glb"],
               "rig.glb", "'eyeBlinkLeft' and 'EyeBlinkLeft'")
     assert not (tmp_path / "out.glb").exists()
+
+
+def test_a_bad_motion_file_is_one_line_naming_it_never_advice_to_unpickle(tmp_path):
+    for name, words in bad_numpy_files(tmp_path).items():
+        for command in (["retarget", tmp_path / name, "--out", tmp_path / "out.glb"],
+                        ["render", tmp_path / name, "--out", tmp_path / "out.mp4"]):
+            line = cli_error(command, str(tmp_path / name), *words)
+            assert "pickle" not in line.lower() and "unsafe" not in line.lower(), line
+    assert not (tmp_path / "out.glb").exists() and not (tmp_path / "out.mp4").exists()

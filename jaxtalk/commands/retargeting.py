@@ -173,15 +173,19 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
 
 def _vertex_motion(path: Path, rig, opts: RetargetOptions, penalties):
     """The vertex sequence and its retargeter: on ``--mesh``, the rig's own mesh, or a built-in face."""
+    from jaxtalk.data.formats import load_npy
     from jaxtalk.export import Retargeter
     from jaxtalk.face import builtin_face
 
-    verts = np.load(path, allow_pickle=False)
+    verts = load_npy(path, what="motion file")
+    if not np.issubdtype(verts.dtype, np.number):
+        raise ValueError(f"{str(path)!r} holds {verts.dtype} values, not vertex positions")
+    shape = verts.shape
     if verts.ndim == 2 and verts.shape[1] % 3 == 0 and verts.shape[1] != 3:
         verts = verts.reshape(verts.shape[0], -1, 3)
     if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] < 1:
         raise ValueError(f"{str(path)!r}: vertices must have shape (frames, verts, 3) or (frames, 3 verts), "
-                         f"got {np.load(path, allow_pickle=False).shape}")
+                         f"got {shape}")
     if not np.all(np.isfinite(verts)):
         raise ValueError(f"{str(path)!r}: vertices contain NaN or inf")
     if opts.mesh is not None:
