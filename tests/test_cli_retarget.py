@@ -140,3 +140,24 @@ def test_a_bad_motion_file_is_one_line_naming_it_never_advice_to_unpickle(tmp_pa
             line = cli_error(command, str(tmp_path / name), *words)
             assert "pickle" not in line.lower() and "unsafe" not in line.lower(), line
     assert not (tmp_path / "out.glb").exists() and not (tmp_path / "out.mp4").exists()
+
+
+def test_motion_in_the_wrong_units_is_refused_naming_the_mistake_and_writes_nothing(talk, tmp_path):
+    from jaxtalk.data.formats import MotionClip, save_npz
+    from jaxtalk.face import builtin_face
+
+    params = np.load(talk / "talk.npz")["params"]
+    save_npz(tmp_path / "scaled.npz", MotionClip(name="scaled", fps=25, params=params * 1000.0))
+    line = cli_error(["retarget", tmp_path / "scaled.npz", "--out", tmp_path / "a.glb"],
+                     "fit error", "mm RMS is larger than the face itself", "scaled")
+    assert float(line.split("fit error ")[1].split(" mm")[0]) > 1000.0
+    face = builtin_face(0, resolution="low")
+    metres = np.asarray(face.vertices_seq(params[:20]))
+    np.save(tmp_path / "mm.npy", 1000.0 * metres)  # millimetres on a mesh in metres
+    cli_error(["retarget", tmp_path / "mm.npy", "--out", tmp_path / "b.glb"],
+              "larger than the face itself", "1000 times the size", "are they in mm and the mesh in m?")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mm.npy", "scaled.npz"]
+    # The same vertices in the mesh's units fit to millimetres.
+    np.save(tmp_path / "m.npy", metres)
+    printed = cli_ok(["retarget", tmp_path / "m.npy", "--out", tmp_path / "c.glb"])
+    assert float(printed.split("fit error ")[1].split(" mm")[0]) < 10.0

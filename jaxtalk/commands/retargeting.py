@@ -81,7 +81,8 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     Raises:
         FileNotFoundError: a missing input.
         ValueError: a bad motion (shape, NaN), a rig without morph targets, a mesh or rig that does not
-            register to the face, a bad option value or output path.
+            register to the face, a fit error larger than the face (a unit or scale mistake:
+            :meth:`~jaxtalk.export.Retargeter.check_fit`), a bad option value or output path.
     """
     from jaxtalk.commands.rendering import face_model, read_head_clip
     from jaxtalk.export import (
@@ -147,6 +148,8 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     echo(f"solved {result.weights.shape[0]} frames x {rig.num_shapes} shapes in {result.seconds * 1e3:.0f} ms "
          f"({result.iterations} iterations): fit error {result.rms_error * 1e3:.3f} mm RMS, weights in "
          f"[{result.weights.min():.3f}, {result.weights.max():.3f}]")
+    # A fit error larger than the face is a unit or scale mistake, not a fit: stop before writing anything.
+    retargeter.check_fit(result.rms_error, None if suffix == ".npz" else motion[0])
     angles = np.degrees(np.abs(result.head_angles).max(axis=0))
     echo(f"head rotation: up to {angles[0]:.1f} deg yaw, {angles[1]:.1f} deg pitch, {angles[2]:.1f} deg roll")
 

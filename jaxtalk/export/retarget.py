@@ -371,6 +371,62 @@ class Retargeter:
         fit = np.einsum("tk,knc->tnc", weights, self._basis)
         return float(np.sqrt(np.mean(np.sum((target - fit) ** 2, axis=-1))))
 
+    @property
+    def face_radius(self) -> float:
+        """Metres: the root-mean-square distance of the fitted points (the rig's vertices on the motion's
+        mesh, template frame) from their centroid; the face's size :meth:`check_fit` holds a fit error to."""
+        points = np.einsum("nj,njc->nc", self.bary, self.neutral[self.corners])
+        return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=-1))))
+
+    def check_fit(self, rms_error: float, frame: Float[np.ndarray, "..."] | None = None) -> None:
+        """Refuse a fit error larger than the face itself: the mark of a unit or scale mistake, not a poor fit.
+
+        The threshold is :attr:`face_radius` (73 mm on the built-in face): a fit error that large means the
+        motion's points lie, on average, as far from where the rig can put them as the face's own points lie
+        from its centre. No expression comes near it (the built-in rig's widest-open jaw moves the face's
+        points by 14 mm RMS, and a fit error is at most the motion's own displacement), while a unit mistake
+        does whatever the face's size: vertices 10, 100 or 1000 times too large, or too small by as much,
+        miss by a whole face or more, as do parameters scaled by 100.
+
+        Args:
+            rms_error: metres, :attr:`RetargetResult.rms_error`.
+            frame: one frame of a vertex sequence as given (its size against its mesh's names the unit
+                mistake); None for parameters.
+
+        Raises:
+            ValueError: a fit error at or above :attr:`face_radius`, with the likely mistake.
+        """
+        radius = self.face_radius
+        if not rms_error >= radius:
+            return
+        head = (f"fit error {rms_error * 1e3:.0f} mm RMS is larger than the face itself (its points lie "
+                f"{radius * 1e3:.0f} mm from its centre, RMS)")
+        if frame is None:
+            raise ValueError(f"{head}: these parameters move the face farther than any expression does; are they "
+                             "scaled (by 100 or 1000?), or another face model's (FLAME's: pass --flame)?")
+        import math
+
+        from jaxtalk.geometry.canonical import UNITS
+
+        x = np.asarray(frame, np.float64).reshape(-1, 3)
+        if self._to_template is not None:
+            x = self._to_template.to_template(x)
+
+        def spread(points: np.ndarray) -> float:
+            return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=-1))))
+
+        ratio = spread(x) / spread(self.neutral)
+        power = round(math.log10(ratio)) if ratio > 0 else 0
+        unit = self._to_template.units if self._to_template is not None else "m"
+        given = [name for name, metres in UNITS.items() if math.isclose(metres, UNITS[unit] / 10.0**power)]
+        if power == 0 or abs(math.log10(ratio) - power) > 0.1:
+            raise ValueError(f"{head}: the vertices do not move like the mesh they were matched to; were they "
+                             "animated on another mesh of as many vertices (pass --mesh, that mesh's file)?")
+        size = f"{10.0**power:g} times the size" if power > 0 else f"1/{10.0**-power:g} of the size"
+        units = f"are they in {given[0]} and the mesh in {unit}? " if given else ""
+        raise ValueError(f"{head}: the vertices are {size} of the mesh they animate; {units}save them in the "
+                         f"mesh's units ({unit})")
+
     def init_stream(self) -> StreamState:
         """The state before a stream's first chunk."""
         return StreamState(None)
