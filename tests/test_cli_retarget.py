@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import bad_numpy_files, cli_error, cli_ok
+from helpers import bad_numpy_files, cli_error, cli_ok, jax_flag
 
 from jaxtalk.export import (
     GlbAnimation,
@@ -161,3 +161,81 @@ def test_motion_in_the_wrong_units_is_refused_naming_the_mistake_and_writes_noth
     np.save(tmp_path / "m.npy", metres)
     printed = cli_ok(["retarget", tmp_path / "m.npy", "--out", tmp_path / "c.glb"])
     assert float(printed.split("fit error ")[1].split(" mm")[0]) < 10.0
+
+
+# Runs the command line given after it as a child and prints the child's peak resident set size last:
+# a fresh process, so that no earlier child of the test session's counts.
+_PEAK_RSS = """
+import resource, subprocess, sys
+done = subprocess.run(sys.argv[1:])
+print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+sys.exit(done.returncode)
+"""
+
+
+def _peak_rss(args: list) -> tuple[int, str]:
+    """``(peak RSS in bytes, output)`` of ``jaxtalk ARGS`` in a subprocess; it must succeed."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _PEAK_RSS, sys.executable, "-m", "jaxtalk", *map(str, args)],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+    *printed, peak = done.stdout.splitlines()
+    return int(peak) * (1 if sys.platform == "darwin" else 1024), "\n".join(printed)  # ru_maxrss: KiB on Linux
+
+
+@pytest.mark.slow
+@pytest.mark.optimized
+def test_half_an_hour_retargets_in_bounded_memory_and_its_windows_join_as_one_solve(tmp_path):
+    from jaxtalk.data.formats import MotionClip, save_npz
+    from jaxtalk.export import DEFAULT_WINDOW, Retargeter
+    from jaxtalk.face import builtin_face
+
+    frames = 45_000  # 30 minutes at 25 fps
+    t = np.arange(frames)
+    params = np.zeros((frames, 56), np.float32)
+    params[:, 50] = 0.1 * (1.0 + np.sin(t / 7.0))  # the jaw, talking
+    params[:, 54] = 0.1 * np.sin(t / 50.0)  # the head turning
+    short_frames = 3 * DEFAULT_WINDOW  # windowed too: the same programs, the same windows' memory
+    save_npz(tmp_path / "long.npz", MotionClip(name="long", fps=25, params=params))
+    save_npz(tmp_path / "short.npz", MotionClip(name="short", fps=25, params=params[:short_frames]))
+    short, _ = _peak_rss(["retarget", tmp_path / "short.npz", "--out", tmp_path / "short.glb"])
+    peak, printed = _peak_rss(["retarget", tmp_path / "long.npz", "--out", tmp_path / "long.glb"])
+    print(f"peak RSS: {short / 2**20:.0f} MiB for {short_frames} frames, {peak / 2**20:.0f} MiB for {frames}")
+    # Solved whole, the clip held 0.5 MB a frame (22 GB here). A window at a time, more frames add only
+    # what is kept for the whole clip: the motion, the weights and head rotations and angles (0.8 KB a
+    # frame), and copies of them where they are written; 2 KB a frame bounds that. A per-frame array of
+    # anything more (a vertex's worth is 12 bytes times 3705 vertices) breaks the bound many times over.
+    assert peak - short < 2048 * (frames - short_frames), (short, peak)
+    assert f"{frames} frames x 52 shapes in {frames // DEFAULT_WINDOW} windows" in printed, printed
+
+    # Where two windows join, the weights are one solve's of the frames around the seam (two look-aheads
+    # either side: beyond reach of its own ends), to the solver's precision: the float32 windows are as
+    # close to the exact solve (float64, converged) there as a float32 solve of those frames is anywhere.
+    weights = GlbAnimation(tmp_path / "long.glb").morph_weights()
+    assert weights.shape == (frames, 52)
+    rig, face = arkit_rig(), builtin_face(0)
+    retargeter = Retargeter.for_face(rig, face)
+    ahead, _ = retargeter.lookahead()
+    with jax_flag("jax_enable_x64", True):
+        exact = Retargeter.for_face(rig, face)
+    def moved(diff: np.ndarray) -> float:  # metres: how far weights that far apart put the rig's vertices
+        return float(np.linalg.norm(np.einsum("tk,kvc->tvc", diff, rig.deltas), axis=-1).max())
+
+    middle = frames // 2 // DEFAULT_WINDOW * DEFAULT_WINDOW
+    for seam in (DEFAULT_WINDOW, middle, frames - DEFAULT_WINDOW):  # the last window starts earlier
+        around = slice(seam - 2 * ahead, seam + 2 * ahead)
+        with jax_flag("jax_enable_x64", True):
+            truth = exact(params[around], window=None, tol=1e-11, max_iter=100_000).weights
+        # away from the ends, where a solve of these frames alone is the one cut short
+        inner = slice(ahead, 3 * ahead)
+        float32 = retargeter(params[around], window=None).weights[inner] - truth[inner]
+        at = [2 * ahead - 1, 2 * ahead]  # the last frame of one window, the first of the next
+        error = weights[around][at] - truth[at]
+        print(f"seam at frame {seam}: weights within {np.abs(error).max():.1e} of the exact solve, the rig's "
+              f"vertices within {moved(error) * 1e3:.1e} mm (a float32 solve of these frames: "
+              f"{np.abs(float32).max():.1e}, {moved(float32) * 1e3:.1e} mm)")
+        # twice the solver's own float32 precision, plus the .glb's float32 storage
+        assert np.abs(error).max() <= 2 * np.abs(float32).max() + 1e-7, seam
+        assert moved(error) <= 2 * moved(float32) + 1e-9, seam

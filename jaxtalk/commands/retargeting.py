@@ -86,6 +86,7 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     """
     from jaxtalk.commands.rendering import face_model, read_head_clip
     from jaxtalk.export import (
+        DEFAULT_WINDOW,
         Penalties,
         Retargeter,
         arkit_rig,
@@ -144,9 +145,13 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
 
         audio = load_audio(opts.audio, allow_silence=True)
     echo(retargeter.registration.describe())
+    # Solved a window at a time (Retargeter.__call__): memory stays bounded whatever the clip's length.
     result = retargeter(motion)
-    echo(f"solved {result.weights.shape[0]} frames x {rig.num_shapes} shapes in {result.seconds * 1e3:.0f} ms "
-         f"({result.iterations} iterations): fit error {result.rms_error * 1e3:.3f} mm RMS, weights in "
+    windows = "" if result.windows == 1 else (
+        f" in {result.windows} windows of {DEFAULT_WINDOW} frames ({result.lookahead} frames of look-ahead; where "
+        f"they join, within {result.seam_bound:.0e} of one whole-clip solve)")
+    echo(f"solved {result.weights.shape[0]} frames x {rig.num_shapes} shapes{windows} in {result.seconds * 1e3:.0f} "
+         f"ms ({result.iterations} iterations): fit error {result.rms_error * 1e3:.3f} mm RMS, weights in "
          f"[{result.weights.min():.3f}, {result.weights.max():.3f}]")
     # A fit error larger than the face is a unit or scale mistake, not a fit: stop before writing anything.
     retargeter.check_fit(result.rms_error, None if suffix == ".npz" else motion[0])
@@ -180,7 +185,8 @@ def _vertex_motion(path: Path, rig, opts: RetargetOptions, penalties):
     from jaxtalk.export import Retargeter
     from jaxtalk.face import builtin_face
 
-    verts = load_npy(path, what="motion file")
+    # Mapped, not read: the retargeter reads a window of frames at a time.
+    verts = load_npy(path, what="motion file", mmap=True)
     if not np.issubdtype(verts.dtype, np.number):
         raise ValueError(f"{str(path)!r} holds {verts.dtype} values, not vertex positions")
     shape = verts.shape
@@ -189,8 +195,10 @@ def _vertex_motion(path: Path, rig, opts: RetargetOptions, penalties):
     if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] < 1:
         raise ValueError(f"{str(path)!r}: vertices must have shape (frames, verts, 3) or (frames, 3 verts), "
                          f"got {shape}")
-    if not np.all(np.isfinite(verts)):
-        raise ValueError(f"{str(path)!r}: vertices contain NaN or inf")
+    for a in range(0, verts.shape[0], 256):  # a chunk at a time: the file is mapped, not read
+        finite = np.isfinite(verts[a:a + 256]).reshape(-1, verts.shape[1] * 3).all(axis=1)
+        if not finite.all():
+            raise ValueError(f"{str(path)!r}: vertices contain NaN or inf (frame {a + int(np.argmin(finite))})")
     if opts.mesh is not None:
         from jaxtalk.geometry.canonical import load_mesh
 
