@@ -439,6 +439,7 @@ def _talking(frames: int) -> np.ndarray:
     return params
 
 
+@pytest.mark.slow  # about 5 s: the float64 solves
 def test_a_clip_solved_in_windows_is_one_whole_clip_solve_where_the_windows_join():
     """Windows tied to the weights kept before them and solved past their end by the look-ahead: where
     they join, the weights are the whole clip's solve's to the solver's own precision (float32: the
