@@ -540,7 +540,8 @@ def retarget(
                                           "a neutral.obj, or 'builtin' (the built-in 52-shape ARKit rig).")] = "builtin",
     out: Annotated[Path | None, typer.Option(help="Output .glb, replaced if it exists (default retarget.glb, which needs "
                                                   "--overwrite to replace a file); OUT.csv (Live Link Face), OUT.json and "
-                                                  "the audio OUT.glb.wav go beside it.")] = None,
+                                                  "the audio OUT.glb.wav go beside it, and like the default they replace an existing file only "
+                                                  "with --overwrite.")] = None,
     audio: Annotated[Path | None, typer.Option(help="Audio to write beside the .glb (default: the audio stored in the "
                                                     ".npz).")] = None,
     mesh: Annotated[Path | None, typer.Option(help="The mesh file (OBJ, PLY, GLB/GLTF) a vertex sequence was animated "

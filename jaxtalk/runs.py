@@ -476,12 +476,12 @@ class LoadedRun:
         Raises:
             FileNotFoundError: a run without one (not TokTalk).
         """
-        import numpy as np
+        from jaxtalk.data.formats import load_npy
 
         path = self.run_dir / STYLE_FILE
         if not path.is_file():
             raise FileNotFoundError(f"{self.run_dir} has no {STYLE_FILE}; pass --style")
-        return np.load(path)
+        return load_npy(path)
 
     def features(self) -> dict[str, Any]:
         """The feature settings the run's data was prepared with."""

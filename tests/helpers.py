@@ -217,6 +217,41 @@ TINY_TRAIN_ARGS = {
 }
 
 
+def bad_numpy_files(folder) -> dict[str, list[str]]:
+    """Writes into ``folder`` every kind of bad ``.npz`` / ``.npy`` a user may hand jaxtalk; returns
+    ``{file name: words its one-line error must hold}``."""
+    import zipfile
+
+    import numpy as np
+
+    (folder / "garbage.npz").write_bytes(b"garbage bytes, not an archive")
+    (folder / "garbage.npy").write_bytes(b"garbage bytes, not an array")
+    np.save(folder / "objects.npy", np.array([{"a": 1}, None], dtype=object), allow_pickle=True)
+    np.savez(folder / "objects.npz", params=np.array([{"a": 1}], dtype=object), fps=25)
+    with zipfile.ZipFile(folder / "members.npz", "w") as archive:
+        archive.writestr("params.npy", b"not an array")
+    np.savez(folder / "cut.npz", params=np.zeros((100, 56), np.float32), fps=25)
+    data = (folder / "cut.npz").read_bytes()
+    (folder / "cut.npz").write_bytes(data[: len(data) // 2])
+    np.save(folder / "cut.npy", np.zeros((100, 56), np.float32))
+    data = (folder / "cut.npy").read_bytes()
+    (folder / "cut.npy").write_bytes(data[: len(data) // 2])
+    np.savez(folder / "flipped.npz", params=np.zeros((100, 56), np.float32), fps=25)
+    data = bytearray((folder / "flipped.npz").read_bytes())
+    data[len(data) // 3] ^= 0xFF  # inside the params' bytes: the member's checksum no longer matches
+    (folder / "flipped.npz").write_bytes(bytes(data))
+    return {
+        "garbage.npz": ["not an .npz file", "not a zip archive"],
+        "garbage.npy": ["not a NumPy .npy file"],
+        "objects.npy": ["holds an object array", "never reads"],
+        "objects.npz": ["holds object arrays ('params')", "never reads"],
+        "members.npz": ["'params.npy' is not a NumPy array"],
+        "cut.npz": ["not an .npz file"],  # the archive's directory is at its end
+        "cut.npy": ["damaged .npy file"],
+        "flipped.npz": ["damaged .npz file"],
+    }
+
+
 def cli_ok(args: list) -> str:
     """Run ``jaxtalk ARGS`` in-process (typer's runner); it must succeed. Returns its output."""
     from typer.testing import CliRunner

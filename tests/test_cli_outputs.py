@@ -131,7 +131,8 @@ def test_every_writing_command_leaves_user_files_under_its_names_unchanged(run, 
              "runs/toktalk/tokenizer.npz", "runs/toktalk/run.txt",  # train into a folder of the user's
              "generic/clip00000.wav", "generic/metadata.csv",  # data --out
              "jaxtalk-demo/report.md", "jaxtalk-demo/animation.mp4",  # demo
-             "experiments/results/bench_all.json"]  # bench's default
+             "experiments/results/bench_all.json",  # bench's default
+             "retarget.glb", "rig.csv", "side.json"]  # retarget's default and the side files of a named .glb
     before = _user_files(talk, names)
     commands = [
         (["sample", run, "talk.wav"], "talk_params.npz"),
@@ -146,13 +147,17 @@ def test_every_writing_command_leaves_user_files_under_its_names_unchanged(run, 
         (["eval", run, "--best", "--json", run / "checkpoint" / "history.jsonl"], "is an input"),
         (["sample", run, "talk.wav", "--out", run / "checkpoint" / "mine.npz"], "is an input"),
         (["bench", "--model", "toktalk"], "bench_all.json"),
+        (["retarget", "clip.npz"], "retarget.glb"),
+        (["retarget", "clip.npz", "--out", "rig.glb"], "rig.csv"),  # --out names the .glb, not its side files
+        (["retarget", "clip.npz", "--out", "side.glb"], "side.json"),
     ]
     for args, word in commands:
         _refused(args, word)
         now = _hashes(talk)
         assert {k: now[k] for k in before} == before, args
-    # Render and export: --overwrite replaces exactly their outputs.
+    # Render, export and retarget: --overwrite replaces exactly their outputs.
     _ok(["render", "clip.npz", "--overwrite", "--size", "32"])
     _ok(["export", "clip.npz", "--overwrite"])
+    _ok(["retarget", "clip.npz", "--out", "rig.glb", "--overwrite"])
     after = _hashes(talk)
-    assert {name for name in before if after[name] != before[name]} == {"render.mp4", "anim.glb"}
+    assert {name for name in before if after[name] != before[name]} == {"render.mp4", "anim.glb", "rig.csv"}

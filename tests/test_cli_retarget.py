@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import cli_error, cli_ok
+from helpers import bad_numpy_files, cli_error, cli_ok, jax_flag
 
 from jaxtalk.export import (
     GlbAnimation,
@@ -76,3 +76,166 @@ def test_bad_inputs_are_refused_in_one_line(talk, tmp_path):
     cli_error(["retarget", talk / "talk.npz", "--out", tmp_path / "x.csv"], ".glb")
     cli_error(["retarget", talk / "talk.npz", "--out", talk / "talk.npz"], ".glb")
     cli_error(["retarget", talk / "talk.npz", "--smoothness", "-1", "--out", tmp_path / "d.glb"], "smoothness")
+
+
+def _hashes(folder) -> dict[str, str]:
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("side", ["talk.csv", "talk.json"])
+def test_the_side_files_of_a_named_glb_replace_a_user_file_only_with_overwrite(talk, tmp_path, side):
+    # --out names the .glb; the CSV and JSON beside it are names the command derives, as the audio's is.
+    folder = tmp_path / "c"
+    folder.mkdir()
+    (folder / side).write_bytes(b"the user's own file")
+    before = _hashes(folder)
+    cli_error(["retarget", talk / "talk.npz", "--out", folder / "talk.glb"], side, "--overwrite")
+    assert _hashes(folder) == before  # nothing replaced, nothing written (not even the .glb)
+    cli_ok(["retarget", talk / "talk.npz", "--out", folder / "talk.glb", "--overwrite"])
+    after = _hashes(folder)
+    assert after[side] != before[side]
+    assert set(after) == {"talk.glb", "talk.csv", "talk.json", "talk.glb.wav"}
+
+
+def _write_obj(path, vertices, faces):
+    lines = [f"v {x:.9f} {y:.9f} {z:.9f}" for x, y, z in vertices] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_an_obj_folder_with_two_shapes_on_one_arkit_name_is_refused_naming_both_files(talk, tmp_path):
+    rig = arkit_rig("low")
+    folder = tmp_path / "shapes"
+    folder.mkdir()
+    _write_obj(folder / "neutral.obj", rig.neutral, rig.faces)
+    jaw = rig.neutral + rig.deltas[ARKIT_NAMES.index("jawOpen")]
+    for name in ("jawOpen", "JAWOPEN"):  # the solver would give each about half of the jaw's weight
+        _write_obj(folder / f"{name}.obj", jaw, rig.faces)
+    _write_obj(folder / "eyeBlink_L.obj", rig.neutral + rig.deltas[ARKIT_NAMES.index("eyeBlinkLeft")], rig.faces)
+    line = cli_error(["retarget", talk / "talk.npz", "--rig", folder, "--out", tmp_path / "out.glb"],
+                     "jawOpen.obj", "JAWOPEN.obj", "'jawOpen'")
+    assert str(folder) in line
+    assert not (tmp_path / "out.glb").exists()
+
+
+def test_a_gltf_rig_with_two_morph_targets_on_one_arkit_name_is_refused_naming_both(talk, tmp_path):
+    import pygltflib
+
+    export_rig_animation(arkit_rig("low"), np.zeros((1, 52)), tmp_path / "rig.glb")
+    gltf = pygltflib.GLTF2().load(str(tmp_path / "rig.glb"))
+    names = gltf.meshes[0].extras["targetNames"]
+    names[ARKIT_NAMES.index("eyeBlinkRight")] = "EyeBlinkLeft"  # eyeBlinkLeft under a second spelling
+    gltf.save(str(tmp_path / "rig.glb"))
+    cli_error(["retarget", talk / "talk.npz", "--rig", tmp_path / "rig.glb", "--out", tmp_path / "out.glb"],
+              "rig.glb", "'eyeBlinkLeft' and 'EyeBlinkLeft'")
+    assert not (tmp_path / "out.glb").exists()
+
+
+def test_a_bad_motion_file_is_one_line_naming_it_never_advice_to_unpickle(tmp_path):
+    for name, words in bad_numpy_files(tmp_path).items():
+        for command in (["retarget", tmp_path / name, "--out", tmp_path / "out.glb"],
+                        ["render", tmp_path / name, "--out", tmp_path / "out.mp4"]):
+            line = cli_error(command, str(tmp_path / name), *words)
+            assert "pickle" not in line.lower() and "unsafe" not in line.lower(), line
+    assert not (tmp_path / "out.glb").exists() and not (tmp_path / "out.mp4").exists()
+
+
+def test_motion_in_the_wrong_units_is_refused_naming_the_mistake_and_writes_nothing(talk, tmp_path):
+    from jaxtalk.data.formats import MotionClip, save_npz
+    from jaxtalk.face import builtin_face
+
+    params = np.load(talk / "talk.npz")["params"]
+    save_npz(tmp_path / "scaled.npz", MotionClip(name="scaled", fps=25, params=params * 1000.0))
+    line = cli_error(["retarget", tmp_path / "scaled.npz", "--out", tmp_path / "a.glb"],
+                     "fit error", "mm RMS is larger than the face itself", "scaled")
+    assert float(line.split("fit error ")[1].split(" mm")[0]) > 1000.0
+    face = builtin_face(0, resolution="low")
+    metres = np.asarray(face.vertices_seq(params[:20]))
+    np.save(tmp_path / "mm.npy", 1000.0 * metres)  # millimetres on a mesh in metres
+    cli_error(["retarget", tmp_path / "mm.npy", "--out", tmp_path / "b.glb"],
+              "larger than the face itself", "1000 times the size", "are they in mm and the mesh in m?")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mm.npy", "scaled.npz"]
+    # The same vertices in the mesh's units fit to millimetres.
+    np.save(tmp_path / "m.npy", metres)
+    printed = cli_ok(["retarget", tmp_path / "m.npy", "--out", tmp_path / "c.glb"])
+    assert float(printed.split("fit error ")[1].split(" mm")[0]) < 10.0
+
+
+# Runs the command line given after it as a child and prints the child's peak resident set size last:
+# a fresh process, so that no earlier child of the test session's counts.
+_PEAK_RSS = """
+import resource, subprocess, sys
+done = subprocess.run(sys.argv[1:])
+print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+sys.exit(done.returncode)
+"""
+
+
+def _peak_rss(args: list) -> tuple[int, str]:
+    """``(peak RSS in bytes, output)`` of ``jaxtalk ARGS`` in a subprocess; it must succeed."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _PEAK_RSS, sys.executable, "-m", "jaxtalk", *map(str, args)],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+    *printed, peak = done.stdout.splitlines()
+    return int(peak) * (1 if sys.platform == "darwin" else 1024), "\n".join(printed)  # ru_maxrss: KiB on Linux
+
+
+@pytest.mark.slow
+@pytest.mark.optimized
+def test_half_an_hour_retargets_in_bounded_memory_and_its_windows_join_as_one_solve(tmp_path):
+    from jaxtalk.data.formats import MotionClip, save_npz
+    from jaxtalk.export import DEFAULT_WINDOW, Retargeter
+    from jaxtalk.face import builtin_face
+
+    frames = 45_000  # 30 minutes at 25 fps
+    t = np.arange(frames)
+    params = np.zeros((frames, 56), np.float32)
+    params[:, 50] = 0.1 * (1.0 + np.sin(t / 7.0))  # the jaw, talking
+    params[:, 54] = 0.1 * np.sin(t / 50.0)  # the head turning
+    short_frames = 3 * DEFAULT_WINDOW  # windowed too: the same programs, the same windows' memory
+    save_npz(tmp_path / "long.npz", MotionClip(name="long", fps=25, params=params))
+    save_npz(tmp_path / "short.npz", MotionClip(name="short", fps=25, params=params[:short_frames]))
+    short, _ = _peak_rss(["retarget", tmp_path / "short.npz", "--out", tmp_path / "short.glb"])
+    peak, printed = _peak_rss(["retarget", tmp_path / "long.npz", "--out", tmp_path / "long.glb"])
+    print(f"peak RSS: {short / 2**20:.0f} MiB for {short_frames} frames, {peak / 2**20:.0f} MiB for {frames}")
+    # Solved whole, the clip held 0.5 MB a frame (22 GB here). A window at a time, more frames add only
+    # what is kept for the whole clip: the motion, the weights and head rotations and angles (0.8 KB a
+    # frame), and copies of them where they are written; 2 KB a frame bounds that. A per-frame array of
+    # anything more (a vertex's worth is 12 bytes times 3705 vertices) breaks the bound many times over.
+    assert peak - short < 2048 * (frames - short_frames), (short, peak)
+    assert f"{frames} frames x 52 shapes in {frames // DEFAULT_WINDOW} windows" in printed, printed
+
+    # Where two windows join, the weights are one solve's of the frames around the seam (two look-aheads
+    # either side: beyond reach of its own ends), to the solver's precision: the float32 windows are as
+    # close to the exact solve (float64, converged) there as a float32 solve of those frames is anywhere.
+    weights = GlbAnimation(tmp_path / "long.glb").morph_weights()
+    assert weights.shape == (frames, 52)
+    rig, face = arkit_rig(), builtin_face(0)
+    retargeter = Retargeter.for_face(rig, face)
+    ahead, _ = retargeter.lookahead()
+    with jax_flag("jax_enable_x64", True):
+        exact = Retargeter.for_face(rig, face)
+    def moved(diff: np.ndarray) -> float:  # metres: how far weights that far apart put the rig's vertices
+        return float(np.linalg.norm(np.einsum("tk,kvc->tvc", diff, rig.deltas), axis=-1).max())
+
+    middle = frames // 2 // DEFAULT_WINDOW * DEFAULT_WINDOW
+    for seam in (DEFAULT_WINDOW, middle, frames - DEFAULT_WINDOW):  # the last window starts earlier
+        around = slice(seam - 2 * ahead, seam + 2 * ahead)
+        with jax_flag("jax_enable_x64", True):
+            truth = exact(params[around], window=None, tol=1e-11, max_iter=100_000).weights
+        # away from the ends, where a solve of these frames alone is the one cut short
+        inner = slice(ahead, 3 * ahead)
+        float32 = retargeter(params[around], window=None).weights[inner] - truth[inner]
+        at = [2 * ahead - 1, 2 * ahead]  # the last frame of one window, the first of the next
+        error = weights[around][at] - truth[at]
+        print(f"seam at frame {seam}: weights within {np.abs(error).max():.1e} of the exact solve, the rig's "
+              f"vertices within {moved(error) * 1e3:.1e} mm (a float32 solve of these frames: "
+              f"{np.abs(float32).max():.1e}, {moved(float32) * 1e3:.1e} mm)")
+        # twice the solver's own float32 precision, plus the .glb's float32 storage
+        assert np.abs(error).max() <= 2 * np.abs(float32).max() + 1e-7, seam
+        assert moved(error) <= 2 * moved(float32) + 1e-9, seam

@@ -29,6 +29,7 @@ from jaxtalk.export.recording import live_link_timecode
 from jaxtalk.export.rig import arkit_shape_name, symmetric_pairs
 from jaxtalk.export.solver import DEFAULT_MAX_ITER, symmetry_matrix
 from jaxtalk.face import builtin_face
+from helpers import jax_flag
 
 # The shapes speech drives (cheekPuff is left out: SynthTalk's faces puff their cheeks idly, silent or not).
 MOUTH = [n for n in ARKIT_NAMES if n.startswith(("jaw", "mouth", "tongue"))]
@@ -420,3 +421,79 @@ def test_json_lists_weights_names_and_head(tmp_path):
     data = json.loads(path.read_text())
     assert data["arkit"] == ["eyeBlinkLeft", None] and data["weights"] == [[0.5, 0.0]]
     assert data["head"]["yaw"] == [0.1] and data["head"]["units"] == "radians" and data["fps"] == 25
+
+
+def test_a_rig_made_in_code_with_two_shapes_on_one_arkit_name_is_refused():
+    rig = low_rig()
+    deltas = rig.deltas[[ARKIT_NAMES.index("jawOpen")] * 2]
+    with pytest.raises(ValueError, match="'mouthSmile_L' and 'MouthSmileLeft' are both ARKit's 'mouthSmileLeft'"):
+        Rig(names=("mouthSmile_L", "MouthSmileLeft"), neutral=rig.neutral, deltas=deltas, faces=rig.faces)
+
+
+def _talking(frames: int) -> np.ndarray:
+    t = np.arange(frames)
+    params = np.zeros((frames, 56), np.float32)
+    params[:, 50] = 0.1 * (1.0 + np.sin(t / 7.0))  # the jaw
+    params[:, 18] = (t % 37 < 4).astype(np.float32)  # blinks
+    params[:, 54] = 0.1 * np.sin(t / 50.0)  # the head turning
+    return params
+
+
+@pytest.mark.slow  # about 5 s: the float64 solves
+def test_a_clip_solved_in_windows_is_one_whole_clip_solve_where_the_windows_join():
+    """Windows tied to the weights kept before them and solved past their end by the look-ahead: where
+    they join, the weights are the whole clip's solve's to the solver's own precision (float32: the
+    whole solve's own distance from the exact one), and every frame is kept once."""
+    rig, face = low_rig(), low_face()
+    penalties = Penalties(smoothness=0.05, l2=1e-2)  # a short look-ahead: a small test
+    params, window = _talking(400), 50
+    retargeter = Retargeter.for_face(rig, face, penalties)
+    ahead, bound = retargeter.lookahead()
+    assert 10 < ahead < 100 and bound <= 1e-7
+    whole32, windowed32 = retargeter(params, window=None), retargeter(params, window=window)
+    assert (windowed32.windows, windowed32.lookahead, windowed32.seam_bound) == (8, ahead, bound)
+    assert whole32.windows == 1 and windowed32.weights.shape == whole32.weights.shape
+    np.testing.assert_allclose(windowed32.head_angles, whole32.head_angles, atol=1e-12)
+    assert abs(windowed32.rms_error - whole32.rms_error) < 1e-4 * whole32.rms_error
+    with jax_flag("jax_enable_x64", True):  # the exact solve, and the windows solved as exactly
+        exact = Retargeter.for_face(rig, face, penalties)
+        truth = exact(params, window=None, tol=1e-13, max_iter=100_000).weights
+        windowed64 = exact(params, window=window, tol=1e-13, max_iter=100_000)
+    seams = np.r_[[s + o for s in range(window, 400, window) for o in (-1, 0)]]
+    seam_error = np.abs(windowed64.weights - truth)[seams].max()
+    precision32 = np.abs(whole32.weights - truth).max()
+    error32 = np.abs(windowed32.weights - truth)[seams].max()
+    print(f"look-ahead {ahead} frames; seams: float64 {seam_error:.1e} from the whole solve (bound "
+          f"{windowed64.seam_bound:.0e}), float32 {error32:.1e} (the float32 whole solve: {precision32:.1e})")
+    assert seam_error < 1e-9
+    assert error32 <= 2 * precision32 + 1e-7
+
+
+def test_the_files_written_a_chunk_of_frames_at_a_time_are_the_same_whatever_the_chunk(tmp_path, monkeypatch):
+    from jaxtalk.export import gltf, recording, write_weights_json
+
+    rig = low_rig()
+    weights = rig_animation(50, seed=2)
+    turns = np.c_[np.linspace(0.0, 6.0, 50), np.linspace(-0.2, 0.2, 50), np.zeros(50)]  # past pi: signs flip
+    rot = Rotation.from_euler("YXZ", turns).as_matrix()
+    pivot = np.array([0.0, -0.1, 0.0])
+
+    def write(folder):
+        folder.mkdir()
+        export_rig_animation(rig, weights, folder / "a.glb", fps=29.97, head_rotation=rot, pivot=pivot)
+        write_live_link_csv(folder / "a.csv", rig.names, weights, turns, fps=29.97)
+        write_weights_json(folder / "a.json", names=rig.names, weights=weights, head_angles=turns, fps=29.97,
+                           extra={"note": "x"})
+
+    write(tmp_path / "one")  # every frame in one chunk
+    monkeypatch.setattr(gltf, "_KEY_ROWS", 7)
+    monkeypatch.setattr(recording, "_ROWS", 5)
+    write(tmp_path / "chunks")
+    for name in ("a.glb", "a.csv"):
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "chunks" / name).read_bytes(), name
+    one, chunks = (json.loads((tmp_path / f / "a.json").read_text()) for f in ("one", "chunks"))
+    assert one == chunks and np.allclose(one["weights"], weights, atol=5e-7) and one["note"] == "x"
+    q = GlbAnimation(tmp_path / "chunks" / "a.glb")
+    np.testing.assert_allclose(q.morph_weights(), weights, atol=1e-6)
+    expected = np.einsum("ij,vj->vi", rot[37], rig.vertices(weights[37:38])[0] - pivot) + pivot
+    np.testing.assert_allclose(q.vertices(37), expected, atol=1e-5)

@@ -17,7 +17,7 @@ from jaxtalk.data.formats import (
     read_vocaset_templates,
     save_npz,
 )
-from helpers import DUALTALK_SOURCES, dualtalk_folder
+from helpers import DUALTALK_SOURCES, bad_numpy_files, dualtalk_folder
 
 
 def _wav(path, seconds=0.4, rate=16000):
@@ -115,8 +115,40 @@ def test_missing_and_corrupt_files(tmp_path):
     with pytest.raises(FileNotFoundError, match="nothing.npz"):
         read_dualtalk(tmp_path / "nothing.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(ValueError, match="cannot read"):
+    with pytest.raises(ValueError, match="junk.npz' is not an .npz file"):
         read_dualtalk(tmp_path / "junk.npz")
+
+
+def test_every_bad_numpy_file_is_one_message_naming_it_with_no_advice_to_unpickle(tmp_path):
+    from jaxtalk.data.formats import load_npy, load_npz
+
+    for name, words in bad_numpy_files(tmp_path).items():
+        load = load_npz if name.endswith(".npz") else load_npy
+        with pytest.raises(ValueError) as info:
+            load(tmp_path / name)
+        message = str(info.value)
+        assert str(tmp_path / name) in message and all(w in message for w in words), message
+        assert "\n" not in message and "pickle" not in message.lower(), message
+    with pytest.raises(FileNotFoundError, match="token file not found: .*absent.npy"):
+        load_npy(tmp_path / "absent.npy", what="token file")
+    np.savez(tmp_path / "good.npz", params=np.ones((3, 56), np.float32), fps=25)
+    assert sorted(load_npz(tmp_path / "good.npz")) == ["fps", "params"]
+    np.save(tmp_path / "good.npy", np.ones((3, 4)))
+    assert load_npy(tmp_path / "good.npy", mmap=True).sum() == 12
+
+
+def test_the_readers_and_loaders_report_bad_numpy_files_by_name(tmp_path):
+    from jaxtalk.audio.tokenizer import TokenStream, VQTokenizer
+    from jaxtalk.models.freetalk.animate import read_landmarks
+
+    bad_numpy_files(tmp_path)
+    for read in (read_npz, read_dualtalk, read_clip, VQTokenizer.load):
+        with pytest.raises(ValueError, match="objects.npz' holds object arrays"):
+            read(tmp_path / "objects.npz")
+    for read in (read_vocaset, read_clip, lambda p: TokenStream.from_npy(p, rate=25.0),
+                 lambda p: read_landmarks(p, np.zeros((10, 3)))):
+        with pytest.raises(ValueError, match="garbage.npy' is not a NumPy .npy file"):
+            read(tmp_path / "garbage.npy")
 
 
 # --- VOCASET ----------------------------------------------------------------------------------

@@ -118,15 +118,12 @@ class TokenStream:
             FileNotFoundError: if ``path`` does not exist.
             ValueError: for a non-numeric, non-2-D, empty or NaN array, or a bad rate.
         """
+        from jaxtalk.data.formats import load_npy
+
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"embedding file not found: {str(path)!r}")
-        try:
-            array = np.load(path, allow_pickle=False)
-        except ValueError as err:
-            raise ValueError(f"{str(path)!r}: not a plain .npy array ({err})") from err
-        if not isinstance(array, np.ndarray) or not np.issubdtype(array.dtype, np.number):
-            raise ValueError(f"{str(path)!r}: expected a numeric array, got {type(array)}")
+        array = load_npy(path, what="embedding file")
+        if not np.issubdtype(array.dtype, np.number):
+            raise ValueError(f"{str(path)!r}: expected a numeric array, got {array.dtype}")
         if array.ndim != 2:
             raise ValueError(
                 f"{str(path)!r}: expected (frames, width) embeddings, got shape {array.shape}"
@@ -479,28 +476,21 @@ class VQTokenizer:
             FileNotFoundError: if ``path`` does not exist.
             ValueError: if it is not a tokenizer file (lists missing keys) or its arrays disagree.
         """
+        from jaxtalk.data.formats import load_npz
+
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"tokenizer file not found: {str(path)!r}")
         arrays = ("codebook", "feature_mean", "feature_scale", "embedding")
         ints = ("sample_rate", "n_mels", "n_fft", "hop_length", "stack", "seed")
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                missing = [k for k in ("format_version", "rate", *arrays, *ints) if k not in data]
-                if missing:
-                    raise ValueError(
-                        f"{str(path)!r} is not a VQTokenizer file: missing keys {missing}"
-                    )
-                version = int(data["format_version"])
-                if version != _FORMAT_VERSION:
-                    raise ValueError(
-                        f"{str(path)!r}: unsupported tokenizer format version {version}"
-                    )
-                kwargs = {k: np.array(data[k], dtype=np.float32) for k in arrays}
-                kwargs.update({k: int(data[k]) for k in ints})
-                kwargs["rate"] = float(data["rate"])
-        except (OSError, EOFError) as err:
-            raise ValueError(f"{str(path)!r}: cannot read tokenizer file ({err})") from err
+        data = load_npz(path, what="tokenizer file")
+        missing = [k for k in ("format_version", "rate", *arrays, *ints) if k not in data]
+        if missing:
+            raise ValueError(f"{str(path)!r} is not a VQTokenizer file: missing keys {missing}")
+        version = int(data["format_version"])
+        if version != _FORMAT_VERSION:
+            raise ValueError(f"{str(path)!r}: unsupported tokenizer format version {version}")
+        kwargs = {k: np.array(data[k], dtype=np.float32) for k in arrays}
+        kwargs.update({k: int(data[k]) for k in ints})
+        kwargs["rate"] = float(data["rate"])
         return cls(**kwargs)
 
 

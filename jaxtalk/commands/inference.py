@@ -199,7 +199,9 @@ def _toktalk_tokens(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
         tokenizer = _toktalk_tokenizer(run)
         audio = load_audio(opts.input)
         return np.asarray(tokenizer.encode(audio).embeddings, np.float32), audio
-    tokens = np.load(opts.input, allow_pickle=False)
+    from jaxtalk.data.formats import load_npy
+
+    tokens = load_npy(opts.input, what="token file")
     if tokens.ndim != 2 or tokens.shape[1] != config.speech_dim or tokens.shape[0] < 1:
         raise ValueError(f"{str(opts.input)!r}: token embeddings must have shape (tokens, {config.speech_dim}) "
                          f"at {config.token_rate:g} Hz, got {tokens.shape}")

@@ -90,29 +90,24 @@ def read_head_clip(path: str | Path) -> tuple[Float[np.ndarray, "frames 56"], Fl
     Raises:
         As :func:`read_params`.
     """
-    from jaxtalk.data.formats import read_npz
+    from jaxtalk.data.formats import load_npz, read_npz
     from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
     path = _require(Path(path))
+    data = load_npz(path, what="motion file")
+    if "params56" in data:  # `jaxtalk demo`'s prediction.npz
+        params, audio, fps = np.asarray(data["params56"], np.float32), None, float(MOTION_FPS)
+    else:
+        clip = read_npz(path, load_audio=True)
+        if clip.params is None:
+            raise ValueError(f"{str(path)!r} holds no 'params' ({PARAM_DIM}-d) array; found {sorted(data)}")
+        params = np.asarray(clip.params, np.float32)
+        audio = None if clip.audio is None else np.asarray(clip.audio, np.float32)
+        if audio is not None and clip.sample_rate != AUDIO_SAMPLE_RATE:
+            from jaxtalk.audio import resample_audio
 
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as err:
-        raise ValueError(f"{str(path)!r} is not a readable .npz file ({err})") from None
-    with data:
-        if "params56" in data:  # `jaxtalk demo`'s prediction.npz
-            params, audio, fps = np.asarray(data["params56"], np.float32), None, float(MOTION_FPS)
-        else:
-            clip = read_npz(path, load_audio=True)
-            if clip.params is None:
-                raise ValueError(f"{str(path)!r} holds no 'params' ({PARAM_DIM}-d) array; found {sorted(data.files)}")
-            params = np.asarray(clip.params, np.float32)
-            audio = None if clip.audio is None else np.asarray(clip.audio, np.float32)
-            if audio is not None and clip.sample_rate != AUDIO_SAMPLE_RATE:
-                from jaxtalk.audio import resample_audio
-
-                audio = resample_audio(audio, clip.sample_rate, AUDIO_SAMPLE_RATE)
-            fps = float(clip.fps)
+            audio = resample_audio(audio, clip.sample_rate, AUDIO_SAMPLE_RATE)
+        fps = float(clip.fps)
     if params.ndim != 2 or params.shape[1] != PARAM_DIM or params.shape[0] < 1:
         raise ValueError(f"{str(path)!r}: params must have shape (frames, {PARAM_DIM}), got {params.shape}")
     if not np.all(np.isfinite(params)):
@@ -170,7 +165,11 @@ def load_motion(path: str | Path, *, faces: str | Path | None = None, flame: str
         return Motion(verts, np.asarray(face.faces), np.asarray(face.template, np.float32), audio)
     if suffix != ".npy":
         raise ValueError(f"{str(path)!r}: expected .npz parameters or .npy vertices, got {suffix or 'no suffix'!r}")
-    verts = np.load(path, allow_pickle=False)
+    from jaxtalk.data.formats import load_npy
+
+    verts = load_npy(path, what="vertex sequence")
+    if not np.issubdtype(verts.dtype, np.number):
+        raise ValueError(f"{str(path)!r} holds {verts.dtype} values, not vertex positions")
     if verts.ndim == 2 and verts.shape[1] == 3:  # (points, 3): one mesh's positions, not frames of 1 vertex
         raise ValueError(f"{str(path)!r} holds a {verts.shape} array: one set of 3-D points, not a (frames, vertices, 3) "
                          "animation; save the frames stacked as (frames, vertices, 3)")
@@ -178,13 +177,13 @@ def load_motion(path: str | Path, *, faces: str | Path | None = None, flame: str
         verts = verts.reshape(verts.shape[0], -1, 3)
     if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] < 1:
         raise ValueError(f"{str(path)!r}: vertices must have shape (frames, verts, 3) or (frames, 3 verts), "
-                         f"got {np.shape(np.load(path, allow_pickle=False))}")
+                         f"got {verts.shape}")
     if not np.all(np.isfinite(verts)):
         raise ValueError(f"{str(path)!r}: vertices contain NaN or inf")
     if faces is not None:
         faces_path = _require(Path(faces))
         if faces_path.suffix.lower() == ".npy":
-            tri = np.load(faces_path, allow_pickle=False)
+            tri = load_npy(faces_path, what="faces file")
         else:  # the mesh file the vertices were animated on (FreeTalk's output keeps its vertex order)
             from jaxtalk.geometry.canonical import load_mesh
 

@@ -7,7 +7,9 @@ with morph targets, a folder of OBJ shapes with a ``neutral.obj``, or ``builtin`
 
 ``--out NAME.glb`` names the outputs: ``NAME.glb`` (the rig's mesh, its morph targets and their weights
 over time, the head turning about its pivot), ``NAME.csv`` (a Live Link Face recording), ``NAME.json``,
-and the audio beside the ``.glb`` as ``NAME.glb.wav`` (``--audio``, or the audio stored in the npz).
+and the audio beside the ``.glb`` as ``NAME.glb.wav`` (``--audio``, or the audio stored in the npz). An
+existing ``NAME.glb`` is replaced; the side files are names the command picks, so an existing file under
+one of them is kept unless ``--overwrite`` is given (:mod:`jaxtalk.files`).
 """
 
 from __future__ import annotations
@@ -79,10 +81,12 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     Raises:
         FileNotFoundError: a missing input.
         ValueError: a bad motion (shape, NaN), a rig without morph targets, a mesh or rig that does not
-            register to the face, a bad option value or output path.
+            register to the face, a fit error larger than the face (a unit or scale mistake:
+            :meth:`~jaxtalk.export.Retargeter.check_fit`), a bad option value or output path.
     """
     from jaxtalk.commands.rendering import face_model, read_head_clip
     from jaxtalk.export import (
+        DEFAULT_WINDOW,
         Penalties,
         Retargeter,
         arkit_rig,
@@ -102,8 +106,9 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     csv, json_path = _outputs(out)
     builtin = str(opts.rig) == BUILTIN_RIG
     rig_path = None if builtin else Path(opts.rig)
-    claim_outputs([Output(out, named=opts.out is not None, suffixes=(".glb",)),
-                   Output(csv, named=opts.out is not None), Output(json_path, named=opts.out is not None),
+    # Only the .glb is a name the user gives; the CSV, the JSON and the audio beside it are names the
+    # command derives from it, which replace no existing file without --overwrite.
+    claim_outputs([Output(out, named=opts.out is not None, suffixes=(".glb",)), Output(csv), Output(json_path),
                    Output(audio_path_for(out))],
                   inputs=[opts.motion, rig_path, opts.audio, opts.mesh, opts.flame], overwrite=opts.overwrite)
     penalties = Penalties(smoothness=opts.smoothness, l1=opts.l1, l2=opts.l2, symmetry=opts.symmetry)
@@ -140,10 +145,16 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
 
         audio = load_audio(opts.audio, allow_silence=True)
     echo(retargeter.registration.describe())
+    # Solved a window at a time (Retargeter.__call__): memory stays bounded whatever the clip's length.
     result = retargeter(motion)
-    echo(f"solved {result.weights.shape[0]} frames x {rig.num_shapes} shapes in {result.seconds * 1e3:.0f} ms "
-         f"({result.iterations} iterations): fit error {result.rms_error * 1e3:.3f} mm RMS, weights in "
+    windows = "" if result.windows == 1 else (
+        f" in {result.windows} windows of {DEFAULT_WINDOW} frames ({result.lookahead} frames of look-ahead; where "
+        f"they join, within {result.seam_bound:.0e} of one whole-clip solve)")
+    echo(f"solved {result.weights.shape[0]} frames x {rig.num_shapes} shapes{windows} in {result.seconds * 1e3:.0f} "
+         f"ms ({result.iterations} iterations): fit error {result.rms_error * 1e3:.3f} mm RMS, weights in "
          f"[{result.weights.min():.3f}, {result.weights.max():.3f}]")
+    # A fit error larger than the face is a unit or scale mistake, not a fit: stop before writing anything.
+    retargeter.check_fit(result.rms_error, None if suffix == ".npz" else motion[0])
     angles = np.degrees(np.abs(result.head_angles).max(axis=0))
     echo(f"head rotation: up to {angles[0]:.1f} deg yaw, {angles[1]:.1f} deg pitch, {angles[2]:.1f} deg roll")
 
@@ -170,17 +181,24 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
 
 def _vertex_motion(path: Path, rig, opts: RetargetOptions, penalties):
     """The vertex sequence and its retargeter: on ``--mesh``, the rig's own mesh, or a built-in face."""
+    from jaxtalk.data.formats import load_npy
     from jaxtalk.export import Retargeter
     from jaxtalk.face import builtin_face
 
-    verts = np.load(path, allow_pickle=False)
+    # Mapped, not read: the retargeter reads a window of frames at a time.
+    verts = load_npy(path, what="motion file", mmap=True)
+    if not np.issubdtype(verts.dtype, np.number):
+        raise ValueError(f"{str(path)!r} holds {verts.dtype} values, not vertex positions")
+    shape = verts.shape
     if verts.ndim == 2 and verts.shape[1] % 3 == 0 and verts.shape[1] != 3:
         verts = verts.reshape(verts.shape[0], -1, 3)
     if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[0] < 1:
         raise ValueError(f"{str(path)!r}: vertices must have shape (frames, verts, 3) or (frames, 3 verts), "
-                         f"got {np.load(path, allow_pickle=False).shape}")
-    if not np.all(np.isfinite(verts)):
-        raise ValueError(f"{str(path)!r}: vertices contain NaN or inf")
+                         f"got {shape}")
+    for a in range(0, verts.shape[0], 256):  # a chunk at a time: the file is mapped, not read
+        finite = np.isfinite(verts[a:a + 256]).reshape(-1, verts.shape[1] * 3).all(axis=1)
+        if not finite.all():
+            raise ValueError(f"{str(path)!r}: vertices contain NaN or inf (frame {a + int(np.argmin(finite))})")
     if opts.mesh is not None:
         from jaxtalk.geometry.canonical import load_mesh
 

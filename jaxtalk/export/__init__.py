@@ -33,13 +33,21 @@ from jaxtalk.export.gltf import (
 )
 from jaxtalk.export.playback import GlbAnimation
 from jaxtalk.export.recording import read_live_link_csv, write_live_link_csv, write_weights_json
-from jaxtalk.export.retarget import DEFAULT_PENALTIES, Retargeter, RetargetResult, StreamState, retarget
+from jaxtalk.export.retarget import (
+    DEFAULT_PENALTIES,
+    DEFAULT_WINDOW,
+    Retargeter,
+    RetargetResult,
+    StreamState,
+    retarget,
+)
 from jaxtalk.export.rig import Rig, arkit_rig, arkit_shape_name, load_rig, symmetric_pairs
 from jaxtalk.export.solver import Penalties, solve_weights
 
 __all__ = ["DEFAULT_MAX_ERROR", "ExportSummary", "GlbAnimation", "export_face_model", "export_vertex_sequence",
            "one_sided_targets", "vertex_basis", "write_audio_beside", "audio_path_for", "export_rig_animation",
            "Rig", "arkit_rig", "load_rig", "arkit_shape_name", "symmetric_pairs", "Penalties", "solve_weights",
-           "Retargeter", "RetargetResult", "StreamState", "retarget", "DEFAULT_PENALTIES", "write_live_link_csv",
+           "Retargeter", "RetargetResult", "StreamState", "retarget", "DEFAULT_PENALTIES", "DEFAULT_WINDOW",
+           "write_live_link_csv",
            "read_live_link_csv", "write_weights_json", "face_model_rotations", "face_model_targets",
            "face_model_weights"]

@@ -32,6 +32,8 @@ audio: the command line (:mod:`jaxtalk.commands.exporting`) writes the audio bes
 from __future__ import annotations
 
 import dataclasses
+import struct
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -92,8 +94,18 @@ class ExportSummary:
                 f"{self.frames} frames at {self.fps:g} fps in {self.channels} animation channels{error}")
 
 
+# Frames an animation's keys are made and written at a time: a long clip's keys never exist all at once.
+_KEY_ROWS = 4096
+
+
 class _GlbWriter:
-    """Accessors over one binary buffer, then the file."""
+    """Accessors over one binary buffer, then the file.
+
+    The buffer is a list of pieces, written when the file is saved: an array's bytes (the mesh), or rows
+    made on demand (an animation's keys, :meth:`streamed`), so that a long animation is written a chunk
+    at a time. The file is what pygltflib's ``save_binary`` writes for the same document and buffer, byte
+    for byte (the JSON chunk space-padded, every view 4-byte aligned, the buffer zero-padded to 4).
+    """
 
     _TYPES = {1: pygltflib.SCALAR, 2: pygltflib.VEC2, 3: pygltflib.VEC3, 4: pygltflib.VEC4, 16: pygltflib.MAT4}
     _COMPONENTS = {np.dtype(np.float32): pygltflib.FLOAT, np.dtype(np.uint8): pygltflib.UNSIGNED_BYTE,
@@ -102,28 +114,63 @@ class _GlbWriter:
     def __init__(self, audio_file: str | None = None) -> None:
         extras = {"audio": audio_file} if audio_file else {}
         self.gltf = pygltflib.GLTF2(asset=pygltflib.Asset(version="2.0", generator="jaxtalk", extras=extras))
-        self.blob = bytearray()
+        self._pieces: list[tuple[int, int, bytes | Callable[[], Iterator[np.ndarray]]]] = []
+        self._length = 0
+
+    def _view(self, nbytes: int, target: int | None, data: bytes | Callable[[], Iterator[np.ndarray]]) -> int:
+        offset = self._length + (-self._length % 4)  # every view starts 4-byte aligned
+        self.gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=offset, byteLength=nbytes,
+                                                          target=target))
+        self._pieces.append((offset, nbytes, data))
+        self._length = offset + nbytes
+        return len(self.gltf.bufferViews) - 1
+
+    def _accessor(self, view: int, dtype: np.dtype, count: int, width: int, low: list | None,
+                  high: list | None) -> int:
+        self.gltf.accessors.append(pygltflib.Accessor(bufferView=view, componentType=self._COMPONENTS[np.dtype(dtype)],
+                                                      count=int(count), type=self._TYPES[width], min=low, max=high))
+        return len(self.gltf.accessors) - 1
 
     def accessor(self, array: np.ndarray, *, target: int | None = None, bounds: bool = False) -> int:
         """Append ``array`` (rows = elements) as an accessor; ``bounds`` writes its min/max."""
         array = np.ascontiguousarray(array)
         width = 1 if array.ndim == 1 else int(np.prod(array.shape[1:]))
-        self.blob.extend(b"\0" * (-len(self.blob) % 4))  # every view starts 4-byte aligned
-        self.gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(self.blob),
-                                                          byteLength=array.nbytes, target=target))
-        self.blob.extend(array.tobytes())
         rows = array.reshape(array.shape[0], width)
-        self.gltf.accessors.append(pygltflib.Accessor(
-            bufferView=len(self.gltf.bufferViews) - 1, componentType=self._COMPONENTS[array.dtype],
-            count=int(array.shape[0]), type=self._TYPES[width],
-            min=rows.min(axis=0).tolist() if bounds else None, max=rows.max(axis=0).tolist() if bounds else None))
-        return len(self.gltf.accessors) - 1
+        view = self._view(array.nbytes, target, array.tobytes())
+        return self._accessor(view, array.dtype, array.shape[0], width, rows.min(axis=0).tolist() if bounds else None,
+                              rows.max(axis=0).tolist() if bounds else None)
+
+    def streamed(self, count: int, width: int, rows: Callable[[], Iterator[np.ndarray]], *,
+                 bounds: tuple[list[float], list[float]] | None = None) -> int:
+        """An accessor of ``count`` float32 elements of ``width`` components whose bytes ``rows()`` yields,
+        in order and in chunks, when the file is saved; ``bounds`` its min/max, known beforehand."""
+        view = self._view(4 * count * width, None, rows)
+        return self._accessor(view, np.dtype(np.float32), count, width, *(bounds if bounds is not None else (None, None)))
 
     def save(self, path: Path) -> None:
-        self.gltf.buffers = [pygltflib.Buffer(byteLength=len(self.blob))]
-        self.gltf.set_binary_blob(bytes(self.blob))
-        with atomic_output(path) as tmp:
-            self.gltf.save_binary(str(tmp))
+        padded = self._length + (-self._length % 4)
+        self.gltf.buffers = [pygltflib.Buffer(byteLength=padded)]
+        document = self.gltf.gltf_to_json(separators=(",", ":"), indent=None).encode("utf-8")
+        document += b" " * (-len(document) % 4)
+        with atomic_output(path) as tmp, open(tmp, "wb") as handle:
+            handle.write(b"glTF" + struct.pack("<II", 2, 12 + 8 + len(document) + 8 + padded))
+            handle.write(struct.pack("<I", len(document)) + b"JSON" + document)
+            handle.write(struct.pack("<I", padded) + b"BIN\0")
+            position = 0
+            for offset, nbytes, data in self._pieces:
+                handle.write(b"\0" * (offset - position))
+                if isinstance(data, bytes):
+                    handle.write(data)
+                else:
+                    written = 0
+                    for chunk in data():
+                        chunk = np.ascontiguousarray(chunk, np.float32)
+                        handle.write(chunk.tobytes())
+                        written += chunk.nbytes
+                    if written != nbytes:  # a maker of rows out of step with its accessor: a bug, not a file
+                        raise AssertionError(f"streamed {written} bytes into a view of {nbytes}")
+                position = offset + nbytes
+            handle.write(b"\0" * (padded - position))
 
 
 def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -211,8 +258,10 @@ def _write_mesh(writer: _GlbWriter, base: np.ndarray, faces: np.ndarray, targets
 
 
 def _channel(writer: _GlbWriter, animation: pygltflib.Animation, times: int, node: int, path: str,
-             values: np.ndarray) -> None:
-    animation.samplers.append(pygltflib.AnimationSampler(input=times, output=writer.accessor(values.astype(np.float32)),
+             values: np.ndarray | int) -> None:
+    """An animated property: ``values`` an array of keys, or the accessor that holds them."""
+    output = values if isinstance(values, int) else writer.accessor(values.astype(np.float32))
+    animation.samplers.append(pygltflib.AnimationSampler(input=times, output=output,
                                                          interpolation=pygltflib.ANIM_LINEAR))
     animation.channels.append(pygltflib.AnimationChannel(
         sampler=len(animation.samplers) - 1, target=pygltflib.AnimationChannelTarget(node=node, path=path)))
@@ -225,7 +274,15 @@ def _check_fps(fps: float | int) -> float:
 
 
 def _times(writer: _GlbWriter, frames: int, fps: float | int) -> int:
-    return writer.accessor(np.arange(frames, dtype=np.float32) / np.float32(fps), bounds=True)
+    """The key times ``frame / fps`` (float32), made a chunk at a time when the file is written."""
+    rate = np.float32(fps)
+
+    def rows() -> Iterator[np.ndarray]:
+        for a in range(0, frames, _KEY_ROWS):
+            yield np.arange(a, min(a + _KEY_ROWS, frames), dtype=np.float32) / rate
+
+    # float32 division, as the keys' own: the last key is the largest
+    return writer.streamed(frames, 1, rows, bounds=([0.0], [float(np.float32(frames - 1) / rate)]))
 
 
 def _continuous(quaternions: np.ndarray) -> np.ndarray:
@@ -471,27 +528,46 @@ def export_rig_animation(
         raise ValueError(f"weights must have shape (frames >= 1, {rig.num_shapes}), got {w.shape}")
     if not np.all(np.isfinite(w)):
         raise ValueError("weights contain NaN or inf")
+    frames = w.shape[0]
     writer = _GlbWriter(audio_file)
     _write_mesh(writer, rig.neutral, rig.faces, rig.deltas, list(rig.names), None)
     gltf = writer.gltf
     animation = pygltflib.Animation(name=name)
-    times = _times(writer, w.shape[0], fps)
+    times = _times(writer, frames, fps)
+    # The keys are made from the weights and rotations a chunk of frames at a time as the file is
+    # written: a clip of any length holds no copy of them.
     if head_rotation is None:
         gltf.nodes.append(pygltflib.Node(name="face", mesh=0))
         roots = [0]
     else:
         rot = np.asarray(head_rotation, np.float64)
-        if rot.shape != (w.shape[0], 3, 3) or not np.all(np.isfinite(rot)):
-            raise ValueError(f"head_rotation must be finite (frames, 3, 3) = {(w.shape[0], 3, 3)}, got {rot.shape}")
+        if rot.shape != (frames, 3, 3) or not np.all(np.isfinite(rot)):
+            raise ValueError(f"head_rotation must be finite (frames, 3, 3) = {(frames, 3, 3)}, got {rot.shape}")
         p = np.zeros(3) if pivot is None else np.asarray(pivot, np.float64).reshape(3)
         # head (at the pivot, rotating) -> face (shifted back by the pivot): x -> p + R (x - p).
         gltf.nodes.append(pygltflib.Node(name="face", mesh=0, translation=(-p).tolist()))
         gltf.nodes.append(pygltflib.Node(name=rig.head_bone or "head", translation=p.tolist(), children=[0]))
         roots = [1]
-        _channel(writer, animation, times, 1, "rotation", _continuous(Rotation.from_matrix(rot).as_quat()))
+
+        def quaternions() -> Iterator[np.ndarray]:
+            last = None
+            for a in range(0, frames, _KEY_ROWS):
+                q = Rotation.from_matrix(rot[a:a + _KEY_ROWS]).as_quat()
+                if last is not None and np.dot(q[0], last) < 0:  # one sign across chunks too (_continuous)
+                    q[0] = -q[0]
+                q = _continuous(q)
+                last = q[-1]
+                yield q
+
+        _channel(writer, animation, times, 1, "rotation", writer.streamed(frames, 4, quaternions))
     gltf.scenes.append(pygltflib.Scene(name="jaxtalk", nodes=roots))
     gltf.scene = 0
-    _channel(writer, animation, times, 0, "weights", w.astype(np.float32).reshape(-1))
+
+    def weight_keys() -> Iterator[np.ndarray]:
+        for a in range(0, frames, _KEY_ROWS):
+            yield w[a:a + _KEY_ROWS].reshape(-1)
+
+    _channel(writer, animation, times, 0, "weights", writer.streamed(frames * w.shape[1], 1, weight_keys))
     gltf.animations.append(animation)
     writer.save(out)
     return ExportSummary(out, "blendshape rig", w.shape[0], fps, rig.num_vertices, int(rig.faces.shape[0]),

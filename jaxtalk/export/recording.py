@@ -7,20 +7,29 @@ yaw, pitch and roll); one row per frame with its timecode ``HH:MM:SS:FF.fff`` (`
 second at the clip's rate, ``.fff`` the sub-frame fraction, ``.000`` for frames on the grid), the count 61,
 and the 61 values. Shapes the rig lacks are 0; head angles are radians (see
 :mod:`jaxtalk.export.retarget`); the eyes' rotations are 0 (jaxtalk moves the lids, not eyeballs).
+
+Both files are written a chunk of frames at a time (atomically, as every jaxtalk file): a clip of any
+length holds nothing but its weights and head angles while they are written.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
 from jaxtalk.export.rig import arkit_shape_name
-from jaxtalk.files import atomic_write_json, atomic_write_text, check_output_path
+from jaxtalk.files import atomic_output, check_output_path
 from jaxtalk.types import Float
+
+# Frames made into text at a time.
+_ROWS = 1024
 
 __all__ = ["live_link_timecode", "arkit_weights", "live_link_curves", "write_live_link_csv", "write_weights_json",
            "read_live_link_csv"]
@@ -90,14 +99,29 @@ def write_live_link_csv(path: str | Path, names: tuple[str, ...] | list[str], we
         ValueError: mismatched shapes, NaN, a bad path or fps.
     """
     path = check_output_path(path, (".csv",))
-    values = live_link_curves(names, weights, head_angles)
-    frames = values.shape[0]
-    text = io.StringIO()
-    text.write("Timecode,BlendShapeCount," + ",".join(LIVE_LINK_CURVES) + "\n")
-    for t in range(frames):
-        text.write(f"{live_link_timecode(t, fps)},{len(LIVE_LINK_CURVES)}," + ",".join(f"{x:.6f}" for x in values[t])
-                   + "\n")
-    return atomic_write_text(path, text.getvalue())
+    w, head = _checked(names, weights, head_angles)
+    live_link_timecode(0, fps)  # checks fps before the file is opened
+    with atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8", newline="") as handle:
+        handle.write("Timecode,BlendShapeCount," + ",".join(LIVE_LINK_CURVES) + "\n")
+        for a in range(0, w.shape[0], _ROWS):
+            values = live_link_curves(names, w[a:a + _ROWS], None if head is None else head[a:a + _ROWS])
+            handle.write("".join(f"{live_link_timecode(a + t, fps)},{len(LIVE_LINK_CURVES)},"
+                                 + ",".join(f"{x:.6f}" for x in row) + "\n" for t, row in enumerate(values)))
+    return path
+
+
+def _checked(names: tuple[str, ...] | list[str], weights: Any, head_angles: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(weights (T, K), head angles (T, 3) or None)`` as arrays, their shapes checked before anything is written
+    (their values are checked a chunk at a time as they are)."""
+    w = np.asarray(weights, np.float64)
+    if w.ndim != 2 or w.shape[1] != len(names):
+        raise ValueError(f"weights must have shape (frames, {len(names)}) for {len(names)} names, got {w.shape}")
+    if head_angles is None:
+        return w, None
+    head = np.asarray(head_angles, np.float64)
+    if head.shape != (w.shape[0], 3):
+        raise ValueError(f"head_angles must have shape ({w.shape[0]}, 3), got {head.shape}")
+    return w, head
 
 
 def read_live_link_csv(path: str | Path) -> tuple[list[str], Float[np.ndarray, "frames 61"]]:
@@ -131,19 +155,55 @@ def write_weights_json(path: str | Path, *, names: tuple[str, ...] | list[str], 
     and their convention), plus ``extra``. Atomically.
     """
     path = check_output_path(path, (".json",))
-    w = np.asarray(weights, np.float64)
+    w, h = _checked(names, weights, head_angles)
+    for what, values in (("weights", w), ("head angles", h)):
+        if values is not None and not all(np.isfinite(values[a:a + _ROWS]).all() for a in range(0, len(values), _ROWS)):
+            raise ValueError(f"{what} hold NaN or inf, which JSON cannot")
     payload: dict = {
         "fps": float(fps),
         "frames": int(w.shape[0]),
         "names": list(names),
         "arkit": [arkit_shape_name(n) for n in names],
-        "weights": np.round(w, 6).tolist(),
+        "weights": _Rows(w),
     }
-    if head_angles is not None:
-        h = np.asarray(head_angles, np.float64)
+    if h is not None:
         payload["head"] = {"units": "radians",
                            "convention": "R = Ry(yaw) Rx(pitch) Rz(roll); x: subject's left, y: up, z: out of the face",
-                           "yaw": np.round(h[:, 0], 6).tolist(), "pitch": np.round(h[:, 1], 6).tolist(),
-                           "roll": np.round(h[:, 2], 6).tolist()}
+                           "yaw": _Rows(h[:, 0]), "pitch": _Rows(h[:, 1]), "roll": _Rows(h[:, 2])}
     payload.update(extra or {})
-    return atomic_write_json(path, payload)
+    with atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8") as handle:
+        _dump(payload, handle, 0)
+        handle.write("\n")
+    return path
+
+
+class _Rows:
+    """A per-frame array in a JSON document, written a chunk of frames at a time (a frame's values on one
+    line), each value rounded to 6 decimals as ``np.round(x, 6).tolist()`` gives it."""
+
+    def __init__(self, array: np.ndarray) -> None:
+        self.array = array
+
+    def lines(self) -> Iterator[str]:
+        for a in range(0, len(self.array), _ROWS):
+            chunk = np.round(self.array[a:a + _ROWS], 6).tolist()
+            yield ",\n".join(json.dumps(row) for row in chunk) if self.array.ndim > 1 else json.dumps(chunk)[1:-1]
+
+
+def _dump(value: Any, handle: io.TextIOBase, depth: int) -> None:
+    """``json.dump`` (values JSON cannot hold as ``str``, as :func:`jaxtalk.files.atomic_write_json`) with
+    :class:`_Rows` written as they are made: objects that hold them one key a line, the rest as JSON writes them."""
+    if isinstance(value, _Rows):
+        handle.write("[")
+        for k, text in enumerate(value.lines()):
+            handle.write((",\n" if k else "") + text)
+        handle.write("]")
+    elif isinstance(value, dict) and any(isinstance(v, (_Rows, dict)) for v in value.values()):
+        indent = "\n" + " " * (depth + 1)
+        handle.write("{")
+        for k, (key, item) in enumerate(value.items()):
+            handle.write(("," if k else "") + indent + json.dumps(str(key)) + ": ")
+            _dump(item, handle, depth + 1)
+        handle.write("\n" + " " * depth + "}")
+    else:
+        handle.write(json.dumps(value, default=str))

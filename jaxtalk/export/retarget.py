@@ -28,6 +28,12 @@ composed as ``R = R_y(yaw) R_x(pitch) R_z(roll)``. The jaw stays in the fitted m
 Penalties are relative to the fit term, which is divided by the rig's mean squared shape norm over the
 fitted vertices: a residual as large as one average shape at full weight costs 1/2, as does a weight jump
 of ``1 / sqrt(smoothness)`` between frames.
+
+A clip of any length runs in bounded memory: it is solved in windows of :data:`DEFAULT_WINDOW` frames,
+each solved on past its end by a look-ahead (:meth:`Retargeter.lookahead`, set by how fast the smoothness
+term's coupling decays) and tied to the last weights already kept, so that where windows join the weights
+are one whole-clip solve's to within the solver's tolerance; per-vertex arrays exist for a few hundred
+frames at a time. What a clip keeps is its weights, ``frames x shapes``, and the head's rotations.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ from jaxtalk.face.model import LinearFaceModel
 from jaxtalk.types import PARAM_DIM, Float, Int
 
 __all__ = ["Retargeter", "RetargetResult", "Registration", "StreamState", "retarget", "head_angles",
-           "DEFAULT_PENALTIES", "DEFAULT_MAX_DISTANCE"]
+           "DEFAULT_PENALTIES", "DEFAULT_MAX_DISTANCE", "DEFAULT_WINDOW", "MAX_LOOKAHEAD"]
 
 # What `jaxtalk retarget` uses unless told otherwise: a little smoothing and ridge, no sparsity or symmetry.
 DEFAULT_PENALTIES = Penalties(smoothness=0.05, l1=0.0, l2=1e-4, symmetry=0.0)
@@ -55,6 +61,14 @@ DEFAULT_MAX_DISTANCE = 0.01
 # The fraction of the fitted rig vertices, those the rig's shapes move least, that Procrustes on a vertex
 # sequence takes for the head's rigid part.
 _RIGID_FRACTION = 0.1
+# Frames a clip is solved in at once (40 s at 25 fps), each window followed by its look-ahead
+# (Retargeter.lookahead): the weights, frames x shapes, are all a clip of any length keeps.
+DEFAULT_WINDOW = 1000
+# The longest look-ahead: beyond it (a very smooth solve of shapes the fit barely sees) the seams are
+# within RetargetResult.seam_bound of one whole-clip solve instead of the solver's tolerance.
+MAX_LOOKAHEAD = 4 * DEFAULT_WINDOW
+# Frames whose per-vertex arrays (displacements, the fit's residual) exist at once: what bounds memory.
+_PIECE = 250
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,8 +107,12 @@ class RetargetResult(NamedTuple):
         head_angles: ``(T, 3)`` yaw, pitch, roll in radians (module docstring).
         rms_error: metres, root-mean-square distance of the fitted rig vertices from the motion, over every
             frame (what the weights cannot reproduce).
-        iterations: solver steps.
-        seconds: wall time of the solve.
+        iterations: solver steps (of the window that took the most).
+        seconds: wall time of the solves.
+        windows: how many windows the clip was solved in (1: one solve of the whole clip).
+        lookahead: frames solved after each window and dropped (:meth:`Retargeter.lookahead`).
+        seam_bound: how far, at most, the weights where two windows join may lie from one whole-clip
+            solve's (``rho ** lookahead``, :meth:`Retargeter.lookahead`); 0 for one window.
     """
 
     weights: Float[np.ndarray, "frames k"]
@@ -103,6 +121,9 @@ class RetargetResult(NamedTuple):
     rms_error: float
     iterations: int
     seconds: float
+    windows: int = 1
+    lookahead: int = 0
+    seam_bound: float = 0.0
 
 
 class StreamState(NamedTuple):
@@ -131,6 +152,14 @@ def _boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
 @jax.jit
 def _rhs(bs, disp):
     return jnp.einsum("vck,tvc->tk", bs, disp)
+
+
+@jax.jit
+def _squared_residuals(basis, corners, bary, disp, weights):
+    """Per frame, the summed squared distance of the fitted points from the motion: ``(T,)``."""
+    # One corner at a time: a (T, n, 3) gather each, never the (T, n, 3, 3) of all three at once.
+    target = sum(bary[None, :, j, None] * disp[:, corners[:, j]] for j in range(3))
+    return jnp.sum((target - jnp.einsum("tk,knc->tnc", weights, basis)) ** 2, axis=(1, 2))
 
 
 @jax.jit
@@ -175,7 +204,10 @@ class Retargeter:
         np.add.at(bs, corners.reshape(-1), (bary[:, :, None, None] * np.moveaxis(basis, 0, -1)[:, None]).reshape(
             -1, 3, rig.num_shapes))
         dtype = jnp.result_type(float)
+        self._gram64 = gram / self._scale  # the lookahead's eigenvalues, in float64
+        self._lookaheads: dict[tuple[Penalties, float], tuple[int, float]] = {}
         self._gram = jnp.asarray(gram / self._scale, dtype)
+        self._residual_args = (jnp.asarray(basis, dtype), jnp.asarray(corners), jnp.asarray(bary, dtype))
         self._bs = jnp.asarray(bs / self._scale, dtype)
         self._symmetry = jnp.asarray(symmetry_matrix(rig.pairs(), rig.num_shapes), dtype)
 
@@ -342,34 +374,192 @@ class Retargeter:
         """``B^T d / scale`` per frame, jitted."""
         return _rhs(self._bs, jnp.asarray(displacements, self._bs.dtype))
 
-    def __call__(self, motion: np.ndarray, *, previous: np.ndarray | None = None, penalties: Penalties | None = None,
-                 tol: float = DEFAULT_TOL, max_iter: int = DEFAULT_MAX_ITER) -> RetargetResult:
+    def lookahead(self, penalties: Penalties | None = None, tol: float = DEFAULT_TOL) -> tuple[int, float]:
+        """``(frames, bound)``: how many frames to solve past a window's end so that its last kept frame is the
+        whole clip's solve's to within ``tol``, and the bound that length gives (:data:`MAX_LOOKAHEAD` caps it).
+
+        The smoothness term couples each frame to its neighbours only, so a change at one frame reaches a
+        frame ``d`` away damped by ``rho ** d``: for the slowest direction, the smallest eigenvalue ``h`` of
+        one frame's Hessian (the fit's Gram matrix plus the L2 and symmetry terms, in the solver's units),
+        ``s (2 w_t - w_{t-1} - w_{t+1}) + h w_t = 0`` decays with ``rho = a - sqrt(a^2 - 1)``, ``a = 1 + h / 2s``
+        (bounds the solution keeps active only steepen the decay). Ending the solve at the look-ahead's last
+        frame moves that frame's weights by at most the box's width (1), hence ``rho ** d <= tol``: about 330
+        frames for the built-in rig at the default penalties; none without smoothness (frames independent).
+        """
+        penalties = penalties or self.penalties
+        if penalties.smoothness == 0:
+            return 0, 0.0
+        if (penalties, tol) not in self._lookaheads:  # a stream asks every chunk
+            self._lookaheads[penalties, tol] = self._lookahead(penalties, tol)
+        return self._lookaheads[penalties, tol]
+
+    def _lookahead(self, penalties: Penalties, tol: float) -> tuple[int, float]:
+        hessian = (self._gram64 + penalties.l2 * np.eye(self.rig.num_shapes)
+                   + penalties.symmetry * np.asarray(self._symmetry, np.float64))
+        h = max(float(np.linalg.eigvalsh(hessian)[0]), 0.0)
+        a = 1.0 + h / (2.0 * penalties.smoothness)
+        rho = a - np.sqrt(a * a - 1.0)
+        frames = MAX_LOOKAHEAD if rho >= 1.0 else min(MAX_LOOKAHEAD, int(np.ceil(np.log(tol) / np.log(rho))))
+        return max(frames, 1), float(rho ** max(frames, 1))
+
+    def __call__(self, motion: Any, *, previous: np.ndarray | None = None, penalties: Penalties | None = None,
+                 tol: float = DEFAULT_TOL, max_iter: int = DEFAULT_MAX_ITER,
+                 window: int | None = DEFAULT_WINDOW) -> RetargetResult:
         """Retarget a clip: ``(T, 56)`` parameters (:meth:`for_face`) or ``(T, V, 3)`` vertices (:meth:`for_mesh`).
 
+        A clip longer than ``window`` plus the :meth:`lookahead` is solved a window at a time: each window of
+        ``window`` frames is solved together with the look-ahead after it (whose weights are dropped, then
+        solved again as the next window's), its first frame tied by the smoothness term to the last weights
+        already kept. Only the frames of the window being solved have per-vertex arrays (and those
+        :data:`_PIECE` frames at a time), so memory does not grow with the clip: a memory-mapped ``.npy``
+        is read a window at a time. Where two windows join, the weights are one whole-clip solve's to
+        within ``seam_bound`` (the solver's ``tol`` unless the look-ahead was capped).
+
         Args:
-            motion: the clip.
+            motion: the clip (any array-like that slices by frame: a NumPy array, a memory map).
             previous: the weights of the frame before it (a stream's last frame), or None.
             penalties: instead of the retargeter's own.
             tol, max_iter: the solver's stopping rule.
+            window: frames kept per window; None solves the whole clip at once (memory grows with it).
 
         Raises:
-            ValueError: a wrong shape, NaN or inf.
+            ValueError: a wrong shape, NaN or inf, a window below one frame.
         """
-        disp, rot = self.displacements(motion)
-        rhs = self.rhs(disp)
-        start = time.perf_counter()
-        weights, info = self.solve(rhs, previous, penalties=penalties, tol=tol, max_iter=max_iter)
-        weights = np.asarray(jax.block_until_ready(weights), np.float64)
-        seconds = time.perf_counter() - start
-        return RetargetResult(weights, rot, head_angles(rot), self.rms_error(disp, weights), int(info.iterations),
-                              seconds)
+        penalties = penalties or self.penalties
+        frames = self._frames(motion)
+        if window is not None and (isinstance(window, bool) or int(window) != window or window < 1):
+            raise ValueError(f"window must be a whole number of frames >= 1 (or None), got {window!r}")
+        ahead, bound = self.lookahead(penalties, tol)
+        if window is None or frames <= window + ahead:
+            span = keep = frames  # one solve of the whole clip
+        else:
+            span, keep = int(window) + ahead, int(window)
+        weights = np.empty((frames, self.rig.num_shapes))
+        rotations = np.empty((frames, 3, 3))
+        squared, iterations, seconds, windows, done = 0.0, 0, 0.0, 0, 0
+        while done < frames:
+            # Every window is `span` frames (the last one ends at the clip's end and starts earlier), so
+            # one compiled solve serves them all; it is tied to the frame before it, already kept.
+            start = min(done, frames - span)
+            anchor = previous if start == 0 else weights[start - 1]
+            stop = min(done + keep, frames)
+            w, rot, sq, info, spent = self._window(motion, start, start + span, done - start, stop - start, anchor,
+                                                   penalties, tol, max_iter)
+            weights[done:stop], rotations[done:stop] = w, rot
+            squared += sq
+            iterations, seconds, windows = max(iterations, int(info.iterations)), seconds + spent, windows + 1
+            done = stop
+        rms = float(np.sqrt(squared / (frames * self.corners.shape[0])))
+        return RetargetResult(weights, rotations, head_angles(rotations), rms, iterations, seconds, windows,
+                              ahead if windows > 1 else 0, bound if windows > 1 else 0.0)
+
+    def _frames(self, motion: Any) -> int:
+        """The clip's frame count, its shape checked (values are checked a piece at a time)."""
+        shape = np.shape(motion)
+        if self.face is not None:
+            if len(shape) != 2 or shape[1] != PARAM_DIM or shape[0] < 1:
+                raise ValueError(f"motion must be (frames, {PARAM_DIM}) head parameters, got shape {shape}")
+        else:
+            v = self.neutral.shape[0]
+            if not (len(shape) == 2 and shape[1] == 3 * v or len(shape) == 3 and shape[1:] == (v, 3)) or shape[0] < 1:
+                raise ValueError(f"motion must be (frames, {v}, 3) vertices of the retargeter's mesh, got shape "
+                                 f"{shape}")
+        return int(shape[0])
+
+    def _window(self, motion: Any, start: int, stop: int, first: int, last: int, anchor: np.ndarray | None,
+                penalties: Penalties, tol: float, max_iter: int) -> tuple[np.ndarray, np.ndarray, float, Any, float]:
+        """Solve frames ``[start, stop)``, tied to ``anchor``; keep ``[first, last)`` of them (window positions).
+
+        Returns the kept weights and rotations, their summed squared residual, the solver's info and its time.
+        """
+        rhs, kept = [], []
+        rotations = np.empty((last - first, 3, 3))
+        for a in range(0, stop - start, _PIECE):
+            b = min(a + _PIECE, stop - start)
+            disp, rot = self.displacements(motion[start + a:start + b])
+            rhs.append(self.rhs(disp))
+            lo, hi = max(a, first), min(b, last)
+            if lo < hi:  # a piece with kept frames: its displacements wait for the weights' residual
+                kept.append((a, lo, hi, disp))
+                rotations[lo - first:hi - first] = rot[lo - a:hi - a]
+        clock = time.perf_counter()
+        weights, info = self.solve(jnp.concatenate(rhs), anchor, penalties=penalties, tol=tol, max_iter=max_iter)
+        weights = jax.block_until_ready(weights)
+        spent = time.perf_counter() - clock
+        squared = 0.0
+        for a, lo, hi, disp in kept:
+            per_frame = self._squared_residuals(disp, weights[a:a + disp.shape[0]])
+            squared += float(np.sum(per_frame[lo - a:hi - a], dtype=np.float64))
+        return np.asarray(weights[first:last], np.float64), rotations, squared, info, spent
+
+    def _squared_residuals(self, displacements: Any, weights: Any) -> np.ndarray:
+        dtype = self._bs.dtype
+        return np.asarray(_squared_residuals(*self._residual_args, jnp.asarray(displacements, dtype),
+                                             jnp.asarray(weights, dtype)), np.float64)
 
     def rms_error(self, displacements: Any, weights: np.ndarray) -> float:
-        """Root-mean-square distance (metres) of the fitted rig vertices from the motion."""
-        d = np.asarray(displacements, np.float64)
-        target = np.einsum("nj,tnjc->tnc", self.bary, d[:, self.corners])
-        fit = np.einsum("tk,knc->tnc", weights, self._basis)
-        return float(np.sqrt(np.mean(np.sum((target - fit) ** 2, axis=-1))))
+        """Root-mean-square distance (metres) of the fitted rig vertices from the motion (displacements as
+        :meth:`displacements` gives them), :data:`_PIECE` frames at a time."""
+        frames = len(weights)
+        squared = sum(float(np.sum(self._squared_residuals(displacements[a:a + _PIECE], weights[a:a + _PIECE]),
+                                   dtype=np.float64)) for a in range(0, frames, _PIECE))
+        return float(np.sqrt(squared / (frames * self.corners.shape[0])))
+
+    @property
+    def face_radius(self) -> float:
+        """Metres: the root-mean-square distance of the fitted points (the rig's vertices on the motion's
+        mesh, template frame) from their centroid; the face's size :meth:`check_fit` holds a fit error to."""
+        points = np.einsum("nj,njc->nc", self.bary, self.neutral[self.corners])
+        return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=-1))))
+
+    def check_fit(self, rms_error: float, frame: Float[np.ndarray, "..."] | None = None) -> None:
+        """Refuse a fit error larger than the face itself: the mark of a unit or scale mistake, not a poor fit.
+
+        The threshold is :attr:`face_radius` (73 mm on the built-in face): a fit error that large means the
+        motion's points lie, on average, as far from where the rig can put them as the face's own points lie
+        from its centre. No expression comes near it (the built-in rig's widest-open jaw moves the face's
+        points by 14 mm RMS, and a fit error is at most the motion's own displacement), while a unit mistake
+        does whatever the face's size: vertices 10, 100 or 1000 times too large, or too small by as much,
+        miss by a whole face or more, as do parameters scaled by 100.
+
+        Args:
+            rms_error: metres, :attr:`RetargetResult.rms_error`.
+            frame: one frame of a vertex sequence as given (its size against its mesh's names the unit
+                mistake); None for parameters.
+
+        Raises:
+            ValueError: a fit error at or above :attr:`face_radius`, with the likely mistake.
+        """
+        radius = self.face_radius
+        if not rms_error >= radius:
+            return
+        head = (f"fit error {rms_error * 1e3:.0f} mm RMS is larger than the face itself (its points lie "
+                f"{radius * 1e3:.0f} mm from its centre, RMS)")
+        if frame is None:
+            raise ValueError(f"{head}: these parameters move the face farther than any expression does; are they "
+                             "scaled (by 100 or 1000?), or another face model's (FLAME's: pass --flame)?")
+        import math
+
+        from jaxtalk.geometry.canonical import UNITS
+
+        x = np.asarray(frame, np.float64).reshape(-1, 3)
+        if self._to_template is not None:
+            x = self._to_template.to_template(x)
+
+        def spread(points: np.ndarray) -> float:
+            return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=-1))))
+
+        ratio = spread(x) / spread(self.neutral)
+        power = round(math.log10(ratio)) if ratio > 0 else 0
+        unit = self._to_template.units if self._to_template is not None else "m"
+        given = [name for name, metres in UNITS.items() if math.isclose(metres, UNITS[unit] / 10.0**power)]
+        if power == 0 or abs(math.log10(ratio) - power) > 0.1:
+            raise ValueError(f"{head}: the vertices do not move like the mesh they were matched to; were they "
+                             "animated on another mesh of as many vertices (pass --mesh, that mesh's file)?")
+        size = f"{10.0**power:g} times the size" if power > 0 else f"1/{10.0**-power:g} of the size"
+        units = f"are they in {given[0]} and the mesh in {unit}? " if given else ""
+        raise ValueError(f"{head}: the vertices are {size} of the mesh they animate; {units}save them in the "
+                         f"mesh's units ({unit})")
 
     def init_stream(self) -> StreamState:
         """The state before a stream's first chunk."""

@@ -9,6 +9,8 @@
   so that examples and tests need no download.
 * :func:`arkit_shape_name` and :func:`symmetric_pairs`: names as rigs spell them (``eyeBlink_L``,
   ``blendShape1.EyeBlinkLeft``, ``mouthSmileLeft``) matched to ARKit's, and left/right pairs found by name.
+  A rig with two shapes on one ARKit name (``jawOpen`` and ``JAWOPEN``) is refused
+  (:func:`check_arkit_names`): the fit would split that shape's weight between them.
 
 "Left" and "Right" are the subject's own sides, as in ARKit; on the built-in face the subject's left is +x.
 """
@@ -25,8 +27,8 @@ import numpy as np
 from jaxtalk.export.arkit import ARKIT_NAMES
 from jaxtalk.types import Float, Int
 
-__all__ = ["Rig", "load_rig", "arkit_rig", "arkit_shape_name", "symmetric_pairs", "side_of", "NEUTRAL_NAMES",
-           "RIG_SUFFIXES"]
+__all__ = ["Rig", "load_rig", "arkit_rig", "arkit_shape_name", "check_arkit_names", "symmetric_pairs", "side_of",
+           "NEUTRAL_NAMES", "RIG_SUFFIXES"]
 
 RIG_SUFFIXES = (".glb", ".gltf")
 # File stems (lower case) that name the neutral of an OBJ folder.
@@ -76,6 +78,32 @@ def symmetric_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
             if side == "Left" and (stem, "Right") in by_stem]
 
 
+def check_arkit_names(names: Sequence[str], labels: Sequence[str] | None = None) -> None:
+    """Refuse two shapes that :func:`arkit_shape_name` maps to one ARKit shape (``jawOpen`` and ``JAWOPEN``).
+
+    Both would fit the same motion, so the solver splits the weight between them (each near half of it)
+    while Live Link Face, whose ``JawOpen`` is one curve, carries only one of them: a rig that means one
+    shape twice is a mistake to fix in the rig, not something to guess around.
+
+    Args:
+        names: the shape names.
+        labels: what to call each shape in the message (its file's name); default the names, quoted.
+
+    Raises:
+        ValueError: naming the first two shapes on one ARKit name.
+    """
+    labels = [repr(n) for n in names] if labels is None else list(labels)
+    seen: dict[str, int] = {}
+    for i, name in enumerate(names):
+        arkit = arkit_shape_name(name)
+        if arkit is None:
+            continue
+        if arkit in seen:
+            raise ValueError(f"{labels[seen[arkit]]} and {labels[i]} are both ARKit's {arkit!r}: the fit would split "
+                             "its weight between them; keep one of them (rename or remove the other)")
+        seen[arkit] = i
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Rig:
     """A blendshape rig: ``vertices = neutral + sum_k w_k deltas[k]``, weights in ``[0, 1]``.
@@ -118,6 +146,7 @@ class Rig:
         if len(set(self.names)) != len(self.names):
             dup = sorted({n for n in self.names if self.names.count(n) > 1})
             raise ValueError(f"the rig names several morph targets {dup[0]!r}: shape names must be distinct")
+        check_arkit_names(self.names)
         if not (np.all(np.isfinite(neutral)) and np.all(np.isfinite(deltas))):
             raise ValueError("the rig's vertices or morph targets hold NaN or inf")
         if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] < 1:
@@ -139,12 +168,13 @@ class Rig:
 
     @property
     def arkit(self) -> dict[str, int]:
-        """ARKit name -> shape index, for the rig's shapes that are ARKit's (the first of any repeats)."""
+        """ARKit name -> shape index, for the rig's shapes that are ARKit's (one each: see
+        :func:`check_arkit_names`)."""
         out: dict[str, int] = {}
         for i, name in enumerate(self.names):
             arkit = arkit_shape_name(name)
             if arkit is not None:
-                out.setdefault(arkit, i)
+                out[arkit] = i
         return out
 
     def pairs(self) -> list[tuple[int, int]]:
@@ -182,7 +212,8 @@ def load_rig(path: str | Path) -> Rig:
     Raises:
         FileNotFoundError: no such file or folder.
         ValueError: an unreadable or compressed file, a mesh without morph targets, an OBJ folder without
-            a neutral or with shapes of another vertex count.
+            a neutral or with shapes of another vertex count, two shapes (files or morph targets) on one
+            ARKit name (:func:`check_arkit_names`).
     """
     path = Path(path)
     if path.is_dir():
@@ -272,6 +303,10 @@ def _load_gltf(path: Path) -> Rig:
     names = list((mesh.extras or {}).get("targetNames") or (prims[0].extras or {}).get("targetNames") or [])
     if len(names) != num_targets:
         names = [f"target_{k}" for k in range(num_targets)]
+    try:
+        check_arkit_names(names)
+    except ValueError as err:
+        raise ValueError(f"{str(path)!r}: morph targets {err}") from None
     neutral_parts, delta_parts, face_parts, offset = [], [], [], 0
     for prim in prims:
         base = read_accessor(gltf, blob, prim.attributes.POSITION).astype(np.float64)
@@ -323,6 +358,10 @@ def _load_obj_folder(folder: Path) -> Rig:
     if not shapes:
         raise ValueError(f"{str(folder)!r} holds a neutral but no shapes: a blendshape rig needs at least one "
                          "more OBJ, named after its shape")
+    try:  # before reading the shapes: the message names the two files
+        check_arkit_names([p.stem for p in shapes], [p.name for p in shapes])
+    except ValueError as err:
+        raise ValueError(f"{str(folder)!r}: {err}") from None
     deltas = []
     for p in shapes:
         verts, _ = load_mesh(p)

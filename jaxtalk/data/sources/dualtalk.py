@@ -38,15 +38,15 @@ def is_flat_dualtalk(root: Path) -> bool:
 
 def _read(npz: Path | None, wav: Path) -> RawClip:
     from jaxtalk.audio.io import load_audio
-    from jaxtalk.data.formats import dualtalk_to_params56
+    from jaxtalk.data.formats import dualtalk_to_params56, load_npz
 
     params = None
     if npz is not None:
-        with np.load(npz, allow_pickle=False) as data:
-            missing = [k for k in ("exp", "pose") if k not in data.files]
-            if missing:
-                raise ValueError(f"missing keys {missing} (found {sorted(data.files)})")
-            exp, pose = np.asarray(data["exp"], np.float32), np.asarray(data["pose"], np.float32)
+        data = load_npz(npz, what="motion file")
+        missing = [k for k in ("exp", "pose") if k not in data]
+        if missing:
+            raise ValueError(f"missing keys {missing} (found {sorted(data)})")
+        exp, pose = np.asarray(data["exp"], np.float32), np.asarray(data["pose"], np.float32)
         if exp.ndim != 2 or pose.ndim != 2 or exp.shape[1] != 50 or pose.shape[1] != 6:
             raise ValueError(f"expected exp (T, 50) and pose (T, 6), got {exp.shape} and {pose.shape}")
         if exp.shape[0] != pose.shape[0]:

@@ -86,36 +86,36 @@ def _token_rate(root: Path) -> float | None:
 
 def _read(npz: Path, wav: Path, tokens: Path | None, token_rate: float | None) -> RawClip:
     from jaxtalk.audio.io import load_audio
-    from jaxtalk.data.formats import dualtalk_to_params56
+    from jaxtalk.data.formats import dualtalk_to_params56, load_npy, load_npz
 
-    with np.load(npz, allow_pickle=False) as data:
-        keys = set(data.files)
-        if "fps" not in keys:
-            raise ValueError(f"no 'fps' in the npz (found {sorted(keys)})")
-        fps = np.asarray(data["fps"])
-        if fps.shape != () or not np.issubdtype(fps.dtype, np.number):
-            raise ValueError(f"'fps' must be a numeric scalar, got {fps.dtype} {fps.shape}")
-        params = vertices = template = oracle = None
-        if "params56" in keys:
-            params = np.asarray(data["params56"], np.float32)
-        elif {"exp", "pose"} <= keys:
-            exp, pose = np.asarray(data["exp"], np.float32), np.asarray(data["pose"], np.float32)
-            if exp.ndim != 2 or pose.ndim != 2 or exp.shape[1] != 50 or pose.shape[1] != 6 or len(exp) != len(pose):
-                raise ValueError(f"expected exp (T, 50) and pose (T, 6), got {exp.shape} and {pose.shape}")
-            params = dualtalk_to_params56(exp, pose)
-        elif "vertices" in keys:
-            vertices = np.asarray(data["vertices"], np.float32)
-            template = np.asarray(data["template"], np.float32) if "template" in keys else None
-        else:
-            raise ValueError(f"no motion: needs 'params56', 'exp' + 'pose', or 'vertices' (found {sorted(keys)})")
-        if "oracle" in keys:
-            oracle = np.asarray(data["oracle"], np.float32)
+    data = load_npz(npz, what="motion file")
+    keys = set(data)
+    if "fps" not in keys:
+        raise ValueError(f"no 'fps' in the npz (found {sorted(keys)})")
+    fps = np.asarray(data["fps"])
+    if fps.shape != () or not np.issubdtype(fps.dtype, np.number):
+        raise ValueError(f"'fps' must be a numeric scalar, got {fps.dtype} {fps.shape}")
+    params = vertices = template = oracle = None
+    if "params56" in keys:
+        params = np.asarray(data["params56"], np.float32)
+    elif {"exp", "pose"} <= keys:
+        exp, pose = np.asarray(data["exp"], np.float32), np.asarray(data["pose"], np.float32)
+        if exp.ndim != 2 or pose.ndim != 2 or exp.shape[1] != 50 or pose.shape[1] != 6 or len(exp) != len(pose):
+            raise ValueError(f"expected exp (T, 50) and pose (T, 6), got {exp.shape} and {pose.shape}")
+        params = dualtalk_to_params56(exp, pose)
+    elif "vertices" in keys:
+        vertices = np.asarray(data["vertices"], np.float32)
+        template = np.asarray(data["template"], np.float32) if "template" in keys else None
+    else:
+        raise ValueError(f"no motion: needs 'params56', 'exp' + 'pose', or 'vertices' (found {sorted(keys)})")
+    if "oracle" in keys:
+        oracle = np.asarray(data["oracle"], np.float32)
     audio = load_audio(wav, allow_silence=True)
     emb = None
     if tokens is not None:
         if token_rate is None:
             raise ValueError(f"{tokens.name} has no rate: write {TOKENS_FILE} with {{\"rate\": <Hz>}}")
-        emb = np.asarray(np.load(tokens, allow_pickle=False), np.float32)
+        emb = np.asarray(load_npy(tokens, what="token file"), np.float32)
     return RawClip(fps=float(fps), params=params, vertices=vertices, template=template, audio=audio,
                    tokens=emb, token_rate=token_rate if emb is not None else None, oracle=oracle)
 

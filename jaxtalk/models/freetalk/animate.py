@@ -92,10 +92,15 @@ def read_landmarks(path: str | os.PathLike[str], vertices: np.ndarray) -> Float[
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"landmark file not found: {str(p)!r}")
-    try:
-        arr = np.load(p, allow_pickle=False) if p.suffix.lower() == ".npy" else np.loadtxt(p)
-    except ValueError as err:
-        raise ValueError(f"{str(p)!r}: cannot read landmarks ({err})") from None
+    if p.suffix.lower() == ".npy":
+        from jaxtalk.data.formats import load_npy
+
+        arr = load_npy(p, what="landmark file")
+    else:
+        try:
+            arr = np.loadtxt(p)
+        except ValueError as err:
+            raise ValueError(f"{str(p)!r}: cannot read landmarks ({err})") from None
     arr = np.asarray(arr)
     if arr.shape == (NUM_LANDMARKS,) and np.all(np.mod(arr, 1) == 0):
         idx = arr.astype(np.int64)
