@@ -203,9 +203,9 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     with contextlib.ExitStack() as held:
         # One writer per run folder, taken before anything is read from it (process 0 of a multi-process
         # run holds it for all); the loop below takes the same lock again, within this process.
+        held.enter_context(_stop_on_interrupt(stop, out))
         if jax.process_index() == 0:
             held.enter_context(folder_lock(out))
-        held.enter_context(_stop_on_interrupt(stop, out))
         return _train_into(opts, out, spec, stop, start, echo)
 
 
