@@ -487,9 +487,12 @@ def _is_converted_run(out: Path) -> bool:
 
 
 def _feature_folder(features: str) -> Path | None:
-    """The encoder folder a ``wav2vec2:PATH`` / ``hubert:PATH`` spec reads (None: none)."""
-    kind, _, path = features.partition(":")
-    return Path(path) if kind in ("hubert", "wav2vec2") and path else None
+    """The encoder folder a ``wav2vec2:PATH`` / ``hubert:PATH`` spec reads (None: ``logmel``), the spec
+    checked by the one parser ``prepare`` uses too (and the folder's existence)."""
+    from jaxtalk.data.features import parse_audio_features
+
+    path = parse_audio_features(features).path
+    return None if path is None else Path(path)
 
 
 def _check_out(out: Path, overwrite: bool, inputs: list[Any]) -> None:
@@ -499,12 +502,6 @@ def _check_out(out: Path, overwrite: bool, inputs: list[Any]) -> None:
     from jaxtalk.files import claim_folder
 
     claim_folder(out, inputs, ours=_CONVERTED_NAMES, previous_output=_is_converted_run(out), overwrite=overwrite)
-
-
-def _check_features(features: str) -> None:
-    from jaxtalk.data.features import parse_audio_features
-
-    parse_audio_features(features)  # validates the spec (and that its folder exists)
 
 
 def write_converted_run(
@@ -546,7 +543,8 @@ def write_converted_run(
     Raises:
         ValueError: an existing non-empty ``out`` without ``overwrite``, ``out`` a file, or an ``out``
             that holds the working folder, an input or files the converter did not write (never
-            replaced, ``overwrite`` or not).
+            replaced, ``overwrite`` or not); a bad ``features`` spec.
+        FileNotFoundError: the encoder folder ``features`` names does not exist.
     """
     import jax
     import optax
@@ -632,7 +630,6 @@ def convert_checkpoint(
 
     out = Path(out)
     _check_out(out, overwrite, [checkpoint, stats, _feature_folder(features)])
-    _check_features(features)
     ckpt = read_checkpoint(checkpoint)
     if ema and ckpt.ema is None:
         raise ValueError(f"{str(ckpt.path)!r} has no 'model_ema' weights; pass --no-ema to convert the raw ones")
