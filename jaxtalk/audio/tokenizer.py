@@ -18,6 +18,15 @@ front end, so that token streams of different rates and widths can be made from 
    preserves them approximately (Johnson-Lindenstrauss). Two tokenizers with different seeds, rates
    and widths thus give genuinely different token spaces over the same audio.
 
+4. Optionally (``floor_window > 0``), a causal noise-floor normaliser before step 2: each token's
+   features become their level above the recording's background, ``raw - floor``, where ``floor`` is,
+   per mel channel, the minimum of the raw features over the last ``floor_window`` tokens (this one
+   included; both sub-windows of each), never below ``FLOOR_MIN`` (so digital silence and a quiet
+   room read alike). A steady background noise then looks like silence at any level, and a recording's
+   gain cancels out wherever it has a noise floor. It reads only the past: the features of token ``k``
+   do not change with audio after token ``k``'s window (a live stream carries the last
+   ``floor_window - 1`` tokens' raw features).
+
 Token count is ``ceil(samples * rate / sample_rate)``: the last token may cover a partial window,
 which is padded with silence (zeros), as Mimi pads its last frame.
 """
@@ -42,9 +51,13 @@ from jaxtalk.audio.kmeans import kmeans, nearest_centroid
 from jaxtalk.audio.melspec import _log_mel, mel_filterbank, num_frames
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array
 
-__all__ = ["TokenStream", "TokenizerStream", "VQTokenizer"]
+__all__ = ["TokenStream", "TokenizerStream", "VQTokenizer", "FLOOR_MIN", "noise_floor"]
 
-_FORMAT_VERSION = 1
+_FORMAT_VERSION = 2
+_OLDEST_FORMAT = 1  # version 1 files have no normaliser (floor_window 0)
+# Lowest noise floor of the normaliser, in the features' units (natural log of mel power): white noise at
+# about -74 dBFS. Below it, what is left is the recording chain's own floor, not the room.
+FLOOR_MIN = -16.0
 # Audio is padded to a whole number of these (in seconds, rounded to whole tokens) before the jitted
 # feature kernel, so clips of many lengths share a few compiled programs. Zero padding does not change
 # the frames inside the clip (centred frames already see zeros past the end).
@@ -189,6 +202,37 @@ def _nearest_code(features, mean, scale, codebook):
     return nearest_centroid((features - mean[None, :]) / scale[None, :], codebook)
 
 
+def noise_floor(raw: Float[np.ndarray, "tokens features"], window: int, n_mels: int,
+                past: Float[np.ndarray, "past features"] | None = None) -> Float[np.ndarray, "tokens features"]:
+    """The causal noise floor of pooled token features: per mel channel, the minimum over the last
+    ``window`` tokens (this one included, all ``stack`` sub-windows), at least :data:`FLOOR_MIN`.
+
+    Args:
+        raw: ``(tokens, stack * n_mels)`` raw pooled features (:meth:`VQTokenizer.features`).
+        window: tokens the minimum reaches back, ``>= 1``.
+        n_mels: mel channels per sub-window.
+        past: raw features of the tokens just before ``raw`` (a live stream's carried history); only
+            the last ``window - 1`` rows are read.
+
+    Returns:
+        The floor, the shape of ``raw`` (each channel's value repeated over the sub-windows).
+    """
+    raw = np.asarray(raw, np.float32)
+    tokens, features = raw.shape
+    stack = features // n_mels
+    per_mel = raw.reshape(tokens, stack, n_mels).min(axis=1)  # (tokens, n_mels)
+    if past is not None and window > 1 and len(past):
+        past = np.asarray(past, np.float32)[-(window - 1):]
+        history = past.reshape(len(past), stack, n_mels).min(axis=1)
+    else:
+        history = np.zeros((0, n_mels), np.float32)
+    lead = np.full((window - 1 - len(history), n_mels), np.inf, np.float32)
+    padded = np.concatenate([lead, history, per_mel])
+    floor = np.lib.stride_tricks.sliding_window_view(padded, window, axis=0).min(axis=-1)
+    floor = np.maximum(floor, np.float32(FLOOR_MIN))
+    return np.tile(floor, (1, stack))
+
+
 def _random_isometry(features: int, width: int, seed: int) -> np.ndarray:
     # NumPy stream keyed by [seed, 1]: reproducible on any machine, separate from the JAX key
     # that seeds k-means.
@@ -216,6 +260,8 @@ class VQTokenizer:
         n_mels, n_fft, hop_length: log-mel settings.
         stack: sub-windows per token (``features = stack * n_mels``).
         seed: the seed it was fitted with.
+        floor_window: tokens of the causal noise-floor normaliser (0: none, the raw features are
+            quantised). See the module's step 4.
     """
 
     codebook: Float[np.ndarray, "codes features"]
@@ -229,6 +275,7 @@ class VQTokenizer:
     hop_length: int = 160
     stack: int = 2
     seed: int = 0
+    floor_window: int = 0
 
     def __post_init__(self):
         codes, features = self.codebook.shape
@@ -245,6 +292,9 @@ class VQTokenizer:
             raise ValueError(f"embedding {self.embedding.shape} must have shape ({codes}, width)")
         if not np.all(self.feature_scale > 0):
             raise ValueError("feature_scale must be positive")
+        if isinstance(self.floor_window, bool) or not isinstance(self.floor_window, (int, np.integer)) \
+                or self.floor_window < 0:
+            raise ValueError(f"floor_window must be an integer >= 0 (tokens; 0 = no normaliser), got {self.floor_window!r}")
         _check_layout(self.rate, self.sample_rate, self.hop_length, self.stack)
 
     @property
@@ -286,6 +336,7 @@ class VQTokenizer:
         n_mels: int = 80,
         stack: int = 2,
         iterations: int = 25,
+        floor_window: int = 0,
     ) -> VQTokenizer:
         """Fit the codebook and embedding table on a list of mono clips.
 
@@ -300,6 +351,8 @@ class VQTokenizer:
             n_mels: log-mel channels of the features.
             stack: sub-windows per token.
             iterations: k-means iterations.
+            floor_window: tokens of the causal noise-floor normaliser (0: none). The codebook is
+                fitted on the normalised features, each clip's floor starting afresh.
 
         Returns:
             The fitted tokenizer.
@@ -333,6 +386,8 @@ class VQTokenizer:
             )
             for i, a in enumerate(audios)
         ]
+        if floor_window:
+            feats = [f - noise_floor(f, floor_window, n_mels) for f in feats]
         data = np.concatenate(feats, axis=0).astype(np.float64)
         distinct = np.unique(data, axis=0).shape[0]
         if distinct < num_codes:
@@ -365,7 +420,22 @@ class VQTokenizer:
             hop_length=int(hop_length),
             stack=int(stack),
             seed=int(seed),
+            floor_window=int(floor_window),
         )
+
+    def normalise(self, raw: Float[np.ndarray, "tokens features"],
+                  past: Float[np.ndarray, "past features"] | None = None) -> Float[np.ndarray, "tokens features"]:
+        """What :meth:`quantize` reads: the raw features less their causal noise floor (:func:`noise_floor`),
+        or the raw features themselves for a tokenizer without normaliser (``floor_window == 0``).
+
+        Args:
+            raw: raw pooled features of consecutive tokens.
+            past: the raw features of the tokens before them in the same recording (a live stream's).
+        """
+        raw = np.asarray(raw, np.float32)
+        if not self.floor_window:
+            return raw
+        return raw - noise_floor(raw, self.floor_window, self.n_mels, past)
 
     def features(
         self, audio: Float[np.ndarray | Array, " samples"]
@@ -389,7 +459,8 @@ class VQTokenizer:
     def quantize(
         self, features: Float[np.ndarray | Array, "tokens features"]
     ) -> Int[np.ndarray, " tokens"]:
-        """Nearest codebook entry (Euclidean, standardised space) of each feature row.
+        """Nearest codebook entry (Euclidean, standardised space) of each feature row (normalised
+        features, :meth:`normalise`, for a tokenizer with a normaliser).
 
         Raises:
             ValueError: for features of the wrong width.
@@ -433,7 +504,7 @@ class VQTokenizer:
         Raises:
             ValueError: for a non 1-D, empty or NaN/inf signal.
         """
-        ids = self.quantize(self.features(audio))
+        ids = self.quantize(self.normalise(self.features(audio)))
         return TokenStream(ids=ids, embeddings=self.lookup(ids), rate=self.rate)
 
     def stream(self, group: int = 1) -> TokenizerStream:
@@ -465,6 +536,7 @@ class VQTokenizer:
             hop_length=np.int64(self.hop_length),
             stack=np.int64(self.stack),
             seed=np.int64(self.seed),
+            floor_window=np.int64(self.floor_window),
         )
         return path
 
@@ -486,8 +558,12 @@ class VQTokenizer:
         if missing:
             raise ValueError(f"{str(path)!r} is not a VQTokenizer file: missing keys {missing}")
         version = int(data["format_version"])
-        if version != _FORMAT_VERSION:
+        if not _OLDEST_FORMAT <= version <= _FORMAT_VERSION:
             raise ValueError(f"{str(path)!r}: unsupported tokenizer format version {version}")
+        if version >= 2:
+            ints = (*ints, "floor_window")
+            if "floor_window" not in data:
+                raise ValueError(f"{str(path)!r} is not a VQTokenizer file: missing keys ['floor_window']")
         kwargs = {k: np.array(data[k], dtype=np.float32) for k in arrays}
         kwargs.update({k: int(data[k]) for k in ints})
         kwargs["rate"] = float(data["rate"])
@@ -530,6 +606,7 @@ class TokenizerStream:
         self._window = (self._frames - 1) * t.hop_length + t.n_fft
         self._buffer = np.zeros(0, np.float32)
         self._buffer_start = 0  # absolute index of self._buffer[0] (may be negative: zeros before the clip)
+        self._past = np.zeros((0, tokenizer.codebook.shape[1]), np.float32)  # the normaliser's history
 
     def _first_frame(self, token: int) -> int:
         """The first log-mel frame that belongs to ``token`` (or to a later one)."""
@@ -568,6 +645,7 @@ class TokenizerStream:
         out = self._emit(max(total - self.tokens, 0))
         self.samples = self.tokens = self._buffer_start = 0
         self._buffer = np.zeros(0, np.float32)
+        self._past = self._past[:0]
         return out
 
     def _emit(self, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -594,7 +672,10 @@ class TokenizerStream:
         if keep > self._buffer_start:
             self._buffer = self._buffer[keep - self._buffer_start:]
             self._buffer_start = keep
-        ids = t.quantize(features)
+        normalised = t.normalise(features, self._past)
+        if t.floor_window > 1:
+            self._past = np.concatenate([self._past, features])[-(t.floor_window - 1):]
+        ids = t.quantize(normalised)
         return ids, t.lookup(ids)
 
 
