@@ -400,3 +400,25 @@ def test_errors_name_the_bad_value(corpus):
     with pytest.raises(ValueError, match="overlaps"):
         p = script.Phrase(np.array([1], np.int32), np.array([0.5]), np.zeros(0), np.zeros(0))
         script.layout_timeline([p, p], [0.0, 0.2], 2.0)
+
+
+def test_recording_chains_change_the_audio_not_the_motion():
+    plain = synthtalk.generate(SMALL_SPEC, seed=5)
+    recorded = synthtalk.generate(dataclasses.replace(SMALL_SPEC, recording=True), seed=5)
+    again = synthtalk.generate(dataclasses.replace(SMALL_SPEC, recording=True), seed=5)
+    for i in range(len(plain)):
+        assert recorded.motion(i).tobytes() == plain.motion(i).tobytes()
+        assert recorded.oracle(i).tobytes() == plain.oracle(i).tobytes()
+        assert recorded.audio(i).shape == plain.audio(i).shape
+        assert not np.array_equal(recorded.audio(i), plain.audio(i))
+        assert recorded.audio(i).tobytes() == again.audio(i).tobytes()
+    # every recorded clip has a background: its quietest frames are no longer digital silence
+    quiet = [np.sort(np.abs(recorded.audio(i)))[len(recorded.audio(i)) // 20] for i in range(len(recorded))]
+    assert min(quiet) > 1e-5
+
+
+def test_noise_floor_seconds_sets_the_tokenizers_normaliser():
+    corpus = synthtalk.generate(dataclasses.replace(SMALL_SPEC, noise_floor_seconds=2.0), seed=5)
+    assert corpus.tokenizer("A").floor_window == 25 and corpus.tokenizer("B").floor_window == 50
+    with pytest.raises(ValueError, match="noise_floor_seconds"):
+        synthtalk.generate(dataclasses.replace(SMALL_SPEC, noise_floor_seconds=-1.0))

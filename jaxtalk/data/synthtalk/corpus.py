@@ -82,6 +82,11 @@ class SizeSpec:
         emotion_gain: every emotion's face offset (at every intensity) is multiplied by this; 1 is
             SynthTalk's own. A control corpus in which the emotion label and its intensity change the
             face by a known, larger amount raises it (the voice's emotional changes stay as they are).
+        recording: each clip's audio as a random recording chain records it
+            (:func:`jaxtalk.audio.augment.record`: room, line, level, background noise), drawn from
+            the clip's own random stream; its motion is unchanged. False: the clean synthesised sound.
+        noise_floor_seconds: the token streams' causal noise-floor normaliser window in seconds
+            (:class:`jaxtalk.audio.VQTokenizer`'s ``floor_window``); 0: no normaliser.
     """
 
     speakers: tuple[int, int, int, int]
@@ -95,6 +100,8 @@ class SizeSpec:
     lazy: bool = False
     effects: DyadicEffects = DEFAULT_EFFECTS
     emotion_gain: float = 1.0
+    recording: bool = False
+    noise_floor_seconds: float = 0.0
 
 
 SIZES: dict[str, SizeSpec] = {
@@ -178,6 +185,7 @@ def _rng(seed: int, *key: int) -> np.random.Generator:
 
 
 _PLAN, _STYLE, _AUDIO, _MOTION, _EMOTION = range(5)
+_RECORDING = 16  # the recording chains' streams
 
 
 def _draw_emotion(rng: np.random.Generator) -> tuple[str, int]:
@@ -235,10 +243,17 @@ def _unit_args(seed: int, unit: int, u: _Unit, clips: list[ClipInfo]) -> tuple:
 def _render_unit(seed: int, unit: int, u: _Unit, clips: list[ClipInfo], spec: SizeSpec) -> list[Channel]:
     timelines, styles, emotions, audio_rngs, motion_rngs = _unit_args(seed, unit, u, clips)
     if len(timelines) == 1:
-        return [render_channel(timelines[0], styles[0], emotions[0], audio_rngs[0], motion_rngs[0],
-                               emotion_gain=spec.emotion_gain)]
-    return list(render_conversation(timelines, styles, emotions, audio_rngs, motion_rngs, effects=spec.effects,
-                                    emotion_gain=spec.emotion_gain))
+        chans = [render_channel(timelines[0], styles[0], emotions[0], audio_rngs[0], motion_rngs[0],
+                                emotion_gain=spec.emotion_gain)]
+    else:
+        chans = list(render_conversation(timelines, styles, emotions, audio_rngs, motion_rngs, effects=spec.effects,
+                                         emotion_gain=spec.emotion_gain))
+    if spec.recording:
+        from jaxtalk.audio.augment import record
+
+        chans = [dataclasses.replace(ch, audio=record(ch.audio, AUDIO_SAMPLE_RATE, _rng(seed, _RECORDING, unit, k)))
+                 for k, ch in enumerate(chans)]
+    return chans
 
 
 def _unit_motion(seed: int, unit: int, u: _Unit, clips: list[ClipInfo], spec: SizeSpec) -> list[MotionParts]:
@@ -277,6 +292,8 @@ class SynthTalkCorpus:
                 raise ValueError(f"SizeSpec.{name} must give {len(SPLITS)} non-negative counts, got {counts}")
         if spec.speakers[0] < 1 or spec.clips_per_speaker < 1 or spec.clip_seconds <= 0:
             raise ValueError(f"SizeSpec needs train speakers, clips and a positive clip length: {spec}")
+        if not (math.isfinite(spec.noise_floor_seconds) and spec.noise_floor_seconds >= 0):
+            raise ValueError(f"SizeSpec.noise_floor_seconds must be a finite number >= 0, got {spec.noise_floor_seconds}")
         if not (math.isfinite(spec.emotion_gain) and spec.emotion_gain >= 0):
             raise ValueError(f"SizeSpec.emotion_gain must be a finite number >= 0, got {spec.emotion_gain}")
         self.size, self.seed, self.spec = size, seed, spec
@@ -433,7 +450,8 @@ class SynthTalkCorpus:
             pieces = self._tokenizer_training_audio()
             tok = VQTokenizer.fit(pieces, sample_rate=self.sample_rate, rate=rate,
                                   num_codes=self.spec.num_codes, width=width,
-                                  seed=self.seed * 1000 + ord(stream))
+                                  seed=self.seed * 1000 + ord(stream),
+                                  floor_window=int(round(self.spec.noise_floor_seconds * rate)))
             if path is not None:
                 tok.save(path)
         self._tokenizers[stream] = tok
