@@ -34,18 +34,18 @@ SPEECH_ABOVE_FLOOR_DB = 15.0
 _EPS_POWER = 1e-10  # -100 dBFS: digital silence stays finite
 
 
-def _check_1d(x: np.ndarray, name: str, min_len: int = 1) -> np.ndarray:
+def _check_1d(x: np.ndarray, name: str, min_len: int = 1, unit: str = "frame") -> np.ndarray:
     x = np.asarray(x)
     if x.ndim != 1:
-        raise ValueError(f"{name} must be one-dimensional (frames,), got shape {x.shape}")
+        raise ValueError(f"{name} must be one-dimensional ({unit}s,), got shape {x.shape}")
     if x.shape[0] < min_len:
-        raise ValueError(f"{name} needs at least {min_len} frame(s), got {x.shape[0]}")
+        raise ValueError(f"{name} needs at least {min_len} {unit}(s), got {x.shape[0]}")
     check_finite(x, name)
     return x.astype(np.float64)
 
 
 def frame_loudness(audio: Float[np.ndarray, " samples"], sample_rate: int, num_frames: int,
-                   fps: float = 25.0) -> Float[np.ndarray, " frames"]:
+                   fps: float | int = 25.0) -> Float[np.ndarray, " frames"]:
     """Log loudness of each motion frame: ``10 log10(mean(x^2))`` over the frame's samples (dBFS).
 
     Frame ``k`` covers samples ``[k * sample_rate / fps, (k + 1) * sample_rate / fps)``; frames past
@@ -60,7 +60,7 @@ def frame_loudness(audio: Float[np.ndarray, " samples"], sample_rate: int, num_f
     Raises:
         ValueError: for a non-1-D, empty or non-finite waveform, a non-positive rate or frame count.
     """
-    audio = _check_1d(audio, "audio")
+    audio = _check_1d(audio, "audio", unit="sample")
     if sample_rate <= 0 or fps <= 0 or num_frames < 1:
         raise ValueError(f"sample_rate, fps and num_frames must be positive, got {sample_rate}, {fps}, {num_frames}")
     bounds = np.round(np.arange(num_frames + 1) * (sample_rate / fps)).astype(np.int64)
@@ -97,9 +97,13 @@ def lagged_correlation(pred: Float[np.ndarray, " frames"], ref: Float[np.ndarray
     n = pred.shape[0]
     for i, lag in enumerate(lags):
         a, b = (pred[lag:], ref[:n - lag]) if lag >= 0 else (pred[:n + lag], ref[-lag:])
+        # Constant is decided on the values themselves: centring a constant seldom gives exact zeros
+        # (its mean is rounded), and two such remainders correlate at +-1.
+        if a.min() == a.max() or b.min() == b.max():
+            r[i] = np.nan
+            continue
         a, b = a - a.mean(), b - b.mean()
-        denom = math.sqrt(float(a @ a) * float(b @ b))
-        r[i] = float(a @ b) / denom if denom > 0 else np.nan
+        r[i] = float(a @ b) / math.sqrt(float(a @ a) * float(b @ b))
     return lags, r
 
 
@@ -109,13 +113,20 @@ def voice_activity(loudness_db: Float[np.ndarray, " frames"], *, hangover: int =
     A frame is speech when it is louder than :data:`SILENCE_DB` and :data:`SPEECH_ABOVE_FLOOR_DB`
     above the recording's noise floor (its 10th loudness percentile); speech is then extended by
     ``hangover`` frames on both sides (a syllable's quiet edges belong to it).
+
+    Raises:
+        ValueError: for a non-1-D, empty or non-finite loudness, or a negative ``hangover``.
     """
     db = _check_1d(loudness_db, "loudness_db")
+    if hangover < 0:
+        raise ValueError(f"hangover must be >= 0 frames, got {hangover}")
     floor = float(np.percentile(db, 10))
     speech = (db > SILENCE_DB) & (db > floor + SPEECH_ABOVE_FLOOR_DB)
     if hangover > 0 and speech.any():
+        # Frame i is speech when any of i - hangover .. i + hangover is: the full convolution, cut to
+        # the input's frames (mode "same" returns the kernel's length for inputs shorter than it).
         kernel = np.ones(2 * hangover + 1)
-        speech = np.convolve(speech.astype(np.float64), kernel, mode="same") > 0
+        speech = np.convolve(speech.astype(np.float64), kernel)[hangover:hangover + db.shape[0]] > 0
     return speech
 
 
@@ -165,7 +176,7 @@ def _best(lags: np.ndarray, r: np.ndarray) -> tuple[int | None, float]:
 
 
 def speech_sync(jaw: Float[np.ndarray, " frames"], audio: Float[np.ndarray, " samples"], sample_rate: int, *,
-                tracked_jaw: Float[np.ndarray, " frames"] | None = None, fps: float = 25.0,
+                tracked_jaw: Float[np.ndarray, " frames"] | None = None, fps: float | int = 25.0,
                 max_lag: int = 8) -> SpeechSync:
     """Measure how a predicted jaw opening follows a recording's speech (see :class:`SpeechSync`).
 
