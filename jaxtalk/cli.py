@@ -134,7 +134,8 @@ def demo(
     audio: Annotated[
         Path | None, typer.Option(help="Also animate your own speech file (WAV/FLAC, any rate, mono or stereo).")
     ] = None,
-    size: Annotated[str, typer.Option(help="SynthTalk size: tiny (quick look) or small.")] = "small",
+    size: Annotated[str, typer.Option(help="SynthTalk size: small+mic (small as real microphones record it), small "
+                                            "(clean sound), tiny+mic or tiny (quick look).")] = "small+mic",
     steps: Annotated[int, typer.Option(help="Training steps of the small TokTalk model.")] = DemoOptions.train_steps,
     seed: Annotated[int, typer.Option(help="Corpus and training seed.")] = 0,
     sample_steps: Annotated[

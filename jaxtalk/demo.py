@@ -41,7 +41,9 @@ class DemoOptions:
         out_dir: output folder (created). It is also the model's training run (``run.json``,
             ``checkpoint/`` and the inference assets, as ``jaxtalk train`` writes them), so
             ``jaxtalk sample`` / ``jaxtalk stream`` take it as their RUN.
-        size: SynthTalk size ("tiny" for a quick look, "small" for the real demo).
+        size: SynthTalk size: "small+mic" (default: the ``small`` corpus as real microphones record it,
+            so that the model also hears a user's own voice), "small" (clean studio sound), "tiny+mic" /
+            "tiny" for a quick look.
         seed: corpus and training seed.
         train_steps: optimiser steps of the base model.
         batch_size: training windows per step.
@@ -66,7 +68,7 @@ class DemoOptions:
 
     out_dir: Path = Path("jaxtalk-demo")
     overwrite: bool = False
-    size: str = "small"
+    size: str = "small+mic"
     seed: int = 0
     train_steps: int = 400
     sample_steps: int = 1

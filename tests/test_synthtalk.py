@@ -422,3 +422,10 @@ def test_noise_floor_seconds_sets_the_tokenizers_normaliser():
     assert corpus.tokenizer("A").floor_window == 25 and corpus.tokenizer("B").floor_window == 50
     with pytest.raises(ValueError, match="noise_floor_seconds"):
         synthtalk.generate(dataclasses.replace(SMALL_SPEC, noise_floor_seconds=-1.0))
+
+
+def test_mic_sizes_are_their_clean_sizes_as_recorded_with_the_normaliser():
+    tiny, mic = synthtalk.SIZES["tiny"], synthtalk.SIZES["tiny+mic"]
+    assert dataclasses.replace(mic, recording=False, noise_floor_seconds=0.0) == tiny
+    assert mic.recording and mic.noise_floor_seconds == 2.0
+    assert synthtalk.SIZES["small+mic"].recording and synthtalk.SIZES["small+mic"].speakers == synthtalk.SIZES["small"].speakers
