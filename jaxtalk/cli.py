@@ -344,8 +344,9 @@ def eval_(
         str | None, typer.Option(help="Prepared dataset folder or synthtalk:SIZE (default: the run's own data); its "
                                       "features must be the run's.")
     ] = None,
-    split: Annotated[str, typer.Option(help="Split of the data: train, val, test or ood.")] = "test",
-    max_clips: Annotated[int, typer.Option(help="At most this many clips (TIMAR: conversation sides).")] = 8,
+    split: Annotated[str | None, typer.Option(help="Split of the data: train, val, test or ood (default test).")] = None,
+    max_clips: Annotated[int, typer.Option(help="At most this many clips (TIMAR: conversation sides; --real-voice: "
+                                                "recordings).")] = 8,
     seed: _SEED = 0,
     json_out: Annotated[Path | None, typer.Option("--json", help="Also write the report as JSON here (replaced if it "
                                                                "exists; never a file of the run).")] = None,
@@ -361,26 +362,37 @@ def eval_(
     ] = None,
     offline: Annotated[bool, typer.Option(help="TokTalk: also sample whole clips offline (full attention).")] = False,
     temperature: _TEMPERATURE = None,
+    real_voice: Annotated[
+        Path | None, typer.Option(help="TokTalk, TIMAR: instead of prepared data, a folder of real recordings (.wav, "
+                                       ".flac; any rate), each optionally with its speaker's tracked motion beside it "
+                                       "(STEM.npz: DualTalk's pose (T, 6) or jaxtalk's params (T, 56), 25 fps). Each "
+                                       "is streamed as `jaxtalk stream` does and its predicted jaw measured against "
+                                       "the tracked jaw (corr, best lag: positive = late), the loudness follower and "
+                                       "the loudness; jaw in silence vs speech, and the rest jaw on 3 s of silence.")
+    ] = None,
 ) -> None:
-    """Score a trained run on a split of prepared data, next to the mean pose (and the oracle where known).
+    """Score a trained run on a split of prepared data, next to the mean pose (and the oracle where known),
+    or with --real-voice on real recordings.
 
     TokTalk: LVE, MVE, FDD, MOD, jitter of vertices. TIMAR and the DualTalk baseline: FD, P-FD, MSE, SID,
     rPCC per group (exp, jaw, pose) in the published scaling. ATS: landmark LVE, mean error, jitter. STM: vertex errors on
-    the run's meshes from the true landmarks.
+    the run's meshes from the true landmarks. --real-voice (TokTalk, TIMAR): the predicted jaw opening against the
+    tracked jaw and the speech's loudness, per recording (docs/evaluation.md).
     """
     from jaxtalk.commands.evaluation import EvalOptions, evaluate_run
     from jaxtalk.files import Output, claim_outputs
 
     if json_out is not None:
         # Every file inside the run folder is an input of eval (its history, checkpoints, assets).
-        claim_outputs([Output(json_out, named=True)], inputs=[run, flame])
+        claim_outputs([Output(json_out, named=True)], inputs=[run, flame, real_voice])
     try:
         steps = tuple(int(s) for s in sample_steps.split(",")) if sample_steps else ()
     except ValueError:
         raise ValueError(f"--sample-steps must be comma-separated integers, got {sample_steps!r}") from None
     report = evaluate_run(EvalOptions(run_dir=run, data=data, split=split, max_clips=max_clips, seed=seed,
                                       flame=flame, cache_dir=cache_dir, best=best, sample_steps=steps,
-                                      offline=offline, temperature=temperature), echo=typer.echo)
+                                      offline=offline, temperature=temperature, real_voice=real_voice),
+                           echo=typer.echo)
     for table in report.tables:
         _echo_table(table.rows, table.title)
     if json_out is not None:

@@ -9,7 +9,9 @@ mean-pose baseline and the generator's oracle -> sweep chunk size x Euler steps 
 training curve and a Markdown report. A second run finds the finished run and the cached sweep and
 finishes in seconds.
 
-``--audio FILE`` animates the user's own speech (any rate, mono or stereo) with the trained model.
+``--audio FILE`` animates the user's own speech (any rate, mono or stereo) with the trained model, and
+the report measures how its jaw follows that speech (:func:`jaxtalk.metrics.speech_sync.speech_sync`:
+the jaw in silence and in speech, at rest on digital silence, and against the recording's loudness).
 """
 
 from __future__ import annotations
@@ -50,7 +52,8 @@ class DemoOptions:
         window_frames: frames per training window.
         learning_rate: peak AdamW learning rate.
         retrain: delete an existing run (checkpoint and ``run.json``) and cached results first.
-        audio: the user's own audio file to animate (skips nothing else).
+        audio: the user's own audio file to animate (skips nothing else); the report gets its
+            speech-sync row.
         chunk_frames: the model's streaming chunk in frames, a training setting too (the chunk
             attention mask and the streaming window are trained at this size).
         sample_steps: Euler steps of the streamed clip and of ``audio``. One step from pure noise is
@@ -97,6 +100,7 @@ class DemoResult:
         sweep: rows of the chunk x steps table.
         trained: whether this run trained (False: loaded from the checkpoint).
         wall_s: seconds the whole run took.
+        user_sync: with ``--audio``: the speech-sync row of the user's recording (None without).
     """
 
     out_dir: Path
@@ -106,6 +110,7 @@ class DemoResult:
     sweep: list[dict[str, Any]]
     trained: bool
     wall_s: float
+    user_sync: dict[str, Any] | None = None
 
 
 def model_config(chunk_frames: int = 10, sample_steps: int = 10):
@@ -350,21 +355,32 @@ def _markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     if not rows:
         return "(none)\n"
     keys = list(rows[0])
-    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+    fmt = lambda v: "-" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     lines += ["| " + " | ".join(fmt(r.get(k, "")) for k in keys) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
 
+# Seconds of digital silence streamed for the rest jaw of the --audio report.
+REST_SECONDS = 3.0
+# The shortest --audio (frames) measured: speech_sync's lags of +-8 frames need 11.
+_SYNC_MIN_FRAMES = 11
+
+
 def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoOptions,
-                        files: dict[str, Path], echo: Callable[[str], None]) -> None:
+                        files: dict[str, Path], echo: Callable[[str], None]) -> dict[str, Any] | None:
+    """Stream the user's audio; write its parameters (and video). Returns its speech-sync row: how the
+    predicted jaw follows the recording (no tracked jaw: the loudness), and the rest jaw (None for audio
+    too short to measure)."""
     import jax
 
     from jaxtalk.audio import load_audio
+    from jaxtalk.layout import JAW_OPEN_INDEX
+    from jaxtalk.metrics.speech_sync import speech_sync
 
     audio = load_audio(options.audio)
-    stream = corpus.tokenizer("A").encode(audio)
-    tokens = np.asarray(stream.embeddings, np.float32)
+    tokenizer = corpus.tokenizer("A")
+    tokens = np.asarray(tokenizer.encode(audio).embeddings, np.float32)
     frames = int(round(audio.shape[0] / 16000 * 25))
     config = model_config(options.chunk_frames, sample_steps=options.sample_steps)
     pred, times = _stream_timed(params, config, tokens, style_vec, jax.random.key(2), frames)
@@ -373,6 +389,21 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
     atomic_savez(files["user_params"], params56=pred, fps=np.asarray(25))
     echo(f"animated {options.audio} ({audio.shape[0] / 16000:.1f} s, "
          f"{1e3 * statistics.median(times[1:] or times):.1f} ms per 0.4-s chunk)")
+    row = None
+    if pred.shape[0] < _SYNC_MIN_FRAMES:
+        echo(f"note: {options.audio} is shorter than {_SYNC_MIN_FRAMES / 25:g} s: no speech-sync row in the report")
+    else:
+        # The same stream on digital silence in the same style: does the mouth close?
+        silence = np.zeros(int(REST_SECONDS * 16000), np.float32)
+        rest, _ = _stream_timed(params, config, np.asarray(tokenizer.encode(silence).embeddings, np.float32),
+                                style_vec, jax.random.key(2), int(REST_SECONDS * 25))
+        sync = speech_sync(pred[:, JAW_OPEN_INDEX], audio, 16000, max_lag=_SYNC_MIN_FRAMES - 3).to_dict()
+        row = {"audio": Path(options.audio).name, "frames": sync["frames"], "speech_frames": sync["speech_frames"],
+               "jaw_silence": sync["jaw_silence"], "jaw_speech": sync["jaw_speech"],
+               "rest_jaw": float(rest[:, JAW_OPEN_INDEX].mean()), "loudness_pred_corr": sync["loudness_pred_corr"],
+               "loudness_pred_best_lag": sync["loudness_pred_best_lag"]}
+        echo(f"jaw opening: {row['jaw_silence']:.3f} rad in silence, {row['jaw_speech']:.3f} in speech, "
+             f"{row['rest_jaw']:.3f} at rest (digital silence)")
     if options.render:
         from jaxtalk.render import render_clip
 
@@ -380,6 +411,7 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
         files["user_video"] = render_clip(options.out_dir / f"{stem}.mp4", np.asarray(face.vertices_seq(pred)),
                                           face.faces, audio=audio, captions=["jaxtalk"],
                                           size=options.render_size, rest_vertices=face.template)
+    return row
 
 
 # The files of a demo folder besides the run (run.json, checkpoint/, the run's assets, the cache).
@@ -526,8 +558,9 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
                                    size=min(options.render_size, 192),
                                    rest_vertices=[face.template, face.template])
 
+    user_sync = None
     if options.audio is not None:
-        _animate_user_audio(params, corpus, style_vec, options, files, echo)
+        user_sync = _animate_user_audio(params, corpus, style_vec, options, files, echo)
 
     wall_s = time.perf_counter() - wall
     shipped_why = (" (the lowest streamed lip error on the validation speakers, `jaxtalk stream --best`)"
@@ -548,9 +581,20 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     ]
     if sweep_rows:
         report += ["## Chunk size x Euler steps (streamed, held-out clip)\n", _markdown_table(sweep_rows)]
+    if user_sync is not None:
+        report += [
+            "## Your audio\n",
+            "How the predicted jaw opening (rad) follows your recording (`jaxtalk.metrics.speech_sync`): its mean "
+            "over silent and speech frames (energy voice activity), the rest jaw (the same stream on "
+            f"{REST_SECONDS:g} s of digital silence), and its correlation with the recording's log loudness at lag 0 "
+            "and the lag of the best one (frames, positive = the jaw is late; lips lead sound, so near 0 or "
+            "slightly negative is right). `jaxtalk eval RUN --real-voice FOLDER` measures recordings with tracked "
+            "motion.\n",
+            _markdown_table([user_sync]),
+        ]
     report += ["## Files\n"] + [f"- `{k}`: `{v}`\n" for k, v in files.items()]
     report.append(f"\nTotal wall time of this run: {wall_s:.1f} s.\n")
     files["report"] = out / "report.md"
     atomic_write_text(files["report"], "\n".join(report))
     return DemoResult(out_dir=out, files=files, quality=quality, latency=latency, sweep=sweep_rows,
-                      trained=model.trained, wall_s=wall_s)
+                      trained=model.trained, wall_s=wall_s, user_sync=user_sync)

@@ -29,8 +29,8 @@ SMALL = {
 }
 
 
-def _table(output: str, title: str) -> tuple[list[str], dict[str, list[str]]]:
-    """``(columns, {method: cells})`` of the printed table whose title starts with ``title``."""
+def _table(output: str, title: str, key: str = "method") -> tuple[list[str], dict[str, list[str]]]:
+    """``(columns, {row's key cell: cells})`` of the printed table whose title starts with ``title``."""
     lines = output.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith(title))
     columns = [c.strip() for c in lines[start + 1].split("|")]
@@ -39,7 +39,7 @@ def _table(output: str, title: str) -> tuple[list[str], dict[str, list[str]]]:
         cells = [c.strip() for c in line.split("|")]
         if len(cells) != len(columns):
             break
-        rows[cells[columns.index("method")]] = cells
+        rows[cells[columns.index(key)]] = cells
     return columns, rows
 
 
@@ -369,3 +369,215 @@ def test_dualtalk_demo_layout_timar_and_toktalk_eval(source, tmp_path, request):
     assert {"LVE_mm2", "MVE_mm", "FDD_mm2", "MOD_mm", "jitter_mm"} <= set(columns)
     assert list(printed)[:2] == ["toktalk (streamed, 3 steps)", "mean pose"] and "oracle" not in printed
     assert all(np.isfinite(row["MVE_mm"]) for row in table["rows"] if row.get("MVE_mm") is not None)
+
+
+# ------------------------------------------------------------------------------------- real voices
+
+
+SR = 16000
+
+
+def _syllables(seconds: float, rate: int = SR, seed: int = 0) -> np.ndarray:
+    """A voice-like test signal: a faint room hiss, and 220-Hz syllables (3 per second) in the middle."""
+    t = np.arange(int(seconds * rate)) / rate
+    env = ((np.sin(2 * np.pi * 3 * t) > 0) & (t > 0.4) & (t < seconds - 0.4)).astype(np.float64)
+    hiss = 1e-3 * np.random.default_rng(seed).normal(size=t.shape)
+    return (0.3 * np.sin(2 * np.pi * 220 * t) * env + hiss).astype(np.float32)
+
+
+def _hand_loudness(audio: np.ndarray, frames: int) -> np.ndarray:
+    """dBFS per 25-fps frame (640 samples at 16 kHz), digital silence -100 dB, by hand."""
+    out = np.full(frames, -100.0)
+    for k in range(frames):
+        chunk = audio[640 * k:640 * (k + 1)].astype(np.float64)
+        if chunk.size:
+            out[k] = max(10 * np.log10(max(np.mean(chunk ** 2), 1e-10)), -100.0)
+    return out
+
+
+def _voices(folder: Path) -> dict[str, np.ndarray]:
+    """A real-voice folder: ``a.wav`` (stereo, 22.05 kHz) with a jaxtalk params npz (51 frames, one more
+    than the audio's 50), ``b.flac`` with a DualTalk pose npz, ``c.wav`` without motion. Returns the
+    tracked jaw of each tracked recording."""
+    import soundfile as sf
+
+    from jaxtalk.audio import resample_audio
+
+    folder.mkdir()
+    a = _syllables(2.0)
+    sf.write(folder / "a.wav", np.stack([resample_audio(a, SR, 22050)] * 2, axis=1), 22050)
+    sf.write(folder / "b.flac", _syllables(2.4, seed=1), SR)
+    sf.write(folder / "c.wav", _syllables(2.0, seed=2), SR)
+    t = np.arange(60) / 25
+    jaws = {"a": 0.1 * (np.sin(2 * np.pi * 3 * t[:51]) > 0) * (t[:51] > 0.4), "b": 0.05 + 0.02 * np.sin(t)}
+    params = np.zeros((51, 56), np.float32)
+    params[:, 50] = jaws["a"]
+    np.savez(folder / "a.npz", params=params, fps=25)
+    pose = np.zeros((60, 6), np.float32)
+    pose[:, 3] = jaws["b"]
+    np.savez(folder / "b.npz", pose=pose)
+    return {k: v.astype(np.float32).astype(np.float64) for k, v in jaws.items()}
+
+
+_REAL_VOICE_COLUMNS = ["recording", "tracked", "frames", "speech_frames", "corr", "best_lag", "best_corr",
+                       "loudness_corr", "loudness_best_lag", "loudness_pred_corr", "loudness_pred_best_lag",
+                       "jaw_silence", "jaw_speech"]
+
+
+@pytest.mark.slow
+def test_toktalk_real_voice_table_by_hand(runs, tmp_path):
+    from jaxtalk.audio import load_audio
+    from jaxtalk.commands.inference import SampleOptions, stream_audio
+    from jaxtalk.data.formats import read_npz
+    from jaxtalk.metrics.speech_sync import voice_activity
+    from jaxtalk.runs import load_run
+
+    folder = tmp_path / "voices"
+    jaws = _voices(folder)
+    before = sorted(p.name for p in folder.iterdir())
+    output = _ok(["eval", runs["toktalk"], "--real-voice", folder, "--json", tmp_path / "r.json"])
+    assert sorted(p.name for p in folder.iterdir()) == before  # nothing written beside the recordings
+    columns, printed = _table(output, "TokTalk on real voices (voices)", "recording")
+    assert columns == _REAL_VOICE_COLUMNS and list(printed) == ["a", "b", "c", "mean", "digital silence (3 s)"]
+    report = _report(tmp_path / "r.json")
+    assert (report["model"], report["split"], report["data"], report["items"]) == ("toktalk", None, str(folder), 3)
+    (table,) = report["tables"]
+    rows = {row["recording"]: row for row in table["rows"]}
+    assert list(rows) == ["a", "b", "c", "mean", "digital silence (3 s)"]
+    assert [rows[k]["tracked"] for k in rows] == ["yes", "yes", "no", "2 of 3", None]
+
+    for name, suffix, seconds in (("a", ".wav", 2.0), ("b", ".flac", 2.4), ("c", ".wav", 2.0)):
+        row = rows[name]
+        audio = load_audio(folder / f"{name}{suffix}")
+        # The model's jaw is what `jaxtalk stream` writes for the recording (outside the folder).
+        _ok(["stream", runs["toktalk"], folder / f"{name}{suffix}", "--out", tmp_path / f"{name}.npz"])
+        jaw = read_npz(tmp_path / f"{name}.npz").params[:, 50].astype(np.float64)
+        n = round(seconds * 25)
+        assert jaw.shape == (n,) and row["frames"] == n  # a: the tracked 51 frames cut to the prediction's 50
+        db = _hand_loudness(audio, n)
+        speech = voice_activity(db)
+        assert row["speech_frames"] == speech.sum() and 0 < speech.sum() < n
+        assert row["jaw_speech"] == pytest.approx(jaw[speech].mean(), abs=1e-6)
+        assert row["jaw_silence"] == pytest.approx(jaw[~speech].mean(), abs=1e-6)
+        assert row["loudness_pred_corr"] == pytest.approx(np.corrcoef(jaw, db)[0, 1], abs=1e-5)
+        if name == "c":
+            assert all(row[k] is None for k in ("corr", "best_lag", "best_corr", "loudness_corr", "loudness_best_lag"))
+            continue
+        tracked = jaws[name][:n]
+        assert row["corr"] == pytest.approx(np.corrcoef(jaw, tracked)[0, 1], abs=1e-5)
+        # The loudness follower: the recording's loudness against the tracked jaw, lag by lag by hand
+        # (positive: the loudness at t + lag against the jaw at t).
+        by_lag = {lag: np.corrcoef(db[max(lag, 0):n + min(lag, 0)], tracked[max(-lag, 0):n - max(lag, 0)])[0, 1]
+                  for lag in range(-8, 9)}
+        assert row["loudness_corr"] == pytest.approx(by_lag[0], abs=1e-5)
+        assert row["loudness_best_lag"] == max(by_lag, key=by_lag.get)
+        assert row["best_corr"] >= row["corr"] - 1e-12 and -8 <= row["best_lag"] <= 8
+    # The mean row: every recording for the loudness columns, the two tracked ones for the tracked jaw's.
+    assert rows["mean"]["frames"] == 50 + 60 + 50
+    for key in ("loudness_pred_corr", "jaw_silence", "jaw_speech"):
+        assert rows["mean"][key] == pytest.approx(np.mean([rows[k][key] for k in "abc"]), abs=1e-12)
+    for key in ("corr", "best_lag", "loudness_corr", "loudness_best_lag"):
+        assert rows["mean"][key] == pytest.approx(np.mean([rows[k][key] for k in "ab"]), abs=1e-12)
+    # The rest jaw: the same stream on 3 s of digital silence.
+    run = load_run(runs["toktalk"])
+    rest = stream_audio(run, np.zeros(3 * SR, np.float32), SampleOptions(runs["toktalk"], folder), echo=lambda s: None)
+    assert rest.shape == (75, 56)
+    assert rows["digital silence (3 s)"]["frames"] == 75 and rows["digital silence (3 s)"]["speech_frames"] == 0
+    assert rows["digital silence (3 s)"]["jaw_silence"] == pytest.approx(float(rest[:, 50].mean()), abs=1e-6)
+    assert rows["digital silence (3 s)"]["jaw_speech"] is None
+
+    # --max-clips takes the first recordings; --sample-steps gives one table per step count.
+    _ok(["eval", runs["toktalk"], "--real-voice", folder, "--max-clips", "1", "--sample-steps", "1,2",
+         "--json", tmp_path / "s.json"])
+    tables = _report(tmp_path / "s.json")["tables"]
+    assert [t["title"].split(":")[0] for t in tables] == ["TokTalk on real voices (voices, 1 step)",
+                                                          "TokTalk on real voices (voices, 2 steps)"]
+    assert [[r["recording"] for r in t["rows"]] for t in tables] == [["a", "mean", "digital silence (3 s)"]] * 2
+    assert tables[0]["rows"][0]["corr"] != tables[1]["rows"][0]["corr"]
+
+
+@pytest.mark.slow
+def test_timar_real_voice_streams_whole_turns(runs, tmp_path):
+    from jaxtalk.runs import RunRecord
+
+    folder = tmp_path / "voices"
+    _voices(folder)
+    _ok(["eval", runs["timar"], "--real-voice", folder, "--json", tmp_path / "r.json"])
+    (table,) = _report(tmp_path / "r.json")["tables"]
+    rows = {row["recording"]: row for row in table["rows"]}
+    f = RunRecord.load(runs["timar"]).config["frames_per_turn"]
+    assert table["title"].startswith("TIMAR on real voices (voices)")
+    assert rows["b"]["frames"] == 60 // f * f and rows["digital silence (3 s)"]["frames"] == -(-75 // f) * f
+    assert all(rows[k][c] is not None for k in ("a", "b") for c in _REAL_VOICE_COLUMNS[4:])
+    # The jaw is what `jaxtalk stream` writes: whole turns, the audio kept with them.
+    from jaxtalk.audio import load_audio
+    from jaxtalk.data.formats import read_npz
+
+    _ok(["stream", runs["timar"], folder / "b.flac", "--out", tmp_path / "b.npz"])
+    clip = read_npz(tmp_path / "b.npz")
+    n = 60 // f * f
+    assert clip.params.shape == (n, 56) and clip.audio.shape == (n * 640,)
+    db = _hand_loudness(load_audio(folder / "b.flac"), n)
+    assert rows["b"]["loudness_pred_corr"] == pytest.approx(np.corrcoef(clip.params[:, 50], db)[0, 1], abs=1e-5)
+
+
+@pytest.mark.slow
+def test_real_voice_user_errors(runs, tmp_path):
+    tok = runs["toktalk"]
+    _user_error(["eval", tok, "--real-voice", tmp_path / "nowhere"], "--real-voice folder not found")
+    (tmp_path / "empty").mkdir()
+    _user_error(["eval", tok, "--real-voice", tmp_path / "empty"], "is empty")
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "readme.txt").write_text("no audio here")
+    _user_error(["eval", tok, "--real-voice", tmp_path / "notes"], "has no audio file", "readme.txt")
+    folder = tmp_path / "voices"
+    _voices(folder)
+    _user_error(["eval", runs["ats"], "--real-voice", folder], "through toktalk and timar runs", "is an ats run")
+    for option in (["--data", "synthtalk:tiny"], ["--split", "val"], ["--offline"]):
+        _user_error(["eval", tok, "--real-voice", folder, *option], f"{option[0]}: not with --real-voice")
+    _user_error(["eval", tok, "--real-voice", folder, "--json", folder / "r.json"], "r.json")  # never into the folder
+    np.savez(folder / "a.npz", params=np.zeros((55, 56), np.float32))
+    _user_error(["eval", tok, "--real-voice", folder], "a.npz' has 55 frames, its recording lasts 50.0 frames")
+    bad = np.zeros((50, 6), np.float32)
+    bad[7, 3] = np.nan
+    np.savez(folder / "a.npz", pose=bad)
+    _user_error(["eval", tok, "--real-voice", folder], "a.npz': pose contains 1 NaN")
+    np.savez(folder / "a.npz", exp=np.zeros((50, 50), np.float32))
+    _user_error(["eval", tok, "--real-voice", folder], "holds neither 'pose' (frames, 6) nor 'params' (frames, 56)")
+    np.savez(folder / "a.npz", params=np.zeros((50, 56), np.float32), fps=30)
+    _user_error(["eval", tok, "--real-voice", folder], "tracked at 30 fps")
+    (folder / "a.npz").unlink()
+    import soundfile as sf
+
+    sf.write(folder / "short.wav", _syllables(0.3), SR)
+    _user_error(["eval", tok, "--real-voice", folder], "short.wav' lasts 0.30 s", "at least 0.44 s")
+
+
+@pytest.mark.slow
+def test_real_voice_on_dualtalk_demo_recordings(runs, tmp_path):
+    """DualTalk's demo pairs (``X_speakerK.wav`` + ``X_speakerK.npz``, where ``../shared`` has them)."""
+    from helpers import DUALTALK_DEMO
+
+    if not DUALTALK_DEMO.is_dir():
+        pytest.skip("shared DualTalk demo data not available")
+    folder = tmp_path / "dualtalk"
+    folder.mkdir()
+    for f in DUALTALK_DEMO.glob("*_speaker*"):
+        (folder / f.name).symlink_to(f)
+    output = _ok(["eval", runs["toktalk"], "--real-voice", folder, "--json", tmp_path / "r.json"])
+    _, printed = _table(output, "TokTalk on real voices (dualtalk)", "recording")
+    (table,) = _report(tmp_path / "r.json")["tables"]
+    rows = {row["recording"]: row for row in table["rows"]}
+    stems = sorted(f.stem for f in DUALTALK_DEMO.glob("*_speaker*.wav"))
+    assert list(rows) == list(printed) == [*stems, "mean", "digital silence (3 s)"] and len(stems) == 4
+    tracked = {f.stem for f in DUALTALK_DEMO.glob("*_speaker*.npz")}
+    for stem in stems:
+        row = rows[stem]
+        assert row["tracked"] == ("yes" if stem in tracked else "no")
+        assert row["frames"] in (587, 749) and 0 < row["speech_frames"] < row["frames"]
+        want = _REAL_VOICE_COLUMNS[4:] if stem in tracked else ["loudness_pred_corr", "jaw_silence", "jaw_speech"]
+        assert all(np.isfinite(row[c]) for c in want), row
+    assert all(np.isfinite(rows["mean"][c]) for c in _REAL_VOICE_COLUMNS[4:])
+    assert rows["mean"]["tracked"] == "2 of 4" and np.isfinite(rows["digital silence (3 s)"]["jaw_silence"])
+    # The loudness follower on the real speakers is a real baseline (DualTalk's tracked jaw opens with the sound).
+    assert all(rows[s]["loudness_corr"] > 0.0 for s in tracked if s.startswith("xkHw"))

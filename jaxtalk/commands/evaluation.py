@@ -33,6 +33,18 @@ Each model is scored the way it is used:
   true landmark displacements to vertex displacements, scored against the rendered vertices: MVE
   (mm), LVE (mm^2, the mesh's lip region), jitter (mm per frame^2).
 
+Real voices (``--real-voice FOLDER``, TokTalk and TIMAR): every recording of FOLDER (``.wav``,
+``.flac``...; any rate, mono or stereo), each optionally with its speaker's tracked motion beside it
+(``STEM.npz`` holding DualTalk's ``pose (T, 6)``, jaw = ``pose[:, 3]``, or jaxtalk's ``params (T, 56)``,
+jaw = ``params[:, 50]``, at 25 fps), is streamed through the run as ``jaxtalk stream`` does, and its
+predicted jaw opening measured with :func:`jaxtalk.metrics.speech_sync.speech_sync`: against the
+tracked jaw at lag 0 and at its best lag (positive: the prediction is late), beside the loudness
+follower (the recording's log loudness against the tracked jaw, the baseline a lip-sync model must
+beat); against the loudness itself; and the predicted jaw's mean over silent and speech frames (an
+energy voice-activity detector). A ``mean`` row averages the recordings (the tracked-jaw columns over
+those with tracked motion), and a last row gives the rest jaw: the jaw streamed on 3 s of digital
+silence in the same style. Nothing is written beside the recordings.
+
 Baselines: the mean pose, the training mean repeated (what a model that ignores its input scores:
 TokTalk's motion standardiser, TIMAR's normaliser, ATS's displacement statistics); ``neutral`` (zero
 displacement) for ATS and STM; and, where the records have one (SynthTalk), the generator's oracle, the
@@ -55,7 +67,8 @@ from jaxtalk.metrics.landmarks import MOUTH_LANDMARKS, landmark_metrics
 from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec
 
 __all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
-           "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS"]
+           "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS", "Recording", "read_recordings",
+           "REST_SECONDS"]
 
 # Fixed batch of ATS windows per sampler call (one compiled program for every clip).
 _ATS_BATCH = 8
@@ -70,8 +83,9 @@ class EvalOptions:
     Attributes:
         run_dir: a folder written by ``jaxtalk train`` (any model).
         data: a prepared folder or ``synthtalk:SIZE[:SEED]``; None: the run's own data.
-        split: split of the data (``train``, ``val``, ``test``, ``ood``).
-        max_clips: at most this many clips (TokTalk, ATS, STM) or conversation sides (TIMAR).
+        split: split of the data (``train``, ``val``, ``test``, ``ood``); None: ``test``.
+        max_clips: at most this many clips (TokTalk, ATS, STM), conversation sides (TIMAR) or
+            recordings (``real_voice``).
         seed: noise seed.
         flame: TokTalk: a FLAME 2020 model file to pose the parameters on instead of the built-in face.
         cache_dir: where ``synthtalk:`` data is prepared.
@@ -80,11 +94,14 @@ class EvalOptions:
         offline: TokTalk: also sample each clip offline in one pass (full attention), per step count.
         temperature: scale of the sampler's noise (TokTalk: the starting noise, None: the config's;
             TIMAR: MAR's temperature, None: 1). Refused for the models that take none.
+        real_voice: TokTalk, TIMAR: a folder of real recordings (and tracked motion) to measure the
+            predicted jaw on instead of prepared data (see the module docstring); TokTalk's
+            ``sample_steps`` give one table each.
     """
 
     run_dir: Path
     data: str | None = None
-    split: str = "test"
+    split: str | None = None
     max_clips: int = 8
     seed: int = 0
     flame: Path | None = None
@@ -93,6 +110,7 @@ class EvalOptions:
     sample_steps: tuple[int, ...] = ()
     offline: bool = False
     temperature: float | None = None
+    real_voice: Path | None = None
 
 
 @dataclasses.dataclass
@@ -111,9 +129,9 @@ class EvalReport:
         model: the run's model.
         run_dir: the run folder.
         step: the checkpoint step evaluated.
-        data: the prepared folder evaluated on.
-        split: its split.
-        items: clips (TokTalk, ATS, STM) or conversation sides (TIMAR) evaluated.
+        data: the prepared folder evaluated on (``real_voice``: the recordings' folder).
+        split: its split (None for real voices).
+        items: clips (TokTalk, ATS, STM), conversation sides (TIMAR) or recordings evaluated.
         tables: the result tables.
     """
 
@@ -121,7 +139,7 @@ class EvalReport:
     run_dir: str
     step: int
     data: str
-    split: str
+    split: str | None
     items: int
     tables: list[EvalTable]
 
@@ -547,6 +565,193 @@ def _eval_stm(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
                                    "mesh (head pose removed)", rows)]
 
 
+# ------------------------------------------------------------------------------------- real voices
+
+# Seconds of digital silence streamed for the rest jaw (a TIMAR run: whole turns, at least this long).
+REST_SECONDS = 3.0
+# Frames of difference between a tracked motion file and its recording's duration still accepted
+# (trackers and encoders round the last frame differently).
+_MOTION_SLACK_FRAMES = 2
+# The lags speech_sync searches, both ways (8 frames = 320 ms at 25 fps).
+_MAX_LAG = 8
+_REAL_VOICE_MODELS = ("toktalk", "timar")
+
+
+@dataclasses.dataclass(frozen=True)
+class Recording:
+    """One real recording of a ``--real-voice`` folder.
+
+    Attributes:
+        name: its file's stem.
+        path: the audio file.
+        audio: the waveform, mono 16 kHz.
+        tracked_jaw: the speaker's tracked jaw opening per 25-fps frame (radians), or None.
+        motion: the tracked-motion file it came from, or None.
+    """
+
+    name: str
+    path: Path
+    audio: np.ndarray
+    tracked_jaw: np.ndarray | None
+    motion: Path | None
+
+
+def _tracked_jaw(path: Path, audio_frames: float) -> np.ndarray:
+    """The jaw opening of a tracked-motion ``.npz``: DualTalk's ``pose[:, 3]`` or jaxtalk's ``params[:, 50]``."""
+    from jaxtalk.data.formats import load_npz
+    from jaxtalk.layout import JAW_OPEN_INDEX
+    from jaxtalk.types import MOTION_FPS, PARAM_DIM
+
+    data = load_npz(path, what="motion file")
+    if "pose" in data:
+        motion, key, width, column = data["pose"], "pose", 6, 3
+    elif "params" in data:
+        motion, key, width, column = data["params"], "params", PARAM_DIM, JAW_OPEN_INDEX
+    else:
+        raise ValueError(f"{str(path)!r} holds neither 'pose' (frames, 6) nor 'params' (frames, {PARAM_DIM}); "
+                         f"found {sorted(data)}")
+    if motion.ndim != 2 or motion.shape[1] != width or not np.issubdtype(motion.dtype, np.number):
+        raise ValueError(f"{str(path)!r}: {key} must have shape (frames, {width}), got {motion.shape}")
+    if "fps" in data and float(data["fps"]) != MOTION_FPS:
+        raise ValueError(f"{str(path)!r} is tracked at {float(data['fps']):g} fps; real-voice evaluation compares "
+                         f"{MOTION_FPS}-fps motion")
+    bad = int(np.size(motion) - np.count_nonzero(np.isfinite(motion)))
+    if bad:
+        raise ValueError(f"{str(path)!r}: {key} contains {bad} NaN or inf value(s)")
+    if abs(motion.shape[0] - audio_frames) > _MOTION_SLACK_FRAMES:
+        raise ValueError(f"{str(path)!r} has {motion.shape[0]} frames, its recording lasts {audio_frames:.1f} frames "
+                         f"at {MOTION_FPS} fps (more than {_MOTION_SLACK_FRAMES} apart): not the same take, or not "
+                         f"{MOTION_FPS} fps")
+    return np.asarray(motion[:, column], np.float64)
+
+
+def read_recordings(folder: str | Path, *, min_frames: int = _MAX_LAG + 3,
+                    echo: Callable[[str], None] = print) -> list[Recording]:
+    """The recordings of a ``--real-voice`` folder, each with its tracked jaw where ``STEM.npz`` is beside it.
+
+    Args:
+        folder: the folder (not searched recursively).
+        min_frames: the shortest recording accepted, in 25-fps frames.
+        echo: where notes go (motion files that match no recording).
+
+    Returns:
+        :class:`Recording` per audio file, in name order.
+
+    Raises:
+        FileNotFoundError / NotADirectoryError: no such folder.
+        ValueError: an empty folder, no audio file in it, an unreadable or too short recording, a
+            motion file without ``pose``/``params``, with NaN, at another frame rate, or whose frame
+            count differs from its recording's duration by more than 2 frames.
+    """
+    from jaxtalk.audio import load_audio
+    from jaxtalk.commands.inference import AUDIO_SUFFIXES
+    from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
+
+    folder = Path(folder)
+    if not folder.exists():
+        raise FileNotFoundError(f"--real-voice folder not found: {str(folder)!r}")
+    if not folder.is_dir():
+        raise NotADirectoryError(f"--real-voice takes a folder of recordings, got the file {str(folder)!r}")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    if not files:
+        raise ValueError(f"the --real-voice folder {str(folder)!r} is empty: put recordings in it "
+                         f"({', '.join(AUDIO_SUFFIXES)}), each optionally with its tracked motion as STEM.npz")
+    audio_files = [p for p in files if p.suffix.lower() in AUDIO_SUFFIXES]
+    if not audio_files:
+        raise ValueError(f"the --real-voice folder {str(folder)!r} has no audio file ({', '.join(AUDIO_SUFFIXES)}); "
+                         f"found {', '.join(p.name for p in files[:5])}{' ...' if len(files) > 5 else ''}")
+    stems = [p.stem for p in audio_files]
+    twice = sorted({s for s in stems if stems.count(s) > 1})
+    if twice:
+        raise ValueError(f"{str(folder)!r} has several audio files named {', '.join(twice)} (one motion file each "
+                         "could belong to): keep one")
+    recordings = []
+    for path in audio_files:
+        audio = load_audio(path)
+        frames = audio.shape[0] / AUDIO_SAMPLE_RATE * MOTION_FPS
+        if frames < min_frames:
+            raise ValueError(f"{str(path)!r} lasts {audio.shape[0] / AUDIO_SAMPLE_RATE:.2f} s; real-voice evaluation "
+                             f"needs at least {min_frames / MOTION_FPS:g} s ({min_frames} frames)")
+        motion = path.with_suffix(".npz")
+        tracked = _tracked_jaw(motion, frames) if motion.is_file() else None
+        recordings.append(Recording(path.stem, path, audio, tracked, motion if tracked is not None else None))
+    unmatched = [p.name for p in files if p.suffix.lower() == ".npz" and p.stem not in stems]
+    if unmatched:
+        echo(f"note: {', '.join(unmatched)} match(es) no recording (motion goes beside its audio as STEM.npz)")
+    return recordings
+
+
+# The columns of a real-voice table after the recording and its frames (SpeechSync's fields).
+_SYNC_COLUMNS = ("speech_frames", "corr", "best_lag", "best_corr", "loudness_corr", "loudness_best_lag",
+                 "loudness_pred_corr", "loudness_pred_best_lag", "jaw_silence", "jaw_speech")
+
+
+def _sync_row(name: str, tracked: str | None, sync: Any) -> dict[str, Any]:
+    values = sync.to_dict()
+    return {"recording": name, "tracked": tracked, "frames": values["frames"],
+            **{k: values[k] for k in _SYNC_COLUMNS}}
+
+
+def _mean_row(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The recordings' plain mean per column over those that have it (the tracked-jaw columns: the
+    recordings with tracked motion; None where none has it)."""
+    tracked = sum(r["tracked"] == "yes" for r in rows)
+    out: dict[str, Any] = {"recording": "mean", "tracked": f"{tracked} of {len(rows)}",
+                           "frames": sum(r["frames"] for r in rows),
+                           "speech_frames": sum(r["speech_frames"] for r in rows)}
+    for key in _SYNC_COLUMNS[1:]:
+        values = [r[key] for r in rows if r[key] is not None]
+        out[key] = float(np.mean(values)) if values else None
+    return out
+
+
+def _turn_frames(record: RunRecord) -> int:
+    """Frames a run animates at a time at the least: a TIMAR turn, else one frame."""
+    return int(record.config["frames_per_turn"]) if record.model == "timar" else 1
+
+
+def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOptions,
+                      echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+    from jaxtalk.commands.inference import SampleOptions, stream_audio
+    from jaxtalk.layout import JAW_OPEN_INDEX
+    from jaxtalk.metrics.speech_sync import speech_sync
+    from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
+
+    model, turn = run.record.model, _turn_frames(run.record)
+    if len(recordings) > opts.max_clips:
+        echo(f"note: the first {opts.max_clips} of {len(recordings)} recordings (--max-clips)")
+        recordings = recordings[: opts.max_clips]
+    tracked = sum(r.tracked_jaw is not None for r in recordings)
+    title = "TokTalk" if model == "toktalk" else "TIMAR"
+    echo(f"streaming {len(recordings)} recordings of {opts.real_voice} ({tracked} with tracked motion) with "
+         f"{title} (step {run.step})")
+    rest_frames = -(-int(REST_SECONDS * MOTION_FPS) // turn) * turn
+    silence = np.zeros(rest_frames * AUDIO_SAMPLE_RATE // MOTION_FPS, np.float32)
+    quiet = lambda line: None  # noqa: E731  (per-chunk times: `jaxtalk stream` prints them)
+    variants = [(n, f", {n} step{'s' * (n > 1)}") for n in opts.sample_steps] or [(None, "")]
+    tables = []
+    for steps, label in variants:
+        sample = SampleOptions(run_dir=opts.run_dir, input=Path(opts.real_voice), sample_steps=steps,
+                               temperature=opts.temperature, seed=opts.seed, best=opts.best)
+        rows = []
+        for rec in recordings:
+            pred = stream_audio(run, rec.audio, dataclasses.replace(sample, input=rec.path), echo=quiet)
+            n = pred.shape[0] if rec.tracked_jaw is None else min(pred.shape[0], rec.tracked_jaw.shape[0])
+            sync = speech_sync(pred[:n, JAW_OPEN_INDEX], rec.audio, AUDIO_SAMPLE_RATE,
+                               tracked_jaw=None if rec.tracked_jaw is None else rec.tracked_jaw[:n], max_lag=_MAX_LAG)
+            rows.append(_sync_row(rec.name, "no" if rec.tracked_jaw is None else "yes", sync))
+            r = rows[-1]
+            echo(f"  {rec.name}: {n} frames" + (f", corr {r['corr']:.3f} (loudness follower "
+                                                f"{r['loudness_corr']:.3f})" if r["corr"] is not None else ""))
+        rest = stream_audio(run, silence, sample, echo=quiet)[:, JAW_OPEN_INDEX]
+        rest_row = _sync_row(f"digital silence ({silence.shape[0] / AUDIO_SAMPLE_RATE:g} s)", None,
+                             speech_sync(rest, silence, AUDIO_SAMPLE_RATE, max_lag=_MAX_LAG))
+        tables.append(EvalTable(f"{title} on real voices ({Path(opts.real_voice).name}{label}): predicted jaw "
+                                "opening (rad) vs the tracked jaw and the loudness; lags in frames, positive = late",
+                                [*rows, _mean_row(rows), rest_row]))
+    return len(recordings), tables
+
+
 _EVALUATORS = {"toktalk": _eval_toktalk, "timar": _eval_timar, "dualtalk": _eval_timar, "ats": _eval_ats,
                "stm": _eval_stm}
 
@@ -565,13 +770,27 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
         FileNotFoundError: not a run, no checkpoint (not trained yet), a data folder that is not
             prepared, a missing ``--flame`` file.
         ValueError: an unknown split, a split without clips the model can use, ``max_clips < 1``,
-            data whose features differ from the run's, ``--flame`` for a model other than TokTalk.
+            data whose features differ from the run's, ``--flame`` for a model other than TokTalk;
+            with ``real_voice``: a run without a jaw (ATS, STM, the DualTalk baseline), options of
+            prepared data, a bad folder or recording (:func:`read_recordings`).
     """
     record = RunRecord.load(opts.run_dir)
     if record.model not in _EVALUATORS:
         raise ValueError(f"{opts.run_dir} is a {record.model!r} run; eval covers {', '.join(_EVALUATORS)}")
     if opts.max_clips < 1:
         raise ValueError(f"--max-clips must be >= 1, got {opts.max_clips}")
+    if opts.real_voice is not None:
+        if record.model not in _REAL_VOICE_MODELS:
+            article = "an" if record.model[0] in "aeiou" else "a"
+            raise ValueError(f"--real-voice streams recordings through toktalk and timar runs (their output has a "
+                             f"jaw); {opts.run_dir} is {article} {record.model} run")
+        given = [flag for flag, value in (("--data", opts.data), ("--split", opts.split), ("--flame", opts.flame),
+                                          ("--offline", opts.offline or None)) if value is not None]
+        if given:
+            raise ValueError(f"{', '.join(given)}: not with --real-voice, which measures the recordings of "
+                             f"{opts.real_voice}, not prepared data")
+        if opts.sample_steps and record.model != "toktalk":
+            raise ValueError("--sample-steps gives TokTalk one table per step count; a timar run streams with its own")
     if opts.flame is not None:
         if record.model != "toktalk":
             raise ValueError(f"--flame poses TokTalk's parameters on FLAME; {opts.run_dir} is a {record.model} run")
@@ -582,15 +801,23 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
             raise ValueError(f"--temperature scales TokTalk's and TIMAR's sampler noise; {opts.run_dir} is a "
                              f"{record.model} run")
         check_temperature(opts.temperature, name="--temperature")
-    data = open_eval_data(record, opts.data, opts.cache_dir)
-    data.split(opts.split)  # an unknown split: ValueError naming the known ones
     from jaxtalk.train import latest_checkpoint_step
 
+    split = opts.split or "test"
+    if opts.real_voice is None:
+        data = open_eval_data(record, opts.data, opts.cache_dir)
+        data.split(split)  # an unknown split: ValueError naming the known ones
+    else:  # a bad folder or file is refused before the run is loaded
+        recordings = read_recordings(opts.real_voice, min_frames=max(_MAX_LAG + 3, _turn_frames(record)), echo=echo)
     if latest_checkpoint_step(checkpoint_dir(opts.run_dir)) is None:
         raise FileNotFoundError(f"{opts.run_dir} is not trained yet (no checkpoint in {checkpoint_dir(opts.run_dir)}); "
                                 "train it with `jaxtalk train`")
     run = load_run(opts.run_dir, best=opts.best)
+    if opts.real_voice is not None:
+        items, tables = _eval_real_voices(run, recordings, opts, echo)
+        return EvalReport(model=record.model, run_dir=str(opts.run_dir), step=run.step, data=str(opts.real_voice),
+                          split=None, items=items, tables=tables)
     check_eval_data(record, run.features(), data)
-    items, tables = _EVALUATORS[record.model](run, data, opts.split, opts, echo)
+    items, tables = _EVALUATORS[record.model](run, data, split, opts, echo)
     return EvalReport(model=record.model, run_dir=str(opts.run_dir), step=run.step, data=str(data.root),
-                      split=opts.split, items=items, tables=tables)
+                      split=split, items=items, tables=tables)

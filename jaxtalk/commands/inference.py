@@ -20,11 +20,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from jaxtyping import Float
 
 from jaxtalk.checks import check_temperature
 from jaxtalk.runs import LoadedRun, RunRecord, load_run
 
-__all__ = ["SampleOptions", "SampleResult", "MeshOptions", "sample_run", "stream_run", "animate_run",
+__all__ = ["SampleOptions", "SampleResult", "MeshOptions", "sample_run", "stream_run", "stream_audio", "animate_run",
            "check_sampling_options", "AUDIO_SUFFIXES"]
 
 AUDIO_SUFFIXES = (".wav", ".flac", ".ogg", ".aiff", ".aif")
@@ -210,8 +211,9 @@ def _toktalk_tokens(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
     return tokens.astype(np.float32), None
 
 
-def _timar_inputs(run: LoadedRun, opts: SampleOptions) -> tuple[dict[str, np.ndarray], np.ndarray, int]:
-    """Normalised ``(1, T, .)`` streams for ``stream``, the agent audio, and the turns."""
+def _timar_inputs(run: LoadedRun, audio: np.ndarray, opts: SampleOptions) -> tuple[dict[str, np.ndarray], np.ndarray, int]:
+    """Normalised ``(1, T, .)`` streams for ``stream`` from the agent's 16-kHz ``audio``, that audio cut
+    to whole turns, and the turns."""
     from jaxtalk.audio import load_audio
     from jaxtalk.data.features import parse_audio_features
     from jaxtalk.models.timar.data import Normalizer
@@ -219,7 +221,6 @@ def _timar_inputs(run: LoadedRun, opts: SampleOptions) -> tuple[dict[str, np.nda
 
     config = run.config
     norm = Normalizer.from_dict(run.record.extra["normalizer"])
-    audio = load_audio(opts.input)
     spt = AUDIO_SAMPLE_RATE * config.frames_per_turn // 25
     turns = audio.shape[0] // spt
     if turns < 1:
@@ -281,7 +282,9 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         from jaxtalk.models.timar.data import Normalizer
         from jaxtalk.models.timar.stream import stream
 
-        streams, audio, turns = _timar_inputs(run, opts)
+        from jaxtalk.audio import load_audio
+
+        streams, audio, turns = _timar_inputs(run, load_audio(opts.input), opts)
         context = max(run.record.extra.get("num_turns", run.config.max_turns) - 1, 0)
         motion = stream(run.params, run.config, streams["user_speech"], streams["user_motion"],
                                      streams["agent_speech"], key, context=context, cfg_scale=opts.cfg_scale,
@@ -289,6 +292,102 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         motion = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(motion)
     params = np.asarray(motion, np.float32)[0]
     return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=[], chunk_s=None)
+
+
+class _ChunkTimer:
+    """Wall time of each streamed chunk/turn in ms, echoed as it is produced."""
+
+    def __init__(self, echo: Callable[[str], None]):
+        self.echo, self.ms = echo, []
+
+    def __call__(self, n: int, dt: float, chunk_s: float, chunks: int = 1) -> None:
+        i = len(self.ms)
+        self.ms.append(1e3 * dt / chunks)
+        note = " (incl. compile)" if i == 0 else f" (real-time factor {dt / chunks / chunk_s:.3f})"
+        which = f"chunk {i + 1:3d}" if chunks == 1 else f"chunks {i + 1}-{i + chunks}"
+        self.echo(f"{which}/{n}: {1e3 * dt / chunks:8.1f} ms for {chunk_s:.2f} s{note}")
+
+
+def _stream_audio(run: LoadedRun, audio: np.ndarray, opts: SampleOptions,
+                  timer: _ChunkTimer) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(params (T, 56), the audio animated, chunk seconds)``: 16-kHz ``audio`` streamed through a
+    loaded TokTalk or TIMAR run (see :func:`stream_audio`)."""
+    import jax
+
+    key = jax.random.key(opts.seed)
+    config = run.config
+    outs = []
+    if run.record.model == "toktalk":
+        from jaxtalk.models.toktalk import tokens_per_chunk
+        from jaxtalk.models.toktalk.live import LiveModel
+
+        # The live path `jaxtalk serve` runs: the input goes in piece by piece, each piece what completes
+        # the next chunk (up to the chunk's end plus the tokenizer's look-ahead), as it would live.
+        _toktalk_tokenizer(run)
+        live = LiveModel.from_run(run, style=_toktalk_style(run, opts), cfg_scale=opts.cfg_scale,
+                                  sample_steps=opts.sample_steps, temperature=opts.temperature)
+        chunk_s, ct = live.chunk_frames / live.fps, tokens_per_chunk(config)
+        stream = live.open(key)
+        timer.echo(f"note: each chunk also waits for {1e3 * live.lookahead_samples / live.sample_rate:.1f} ms of "
+                   "audio past its end (the tokenizer's centred STFT): a live chunk's latency is that plus the times "
+                   "below")
+        n = -(-max(math.ceil(audio.shape[0] * config.token_rate / live.sample_rate), 1) // ct)
+        pos = 0
+        while pos + stream.samples_needed <= audio.shape[0]:  # each piece completes one chunk
+            t0, need = time.perf_counter(), stream.samples_needed
+            outs.append(stream.push(audio[pos:pos + need]))
+            timer(n, time.perf_counter() - t0, chunk_s)
+            pos += need
+        t0 = time.perf_counter()  # the rest of the audio, then the utterance's end: the last chunk(s)
+        outs.append(np.concatenate([stream.push(audio[pos:]), stream.finish()]))
+        timer(n, time.perf_counter() - t0, chunk_s, max(n - len(timer.ms), 1))
+        return np.asarray(np.concatenate(outs), np.float32), audio, chunk_s
+    from jaxtalk.models.timar.data import Normalizer
+    from jaxtalk.models.timar.stream import init_stream, stream_step
+
+    streams, audio, turns = _timar_inputs(run, audio, opts)
+    f = config.frames_per_turn
+    context = max(run.record.extra.get("num_turns", config.max_turns) - 1, 0)
+    state = jax.device_put(init_stream(config, key, context=context), jax.local_devices()[0])
+    for i in range(turns):
+        sl = slice(i * f, (i + 1) * f)
+        t0 = time.perf_counter()
+        state, out = stream_step(run.params, config, state, streams["user_speech"][:, sl],
+                                 streams["user_motion"][:, sl], streams["agent_speech"][:, sl],
+                                 cfg_scale=opts.cfg_scale, sample_steps=opts.sample_steps,
+                                 temperature=opts.temperature)
+        outs.append(np.asarray(jax.block_until_ready(out))[0])
+        timer(turns, time.perf_counter() - t0, f / 25)
+    params = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(np.concatenate(outs))
+    return np.asarray(params, np.float32), audio, f / 25
+
+
+def stream_audio(run: LoadedRun, audio: Float[np.ndarray, " samples"], opts: SampleOptions, *,
+                 echo: Callable[[str], None] = print) -> Float[np.ndarray, "frames 56"]:
+    """Animate a 16-kHz mono waveform with a loaded run as :func:`stream_run` does (TokTalk: the live path,
+    chunk by chunk; TIMAR: turn by turn, whole turns only, the partner silent unless ``opts.partner``),
+    writing nothing. Silence is accepted (a model's rest pose).
+
+    Args:
+        run: a TokTalk or TIMAR run (:func:`jaxtalk.runs.load_run`).
+        audio: the waveform.
+        opts: the sampling options (``input`` only names the audio in messages; ``out`` is not read).
+        echo: where each chunk's wall time goes.
+
+    Returns:
+        ``(T, 56)`` head parameters at 25 fps.
+
+    Raises:
+        ValueError: a run of another model, options it does not take, a TokTalk run without a
+            tokenizer, audio shorter than one TIMAR turn.
+    """
+    if run.record.model not in _SPEECH_MODELS:
+        raise ValueError(f"{run.run_dir} is a {run.record.model} run; stream_audio animates toktalk and timar runs")
+    _check_options(opts, run.record.model)
+    audio = np.asarray(audio, np.float32)
+    if audio.ndim != 1 or not np.all(np.isfinite(audio)):
+        raise ValueError(f"audio must be a finite one-dimensional waveform, got shape {audio.shape}")
+    return _stream_audio(run, audio, opts, _ChunkTimer(echo))[0]
 
 
 def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> SampleResult:
@@ -304,76 +403,36 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
     import jax
 
     run, kind = _load(opts)
-    key = jax.random.key(opts.seed)
-    config = run.config
-    outs, times = [], []
+    timer = _ChunkTimer(echo)
+    if kind == "audio":
+        from jaxtalk.audio import load_audio
 
-    def report(i: int, n: int, dt: float, chunk_s: float, chunks: int = 1) -> None:
-        times.append(1e3 * dt / chunks)
-        note = " (incl. compile)" if i == 0 else f" (real-time factor {dt / chunks / chunk_s:.3f})"
-        which = f"chunk {i + 1:3d}" if chunks == 1 else f"chunks {i + 1}-{i + chunks}"
-        echo(f"{which}/{n}: {1e3 * dt / chunks:8.1f} ms for {chunk_s:.2f} s{note}")
-
-    if run.record.model == "toktalk":
+        if run.record.model == "toktalk":
+            _toktalk_tokenizer(run)  # a run without one is refused before the audio is read
+        params, audio, chunk_s = _stream_audio(run, load_audio(opts.input), opts, timer)
+    else:  # TokTalk token embeddings, chunk by chunk
         from jaxtalk.models.toktalk import tokens_per_chunk
         from jaxtalk.models.toktalk.live import LiveModel
 
-        # The live path `jaxtalk serve` runs: the input goes in piece by piece, each piece what completes
-        # the next chunk (for audio: up to the chunk's end plus the tokenizer's look-ahead), as it would live.
+        config = run.config
         live = LiveModel.from_run(run, style=_toktalk_style(run, opts), cfg_scale=opts.cfg_scale,
                                   sample_steps=opts.sample_steps, temperature=opts.temperature)
         chunk_s, ct = live.chunk_frames / live.fps, tokens_per_chunk(config)
-        stream = live.open(key)
-        if kind == "audio":
-            from jaxtalk.audio import load_audio
-
-            _toktalk_tokenizer(run)
-            audio = load_audio(opts.input)
-            echo(f"note: each chunk also waits for {1e3 * live.lookahead_samples / live.sample_rate:.1f} ms of audio "
-                 "past its end (the tokenizer's centred STFT): a live chunk's latency is that plus the times below")
-            n = -(-max(math.ceil(audio.shape[0] * config.token_rate / live.sample_rate), 1) // ct)
-            pos = 0
-            while pos + stream.samples_needed <= audio.shape[0]:  # each piece completes one chunk
-                t0, need = time.perf_counter(), stream.samples_needed
-                outs.append(stream.push(audio[pos:pos + need]))
-                report(len(times), n, time.perf_counter() - t0, chunk_s)
-                pos += need
-            t0 = time.perf_counter()  # the rest of the audio, then the utterance's end: the last chunk(s)
-            outs.append(np.concatenate([stream.push(audio[pos:]), stream.finish()]))
-            report(len(times), n, time.perf_counter() - t0, chunk_s, max(n - len(times), 1))
-        else:
-            tokens, audio = _toktalk_tokens(run, opts, kind)
-            n = -(-tokens.shape[0] // ct)
-            for i in range(n):
-                t0 = time.perf_counter()
-                out = stream.push_tokens(tokens[i * ct:(i + 1) * ct])
-                outs.append(np.concatenate([out, stream.finish()]) if i == n - 1 else out)
-                report(i, n, time.perf_counter() - t0, chunk_s)
-        params = np.concatenate(outs)
-    else:
-        from jaxtalk.models.timar.data import Normalizer
-        from jaxtalk.models.timar.stream import init_stream, stream_step
-
-        streams, audio, turns = _timar_inputs(run, opts)
-        f = config.frames_per_turn
-        context = max(run.record.extra.get("num_turns", config.max_turns) - 1, 0)
-        state = jax.device_put(init_stream(config, key, context=context), jax.local_devices()[0])
-        for i in range(turns):
-            sl = slice(i * f, (i + 1) * f)
+        stream = live.open(jax.random.key(opts.seed))
+        tokens, audio = _toktalk_tokens(run, opts, kind)
+        n = -(-tokens.shape[0] // ct)
+        outs = []
+        for i in range(n):
             t0 = time.perf_counter()
-            state, out = stream_step(run.params, config, state, streams["user_speech"][:, sl],
-                                     streams["user_motion"][:, sl], streams["agent_speech"][:, sl],
-                                     cfg_scale=opts.cfg_scale, sample_steps=opts.sample_steps,
-                                     temperature=opts.temperature)
-            outs.append(np.asarray(jax.block_until_ready(out))[0])
-            report(i, turns, time.perf_counter() - t0, f / 25)
-        params = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(np.concatenate(outs))
-        chunk_s = f / 25
+            out = stream.push_tokens(tokens[i * ct:(i + 1) * ct])
+            outs.append(np.concatenate([out, stream.finish()]) if i == n - 1 else out)
+            timer(n, time.perf_counter() - t0, chunk_s)
+        params = np.asarray(np.concatenate(outs), np.float32)
+    times = timer.ms
     if len(times) > 1:
         steady = times[1:]
         echo(f"median {statistics.median(steady):.1f} ms per {chunk_s:.2f}-s chunk after the first "
              f"(real-time factor {statistics.median(steady) / 1e3 / chunk_s:.3f})")
-    params = np.asarray(params, np.float32)
     return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=times, chunk_s=chunk_s)
 
 
