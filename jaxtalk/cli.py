@@ -67,7 +67,7 @@ def _main(
 @app.command()
 @_user_errors
 def data(
-    size: Annotated[str, typer.Option(help="Corpus size: tiny, small or full.")] = "tiny",
+    size: Annotated[str, typer.Option(help="Corpus size: tiny, small, full, tiny+espeak or small+espeak.")] = "tiny",
     seed: Annotated[int, typer.Option(help="Random seed (same seed, byte-identical corpus).")] = 0,
     cache_dir: Annotated[
         Path, typer.Option(help="Where the corpus and its fitted tokenizers are cached.")

@@ -41,6 +41,16 @@ def test_same_seed_same_bytes_different_seed_differs():
     assert not np.array_equal(c.audio(0)[:16000], a.audio(0)[:16000])
 
 
+# The bytes of the built-in "tiny" corpus (audio, motion, oracle) at generator VERSION 2. Published
+# numbers depend on the built-in sizes: a change here must be deliberate and bump VERSION.
+TINY_SEED0_FINGERPRINT = "bfcfc916685735bfacb74bc5a38a9b43b077b6b7046ce6bce447105a651756f8"
+
+
+def test_builtin_tiny_corpus_bytes_are_unchanged(corpus):
+    assert synthtalk.VERSION == 2
+    assert corpus.fingerprint(tokens=False) == TINY_SEED0_FINGERPRINT
+
+
 def test_tokenizers_are_deterministic(corpus):
     # Fitted twice from scratch on the same corpus audio with the same seed: identical ids.
     fresh = synthtalk.SynthTalkCorpus("tiny", 0, synthtalk.SIZES["tiny"], None)

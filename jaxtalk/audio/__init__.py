@@ -10,6 +10,8 @@ vector-quantised tokenizers.
   ``TokenStream.from_npy`` brings in user-supplied per-frame embeddings (e.g. an audio LLM's);
   ``VQTokenizer.stream()`` tokenizes live audio piece by piece (``TokenizerStream``), equal to ``encode``.
 * ``kmeans``: jitted k-means++ / Lloyd used to fit the codebooks.
+* ``espeak.speak(text, voice="en-us", rate_wpm=175, pitch=50, pitch_range=50)``: eSpeak NG speech
+  (22050 Hz) with its phoneme events (mnemonic, start time), reproducible byte for byte.
 """
 
 from jaxtalk.audio.framerate import (

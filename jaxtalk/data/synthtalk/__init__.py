@@ -1,12 +1,14 @@
 """SynthTalk: jaxtalk's built-in procedural speech + 3D face motion corpus (spec:
 ``shared/design/SYNTHTALK.md``).
 
-``generate(size="tiny"|"small"|"full", seed=0, cache_dir=None) -> SynthTalkCorpus``. Modules:
-``phones`` (inventory, acoustic recipes, visemes), ``emotions`` (EmoVOCA face + voice effects),
-``speakers`` (styles, in- and out-of-distribution), ``script`` (phrases and timelines), ``speech``
-(source-filter synthesis), ``motion`` (coarticulation, prosody, listener reactions, stochastic parts),
-``conversation`` (turn-taking, turn arousal, rendering), ``dyadic`` (delayed mimicry and the shared mood
-of conversations), ``ceiling`` (what context can explain), ``corpus`` (splits, cache, tokens, geometry).
+``generate(size="tiny"|"small"|"full"|"tiny+espeak"|"small+espeak", seed=0, cache_dir=None) ->
+SynthTalkCorpus``. Modules: ``phones`` (inventory, acoustic recipes, visemes), ``emotions`` (EmoVOCA
+face + voice effects), ``speakers`` (styles, in- and out-of-distribution), ``script`` (phrases and
+timelines), ``speech`` (source-filter synthesis), ``espeak_voice`` (phrases spoken and timed by eSpeak
+NG, and the mapping of its phonemes to SynthTalk's), ``motion`` (coarticulation, prosody, listener
+reactions, stochastic parts), ``conversation`` (turn-taking, turn arousal, rendering), ``dyadic``
+(delayed mimicry and the shared mood of conversations), ``ceiling`` (what context can explain),
+``corpus`` (splits, cache, tokens, geometry).
 """
 
 from jaxtalk.data.synthtalk.corpus import (

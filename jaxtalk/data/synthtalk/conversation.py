@@ -15,9 +15,9 @@ import dataclasses
 
 import numpy as np
 
-from jaxtalk.data.synthtalk import dyadic
+from jaxtalk.data.synthtalk import dyadic, espeak_voice
 from jaxtalk.data.synthtalk import motion as motion_lib
-from jaxtalk.data.synthtalk.emotions import face_offset, voice_change
+from jaxtalk.data.synthtalk.emotions import VoiceChange, face_offset, voice_change
 from jaxtalk.data.synthtalk.script import (
     Phrase,
     Timeline,
@@ -59,6 +59,21 @@ class Channel:
     oracle: np.ndarray
 
 
+def _make_phrase(rng: np.random.Generator, style: SpeakerStyle, voice: VoiceChange,
+                 arousal: float | None = None) -> Phrase:
+    # An eSpeak speaker's phrase is timed by eSpeak, whose pitch range depends on the arousal.
+    if style.espeak is not None:
+        return espeak_voice.make_phrase(rng, style, voice, 1.0 if arousal is None else arousal)
+    p = make_phrase(rng, style, voice)
+    return p if arousal is None else dataclasses.replace(p, arousal=arousal)
+
+
+def _make_backchannel(rng: np.random.Generator, style: SpeakerStyle, voice: VoiceChange) -> Phrase:
+    if style.espeak is not None:
+        return espeak_voice.make_backchannel(rng, style, voice)
+    return make_backchannel(rng, style, voice)
+
+
 def monologue_timeline(rng: np.random.Generator, style: SpeakerStyle, emotion: str, intensity: int,
                        target_seconds: float) -> Timeline:
     """Phrases separated by 0.25-0.7 s pauses until ``target_seconds`` is reached."""
@@ -67,7 +82,7 @@ def monologue_timeline(rng: np.random.Generator, style: SpeakerStyle, emotion: s
     starts: list[float] = []
     t = float(rng.uniform(*_LEAD_IN))
     while True:
-        p = make_phrase(rng, style, voice)
+        p = _make_phrase(rng, style, voice)
         phrases.append(p)
         starts.append(t)
         t += p.duration
@@ -105,13 +120,13 @@ def conversation_timelines(rng: np.random.Generator, styles: tuple[SpeakerStyle,
         for k in range(int(rng.integers(1, 4))):
             if k:
                 t += float(rng.uniform(0.15, 0.4))
-            p = dataclasses.replace(make_phrase(rng, styles[speaker], voices[speaker]), arousal=arousal)
+            p = _make_phrase(rng, styles[speaker], voices[speaker], arousal)
             phrases[speaker].append(p)
             starts[speaker].append(t)
             t += p.duration
         last_end[speaker] = t
         if t - turn_start > 1.5 and rng.random() < 0.6:
-            bc = make_backchannel(rng, styles[listener], voices[listener])
+            bc = _make_backchannel(rng, styles[listener], voices[listener])
             lo = max(turn_start + 0.8, last_end[listener] + 0.1)
             hi = t - 0.3 - bc.duration
             if hi > lo:

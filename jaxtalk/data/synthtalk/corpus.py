@@ -5,7 +5,9 @@ conversations exist, every phone timing: cheap) and renders the audio and motion
 monologue clip, or a conversation = two clips) from its own random streams, so any unit can be made
 alone. ``tiny`` and ``small`` are rendered eagerly (and cached in one ``.npz``); ``full`` renders a
 unit on first access and caches it in its own file. Tokens come from two ``VQTokenizer``s fitted once
-on the train audio; landmarks and vertices are computed on demand through ``jaxtalk.face``.
+on the train audio; landmarks and vertices are computed on demand through ``jaxtalk.face``. A share of
+each split's speakers can speak with eSpeak NG voices (``SizeSpec.espeak_share``; the ``+espeak``
+sizes), whose phone timings come from eSpeak itself.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float, Int
 
+from jaxtalk.data.synthtalk import espeak_voice
 from jaxtalk.data.synthtalk.conversation import (
     Channel,
     conversation_motion,
@@ -87,6 +90,9 @@ class SizeSpec:
             the clip's own random stream; its motion is unchanged. False: the clean synthesised sound.
         noise_floor_seconds: the token streams' causal noise-floor normaliser window in seconds
             (:class:`jaxtalk.audio.VQTokenizer`'s ``floor_window``); 0: no normaliser.
+        espeak_share: the fraction of the speakers of every split who speak with an eSpeak NG voice
+            (a language of ``espeak_voice.LANGUAGES`` and a voice variant, fixed per speaker) instead
+            of the source-filter synthesiser; 0 leaves the corpus exactly as without eSpeak.
     """
 
     speakers: tuple[int, int, int, int]
@@ -102,6 +108,8 @@ class SizeSpec:
     emotion_gain: float = 1.0
     recording: bool = False
     noise_floor_seconds: float = 0.0
+    # Not in the repr, so a custom spec without eSpeak keeps the cache name it had before the field.
+    espeak_share: float = dataclasses.field(default=0.0, repr=False)
 
 
 SIZES: dict[str, SizeSpec] = {
@@ -112,11 +120,15 @@ SIZES: dict[str, SizeSpec] = {
     # Hours, rendered lazily.
     "full": SizeSpec((120, 12, 12, 12), 12, 10.0, (96, 12, 12, 12), 30.0, 256, 1200.0, lazy=True),
 }
+# The same sizes with three speakers in four speaking through eSpeak NG voices (14 languages, 13
+# variants, the speakers' own rates and pitches), the rest through the source-filter synthesiser.
+SIZES["tiny+espeak"] = dataclasses.replace(SIZES["tiny"], espeak_share=0.75)
+SIZES["small+espeak"] = dataclasses.replace(SIZES["small"], espeak_share=0.75)
 # The same corpora as real microphones record them: every clip through its own random recording chain
 # (room, line, level, background noise), the token streams read through a 2-s causal noise-floor
-# normaliser. What a model that must hear a user's own voice trains on (the demo's default).
+# normaliser. What a model that must hear a user's own voice trains on.
 SIZES |= {f"{name}+mic": dataclasses.replace(SIZES[name], recording=True, noise_floor_seconds=2.0)
-          for name in ("tiny", "small")}
+          for name in ("tiny", "small", "tiny+espeak", "small+espeak")}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,7 +201,7 @@ def _rng(seed: int, *key: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=tuple(key)))
 
 
-_PLAN, _STYLE, _AUDIO, _MOTION, _EMOTION = range(5)
+_PLAN, _STYLE, _AUDIO, _MOTION, _EMOTION, _VOICE = range(6)
 _RECORDING = 16  # the recording chains' streams
 
 
@@ -198,12 +210,26 @@ def _draw_emotion(rng: np.random.Generator) -> tuple[str, int]:
     return emotion, 1 if emotion == "neutral" else int(rng.integers(1, 4))
 
 
+def _is_espeak(k: int, share: float) -> bool:
+    # Spreads round(n * share) eSpeak speakers evenly over a split's n speakers.
+    return math.floor((k + 1) * share + 0.5) > math.floor(k * share + 0.5)
+
+
 def _plan(spec: SizeSpec, seed: int) -> tuple[list[Speaker], list[ClipInfo], list[_Unit]]:
     speakers: list[Speaker] = []
-    for split, n in zip(SPLITS, spec.speakers):
-        for _ in range(n):
+    languages = sorted(espeak_voice.LANGUAGES)
+    for split_index, (split, n) in enumerate(zip(SPLITS, spec.speakers)):
+        # Each split cycles through the languages in its own random order, so it covers as many as it can.
+        order = _rng(seed, _VOICE, split_index, 0).permutation(len(languages)) if spec.espeak_share else None
+        n_espeak = 0
+        for k in range(n):
             sid = len(speakers)
             style = sample_style(_rng(seed, _STYLE, sid), ood=split == "ood")
+            if spec.espeak_share and _is_espeak(k, spec.espeak_share):
+                language = languages[int(order[n_espeak % len(languages)])]
+                n_espeak += 1
+                voice = espeak_voice.sample_voice(_rng(seed, _VOICE, sid), style, language)
+                style = dataclasses.replace(style, espeak=voice)
             speakers.append(Speaker(sid, split, style))
     clips: list[ClipInfo] = []
     units: list[_Unit] = []
@@ -301,10 +327,14 @@ class SynthTalkCorpus:
             raise ValueError(f"SizeSpec.noise_floor_seconds must be a finite number >= 0, got {spec.noise_floor_seconds}")
         if not (math.isfinite(spec.emotion_gain) and spec.emotion_gain >= 0):
             raise ValueError(f"SizeSpec.emotion_gain must be a finite number >= 0, got {spec.emotion_gain}")
+        if not (isinstance(spec.espeak_share, (int, float)) and 0.0 <= spec.espeak_share <= 1.0):
+            raise ValueError(f"SizeSpec.espeak_share must be a fraction in [0, 1], got {spec.espeak_share!r}")
         self.size, self.seed, self.spec = size, seed, spec
-        self.speakers, self.clips, self._units = _plan(spec, seed)
-        self.identities = spec.identities
         self._cache_dir = cache_dir
+        # eSpeak phrases are timed by synthesis: their timings are cached beside the corpus.
+        with espeak_voice.timing_cache(self._espeak_timings_path() if spec.espeak_share else None):
+            self.speakers, self.clips, self._units = _plan(spec, seed)
+        self.identities = spec.identities
         self._digest = _digest(self.clips)
         self._channels: dict[int, Channel] = {}
         # Lazy corpora keep only recently used units in memory.
@@ -365,6 +395,11 @@ class SynthTalkCorpus:
                 for c in self._units[old].clips:
                     self._channels.pop(c, None)
         return self._channels[i]
+
+    def _espeak_timings_path(self) -> Path | None:
+        if self._cache_dir is None:
+            return None
+        return self._cache_dir / f"{self.key}-espeak-timings.npz"
 
     def _unit_path(self, unit: int) -> Path | None:
         if self._cache_dir is None:
@@ -611,7 +646,8 @@ def generate(size: str | SizeSpec = "tiny", seed: int = 0,
 
     Args:
         size: "tiny" (CI, ~5 min of audio), "small" (~30 min), "full" (hours, rendered lazily),
-            "tiny+mic" / "small+mic" (the same as real microphones record them), or a custom ``SizeSpec``.
+            "tiny+espeak" / "small+espeak" (the same with three speakers in four speaking through eSpeak
+            NG voices), "<size>+mic" (the same as real microphones record them), or a custom ``SizeSpec``.
         seed: the same seed gives byte-identical arrays.
         cache_dir: where to cache rendered arrays and fitted tokenizers (keyed by version, size,
             seed; files written atomically). None: keep everything in memory.
@@ -625,7 +661,8 @@ def generate(size: str | SizeSpec = "tiny", seed: int = 0,
     if isinstance(size, SizeSpec):
         spec = size
         # A custom size is named by its content so the cache never mixes two specs.
-        name = "custom" + hashlib.sha256(repr(spec).encode()).hexdigest()[:10]
+        text = repr(spec) + (f", espeak_share={spec.espeak_share!r}" if spec.espeak_share else "")
+        name = "custom" + hashlib.sha256(text.encode()).hexdigest()[:10]
     elif size in SIZES:
         spec, name = SIZES[size], size
     else:

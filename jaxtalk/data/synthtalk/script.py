@@ -1,5 +1,7 @@
 """What is said and when: phrases of CV(C) syllables with phone timings and pitch accents, laid out
-on one speaker's timeline (silence fills every gap)."""
+on one speaker's timeline (silence fills every gap). A phrase spoken by eSpeak NG
+(``espeak_voice.make_phrase``) carries what eSpeak is asked to say; its phones and durations are
+eSpeak's own."""
 
 from __future__ import annotations
 
@@ -11,15 +13,31 @@ from jaxtalk.data.synthtalk.emotions import VoiceChange
 from jaxtalk.data.synthtalk.phones import CODAS, ONSETS, PHONE_INDEX, PHONES, SILENCE, VOWELS, recipe
 from jaxtalk.data.synthtalk.speakers import SpeakerStyle
 
-__all__ = ["Phrase", "Timeline", "make_phrase", "make_backchannel", "layout_timeline"]
+__all__ = ["SpeechRequest", "Phrase", "Timeline", "make_phrase", "make_backchannel", "layout_timeline"]
 
 _DURATIONS = np.array([recipe(i).duration for i in range(len(PHONES))])
 _BACKCHANNELS = (("m", "m"), ("i", "e", "a"), ("o", "k", "e"), ("a", "m"))
 
 
 @dataclasses.dataclass(frozen=True)
+class SpeechRequest:
+    """What eSpeak NG is asked to say for one phrase (the arguments of ``jaxtalk.audio.espeak.speak``)."""
+
+    text: str
+    voice: str
+    rate_wpm: int
+    pitch: int
+    pitch_range: int
+    seed: int
+
+
+@dataclasses.dataclass(frozen=True)
 class Phrase:
-    """One phrase before placement: phones with durations (s) and accents relative to its start."""
+    """One phrase before placement: phones with durations (s) and accents relative to its start.
+
+    ``speech`` is None for SynthTalk's own synthesiser, else what eSpeak says (the audio of the phrase
+    is then eSpeak's, cut to ``duration`` from its first phone on).
+    """
 
     phones: np.ndarray          # (n,) int32
     durations: np.ndarray       # (n,) float64, seconds
@@ -27,6 +45,7 @@ class Phrase:
     accent_strengths: np.ndarray  # (k,) float64 in (0, 1]
     backchannel: bool = False
     arousal: float = 1.0  # loudness and pitch-range factor of the whole phrase (1 = the speaker's usual)
+    speech: SpeechRequest | None = None
 
     @property
     def duration(self) -> float:
@@ -44,6 +63,7 @@ class Timeline:
         phrase_starts, phrase_ends: ``(m,)`` times of each phrase; ``backchannel (m,)`` marks short
             listener responses ("mhm"), which are not turns.
         duration: seconds (a whole number of 25 fps frames).
+        phrase_speech: ``(m,)`` each phrase's eSpeak request (None for source-filter phrases).
     """
 
     phones: np.ndarray
@@ -56,6 +76,7 @@ class Timeline:
     backchannel: np.ndarray
     phrase_arousal: np.ndarray
     duration: float
+    phrase_speech: tuple[SpeechRequest | None, ...] = ()
 
     def arousal_at(self, times: np.ndarray) -> np.ndarray:
         """The arousal of the phrase sounding at each time, 1 between phrases, ``(len(times),)``."""
@@ -161,4 +182,5 @@ def layout_timeline(phrases: list[Phrase], starts: list[float], duration: float)
         backchannel=np.array([p.backchannel for p in phrases], dtype=bool),
         phrase_arousal=np.array([p.arousal for p in phrases], dtype=np.float64),
         duration=float(duration),
+        phrase_speech=tuple(p.speech for p in phrases),
     )

@@ -3,7 +3,9 @@
 A style fixes everything that is the same across one speaker's clips: voice (f0, vocal-tract length),
 articulation amplitude and smoothing, speaking rate, head sway, how they react as listeners, and a
 resting face. Training speakers draw the scalar style knobs from the "train" ranges below;
-out-of-distribution speakers draw them from bands strictly outside those ranges.
+out-of-distribution speakers draw them from bands strictly outside those ranges. A speaker either
+speaks through SynthTalk's source-filter synthesiser (``espeak`` is None) or with a fixed eSpeak NG
+voice (``EspeakVoice``, drawn by ``espeak_voice.sample_voice``).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import numpy as np
 
 from jaxtalk.layout import GROUPS, JAW_OPEN_INDEX, NECK_SLICE, PARAM_DIM
 
-__all__ = ["SpeakerStyle", "STYLE_RANGES", "DYADIC_RANGES", "OOD_KNOBS", "sample_style"]
+__all__ = ["SpeakerStyle", "EspeakVoice", "STYLE_RANGES", "DYADIC_RANGES", "OOD_KNOBS", "sample_style"]
 
 # (low, high) of each scalar knob for in-distribution speakers.
 STYLE_RANGES: dict[str, tuple[float, float]] = {
@@ -49,6 +51,30 @@ OOD_KNOBS: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
 
 
 @dataclasses.dataclass(frozen=True)
+class EspeakVoice:
+    """A speaker's eSpeak NG voice: the same in every clip of that speaker.
+
+    Attributes:
+        language: eSpeak language ("en-us", "de", ...).
+        variant: eSpeak voice variant ("m3", "f2", ...).
+        wpm: speaking rate in words per minute with a neutral emotion.
+        pitch: eSpeak base pitch (0-100) with a neutral emotion.
+        pitch_range: eSpeak pitch range (0-100) with a neutral emotion at arousal 1.
+    """
+
+    language: str
+    variant: str
+    wpm: float
+    pitch: float
+    pitch_range: float
+
+    @property
+    def name(self) -> str:
+        """eSpeak's voice name, ``language+variant``."""
+        return f"{self.language}+{self.variant}"
+
+
+@dataclasses.dataclass(frozen=True)
 class SpeakerStyle:
     """One speaker's style (see ``STYLE_RANGES`` for the meaning and range of each knob).
 
@@ -56,6 +82,7 @@ class SpeakerStyle:
         formant_scale: vocal-tract factor multiplying every formant (shorter tract = higher).
         jaw_asym: sideways jaw rotation per radian of opening.
         rest: resting 56-d head vector, shape ``(56,)``.
+        espeak: the speaker's eSpeak voice, or None for a source-filter speaker.
     """
 
     articulation: float
@@ -76,24 +103,28 @@ class SpeakerStyle:
     mimic_lag: float
     mimic_gain: float
     rest: np.ndarray = dataclasses.field(compare=False, repr=False)
+    espeak: EspeakVoice | None = None
 
     def knobs(self) -> np.ndarray:
         """The scalar knobs of ``STYLE_RANGES`` in that order, shape ``(13,)`` float64."""
         return np.array([getattr(self, k) for k in STYLE_RANGES], dtype=np.float64)
 
-    def to_dict(self) -> dict[str, float | list[float]]:
-        """JSON-friendly form (``rest`` as a list)."""
-        out: dict[str, float | list[float]] = {
-            f.name: float(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name != "rest"
+    def to_dict(self) -> dict[str, float | list[float] | dict]:
+        """JSON-friendly form (``rest`` as a list; ``espeak`` as a dict, only for an eSpeak speaker)."""
+        out: dict[str, float | list[float] | dict] = {
+            f.name: float(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name not in ("rest", "espeak")
         }
         out["rest"] = [float(x) for x in self.rest]
+        if self.espeak is not None:
+            out["espeak"] = dataclasses.asdict(self.espeak)
         return out
 
     @classmethod
     def from_dict(cls, d: dict) -> SpeakerStyle:
         """Inverse of ``to_dict``."""
-        kw = {k: float(v) for k, v in d.items() if k != "rest"}
-        return cls(**kw, rest=np.asarray(d["rest"], dtype=np.float64))
+        kw = {k: float(v) for k, v in d.items() if k not in ("rest", "espeak")}
+        espeak = EspeakVoice(**d["espeak"]) if d.get("espeak") is not None else None
+        return cls(**kw, rest=np.asarray(d["rest"], dtype=np.float64), espeak=espeak)
 
 
 def _resting_face(rng: np.random.Generator) -> np.ndarray:

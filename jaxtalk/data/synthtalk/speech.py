@@ -5,7 +5,8 @@ A Rosenberg glottal pulse train (differentiated for lip radiation) at a per-utte
 formant resonators; fricatives are band-passed noise, stops are a closure (a voice bar when voiced)
 followed by a burst and aspiration, nasals carry a low murmur resonance. Each phone is rendered on
 its own slice with its own fixed filters and the slices are overlap-added with complementary
-raised-cosine cross-fades, so there is no per-sample Python loop.
+raised-cosine cross-fades, so there is no per-sample Python loop. A timeline spoken by an eSpeak
+speaker is rendered by eSpeak instead (``espeak_voice.render``).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import functools
 import numpy as np
 from scipy import signal
 
+from jaxtalk.data.synthtalk import espeak_voice
 from jaxtalk.data.synthtalk.emotions import VoiceChange
 from jaxtalk.data.synthtalk.phones import PHONE_INDEX, recipe
 from jaxtalk.data.synthtalk.script import Timeline
@@ -164,6 +166,8 @@ def synthesize(timeline: Timeline, style: SpeakerStyle, voice: VoiceChange,
     Returns:
         ``(round(duration * sample_rate),)`` float32 mono audio in [-1, 1].
     """
+    if any(s is not None for s in timeline.phrase_speech):
+        return espeak_voice.render(timeline, voice, rng, sample_rate)
     n = int(round(timeline.duration * sample_rate))
     # Pitch moves slowly: evaluate the contour at 200 Hz and interpolate to the sample grid.
     control = np.arange(int(timeline.duration * 200) + 2) / 200.0
