@@ -6,8 +6,10 @@ For each run given, streamed exactly as ``jaxtalk stream RUN FILE --best`` strea
   ``X_speakerN.npz`` tracked FLAME beside it where there is one): ``jaxtalk.metrics.speech_sync`` (the
   jaw's correlation with the tracked jaw at lag 0, its best lag, the loudness follower beside it, the jaw
   in silence vs speech);
-* silence: 8 s of a -90 dBFS dither (the rest jaw; digital zero is refused as no speech) and 8 s of steady white noise at -40 and -30 dBFS
-  (the jaw's mean distance from the rest jaw after the first second);
+* silence: 8 s of a -90 dBFS dither (digital zero is refused as no speech) and 8 s of steady white noise
+  at -40 and -30 dBFS: the jaw's mean after the first second, and its distance from the rest of the
+  run's default style clip (``jaxtalk.metrics.speech_sync.style_rest_jaw``), the opening a mouth in
+  that style should hold in silence;
 * SynthTalk ``small`` seed 0's held-out demo clip (the clip ``jaxtalk demo`` reports, streamed with its
   speaker's style clip): the lip error LVE (mm^2) and the mean-pose baseline's.
 
@@ -27,7 +29,9 @@ import soundfile as sf
 from jaxtalk.audio import load_audio
 from jaxtalk.commands.inference import SampleOptions, stream_run
 from jaxtalk.layout import JAW_OPEN_INDEX
-from jaxtalk.metrics.speech_sync import speech_sync
+from jaxtalk.metrics.speech_sync import speech_sync, style_rest_jaw
+from jaxtalk.data.formats import load_npy
+from jaxtalk.runs import STYLE_FILE
 
 SR = 16000
 
@@ -65,11 +69,14 @@ def _silence(run: Path, tmp: Path) -> dict:
     # jaxtalk refuses digital zero as "no speech": the quietest input is a -90 dBFS dither.
     dither = (10 ** (-90 / 20) * np.random.default_rng(1).standard_normal(n)).astype(np.float32)
     rest = _stream(run, dither, tmp)[25:, JAW_OPEN_INDEX]
-    out = {"rest_jaw": float(rest.mean())}
+    style_rest = style_rest_jaw(np.asarray(load_npy(run / STYLE_FILE))[:, JAW_OPEN_INDEX])
+    out = {"style_rest_jaw": style_rest, "rest_jaw": float(rest.mean()),
+           "dither_jaw_minus_style_rest": float(rest.mean() - style_rest)}
     for db in (-40, -30):
         noise = (10 ** (db / 20) * np.random.default_rng(0).standard_normal(n)).astype(np.float32)
         jaw = _stream(run, noise, tmp)[25:, JAW_OPEN_INDEX]
         out[f"noise_{-db}dBFS_jaw_minus_rest"] = float(np.mean(jaw - rest))
+        out[f"noise_{-db}dBFS_jaw_minus_style_rest"] = float(np.mean(jaw) - style_rest)
     return out
 
 

@@ -134,8 +134,9 @@ def demo(
     audio: Annotated[
         Path | None, typer.Option(help="Also animate your own speech file (WAV/FLAC, any rate, mono or stereo).")
     ] = None,
-    size: Annotated[str, typer.Option(help="SynthTalk size: small+mic (small as real microphones record it), small "
-                                            "(clean sound), tiny+mic or tiny (quick look).")] = "small+mic",
+    size: Annotated[str, typer.Option(help="SynthTalk size: small+espeak+mic (eSpeak NG voices and the source-filter "
+                                            "voice, as real microphones record them), small+mic, small (clean "
+                                            "sound), or tiny... for a quick look.")] = "small+espeak+mic",
     steps: Annotated[int, typer.Option(help="Training steps of the small TokTalk model.")] = DemoOptions.train_steps,
     seed: Annotated[int, typer.Option(help="Corpus and training seed.")] = 0,
     sample_steps: Annotated[

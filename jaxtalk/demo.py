@@ -43,8 +43,9 @@ class DemoOptions:
         out_dir: output folder (created). It is also the model's training run (``run.json``,
             ``checkpoint/`` and the inference assets, as ``jaxtalk train`` writes them), so
             ``jaxtalk sample`` / ``jaxtalk stream`` take it as their RUN.
-        size: SynthTalk size: "small+mic" (default: the ``small`` corpus as real microphones record it,
-            so that the model also hears a user's own voice), "small" (clean studio sound), "tiny+mic" /
+        size: SynthTalk size: "small+espeak+mic" (default: the ``small`` corpus with three speakers in
+            four talking through eSpeak NG voices, as real microphones record it, so that the model also
+            hears a user's own voice), "small+mic", "small" (clean studio sound), "tiny+espeak+mic" /
             "tiny" for a quick look.
         seed: corpus and training seed.
         train_steps: optimiser steps of the base model.
@@ -71,7 +72,7 @@ class DemoOptions:
 
     out_dir: Path = Path("jaxtalk-demo")
     overwrite: bool = False
-    size: str = "small+mic"
+    size: str = "small+espeak+mic"
     seed: int = 0
     train_steps: int = 400
     sample_steps: int = 1
@@ -368,10 +369,11 @@ _SYNC_MIN_FRAMES = 11
 
 
 def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoOptions,
-                        files: dict[str, Path], echo: Callable[[str], None]) -> dict[str, Any] | None:
+                        files: dict[str, Path], echo: Callable[[str], None], *,
+                        style_rest: float) -> dict[str, Any] | None:
     """Stream the user's audio; write its parameters (and video). Returns its speech-sync row: how the
-    predicted jaw follows the recording (no tracked jaw: the loudness), and the rest jaw (None for audio
-    too short to measure)."""
+    predicted jaw follows the recording (no tracked jaw: the loudness), the rest jaw, and the style
+    clip's own rest ``style_rest`` beside it (None for audio too short to measure)."""
     import jax
 
     from jaxtalk.audio import load_audio
@@ -400,10 +402,11 @@ def _animate_user_audio(params: Any, corpus: Any, style_vec: Any, options: DemoO
         sync = speech_sync(pred[:, JAW_OPEN_INDEX], audio, 16000, max_lag=_SYNC_MIN_FRAMES - 3).to_dict()
         row = {"audio": Path(options.audio).name, "frames": sync["frames"], "speech_frames": sync["speech_frames"],
                "jaw_silence": sync["jaw_silence"], "jaw_speech": sync["jaw_speech"],
-               "rest_jaw": float(rest[:, JAW_OPEN_INDEX].mean()), "loudness_pred_corr": sync["loudness_pred_corr"],
+               "rest_jaw": float(rest[:, JAW_OPEN_INDEX].mean()), "style_rest_jaw": style_rest,
+               "loudness_pred_corr": sync["loudness_pred_corr"],
                "loudness_pred_best_lag": sync["loudness_pred_best_lag"]}
         echo(f"jaw opening: {row['jaw_silence']:.3f} rad in silence, {row['jaw_speech']:.3f} in speech, "
-             f"{row['rest_jaw']:.3f} at rest (digital silence)")
+             f"{row['rest_jaw']:.3f} at rest (digital silence; the style clip rests at {style_rest:.3f})")
     if options.render:
         from jaxtalk.render import render_clip
 
@@ -458,6 +461,8 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
     import jax
 
     from jaxtalk.data import synthtalk
+    from jaxtalk.layout import JAW_OPEN_INDEX
+    from jaxtalk.metrics.speech_sync import style_rest_jaw
     from jaxtalk.models.toktalk import encode_style
 
     wall = time.perf_counter()
@@ -560,7 +565,8 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
 
     user_sync = None
     if options.audio is not None:
-        user_sync = _animate_user_audio(params, corpus, style_vec, options, files, echo)
+        user_sync = _animate_user_audio(params, corpus, style_vec, options, files, echo,
+                                        style_rest=style_rest_jaw(ref[:, JAW_OPEN_INDEX]))
 
     wall_s = time.perf_counter() - wall
     shipped_why = (" (the lowest streamed lip error on the validation speakers, `jaxtalk stream --best`)"
@@ -586,7 +592,8 @@ def run_demo(options: DemoOptions = DemoOptions(), *, echo: Callable[[str], None
             "## Your audio\n",
             "How the predicted jaw opening (rad) follows your recording (`jaxtalk.metrics.speech_sync`): its mean "
             "over silent and speech frames (energy voice activity), the rest jaw (the same stream on "
-            f"{REST_SECONDS:g} s of digital silence), and its correlation with the recording's log loudness at lag 0 "
+            f"{REST_SECONDS:g} s of digital silence) beside the style clip's own rest (its 5th-percentile jaw: "
+            "where the mouth should be in silence), and its correlation with the recording's log loudness at lag 0 "
             "and the lag of the best one (frames, positive = the jaw is late; lips lead sound, so near 0 or "
             "slightly negative is right). `jaxtalk eval RUN --real-voice FOLDER` measures recordings with tracked "
             "motion.\n",

@@ -84,3 +84,19 @@ def test_bad_inputs_are_refused():
         apply_chain(np.zeros(10, np.float32), 4000, CLEAN)
     with pytest.raises(ValueError, match="unknown band"):
         apply_chain(np.zeros(10, np.float32), SR, dataclasses.replace(CLEAN, band="radio"))
+    with pytest.raises(ValueError, match="unknown noise"):
+        apply_chain(np.zeros(10, np.float32), SR, dataclasses.replace(CLEAN, noise="hum"))
+
+
+def test_a_chain_without_noise_keeps_digital_silence_at_zero():
+    chain = dataclasses.replace(CLEAN, noise="none", noise_dbfs=-40.0, gain_db=6.0, rt60=0.3, wet=0.3, band="phone")
+    y = apply_chain(np.zeros(SR, np.float32), SR, chain)
+    assert np.array_equal(y, np.zeros(SR, np.float32))
+
+
+def test_about_a_fifth_of_drawn_chains_add_no_noise():
+    chains = [draw_chain(np.random.default_rng(s)) for s in range(2000)]
+    share = np.mean([c.noise == "none" for c in chains])
+    assert 0.17 < share < 0.23
+    assert {c.noise for c in chains} == {"white", "pink", "brown", "none"}
+    assert all(-75.0 <= c.noise_dbfs <= -38.0 for c in chains)

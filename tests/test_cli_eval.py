@@ -485,6 +485,9 @@ def test_toktalk_real_voice_table_by_hand(runs, tmp_path):
     assert rows["digital silence (3 s)"]["frames"] == 75 and rows["digital silence (3 s)"]["speech_frames"] == 0
     assert rows["digital silence (3 s)"]["jaw_silence"] == pytest.approx(float(rest[:, 50].mean()), abs=1e-6)
     assert rows["digital silence (3 s)"]["jaw_speech"] is None
+    # Beside it, the rest of the run's default style clip: its 5th-percentile jaw.
+    style_rest = np.percentile(np.asarray(run.default_style())[:, 50], 5)
+    assert table["title"].endswith(f"; the style clip rests at {style_rest:.3f} rad")
 
     # --max-clips takes the first recordings; --sample-steps gives one table per step count.
     _ok(["eval", runs["toktalk"], "--real-voice", folder, "--max-clips", "1", "--sample-steps", "1,2",

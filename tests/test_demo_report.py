@@ -33,7 +33,7 @@ def test_demo_report_measures_the_jaw_on_the_users_audio(synthtalk_tiny, prepare
     result = run_demo(options, echo=lambda line: None)
     row = result.user_sync
     assert list(row) == ["audio", "frames", "speech_frames", "jaw_silence", "jaw_speech", "rest_jaw",
-                         "loudness_pred_corr", "loudness_pred_best_lag"]
+                         "style_rest_jaw", "loudness_pred_corr", "loudness_pred_best_lag"]
     # By hand from the written parameters and the audio at 16 kHz: dBFS per 640-sample frame.
     jaw = np.load(tmp_path / "demo" / "me_params.npz")["params56"][:, 50].astype(np.float64)
     audio = load_audio(tmp_path / "me.wav").astype(np.float64)
@@ -45,6 +45,13 @@ def test_demo_report_measures_the_jaw_on_the_users_audio(synthtalk_tiny, prepare
     assert row["jaw_speech"] == pytest.approx(jaw[speech].mean(), abs=1e-6)
     assert row["loudness_pred_corr"] == pytest.approx(np.corrcoef(jaw, db)[0, 1], abs=1e-5)
     assert -8 <= row["loudness_pred_best_lag"] <= 8 and np.isfinite(row["rest_jaw"])
+    # The style clip's rest: the 5th percentile of the demo's style clip's jaw (its first 4 style windows).
+    from jaxtalk.data import synthtalk
+    from jaxtalk.demo import _pick_clips, model_config
+
+    corpus = synthtalk.generate("tiny", 0, cache_dir=cache / "synthtalk")
+    ref = np.asarray(corpus.motion(_pick_clips(corpus)[1]))[: 4 * model_config().style_frames, 50]
+    assert row["style_rest_jaw"] == pytest.approx(np.percentile(ref, 5))
     report = (tmp_path / "demo" / "report.md").read_text()
     lines = report[report.index("## Your audio"):].split("\n")
     start = lines.index("| " + " | ".join(row) + " |")

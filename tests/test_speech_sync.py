@@ -13,7 +13,7 @@ import jaxtyping
 import numpy as np
 import pytest
 
-from jaxtalk.metrics.speech_sync import (SILENCE_DB, SPEECH_ABOVE_FLOOR_DB, frame_loudness, lagged_correlation,
+from jaxtalk.metrics.speech_sync import (SILENCE_DB, SPEECH_ABOVE_FLOOR_DB, frame_loudness, lagged_correlation, style_rest_jaw,
                                          speech_sync, voice_activity)
 
 
@@ -255,3 +255,33 @@ def test_speech_sync_user_errors(no_typecheck):
         speech_sync(jaw, np.full(100, np.nan), 1000)
     with pytest.raises(ValueError, match="must be positive"):
         speech_sync(jaw, audio, 0)
+
+
+def test_style_rest_jaw_is_the_fifth_percentile_by_hand():
+    # 100 frames: 20 at rest (0.03), 80 opening to 0.1..0.4: the 5th percentile lies among the rests.
+    jaw = np.concatenate([np.full(20, 0.03), np.linspace(0.1, 0.4, 80)])
+    assert style_rest_jaw(np.random.default_rng(0).permutation(jaw)) == pytest.approx(0.03)
+    # 0..99: numpy's linear percentile 5 of 0..99 is 4.95.
+    assert style_rest_jaw(np.arange(100.0)) == pytest.approx(4.95)
+
+
+def test_style_rest_jaw_of_neutral_synthtalk_clips_is_their_speakers_generated_rest(synthtalk_tiny):
+    from jaxtalk.layout import JAW_OPEN_INDEX
+
+    # An emotion moves a clip's resting face (a drunk jaw hangs open), so neutral clips only.
+    neutral = [i for i in range(len(synthtalk_tiny.clips)) if synthtalk_tiny.clips[i].emotion == "neutral"]
+    assert len(neutral) >= 3
+    for clip in neutral:
+        info = synthtalk_tiny.clips[clip]
+        rest = synthtalk_tiny.speakers[info.speaker].style.rest[JAW_OPEN_INDEX]
+        jaw = np.asarray(synthtalk_tiny.motion(clip))[:, JAW_OPEN_INDEX]
+        assert style_rest_jaw(jaw) == pytest.approx(rest, abs=0.005)
+
+
+def test_style_rest_jaw_user_errors(no_typecheck):
+    with pytest.raises(ValueError, match="at least 1"):
+        style_rest_jaw(np.zeros(0))
+    with pytest.raises(ValueError, match="one-dimensional"):
+        style_rest_jaw(np.zeros((4, 56)))
+    with pytest.raises(ValueError, match="NaN|finite"):
+        style_rest_jaw(np.array([0.1, np.nan]))

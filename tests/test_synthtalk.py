@@ -47,7 +47,7 @@ TINY_SEED0_FINGERPRINT = "bfcfc916685735bfacb74bc5a38a9b43b077b6b7046ce6bce44710
 
 
 def test_builtin_tiny_corpus_bytes_are_unchanged(corpus):
-    assert synthtalk.VERSION == 2
+    assert synthtalk.VERSION == 3
     assert corpus.fingerprint(tokens=False) == TINY_SEED0_FINGERPRINT
 
 

@@ -714,7 +714,7 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
                       echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
     from jaxtalk.commands.inference import SampleOptions, stream_audio
     from jaxtalk.layout import JAW_OPEN_INDEX
-    from jaxtalk.metrics.speech_sync import speech_sync
+    from jaxtalk.metrics.speech_sync import speech_sync, style_rest_jaw
     from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
     model, turn = run.record.model, _turn_frames(run.record)
@@ -728,6 +728,11 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
     rest_frames = -(-int(REST_SECONDS * MOTION_FPS) // turn) * turn
     silence = np.zeros(rest_frames * AUDIO_SAMPLE_RATE // MOTION_FPS, np.float32)
     quiet = lambda line: None  # noqa: E731  (per-chunk times: `jaxtalk stream` prints them)
+    style_note = ""
+    if model == "toktalk":  # streamed in the run's default style: where its mouth rests is the target in silence
+        style_rest = style_rest_jaw(np.asarray(run.default_style())[:, JAW_OPEN_INDEX])
+        style_note = f"; the style clip rests at {style_rest:.3f} rad"
+
     variants = [(n, f", {n} step{'s' * (n > 1)}") for n in opts.sample_steps] or [(None, "")]
     tables = []
     for steps, label in variants:
@@ -747,8 +752,8 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
         rest_row = _sync_row(f"digital silence ({silence.shape[0] / AUDIO_SAMPLE_RATE:g} s)", None,
                              speech_sync(rest, silence, AUDIO_SAMPLE_RATE, max_lag=_MAX_LAG))
         tables.append(EvalTable(f"{title} on real voices ({Path(opts.real_voice).name}{label}): predicted jaw "
-                                "opening (rad) vs the tracked jaw and the loudness; lags in frames, positive = late",
-                                [*rows, _mean_row(rows), rest_row]))
+                                "opening (rad) vs the tracked jaw and the loudness; lags in frames, positive = late"
+                                + style_note, [*rows, _mean_row(rows), rest_row]))
     return len(recordings), tables
 
 

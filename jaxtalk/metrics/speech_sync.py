@@ -11,6 +11,8 @@ these metrics need only the jaw opening (``params[:, JAW_OPEN_INDEX]``, radians)
 * :func:`voice_activity`: speech vs silence frames from the loudness (an energy detector with a
   noise floor read from the recording itself).
 * :func:`speech_sync`: all of it for one clip, beside the loudness follower.
+* :func:`style_rest_jaw`: the jaw opening a reference (style) clip rests at, the target of a mouth in
+  silence.
 """
 
 from __future__ import annotations
@@ -24,13 +26,16 @@ from jaxtyping import Bool, Float
 from jaxtalk.checks import check_finite
 
 __all__ = ["SpeechSync", "frame_loudness", "lagged_correlation", "voice_activity", "speech_sync",
-           "SILENCE_DB", "SPEECH_ABOVE_FLOOR_DB"]
+           "style_rest_jaw", "SILENCE_DB", "SPEECH_ABOVE_FLOOR_DB", "REST_PERCENTILE"]
 
 # Frames quieter than this (dBFS) are silence whatever the recording: -40 dBFS background noise is
 # silence, the quietest speech of a close microphone is well above it.
 SILENCE_DB = -40.0
 # Speech stands this far above the recording's noise floor (its 10th loudness percentile).
 SPEECH_ABOVE_FLOOR_DB = 15.0
+# A speaker's rest jaw is the low end of its jaw opening over a clip: the jaw only opens from rest to
+# speak, and every clip of talk has pauses in which it returns there.
+REST_PERCENTILE = 5.0
 _EPS_POWER = 1e-10  # -100 dBFS: digital silence stays finite
 
 
@@ -216,3 +221,18 @@ def speech_sync(jaw: Float[np.ndarray, " frames"], audio: Float[np.ndarray, " sa
     return SpeechSync(frames=n, speech_frames=int(speech.sum()), jaw_silence=silence_mean,
                       jaw_speech=speech_mean, loudness_pred_corr=float(r_ld[max_lag]),
                       loudness_pred_best_lag=ld_lag, **values)
+
+
+def style_rest_jaw(jaw: Float[np.ndarray, " frames"]) -> float:
+    """The jaw opening a reference clip rests at: the :data:`REST_PERCENTILE` th percentile of its jaw
+    opening (``style[:, JAW_OPEN_INDEX]``, radians).
+
+    A speaker opens the jaw from rest to speak and returns to it in every pause, so the low end of a
+    clip's jaw is its rest; on SynthTalk it is the speaker's generated rest jaw. A mouth animated in
+    this style should hold this opening in silence.
+
+    Raises:
+        ValueError: an empty or non-finite jaw track.
+    """
+    jaw = _check_1d(jaw, "jaw")
+    return float(np.percentile(jaw, REST_PERCENTILE))
