@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxtalk.audio import VQTokenizer
-from jaxtalk.audio.tokenizer import FLOOR_MIN, noise_floor
+from jaxtalk.audio.tokenizer import FLOOR_MIN, above_floor, noise_floor
 
 SR = 16000
 FIT = dict(rate=25, num_codes=6, width=8, seed=0, n_mels=32, floor_window=10)
@@ -108,6 +108,40 @@ def test_normaliser_round_trips_and_old_files_load_without_it(tokenizer, tmp_pat
     old["format_version"] = np.int64(1)
     np.savez(tmp_path / "old.npz", **old)
     assert VQTokenizer.load(tmp_path / "old.npz").floor_window == 0
+    assert back.floor_clip
+
+
+def test_version_2_files_keep_their_unclipped_normaliser(tokenizer, tmp_path):
+    tokenizer.save(tmp_path / "tok")
+    with np.load(tmp_path / "tok.npz") as z:
+        v2 = {k: z[k] for k in z.files if k != "floor_clip"}
+    v2["format_version"] = np.int64(2)
+    np.savez(tmp_path / "v2.npz", **v2)
+    old = VQTokenizer.load(tmp_path / "v2.npz")
+    assert old.floor_window == 10 and not old.floor_clip
+    raw = np.full((4, 2 * FIT["n_mels"]), FLOOR_MIN - 3.0, np.float32)
+    np.testing.assert_array_equal(old.normalise(raw), np.full_like(raw, -3.0))
+    np.testing.assert_array_equal(tokenizer.normalise(raw), np.zeros_like(raw))
+
+
+def test_everything_below_the_lowest_floor_reads_as_zero_by_hand(tokenizer):
+    # Channel levels under FLOOR_MIN (digital zero's log floor, a dither) are raised to it: zero above
+    # the floor. A level above it over a floor under it reads as its height above FLOOR_MIN.
+    raw = np.full((3, 2 * FIT["n_mels"]), FLOOR_MIN - 7.0, np.float32)
+    raw[1, 0] = FLOOR_MIN - 1.0
+    raw[2, 1] = FLOOR_MIN + 2.5
+    z = above_floor(raw, window=10, n_mels=FIT["n_mels"])
+    want = np.zeros_like(raw)
+    want[2, 1] = 2.5
+    np.testing.assert_array_equal(z, want)
+
+
+def test_digital_silence_and_a_dither_give_the_same_tokens(tokenizer):
+    n = 2 * 16000
+    dither = (10 ** (-90 / 20) * np.random.default_rng(0).standard_normal(n)).astype(np.float32)
+    zero = tokenizer.normalise(tokenizer.features(np.zeros(n, np.float32)))
+    np.testing.assert_array_equal(zero, np.zeros_like(zero))
+    np.testing.assert_array_equal(tokenizer.encode(dither).ids, tokenizer.encode(np.zeros(n, np.float32)).ids)
 
 
 def test_bad_floor_window_is_refused(tokenizer):

@@ -19,10 +19,11 @@ front end, so that token streams of different rates and widths can be made from 
    and widths thus give genuinely different token spaces over the same audio.
 
 4. Optionally (``floor_window > 0``), a causal noise-floor normaliser before step 2: each token's
-   features become their level above the recording's background, ``raw - floor``, where ``floor`` is,
-   per mel channel, the minimum of the raw features over the last ``floor_window`` tokens (this one
-   included; both sub-windows of each), never below ``FLOOR_MIN`` (so digital silence and a quiet
-   room read alike). A steady background noise then looks like silence at any level, and a recording's
+   features become their level above the recording's background, ``max(raw, FLOOR_MIN) - floor``,
+   where ``floor`` is, per mel channel, the minimum of the raw features over the last ``floor_window``
+   tokens (this one included; both sub-windows of each), never below ``FLOOR_MIN``. Everything quieter
+   than ``FLOOR_MIN`` reads as exactly zero, so digital silence, a -90 dBFS dither and a quiet room
+   read alike. A steady background noise then looks like silence at any level, and a recording's
    gain cancels out wherever it has a noise floor. It reads only the past: the features of token ``k``
    do not change with audio after token ``k``'s window (a live stream carries the last
    ``floor_window - 1`` tokens' raw features).
@@ -51,10 +52,12 @@ from jaxtalk.audio.kmeans import kmeans, nearest_centroid
 from jaxtalk.audio.melspec import _log_mel, mel_filterbank, num_frames
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array
 
-__all__ = ["TokenStream", "TokenizerStream", "VQTokenizer", "FLOOR_MIN", "noise_floor"]
+__all__ = ["TokenStream", "TokenizerStream", "VQTokenizer", "FLOOR_MIN", "noise_floor", "above_floor"]
 
-_FORMAT_VERSION = 2
+_FORMAT_VERSION = 3
 _OLDEST_FORMAT = 1  # version 1 files have no normaliser (floor_window 0)
+# Version 2's normaliser subtracted the floor without raising what lies below FLOOR_MIN to it
+# (``floor_clip=False``): digital zero and a dither read as different negative levels.
 # Lowest noise floor of the normaliser, in the features' units (natural log of mel power): white noise at
 # about -74 dBFS. Below it, what is left is the recording chain's own floor, not the room.
 FLOOR_MIN = -16.0
@@ -233,6 +236,21 @@ def noise_floor(raw: Float[np.ndarray, "tokens features"], window: int, n_mels: 
     return np.tile(floor, (1, stack))
 
 
+def above_floor(raw: Float[np.ndarray, "tokens features"], window: int, n_mels: int,
+                past: Float[np.ndarray, "past features"] | None = None, *,
+                clip: bool = True) -> Float[np.ndarray, "tokens features"]:
+    """The normaliser's output: the raw features' level above their causal :func:`noise_floor`.
+
+    Args:
+        raw, window, n_mels, past: as for :func:`noise_floor`.
+        clip: raise features below :data:`FLOOR_MIN` to it first, so that everything quieter than the
+            lowest floor reads as exactly zero (False: version-2 tokenizers' normaliser).
+    """
+    raw = np.asarray(raw, np.float32)
+    floor = noise_floor(raw, window, n_mels, past)
+    return (np.maximum(raw, np.float32(FLOOR_MIN)) if clip else raw) - floor
+
+
 def _random_isometry(features: int, width: int, seed: int) -> np.ndarray:
     # NumPy stream keyed by [seed, 1]: reproducible on any machine, separate from the JAX key
     # that seeds k-means.
@@ -262,6 +280,8 @@ class VQTokenizer:
         seed: the seed it was fitted with.
         floor_window: tokens of the causal noise-floor normaliser (0: none, the raw features are
             quantised). See the module's step 4.
+        floor_clip: the normaliser reads everything below ``FLOOR_MIN`` as ``FLOOR_MIN`` (True; False
+            only for tokenizers saved by format version 2, which did not).
     """
 
     codebook: Float[np.ndarray, "codes features"]
@@ -276,6 +296,7 @@ class VQTokenizer:
     stack: int = 2
     seed: int = 0
     floor_window: int = 0
+    floor_clip: bool = True
 
     def __post_init__(self):
         codes, features = self.codebook.shape
@@ -387,7 +408,7 @@ class VQTokenizer:
             for i, a in enumerate(audios)
         ]
         if floor_window:
-            feats = [f - noise_floor(f, floor_window, n_mels) for f in feats]
+            feats = [above_floor(f, floor_window, n_mels) for f in feats]
         data = np.concatenate(feats, axis=0).astype(np.float64)
         distinct = np.unique(data, axis=0).shape[0]
         if distinct < num_codes:
@@ -425,8 +446,9 @@ class VQTokenizer:
 
     def normalise(self, raw: Float[np.ndarray, "tokens features"],
                   past: Float[np.ndarray, "past features"] | None = None) -> Float[np.ndarray, "tokens features"]:
-        """What :meth:`quantize` reads: the raw features less their causal noise floor (:func:`noise_floor`),
-        or the raw features themselves for a tokenizer without normaliser (``floor_window == 0``).
+        """What :meth:`quantize` reads: the raw features' level above their causal noise floor
+        (:func:`above_floor`), or the raw features themselves for a tokenizer without normaliser
+        (``floor_window == 0``).
 
         Args:
             raw: raw pooled features of consecutive tokens.
@@ -435,7 +457,7 @@ class VQTokenizer:
         raw = np.asarray(raw, np.float32)
         if not self.floor_window:
             return raw
-        return raw - noise_floor(raw, self.floor_window, self.n_mels, past)
+        return above_floor(raw, self.floor_window, self.n_mels, past, clip=self.floor_clip)
 
     def features(
         self, audio: Float[np.ndarray | Array, " samples"]
@@ -537,6 +559,7 @@ class VQTokenizer:
             stack=np.int64(self.stack),
             seed=np.int64(self.seed),
             floor_window=np.int64(self.floor_window),
+            floor_clip=np.bool_(self.floor_clip),
         )
         return path
 
@@ -564,8 +587,11 @@ class VQTokenizer:
             ints = (*ints, "floor_window")
             if "floor_window" not in data:
                 raise ValueError(f"{str(path)!r} is not a VQTokenizer file: missing keys ['floor_window']")
+        if version >= 3 and "floor_clip" not in data:
+            raise ValueError(f"{str(path)!r} is not a VQTokenizer file: missing keys ['floor_clip']")
         kwargs = {k: np.array(data[k], dtype=np.float32) for k in arrays}
         kwargs.update({k: int(data[k]) for k in ints})
+        kwargs["floor_clip"] = bool(data["floor_clip"]) if version >= 3 else False
         kwargs["rate"] = float(data["rate"])
         return cls(**kwargs)
 
