@@ -420,8 +420,8 @@ def _voices(folder: Path) -> dict[str, np.ndarray]:
 
 
 _REAL_VOICE_COLUMNS = ["recording", "tracked", "frames", "speech_frames", "corr", "best_lag", "best_corr",
-                       "loudness_corr", "loudness_best_lag", "loudness_pred_corr", "loudness_pred_best_lag",
-                       "jaw_silence", "jaw_speech"]
+                       "loudness_corr", "loudness_best_lag", "speech_corr", "loudness_speech_corr",
+                       "loudness_pred_corr", "loudness_pred_best_lag", "jaw_silence", "jaw_speech"]
 
 
 @pytest.mark.slow
@@ -471,6 +471,9 @@ def test_toktalk_real_voice_table_by_hand(runs, tmp_path):
                   for lag in range(-8, 9)}
         assert row["loudness_corr"] == pytest.approx(by_lag[0], abs=1e-5)
         assert row["loudness_best_lag"] == max(by_lag, key=by_lag.get)
+        # Within speech only, at lag 0.
+        assert row["speech_corr"] == pytest.approx(np.corrcoef(jaw[speech], tracked[speech])[0, 1], abs=1e-5)
+        assert row["loudness_speech_corr"] == pytest.approx(np.corrcoef(db[speech], tracked[speech])[0, 1], abs=1e-5)
         assert row["best_corr"] >= row["corr"] - 1e-12 and -8 <= row["best_lag"] <= 8
     # The mean row: every recording for the loudness columns, the two tracked ones for the tracked jaw's.
     assert rows["mean"]["frames"] == 50 + 60 + 50

@@ -230,6 +230,24 @@ def test_speech_sync_against_a_tracked_jaw_by_hand():
     assert m.loudness_best_lag == 2  # the loudness follows the sound: as late as the prediction here
     # The loudness and the jaw share their timing in this clip: the prediction peaks at lag 0 on it.
     assert m.loudness_pred_best_lag == 0
+    # Within speech only, at lag 0: by hand over the frames voice_activity calls speech.
+    speech = voice_activity(db)
+    assert 3 <= speech.sum() < speech.size
+    assert m.speech_corr == pytest.approx(np.corrcoef(jaw[speech], tracked[speech])[0, 1], abs=1e-12)
+    assert m.loudness_speech_corr == pytest.approx(np.corrcoef(db[speech], tracked[speech])[0, 1], abs=1e-9)
+
+
+def test_speech_sync_within_speech_separates_articulation_from_the_speech_silence_contrast():
+    # A tracked jaw that is only a speech detector (open while talking, shut in silence) and a
+    # prediction that is that detector plus syllable motion: high corr overall, none within speech.
+    audio, jaw, db = _clip()
+    speech = voice_activity(db)
+    tracked = np.where(speech, 0.1, 0.0)
+    tracked[np.flatnonzero(speech)[::2]] += 1e-3  # not constant within speech
+    syllables = np.where(speech, 0.05 * np.sin(np.arange(speech.size) * 2.1), 0.0)
+    m = speech_sync(tracked + syllables, audio, 1000, tracked_jaw=tracked, max_lag=4)
+    assert m.corr > 0.8 and abs(m.speech_corr) < 0.5
+    assert m.speech_corr == pytest.approx(np.corrcoef((tracked + syllables)[speech], tracked[speech])[0, 1], abs=1e-12)
 
 
 def test_speech_sync_on_digital_silence_is_all_silence():

@@ -683,7 +683,8 @@ def read_recordings(folder: str | Path, *, min_frames: int = _MAX_LAG + 3,
 
 # The columns of a real-voice table after the recording and its frames (SpeechSync's fields).
 _SYNC_COLUMNS = ("speech_frames", "corr", "best_lag", "best_corr", "loudness_corr", "loudness_best_lag",
-                 "loudness_pred_corr", "loudness_pred_best_lag", "jaw_silence", "jaw_speech")
+                 "speech_corr", "loudness_speech_corr", "loudness_pred_corr", "loudness_pred_best_lag",
+                 "jaw_silence", "jaw_speech")
 
 
 def _sync_row(name: str, tracked: str | None, sync: Any) -> dict[str, Any]:

@@ -149,6 +149,10 @@ class SpeechSync:
         best_lag, best_corr: the lag of the highest correlation with the tracked jaw and its value.
         loudness_corr, loudness_best_lag, loudness_best_corr: the same for the loudness follower
             (the log loudness against the tracked jaw).
+        speech_corr, loudness_speech_corr: the predicted jaw and the loudness against the tracked jaw
+            at lag 0 over the speech frames only (NaN with fewer than 3 or a constant track). ``corr``
+            mixes two things: whether the mouth is open in speech and shut in silence, and how it
+            moves with the syllables while talking; these measure the second alone.
         loudness_pred_corr, loudness_pred_best_lag: the predicted jaw against the log loudness (the
             timing measure of a recording without tracked motion: a mouth that opens on the sound's
             syllables peaks at a lag near 0 or slightly negative, since lips lead sound).
@@ -164,6 +168,8 @@ class SpeechSync:
     loudness_corr: float
     loudness_best_lag: int | None
     loudness_best_corr: float
+    speech_corr: float
+    loudness_speech_corr: float
     loudness_pred_corr: float
     loudness_pred_best_lag: int | None
 
@@ -206,7 +212,7 @@ def speech_sync(jaw: Float[np.ndarray, " frames"], audio: Float[np.ndarray, " sa
     lags, r_ld = lagged_correlation(jaw, db, max_lag)
     ld_lag, _ = _best(lags, r_ld)
     values = dict(corr=nan, best_lag=None, best_corr=nan, loudness_corr=nan, loudness_best_lag=None,
-                  loudness_best_corr=nan)
+                  loudness_best_corr=nan, speech_corr=nan, loudness_speech_corr=nan)
     if tracked_jaw is not None:
         tracked = _check_1d(tracked_jaw, "tracked_jaw")
         if tracked.shape[0] != n:
@@ -218,6 +224,9 @@ def speech_sync(jaw: Float[np.ndarray, " frames"], audio: Float[np.ndarray, " sa
         values = dict(corr=float(r[max_lag]), best_lag=best_lag, best_corr=best_corr,
                       loudness_corr=float(r_loud[max_lag]), loudness_best_lag=loud_lag,
                       loudness_best_corr=loud_corr)
+        if speech.sum() >= 3:
+            values["speech_corr"] = float(lagged_correlation(jaw[speech], tracked[speech], 0)[1][0])
+            values["loudness_speech_corr"] = float(lagged_correlation(db[speech], tracked[speech], 0)[1][0])
     return SpeechSync(frames=n, speech_frames=int(speech.sum()), jaw_silence=silence_mean,
                       jaw_speech=speech_mean, loudness_pred_corr=float(r_ld[max_lag]),
                       loudness_pred_best_lag=ld_lag, **values)
