@@ -5,7 +5,8 @@ For each run given, streamed exactly as ``jaxtalk stream RUN FILE --best`` strea
 * every recording of a folder of real speech (``*.wav``; DualTalk's ``X_speakerN.wav`` with
   ``X_speakerN.npz`` tracked FLAME beside it where there is one): ``jaxtalk.metrics.speech_sync`` (the
   jaw's correlation with the tracked jaw at lag 0, its best lag, the loudness follower beside it, the jaw
-  in silence vs speech);
+  in silence vs speech; with tracked motion also a 0/1 speech indicator's correlation with the tracked
+  jaw and the tracked jaw in silence vs speech);
 * silence: 8 s of a -90 dBFS dither (digital zero is refused as no speech) and 8 s of steady white noise
   at -40 and -30 dBFS: the jaw's mean after the first second, and its distance from the rest of the
   run's default style clip (``jaxtalk.metrics.speech_sync.style_rest_jaw``), the opening a mouth in
@@ -29,7 +30,7 @@ import soundfile as sf
 from jaxtalk.audio import load_audio
 from jaxtalk.commands.inference import SampleOptions, stream_run
 from jaxtalk.layout import JAW_OPEN_INDEX
-from jaxtalk.metrics.speech_sync import speech_sync, style_rest_jaw
+from jaxtalk.metrics.speech_sync import frame_loudness, speech_sync, style_rest_jaw, voice_activity
 from jaxtalk.data.formats import load_npy
 from jaxtalk.runs import STYLE_FILE
 
@@ -60,7 +61,15 @@ def _real(run: Path, folder: Path, tmp: Path) -> list[dict]:
         tracked = _tracked_jaw(wav)
         n = jaw.shape[0] if tracked is None else min(jaw.shape[0], tracked.shape[0])
         m = speech_sync(jaw[:n], audio, SR, tracked_jaw=None if tracked is None else tracked[:n])
-        rows.append({"recording": wav.name, "tracked": tracked is not None, **m.to_dict()})
+        row = {"recording": wav.name, "tracked": tracked is not None, **m.to_dict()}
+        if tracked is not None:
+            # What a pure speech detector scores, and how far the tracked jaw itself moves between
+            # silence and speech: the scale of what `corr` can see on this clip.
+            speech = voice_activity(frame_loudness(audio, SR, n))
+            row["speech_indicator_corr"] = float(np.corrcoef(speech.astype(np.float64), tracked[:n])[0, 1])
+            row["tracked_jaw_silence"] = float(tracked[:n][~speech].mean())
+            row["tracked_jaw_speech"] = float(tracked[:n][speech].mean())
+        rows.append(row)
     return rows
 
 
