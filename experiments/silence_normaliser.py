@@ -7,8 +7,8 @@ On each, the ``small`` TokTalk trains ``--steps`` steps (seeds as given) exactly
 trains it; then, in the style of a neutral training clip, it streams 8 s of steady white noise at
 -70 to -20 dBFS, a -90 dBFS dither and digital zero. Reported per level: the jaw's mean after the
 first second minus the style clip's rest (``style_rest_jaw``); and, as the check that the model
-opens the mouth at all, its jaw in speech and silence on the held-out monologues and their LVE
-against the mean pose's.
+opens the mouth at all, its jaw in speech and silence on the held-out monologues (each in the style of
+another clip of its speaker) and their LVE against the mean pose's.
 
     python experiments/silence_normaliser.py --steps 300 --seeds 0 1 --out experiments/results/real_voice/silence_normaliser.json
 """
@@ -91,11 +91,17 @@ def _run(data: PreparedData, steps: int, seed: int) -> dict:
     lips = np.asarray(face.regions["lips"])
     mean_pose = np.asarray(params["norm"]["mean"], np.float32)
     test = [i for i in data.split("test") if data.clips[i]["tokens"] and not data.clips[i]["partner"]]
+    by_speaker: dict[str, list[int]] = {}
+    for i in test:
+        by_speaker.setdefault(data.clips[i]["speaker"], []).append(i)
     errors, base, jaw_speech, jaw_silent = [], [], [], []
     for n, i in enumerate(test):
         rec = data.record(i, ("motion", "tokens"))
         gt = np.asarray(rec["motion"], np.float32)
-        out = stream(rec["tokens"], style, n + 1)[: gt.shape[0]]
+        # Held-out speakers are animated in their own style: another clip of theirs, as the learning test does.
+        other = next((j for j in by_speaker[data.clips[i]["speaker"]] if j != i), i)
+        own = tt.encode_style(params, cfg, data.record(other, ("motion",))["motion"][None, : 4 * cfg.style_frames])
+        out = stream(rec["tokens"], own, n + 1)[: gt.shape[0]]
         v_gt = np.asarray(face.vertices_seq(gt))
         errors.append(float(lve(np.asarray(face.vertices_seq(out)), v_gt[: out.shape[0]], lips)) * 1e6)
         base.append(float(lve(np.asarray(face.vertices_seq(np.broadcast_to(mean_pose, gt.shape))), v_gt, lips)) * 1e6)
