@@ -33,7 +33,7 @@ from jaxtalk.data.sources import synthtalk_source
 from jaxtalk.face import builtin_face
 from jaxtalk.layout import JAW_OPEN_INDEX
 from jaxtalk.metrics import lve
-from jaxtalk.metrics.speech_sync import frame_loudness, style_rest_jaw, voice_activity
+from jaxtalk.metrics.speech_sync import style_rest_jaw
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk import recipe
 from jaxtalk.models.toktalk.sample import default_grid

@@ -15,7 +15,6 @@ FIT = dict(rate=25, num_codes=6, width=8, seed=0, n_mels=32, floor_window=10)
 
 def _speechlike(seconds: float, seed: int, noise_db: float | None = None, gain: float = 1.0) -> np.ndarray:
     # Bursts of harmonic sound separated by pauses, over an optional steady white-noise background.
-    rng = np.random.default_rng(seed)
     n = int(SR * seconds)
     t = np.arange(n) / SR
     envelope = (np.sin(2 * np.pi * 2.0 * t) > 0.2).astype(np.float64)
