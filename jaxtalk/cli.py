@@ -193,6 +193,13 @@ def train(
     steps: Annotated[int, typer.Option(help="Train until this many optimiser steps in total.")] = 1000,
     seed: Annotated[int, typer.Option(help="Initialisation and data-order seed.")] = 0,
     cache_dir: Annotated[Path, typer.Option(help="Where synthtalk: data is prepared.")] = Path(".cache/prepared"),
+    features: Annotated[
+        str | None, typer.Option(help="Speech front end of ats, timar and dualtalk: logmel, or hubert:PATH / "
+                                      "wav2vec2:PATH (a local Hugging Face folder: config.json + model.safetensors). "
+                                      "synthtalk: data is prepared with it once, into its own folder under "
+                                      "--cache-dir; a prepared folder must have been prepared with it. Default "
+                                      "logmel, the folder's own, or the run's own when resuming.")
+    ] = None,
     resume: Annotated[bool, typer.Option(help="Continue the run in --out if there is one.")] = True,
     progress: Annotated[bool, typer.Option(help="Show the progress bar.")] = True,
     data_parallel: Annotated[
@@ -216,7 +223,8 @@ def train(
     from jaxtalk.train.observers import parse_step_range
 
     opts = TrainOptions(model=model, out_dir=out or Path("runs") / model, data=data, preset=preset,
-                        overrides=tuple(set_ or ()), steps=steps, seed=seed, cache_dir=cache_dir, resume=resume,
+                        overrides=tuple(set_ or ()), steps=steps, seed=seed, cache_dir=cache_dir, features=features,
+                        resume=resume,
                         progress=progress, data_parallel=data_parallel, distributed=distributed,
                         profile=None if profile is None else parse_step_range(profile), init=init)
     summary = train_run(opts, echo=typer.echo)

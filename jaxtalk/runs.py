@@ -42,6 +42,7 @@ __all__ = [
     "checkpoint_dir",
     "load_run",
     "save_run_assets",
+    "run_features",
     "write_run",
 ]
 
@@ -112,6 +113,13 @@ class ModelSpec:
             if preset in table:
                 return table[preset]
         return _resolve(self.defaults)
+
+    @property
+    def reads_speech(self) -> bool:
+        """Whether the model's input is the prepared speech features (``speech`` or ``turn_speech``:
+        ATS, TIMAR and the DualTalk baseline), whose front end ``--features`` chooses; its data widths
+        say so. TokTalk reads audio tokens and STM landmarks instead."""
+        return any(key in ("speech_dim", "turn_speech_dim") for _, key in self.data_fields)
 
     def live_fn(self) -> Callable[..., Any] | None:
         """The live-model factory (see ``live``), or None when the model does not animate live speech."""
@@ -484,8 +492,22 @@ class LoadedRun:
         return load_npy(path)
 
     def features(self) -> dict[str, Any]:
-        """The feature settings the run's data was prepared with."""
-        return json.loads((self.run_dir / FEATURES_FILE).read_text())
+        """The feature settings the run's data was prepared with (:func:`run_features`)."""
+        return run_features(self.run_dir)
+
+
+def run_features(run_dir: str | Path) -> dict[str, Any]:
+    """A run's ``features.json``: the feature settings its data was prepared with (``audio``: the
+    speech front end as ``prepare --features`` spells it; token stream and widths), read without
+    loading the run.
+
+    Raises:
+        FileNotFoundError: no ``features.json`` (not a finished run).
+    """
+    path = Path(run_dir) / FEATURES_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{run_dir} has no {FEATURES_FILE} (not a finished run: train it with `jaxtalk train`)")
+    return json.loads(path.read_text())
 
 
 def _restore_state(directory: Path, step: int | None) -> tuple[dict[str, Any], int]:

@@ -252,6 +252,22 @@ def bad_numpy_files(folder) -> dict[str, list[str]]:
     }
 
 
+def encoder_folder(path, kind: str = "wav2vec2", config=None) -> Path:
+    """A speech-encoder checkpoint folder that passes every check made before its weights are read
+    (``jaxtalk.data.features.parse_audio_features``): ``config.json`` of a ``kind`` model (``config``, an
+    ``EncoderConfig``, or a small one) and an empty ``model.safetensors``. For tests of what happens
+    before any encoder runs; one that computes features needs real weights (``save_checkpoint``)."""
+    import json
+
+    from jaxtalk.audio.encoders import EncoderConfig
+
+    folder = Path(path)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "config.json").write_text(json.dumps((config or EncoderConfig.small(kind)).to_hf_dict()))
+    (folder / "model.safetensors").write_bytes(b"")
+    return folder
+
+
 def cli_ok(args: list) -> str:
     """Run ``jaxtalk ARGS`` in-process (typer's runner); it must succeed. Returns its output."""
     from typer.testing import CliRunner

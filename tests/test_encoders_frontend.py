@@ -18,10 +18,12 @@ from jaxtalk.audio.encoders import (  # noqa: E402
     EncoderConfig,
     SpeechEncoder,
     Wav2Vec2Model,
+    checkpoint_fingerprint,
     load_checkpoint,
     params_from_state_dict,
     params_to_state_dict,
     save_checkpoint,
+    weight_files,
 )
 from jaxtalk.audio.encoders import frontend  # noqa: E402
 
@@ -69,6 +71,32 @@ def test_missing_files_and_directories(tmp_path, checkpoint):
     (checkpoint / "config.json").unlink()
     with pytest.raises(FileNotFoundError, match="config file not found"):
         load_checkpoint(checkpoint)
+
+
+def test_sharded_weights_load_and_the_fingerprint_follows_the_files_read(checkpoint, params):
+    state = load_file(str(checkpoint / "model.safetensors"))
+    fingerprint = checkpoint_fingerprint(checkpoint)
+    assert checkpoint_fingerprint(checkpoint) == fingerprint  # read from the file system: stable
+    # Transformers' sharded layout: an index naming the shard of every tensor.
+    names = sorted(state)
+    shards = {"model-00001-of-00002.safetensors": names[::2], "model-00002-of-00002.safetensors": names[1::2]}
+    for shard, keys in shards.items():
+        save_file({k: state[k] for k in keys}, str(checkpoint / shard))
+    weight_map = {k: shard for shard, keys in shards.items() for k in keys}
+    (checkpoint / "model.safetensors.index.json").write_text(json.dumps({"weight_map": weight_map}))
+    (checkpoint / "model.safetensors").unlink()
+    assert [p.name for p in weight_files(checkpoint)] == ["model.safetensors.index.json", *sorted(shards)]
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(load_checkpoint(checkpoint).params)):
+        np.testing.assert_array_equal(np.asarray(a), b)
+    assert checkpoint_fingerprint(checkpoint) != fingerprint
+    sharded = checkpoint_fingerprint(checkpoint)
+    (checkpoint / "README.md").write_text("a file the loader does not read")
+    assert checkpoint_fingerprint(checkpoint) == sharded
+    # Other weights in the same folder. (A file rewritten with the same size within the file system's
+    # timestamp granularity, a few ms, would keep its time: here the size differs, as the test needs.)
+    shard = checkpoint / "model-00002-of-00002.safetensors"
+    save_file({**{k: state[k] + 1 for k in shards[shard.name]}, "extra": np.zeros(3, np.float32)}, str(shard))
+    assert checkpoint_fingerprint(checkpoint) != sharded
 
 
 def test_unknown_architecture_and_unsupported_options(checkpoint):

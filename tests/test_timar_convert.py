@@ -20,6 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from helpers import encoder_folder
+
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.convert import (
     TORCH_HINT,
@@ -188,8 +190,7 @@ def test_converted_run_opens_and_streams_like_the_reference(tmp_path, parity):
     config = infer_config(state, args)
     params = convert_state_dict(state, config)
     ident = Normalizer(np.zeros(48, np.float32), np.ones(48, np.float32), np.zeros(56, np.float32), np.ones(56, np.float32))
-    feat_dir = tmp_path / "w2v"
-    feat_dir.mkdir()
+    feat_dir = encoder_folder(tmp_path / "w2v")
     out = write_converted_run(tmp_path / "run", config, params, ident, features=f"wav2vec2:{feat_dir}", args=args,
                               source="TIMAR.pth")
     run = load_run(out)
@@ -242,8 +243,7 @@ def _has_torch() -> bool:
 def test_cli_without_torch_is_one_line_and_writes_nothing(tmp_path):
     ckpt = tmp_path / "TIMAR.pth"
     ckpt.write_bytes(b"PK\x03\x04 not really")
-    w2v = tmp_path / "w2v"
-    w2v.mkdir()
+    w2v = encoder_folder(tmp_path / "w2v")
     out = tmp_path / "run"
     proc = subprocess.run([sys.executable, "-m", "jaxtalk.cli", "convert", "timar", str(ckpt), "--out", str(out),
                            "--features", f"wav2vec2:{w2v}"], capture_output=True, text=True, cwd=ROOT,
@@ -260,8 +260,7 @@ def test_cli_missing_checkpoint_and_bad_features(tmp_path):
     from jaxtalk.cli import app
 
     runner = CliRunner()
-    w2v = tmp_path / "w2v"
-    w2v.mkdir()
+    w2v = encoder_folder(tmp_path / "w2v")
     res = runner.invoke(app, ["convert", "timar", str(tmp_path / "nope.pth"), "--out", str(tmp_path / "run"),
                               "--features", f"wav2vec2:{w2v}"])
     assert res.exit_code == 2 and "nope.pth" in res.output
@@ -287,8 +286,7 @@ def test_checkpoint_round_trip_and_truncated_file(tmp_path, parity):  # pragma: 
     sd = {k: torch.from_numpy(v) for k, v in state.items()}
     ckpt = tmp_path / "TIMAR.pth"
     torch.save({"model": sd, "model_ema": sd, "args": argparse.Namespace(**args), "epoch": 3}, ckpt)
-    w2v = tmp_path / "w2v"
-    w2v.mkdir()
+    w2v = encoder_folder(tmp_path / "w2v")
     with pytest.warns(UserWarning, match="identity"):
         result = convert_checkpoint(ckpt, tmp_path / "run", features=f"wav2vec2:{w2v}")
     assert result.config == infer_config(state, args) and result.weights == "ema"
@@ -352,8 +350,7 @@ def test_cli_overwrite_never_replaces_a_folder_holding_its_inputs_or_a_users_fil
     sd = {k: torch.from_numpy(v) for k, v in state.items()}
     # The README's download step puts the checkpoint and the encoder in ckpts/, beside a user's notes.
     ckpts = tmp_path / "ckpts"
-    (ckpts / "w2v").mkdir(parents=True)
-    (ckpts / "w2v" / "config.json").write_text("{}")
+    encoder_folder(ckpts / "w2v")
     torch.save({"model": sd, "model_ema": sd, "args": argparse.Namespace(**args)}, ckpts / "TIMAR.pth")
     (ckpts / "notes.txt").write_text("the user's notes")
     before = _sha(tmp_path)

@@ -64,7 +64,7 @@ import numpy as np
 
 from jaxtalk.checks import check_temperature
 from jaxtalk.metrics.landmarks import MOUTH_LANDMARKS, landmark_metrics
-from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec
+from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec, run_features
 
 __all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
            "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS", "Recording", "read_recordings",
@@ -207,8 +207,17 @@ def _average(per_item: Sequence[dict[str, float | None]], frames: Sequence[int],
 # ---------------------------------------------------------------------------------------------- data
 
 
-def open_eval_data(record: RunRecord, spec: str | Path | None, cache_dir: str | Path = ".cache/prepared") -> Any:
+def open_eval_data(record: RunRecord, spec: str | Path | None, cache_dir: str | Path = ".cache/prepared",
+                   features: str | None = None) -> Any:
     """The prepared data to evaluate on: ``spec``, or the run's own (its folder, else its spec again).
+
+    Args:
+        record: the run's ``run.json``.
+        spec: a prepared folder or ``synthtalk:SIZE[:SEED]``; None: the run's own data.
+        cache_dir: where ``synthtalk:`` data is prepared.
+        features: the run's speech front end (its ``features.json``'s ``audio``), with which
+            ``synthtalk:`` data is prepared for a model that reads speech features (a folder keeps its
+            own: :func:`check_eval_data` says when it is not the run's).
 
     Raises:
         FileNotFoundError: a folder that is not prepared.
@@ -216,12 +225,13 @@ def open_eval_data(record: RunRecord, spec: str | Path | None, cache_dir: str | 
     from jaxtalk.data.loader import PreparedData, open_data
     from jaxtalk.data.prepare import MANIFEST
 
-    if spec is not None:
-        return open_data(spec, cache_dir=cache_dir, progress=False)
+    spec = str(spec) if spec is not None else None
     path = record.data.get("path")
-    if path and (Path(path) / MANIFEST).is_file():
+    if spec is None and path and (Path(path) / MANIFEST).is_file():
         return PreparedData(path)
-    return open_data(record.data["spec"], cache_dir=cache_dir, progress=False)
+    spec = spec if spec is not None else record.data["spec"]
+    synthtalk_features = features if spec.startswith("synthtalk:") and model_spec(record.model).reads_speech else None
+    return open_data(spec, cache_dir=cache_dir, progress=False, features=synthtalk_features)
 
 
 def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> None:
@@ -811,7 +821,7 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
 
     split = opts.split or "test"
     if opts.real_voice is None:
-        data = open_eval_data(record, opts.data, opts.cache_dir)
+        data = open_eval_data(record, opts.data, opts.cache_dir, run_features(opts.run_dir).get("audio"))
         data.split(split)  # an unknown split: ValueError naming the known ones
     else:  # a bad folder or file is refused before the run is loaded
         recordings = read_recordings(opts.real_voice, min_frames=max(_MAX_LAG + 3, _turn_frames(record)), echo=echo)

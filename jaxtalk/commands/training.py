@@ -13,6 +13,11 @@ seed of a resumed run come from its ``run.json`` and cannot be changed.
 batch_size, window_frames, eval_every, ...). Widths the data decides (TokTalk's token width and rate,
 TIMAR's, the DualTalk baseline's and ATS's speech feature width) follow the data unless set explicitly.
 
+``--features hubert:PATH`` / ``wav2vec2:PATH`` (ATS, TIMAR, DualTalk) prepares ``synthtalk:`` data with a
+pretrained speech encoder instead of log-mel, once, into a cache folder of its own
+(:func:`jaxtalk.data.loader.open_data`); the run's ``features.json`` records the front end, so that
+``jaxtalk sample`` and ``jaxtalk stream`` compute the same features from new audio.
+
 ``dualtalk`` is the non-causal DualTalk baseline of TIMAR's Table 1 (:mod:`jaxtalk.models.dualtalk`),
 trained on TIMAR's windows with TIMAR's settings.
 """
@@ -71,6 +76,11 @@ class TrainOptions:
         steps: train until this many optimiser steps in total.
         seed: initialisation and data-order seed.
         cache_dir: where ``synthtalk:`` data is prepared.
+        features: the speech front end (``logmel``, ``hubert:PATH``, ``wav2vec2:PATH``) of the models
+            that read speech features (ATS, TIMAR, DualTalk; :attr:`jaxtalk.runs.ModelSpec.reads_speech`):
+            ``synthtalk:`` data is prepared with it (once, into a folder of its own under
+            ``cache_dir``); a prepared folder must have been prepared with it. None: log-mel for
+            ``synthtalk:``, a folder's own features, a resumed run's own.
         resume: continue an existing run in ``out_dir`` (False: refuse to touch it).
         progress: show the progress bar.
         save_every: checkpoint period in steps (default: 5 checkpoints per run; the last step always).
@@ -96,6 +106,7 @@ class TrainOptions:
     steps: int = 1000
     seed: int = 0
     cache_dir: Path = Path(".cache/prepared")
+    features: str | None = None
     resume: bool = True
     progress: bool = True
     save_every: int | None = None
@@ -181,8 +192,11 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     Raises:
         ValueError: unknown model or preset, bad overrides or values, ``steps < 1``, data that does not
             fit the model, an existing run of another model or with other settings, ``--no-resume``
-            on an existing run, or ``--steps`` below the step the run already reached.
-        FileNotFoundError: a data folder that is not prepared.
+            on an existing run, ``--steps`` below the step the run already reached, ``features`` for a
+            model that reads no speech features, unknown ``features``, or a prepared folder or run of
+            other features.
+        FileNotFoundError: a data folder that is not prepared, or a speech encoder's checkpoint folder,
+            its ``config.json`` or weights missing (before any data is prepared).
         jaxtalk.files.FolderInUseError: another process is training into ``opts.out_dir``.
     """
     import jax
@@ -191,6 +205,8 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
     spec = model_spec(opts.model)
     if opts.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {opts.steps}")
+    if opts.features is not None:
+        _check_features(opts.model, opts.features)
     if opts.distributed:
         from jaxtalk.train.distributed import initialize
 
@@ -232,7 +248,8 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
             raise ValueError(f"{out} was trained on --data {existing.data['spec']}, not {opts.data}: resume it with "
                              f"--data {existing.data['spec']} (or no --data), or choose another --out")
         opts = dataclasses.replace(opts, preset=existing.preset, overrides=tuple(existing.items),
-                                   data=existing.data["spec"], seed=existing.seed)
+                                   data=existing.data["spec"], seed=existing.seed,
+                                   features=_resumed_features(out, spec, opts.features))
     if opts.data is None:
         opts = dataclasses.replace(opts, data=DEFAULT_DATA)
     # A run made from Python with a config that equals no preset resumes with None (its config is on record).
@@ -386,6 +403,35 @@ def _check_run_folder(out: Path) -> None:
         raise OutputError(f"--out {str(out)!r} holds files but no jaxtalk run; train into a new or empty folder")
 
 
+def _check_features(model: str, features: str) -> None:
+    """Refuse ``--features`` for a model that reads no speech features, and an unknown front end or an
+    incomplete checkpoint folder, before any data is generated or prepared."""
+    from jaxtalk.data.features import parse_audio_features
+    from jaxtalk.runs import REGISTRY
+
+    if not model_spec(model).reads_speech:
+        readers = ", ".join(name for name, spec in REGISTRY.items() if spec.reads_speech)
+        reads = {"toktalk": "audio tokens (the clips' own, or a VQ tokenizer's of the log-mel)",
+                 "stm": "landmarks"}.get(model, "no speech features")
+        raise ValueError(f"--features chooses the speech front end of {readers}; {model} reads {reads}: drop --features")
+    parse_audio_features(features)
+
+
+def _resumed_features(out: Path, spec: Any, given: str | None) -> str | None:
+    """The front end a resumed run keeps (its ``features.json``; None for a model that reads none);
+    ``given`` must be that one."""
+    from jaxtalk.data.features import parse_audio_features
+    from jaxtalk.runs import run_features
+
+    if not spec.reads_speech:
+        return None
+    own = run_features(out)["audio"]
+    if given is not None and given != own and parse_audio_features(given).spec != own:
+        raise ValueError(f"{out} was trained with --features {own}, not {given}: resume it without --features, or "
+                         "choose another --out")
+    return own
+
+
 def _same_data(spec: str, recorded: dict[str, Any]) -> bool:
     """Whether ``--data spec`` names the data a run recorded (its spec, or the same prepared folder)."""
     if spec == recorded["spec"]:
@@ -409,7 +455,8 @@ def _open_data_once(opts: TrainOptions, prepared: str | None = None) -> Any:
     def one() -> Any:
         if prepared is not None and (Path(prepared) / MANIFEST).is_file():
             return PreparedData(prepared)
-        return open_data(opts.data, cache_dir=opts.cache_dir, progress=opts.progress and jax.process_index() == 0)
+        return open_data(opts.data, cache_dir=opts.cache_dir, progress=opts.progress and jax.process_index() == 0,
+                         features=opts.features)
 
     if jax.process_count() == 1:
         return one()

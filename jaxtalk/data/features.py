@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -48,6 +50,20 @@ class AudioFeatures:
     def spec(self) -> str:
         """The command-line spelling (``logmel`` or ``hubert:PATH``)."""
         return self.kind if self.path is None else f"{self.kind}:{self.path}"
+
+    def fingerprint(self) -> str | None:
+        """What identifies the encoder's weights on disk (:func:`jaxtalk.audio.encoders.checkpoint_fingerprint`:
+        their files' sizes and modification times), so that prepared features of other weights in the
+        same folder are not taken for these; None for log-mel.
+
+        Raises:
+            FileNotFoundError: the checkpoint's files are gone.
+        """
+        if self.path is None:
+            return None
+        from jaxtalk.audio.encoders.loader import checkpoint_fingerprint
+
+        return checkpoint_fingerprint(self.path)
 
     @functools.cached_property
     def _encoder(self) -> Any:
@@ -101,14 +117,18 @@ def _fit(x: np.ndarray, n: int) -> np.ndarray:
 
 
 def parse_audio_features(spec: str) -> AudioFeatures:
-    """``logmel`` | ``hubert:PATH`` | ``wav2vec2:PATH`` -> :class:`AudioFeatures`.
+    """``logmel`` | ``hubert:PATH`` | ``wav2vec2:PATH`` -> :class:`AudioFeatures` (``PATH`` made absolute,
+    so that its :attr:`~AudioFeatures.spec` names the same folder from anywhere).
+
+    An encoder's folder is checked here, before any audio is read: it holds ``config.json`` of a
+    model of that kind and the weights (``model.safetensors``, or what
+    :func:`jaxtalk.audio.encoders.weight_files` accepts).
 
     Raises:
-        ValueError: an unknown kind, or an encoder without a folder.
-        FileNotFoundError: the encoder folder does not exist.
+        ValueError: an unknown kind, an encoder without a folder, or a ``config.json`` that is not a
+            checkpoint of that kind.
+        FileNotFoundError: the encoder folder, its ``config.json`` or its weights do not exist.
     """
-    from pathlib import Path
-
     kind, _, path = spec.partition(":")
     if kind == "logmel" and not path:
         return AudioFeatures()
@@ -116,6 +136,21 @@ def parse_audio_features(spec: str) -> AudioFeatures:
         raise ValueError(f"unknown audio features {spec!r}; expected logmel, hubert:PATH or wav2vec2:PATH")
     if not path:
         raise ValueError(f"{kind} features need a local checkpoint folder: {kind}:PATH")
-    if not Path(path).is_dir():
-        raise FileNotFoundError(f"{kind} checkpoint folder not found: {path!r} (config.json + model.safetensors)")
-    return AudioFeatures(kind, str(Path(path).absolute()))
+    folder = Path(path)
+    wanted = "a Hugging Face folder with config.json and model.safetensors"
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{kind} checkpoint folder not found: {path!r} ({wanted})")
+    config = folder / "config.json"
+    if not config.is_file():
+        raise FileNotFoundError(f"{kind} checkpoint folder {path!r} has no config.json; expected {wanted}")
+    try:
+        model_type = json.loads(config.read_text()).get("model_type")
+    except (ValueError, UnicodeDecodeError, AttributeError) as err:
+        raise ValueError(f"{str(config)!r} is not a Hugging Face config ({err})") from None
+    if model_type != kind:
+        other = f"; use {model_type}:{path}" if model_type in ("hubert", "wav2vec2") else ""
+        raise ValueError(f"{kind}:{path} names a checkpoint of model_type {model_type!r} ({config}), not {kind}{other}")
+    from jaxtalk.audio.encoders.loader import weight_files
+
+    weight_files(folder)  # no weights: the loader's message lists what the folder holds
+    return AudioFeatures(kind, str(folder.absolute()))

@@ -257,24 +257,52 @@ class PreparedData:
         return VQTokenizer.load(self.root / self.manifest["tokenizer"])
 
 
-def open_data(spec: str | Path, *, cache_dir: str | Path = ".cache/prepared", progress: bool = True) -> PreparedData:
+def open_data(spec: str | Path, *, cache_dir: str | Path = ".cache/prepared", progress: bool = True,
+              features: str | None = None) -> PreparedData:
     """A prepared dataset from a folder, or ``synthtalk:SIZE[:SEED]`` (prepared once into ``cache_dir``).
 
+    Args:
+        spec: a prepared folder (``jaxtalk prepare``) or ``synthtalk:SIZE[:SEED]``.
+        cache_dir: where ``synthtalk:`` data is prepared: log-mel into ``synthtalk-SIZE-seedS``, a
+            speech encoder's features into ``synthtalk-SIZE-seedS-KIND-DIGEST``, ``DIGEST`` the start of
+            :meth:`~jaxtalk.data.prepare.PrepareSettings.digest` (which covers the checkpoint's files),
+            so every front end has a folder of its own and each is prepared once.
+        progress: show the progress bar while preparing.
+        features: the speech front end (``logmel``, ``hubert:PATH`` or ``wav2vec2:PATH``, as
+            ``jaxtalk prepare --features`` takes it). None: ``logmel`` for ``synthtalk:``, the folder's
+            own for a folder. A folder prepared with other features is refused: its features were
+            computed once, by ``prepare``.
+
     Raises:
-        FileNotFoundError: a folder that is not a prepared dataset.
+        FileNotFoundError: a folder that is not prepared, or a speech encoder's checkpoint folder, its
+            ``config.json`` or its weights missing (checked before any corpus is generated).
+        ValueError: unknown ``features``, or a folder prepared with other features (both named).
     """
+    from jaxtalk.data.features import parse_audio_features
+    from jaxtalk.data.prepare import PrepareSettings
+
     text = str(spec)
     if text.startswith("synthtalk:"):
         from jaxtalk.data.prepare import prepare
         from jaxtalk.data.sources import open_source
 
+        settings = PrepareSettings(audio=features or "logmel")
         parts = text.split(":")
         seed = parts[2] if len(parts) > 2 else "0"
-        out = Path(cache_dir) / f"synthtalk-{parts[1]}-seed{seed}"
+        name = f"synthtalk-{parts[1]}-seed{seed}"
+        if settings.audio != "logmel":  # log-mel keeps the folder it always had
+            name += f"-{settings.audio.partition(':')[0]}-{settings.digest()[:8]}"
+        out = Path(cache_dir) / name
         if not is_current(out):  # not prepared, or prepared by an older jaxtalk
-            prepare(open_source(text, cache_dir=Path(cache_dir) / "synthtalk"), out, progress=progress)
+            prepare(open_source(text, cache_dir=Path(cache_dir) / "synthtalk"), out, settings, progress=progress)
         return PreparedData(out)
-    return PreparedData(spec)
+    data = PreparedData(spec)
+    if features is not None:
+        own = data.manifest["settings"]["audio"]
+        if features != own and parse_audio_features(features).spec != own:
+            raise ValueError(f"{data.root} was prepared with --features {own}, not {features}: drop --features to "
+                             f"use its own, or prepare the data again with --features {features}")
+    return data
 
 
 @runtime_checkable

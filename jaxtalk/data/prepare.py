@@ -71,7 +71,8 @@ class PrepareSettings:
     """What ``prepare`` computes (everything that changes a record is in :meth:`digest`).
 
     Attributes:
-        audio: ``logmel`` (default), ``hubert:PATH`` or ``wav2vec2:PATH``.
+        audio: ``logmel`` (default), ``hubert:PATH`` or ``wav2vec2:PATH`` (kept with ``PATH`` made
+            absolute: the manifest and the runs trained on it name the checkpoint from anywhere).
         tokens: ``auto`` (the clips' own token files when the source has them, else ``vq``), ``clip``,
             ``vq`` (a VQ tokenizer fitted on the training split, as SynthTalk's streams are made) or
             ``none``.
@@ -101,13 +102,24 @@ class PrepareSettings:
             raise ValueError(f"min_frames must be >= 1, got {self.min_frames}")
         if not (0 <= self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
             raise ValueError(f"val/test fractions must be in [0, 1) with a sum < 1, got {self.val_fraction}, {self.test_fraction}")
-        parse_audio_features(self.audio)
+        # Frozen: the checked, canonical spelling is set once here.
+        object.__setattr__(self, "audio", parse_audio_features(self.audio).spec)
 
     def digest(self) -> str:
         """Hash of the settings that decide a record or whether a clip is kept (splits are not part of
-        a record: they are redrawn on every run)."""
+        a record: they are redrawn on every run). With a speech encoder it also covers the
+        checkpoint's files (:meth:`~jaxtalk.data.features.AudioFeatures.fingerprint`): other weights
+        in the same folder make other features. Log-mel settings hash as they always have.
+
+        Raises:
+            FileNotFoundError: the encoder's checkpoint files are gone.
+        """
         keys = ("audio", "tokens", "vq_rate", "vq_width", "vq_codes", "landmarks", "min_frames")
-        return hashlib.sha1(json.dumps({k: getattr(self, k) for k in keys}, sort_keys=True).encode()).hexdigest()[:16]
+        values = {k: getattr(self, k) for k in keys}
+        checkpoint = parse_audio_features(self.audio).fingerprint()
+        if checkpoint is not None:
+            values["checkpoint"] = checkpoint
+        return hashlib.sha1(json.dumps(values, sort_keys=True).encode()).hexdigest()[:16]
 
 
 @dataclasses.dataclass

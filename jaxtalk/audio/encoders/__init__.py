@@ -23,6 +23,7 @@ from jaxtalk.audio.encoders.frontend import (
 )
 from jaxtalk.audio.encoders.loader import (
     Checkpoint,
+    checkpoint_fingerprint,
     expected_param_shapes,
     hf_tensor_names,
     load_checkpoint,
@@ -30,6 +31,7 @@ from jaxtalk.audio.encoders.loader import (
     params_to_state_dict,
     read_state_dict,
     save_checkpoint,
+    weight_files,
 )
 from jaxtalk.audio.encoders.wav2vec2 import EncoderOutput, Wav2Vec2Model, conv_output_lengths
 
@@ -43,6 +45,8 @@ __all__ = [
     "Checkpoint",
     "load_checkpoint",
     "read_state_dict",
+    "weight_files",
+    "checkpoint_fingerprint",
     "params_from_state_dict",
     "params_to_state_dict",
     "save_checkpoint",

@@ -36,6 +36,8 @@ __all__ = [
     "Checkpoint",
     "load_checkpoint",
     "read_state_dict",
+    "weight_files",
+    "checkpoint_fingerprint",
     "params_from_state_dict",
     "params_to_state_dict",
     "save_checkpoint",
@@ -273,33 +275,62 @@ def _from_flax(leaf: str, array: np.ndarray) -> np.ndarray:
     return array
 
 
+def weight_files(path: str | os.PathLike[str]) -> list[Path]:
+    """The weight files :func:`read_state_dict` reads from a checkpoint directory, in its order of
+    preference: ``model.safetensors``, the shards of ``model.safetensors.index.json``,
+    ``pytorch_model.bin``, the shards of ``pytorch_model.bin.index.json`` (an index file itself comes
+    first, before its shards).
+
+    Raises:
+        FileNotFoundError: the directory, its weight files or a listed shard do not exist.
+        ValueError: an unreadable shard index.
+    """
+    directory = Path(path)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"checkpoint directory not found: {str(directory)!r}")
+    for name, index in ((_SAFETENSORS, False), (_SAFETENSORS_INDEX, True), (_TORCH_BIN, False), (_TORCH_BIN_INDEX, True)):
+        if (directory / name).is_file():
+            return [directory / name, *_shards(directory / name)] if index else [directory / name]
+    present = sorted(p.name for p in directory.iterdir())
+    raise FileNotFoundError(
+        f"{str(directory)!r} holds no weights: expected {_SAFETENSORS}, {_SAFETENSORS_INDEX}, "
+        f"{_TORCH_BIN} or {_TORCH_BIN_INDEX}; found {present}"
+    )
+
+
 def read_state_dict(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """Read every tensor of a checkpoint directory as NumPy arrays (PyTorch layout).
 
     Prefers ``model.safetensors`` (or its sharded index); falls back to ``pytorch_model.bin``
-    (or its index), which needs PyTorch.
+    (or its index), which needs PyTorch (see :func:`weight_files`).
 
     Raises:
         FileNotFoundError: the directory or its weight files do not exist.
         ImportError: only ``.bin`` weights and PyTorch (or ``safetensors``) is not installed.
         ValueError: an unreadable weight file.
     """
+    files = [f for f in weight_files(path) if not f.name.endswith(".index.json")]
+    if files[0].suffix == ".safetensors":
+        return _read_safetensors(files)
+    return _read_torch(files)
+
+
+def checkpoint_fingerprint(path: str | os.PathLike[str]) -> str:
+    """A short hash that changes when the files :func:`load_checkpoint` reads change: the name, size
+    and modification time of ``config.json``, ``preprocessor_config.json`` (when present) and the
+    weight files. Read from the file system alone (no weights are read), so it costs nothing next to
+    loading a checkpoint of hundreds of megabytes; a copy of the same weights made later counts as
+    another checkpoint.
+
+    Raises:
+        FileNotFoundError: see :func:`weight_files`.
+    """
+    import hashlib
+
     directory = Path(path)
-    if not directory.is_dir():
-        raise FileNotFoundError(f"checkpoint directory not found: {str(directory)!r}")
-    if (directory / _SAFETENSORS).is_file():
-        return _read_safetensors([directory / _SAFETENSORS])
-    if (directory / _SAFETENSORS_INDEX).is_file():
-        return _read_safetensors(_shards(directory / _SAFETENSORS_INDEX))
-    if (directory / _TORCH_BIN).is_file():
-        return _read_torch([directory / _TORCH_BIN])
-    if (directory / _TORCH_BIN_INDEX).is_file():
-        return _read_torch(_shards(directory / _TORCH_BIN_INDEX))
-    present = sorted(p.name for p in directory.iterdir())
-    raise FileNotFoundError(
-        f"{str(directory)!r} holds no weights: expected {_SAFETENSORS}, {_SAFETENSORS_INDEX}, "
-        f"{_TORCH_BIN} or {_TORCH_BIN_INDEX}; found {present}"
-    )
+    files = [directory / name for name in ("config.json", "preprocessor_config.json") if (directory / name).is_file()]
+    stats = [(f.name, f.stat().st_size, f.stat().st_mtime_ns) for f in [*files, *weight_files(directory)]]
+    return hashlib.sha1(json.dumps(stats).encode()).hexdigest()[:16]
 
 
 def _shards(index_file: Path) -> list[Path]:

@@ -564,7 +564,10 @@ def write_converted_run(
     extra = {"normalizer": norm.to_dict(), "num_turns": config.max_turns, "still": norm.motion_mean.tolist(),
              "converted": {"from": str(source.absolute()), "weights": weights, "normalizer": normalizer_kind,
                            "args_model": str(args.get("model"))}}
-    feature_record = {"audio": features, "tokens": None, "token_rate": None, "token_dim": None,
+    from jaxtalk.data.features import parse_audio_features
+
+    # The spec as `prepare` records it (the folder made absolute), so the run finds its encoder from anywhere.
+    feature_record = {"audio": parse_audio_features(features).spec, "tokens": None, "token_rate": None, "token_dim": None,
                       "speech_dim": None, "turn_speech_dim": config.speech_dim}
 
     out.parent.mkdir(parents=True, exist_ok=True)
