@@ -217,6 +217,18 @@ def train(
         Path | None, typer.Option(help="Fine-tune: start from this run's parameters, config and normaliser (a trained "
                                        "run or one made by `jaxtalk convert`).")
     ] = None,
+    real_voice: Annotated[
+        Path | None, typer.Option(help="TokTalk: a folder of real recordings (.wav, .flac), each optionally with its "
+                                       "tracked motion (STEM.npz), as for `jaxtalk eval --real-voice`: every "
+                                       "evaluation also streams the first 8 at 1 sampler step in the run's default "
+                                       "style and records real_corr, real_loudness_corr, real_best_lag and "
+                                       "real_silence_minus_rest.")
+    ] = None,
+    select: Annotated[
+        str | None, typer.Option(help="TokTalk: the metric the best checkpoint (checkpoint/best) is chosen by: LVE_mm2 "
+                                      "(the lowest streamed lip error on val clips) or real_corr (the highest, needs "
+                                      "--real-voice with tracked motion). Default LVE_mm2, or the run's own.")
+    ] = None,
 ) -> None:
     """Train a model on a prepared dataset with checkpoints; run again with more --steps to continue exactly."""
     from jaxtalk.commands.training import TrainOptions, train_run
@@ -226,7 +238,8 @@ def train(
                         overrides=tuple(set_ or ()), steps=steps, seed=seed, cache_dir=cache_dir, features=features,
                         resume=resume,
                         progress=progress, data_parallel=data_parallel, distributed=distributed,
-                        profile=None if profile is None else parse_step_range(profile), init=init)
+                        profile=None if profile is None else parse_step_range(profile), init=init,
+                        real_voice=real_voice, select=select)
     summary = train_run(opts, echo=typer.echo)
     if summary.interrupted:
         typer.echo(f"error: interrupted at step {summary.step}; it is checkpointed in {summary.run_dir / 'checkpoint'}: "

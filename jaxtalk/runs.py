@@ -43,6 +43,7 @@ __all__ = [
     "load_run",
     "save_run_assets",
     "run_features",
+    "default_style_clip",
     "write_run",
 ]
 
@@ -353,8 +354,6 @@ FEATURES_FILE = "features.json"
 def save_run_assets(run_dir: str | Path, model: str, data: Any, config: Any) -> None:
     """Copy what inference needs from the prepared data into the run: the feature settings, the VQ
     tokenizer (when the data has one) and, for TokTalk, a default style clip (a training clip)."""
-    import numpy as np
-
     from jaxtalk.files import atomic_copy, atomic_save_npy, atomic_write_json
 
     run_dir = Path(run_dir)
@@ -366,10 +365,27 @@ def save_run_assets(run_dir: str | Path, model: str, data: Any, config: Any) -> 
     if m.get("tokenizer"):
         atomic_copy(data.root / m["tokenizer"], run_dir / TOKENIZER_FILE)
     if model_spec(model).style_asset:
-        train = data.split("train")
-        clip = max(train, key=lambda i: data.clips[i]["frames"])
-        style = data.record(clip, ("motion",), frames=(0, 4 * config.style_frames))["motion"]
-        atomic_save_npy(run_dir / STYLE_FILE, style.astype(np.float32))
+        atomic_save_npy(run_dir / STYLE_FILE, default_style_clip(data, config))
+
+
+def default_style_clip(data: Any, config: Any) -> Any:
+    """TokTalk's default reference motion, what a run saves as ``style.npy`` (``jaxtalk stream``'s style
+    without ``--style``): the first ``4 * style_frames`` frames of the longest training clip of ``data``.
+
+    Args:
+        data: the prepared data (:class:`~jaxtalk.data.loader.PreparedData`) with a ``train`` split.
+        config: the TokTalk config (``style_frames``).
+
+    Returns:
+        ``(S, 56)`` float32 motion (a NumPy array; typed ``Any`` so that this module imports no array
+        library, and ``jaxtalk --help`` stays instant).
+    """
+    import numpy as np
+
+    train = data.split("train")
+    clip = max(train, key=lambda i: data.clips[i]["frames"])
+    style = data.record(clip, ("motion",), frames=(0, 4 * config.style_frames))["motion"]
+    return np.asarray(style, np.float32)
 
 
 @dataclasses.dataclass(frozen=True)

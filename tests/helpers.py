@@ -7,6 +7,7 @@ import functools
 from pathlib import Path
 
 import jax
+import numpy as np
 
 
 @functools.partial(jax.jit, static_argnames="scale")
@@ -292,3 +293,42 @@ def cli_error(args: list, *words: str) -> str:
     assert len(errors) == 1 and all(w in errors[0] for w in words), result.output
     assert "Traceback" not in result.output
     return errors[0]
+
+
+# ------------------------------------------------------------------------- real voices
+
+# The recordings' rate (jaxtalk's audio rate).
+SR = 16000
+
+
+def syllables(seconds: float, rate: int = SR, seed: int = 0) -> np.ndarray:
+    """A voice-like test signal: a faint room hiss, and 220-Hz syllables (3 per second) in the middle."""
+    t = np.arange(int(seconds * rate)) / rate
+    env = ((np.sin(2 * np.pi * 3 * t) > 0) & (t > 0.4) & (t < seconds - 0.4)).astype(np.float64)
+    hiss = 1e-3 * np.random.default_rng(seed).normal(size=t.shape)
+    return (0.3 * np.sin(2 * np.pi * 220 * t) * env + hiss).astype(np.float32)
+
+
+def real_voices(folder: Path) -> dict[str, np.ndarray]:
+    """A real-voice folder (``--real-voice`` of ``jaxtalk eval`` and ``jaxtalk train``): ``a.wav``
+    (stereo, 22.05 kHz) with a jaxtalk params npz (51 frames, one more than the audio's 50), ``b.flac``
+    with a DualTalk pose npz, ``c.wav`` without motion. Returns the tracked jaw of each tracked
+    recording."""
+    import soundfile as sf
+
+    from jaxtalk.audio import resample_audio
+
+    folder.mkdir()
+    a = syllables(2.0)
+    sf.write(folder / "a.wav", np.stack([resample_audio(a, SR, 22050)] * 2, axis=1), 22050)
+    sf.write(folder / "b.flac", syllables(2.4, seed=1), SR)
+    sf.write(folder / "c.wav", syllables(2.0, seed=2), SR)
+    t = np.arange(60) / 25
+    jaws = {"a": 0.1 * (np.sin(2 * np.pi * 3 * t[:51]) > 0) * (t[:51] > 0.4), "b": 0.05 + 0.02 * np.sin(t)}
+    params = np.zeros((51, 56), np.float32)
+    params[:, 50] = jaws["a"]
+    np.savez(folder / "a.npz", params=params, fps=25)
+    pose = np.zeros((60, 6), np.float32)
+    pose[:, 3] = jaws["b"]
+    np.savez(folder / "b.npz", pose=pose)
+    return {k: v.astype(np.float32).astype(np.float64) for k, v in jaws.items()}

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from helpers import (DUALTALK_SOURCES, TINY_TRAIN_ARGS, dualtalk_folder, cli_ok as _ok,
-                     cli_error as _user_error)
+                     cli_error as _user_error, real_voices, syllables, SR)
 
 
 # The real-data test's own runs (the other tests read the session's runs).
@@ -374,17 +374,6 @@ def test_dualtalk_demo_layout_timar_and_toktalk_eval(source, tmp_path, request):
 # ------------------------------------------------------------------------------------- real voices
 
 
-SR = 16000
-
-
-def _syllables(seconds: float, rate: int = SR, seed: int = 0) -> np.ndarray:
-    """A voice-like test signal: a faint room hiss, and 220-Hz syllables (3 per second) in the middle."""
-    t = np.arange(int(seconds * rate)) / rate
-    env = ((np.sin(2 * np.pi * 3 * t) > 0) & (t > 0.4) & (t < seconds - 0.4)).astype(np.float64)
-    hiss = 1e-3 * np.random.default_rng(seed).normal(size=t.shape)
-    return (0.3 * np.sin(2 * np.pi * 220 * t) * env + hiss).astype(np.float32)
-
-
 def _hand_loudness(audio: np.ndarray, frames: int) -> np.ndarray:
     """dBFS per 25-fps frame (640 samples at 16 kHz), digital silence -100 dB, by hand."""
     out = np.full(frames, -100.0)
@@ -393,30 +382,6 @@ def _hand_loudness(audio: np.ndarray, frames: int) -> np.ndarray:
         if chunk.size:
             out[k] = max(10 * np.log10(max(np.mean(chunk ** 2), 1e-10)), -100.0)
     return out
-
-
-def _voices(folder: Path) -> dict[str, np.ndarray]:
-    """A real-voice folder: ``a.wav`` (stereo, 22.05 kHz) with a jaxtalk params npz (51 frames, one more
-    than the audio's 50), ``b.flac`` with a DualTalk pose npz, ``c.wav`` without motion. Returns the
-    tracked jaw of each tracked recording."""
-    import soundfile as sf
-
-    from jaxtalk.audio import resample_audio
-
-    folder.mkdir()
-    a = _syllables(2.0)
-    sf.write(folder / "a.wav", np.stack([resample_audio(a, SR, 22050)] * 2, axis=1), 22050)
-    sf.write(folder / "b.flac", _syllables(2.4, seed=1), SR)
-    sf.write(folder / "c.wav", _syllables(2.0, seed=2), SR)
-    t = np.arange(60) / 25
-    jaws = {"a": 0.1 * (np.sin(2 * np.pi * 3 * t[:51]) > 0) * (t[:51] > 0.4), "b": 0.05 + 0.02 * np.sin(t)}
-    params = np.zeros((51, 56), np.float32)
-    params[:, 50] = jaws["a"]
-    np.savez(folder / "a.npz", params=params, fps=25)
-    pose = np.zeros((60, 6), np.float32)
-    pose[:, 3] = jaws["b"]
-    np.savez(folder / "b.npz", pose=pose)
-    return {k: v.astype(np.float32).astype(np.float64) for k, v in jaws.items()}
 
 
 _REAL_VOICE_COLUMNS = ["recording", "tracked", "frames", "speech_frames", "corr", "best_lag", "best_corr",
@@ -433,7 +398,7 @@ def test_toktalk_real_voice_table_by_hand(runs, tmp_path):
     from jaxtalk.runs import load_run
 
     folder = tmp_path / "voices"
-    jaws = _voices(folder)
+    jaws = real_voices(folder)
     before = sorted(p.name for p in folder.iterdir())
     output = _ok(["eval", runs["toktalk"], "--real-voice", folder, "--json", tmp_path / "r.json"])
     assert sorted(p.name for p in folder.iterdir()) == before  # nothing written beside the recordings
@@ -507,7 +472,7 @@ def test_timar_real_voice_streams_whole_turns(runs, tmp_path):
     from jaxtalk.runs import RunRecord
 
     folder = tmp_path / "voices"
-    _voices(folder)
+    real_voices(folder)
     _ok(["eval", runs["timar"], "--real-voice", folder, "--json", tmp_path / "r.json"])
     (table,) = _report(tmp_path / "r.json")["tables"]
     rows = {row["recording"]: row for row in table["rows"]}
@@ -537,7 +502,7 @@ def test_real_voice_user_errors(runs, tmp_path):
     (tmp_path / "notes" / "readme.txt").write_text("no audio here")
     _user_error(["eval", tok, "--real-voice", tmp_path / "notes"], "has no audio file", "readme.txt")
     folder = tmp_path / "voices"
-    _voices(folder)
+    real_voices(folder)
     _user_error(["eval", runs["ats"], "--real-voice", folder], "through toktalk and timar runs", "is an ats run")
     for option in (["--data", "synthtalk:tiny"], ["--split", "val"], ["--offline"]):
         _user_error(["eval", tok, "--real-voice", folder, *option], f"{option[0]}: not with --real-voice")
@@ -555,7 +520,7 @@ def test_real_voice_user_errors(runs, tmp_path):
     (folder / "a.npz").unlink()
     import soundfile as sf
 
-    sf.write(folder / "short.wav", _syllables(0.3), SR)
+    sf.write(folder / "short.wav", syllables(0.3), SR)
     _user_error(["eval", tok, "--real-voice", folder], "short.wav' lasts 0.30 s", "at least 0.44 s")
 
 

@@ -17,7 +17,10 @@ from scipy.signal import resample_poly
 
 from jaxtalk.types import AUDIO_SAMPLE_RATE
 
-__all__ = ["load_audio", "save_audio", "resample_audio", "check_audio", "rational_ratio"]
+__all__ = ["load_audio", "save_audio", "resample_audio", "check_audio", "rational_ratio", "AUDIO_SUFFIXES"]
+
+# The audio files the commands take (what soundfile reads, by suffix).
+AUDIO_SUFFIXES = (".wav", ".flac", ".ogg", ".aiff", ".aif")
 
 # Largest down factor of the rational resampling ratio. Common pairs (44.1k, 48k, 22.05k, 8k -> 16k)
 # reduce to small terms; any integer rate up to 32768 Hz is converted exactly, and other ratios are

@@ -63,12 +63,12 @@ from typing import Any
 import numpy as np
 
 from jaxtalk.checks import check_temperature
+from jaxtalk.data.recordings import MAX_LAG, Recording, read_recordings
 from jaxtalk.metrics.landmarks import MOUTH_LANDMARKS, landmark_metrics
 from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec, run_features
 
 __all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
-           "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS", "Recording", "read_recordings",
-           "REST_SECONDS"]
+           "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS", "REST_SECONDS"]
 
 # Fixed batch of ATS windows per sampler call (one compiled program for every clip).
 _ATS_BATCH = 8
@@ -579,141 +579,7 @@ def _eval_stm(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
 
 # Seconds of digital silence streamed for the rest jaw (a TIMAR run: whole turns, at least this long).
 REST_SECONDS = 3.0
-# Frames of difference between a tracked motion file and its recording's duration still accepted
-# (trackers and encoders round the last frame differently).
-_MOTION_SLACK_FRAMES = 2
-# The lags speech_sync searches, both ways (8 frames = 320 ms at 25 fps).
-_MAX_LAG = 8
 _REAL_VOICE_MODELS = ("toktalk", "timar")
-
-
-@dataclasses.dataclass(frozen=True)
-class Recording:
-    """One real recording of a ``--real-voice`` folder.
-
-    Attributes:
-        name: its file's stem.
-        path: the audio file.
-        audio: the waveform, mono 16 kHz.
-        tracked_jaw: the speaker's tracked jaw opening per 25-fps frame (radians), or None.
-        motion: the tracked-motion file it came from, or None.
-    """
-
-    name: str
-    path: Path
-    audio: np.ndarray
-    tracked_jaw: np.ndarray | None
-    motion: Path | None
-
-
-def _tracked_jaw(path: Path, audio_frames: float) -> np.ndarray:
-    """The jaw opening of a tracked-motion ``.npz``: DualTalk's ``pose[:, 3]`` or jaxtalk's ``params[:, 50]``."""
-    from jaxtalk.data.formats import load_npz
-    from jaxtalk.layout import JAW_OPEN_INDEX
-    from jaxtalk.types import MOTION_FPS, PARAM_DIM
-
-    data = load_npz(path, what="motion file")
-    if "pose" in data:
-        motion, key, width, column = data["pose"], "pose", 6, 3
-    elif "params" in data:
-        motion, key, width, column = data["params"], "params", PARAM_DIM, JAW_OPEN_INDEX
-    else:
-        raise ValueError(f"{str(path)!r} holds neither 'pose' (frames, 6) nor 'params' (frames, {PARAM_DIM}); "
-                         f"found {sorted(data)}")
-    if motion.ndim != 2 or motion.shape[1] != width or not np.issubdtype(motion.dtype, np.number):
-        raise ValueError(f"{str(path)!r}: {key} must have shape (frames, {width}), got {motion.shape}")
-    if "fps" in data and float(data["fps"]) != MOTION_FPS:
-        raise ValueError(f"{str(path)!r} is tracked at {float(data['fps']):g} fps; real-voice evaluation compares "
-                         f"{MOTION_FPS}-fps motion")
-    bad = int(np.size(motion) - np.count_nonzero(np.isfinite(motion)))
-    if bad:
-        raise ValueError(f"{str(path)!r}: {key} contains {bad} NaN or inf value(s)")
-    if abs(motion.shape[0] - audio_frames) > _MOTION_SLACK_FRAMES:
-        raise ValueError(f"{str(path)!r} has {motion.shape[0]} frames, its recording lasts {audio_frames:.1f} frames "
-                         f"at {MOTION_FPS} fps (more than {_MOTION_SLACK_FRAMES} apart): not the same take, or not "
-                         f"{MOTION_FPS} fps")
-    return np.asarray(motion[:, column], np.float64)
-
-
-def read_recordings(folder: str | Path, *, min_frames: int = _MAX_LAG + 3,
-                    echo: Callable[[str], None] = print) -> list[Recording]:
-    """The recordings of a ``--real-voice`` folder, each with its tracked jaw where ``STEM.npz`` is beside it.
-
-    Args:
-        folder: the folder (not searched recursively).
-        min_frames: the shortest recording accepted, in 25-fps frames.
-        echo: where notes go (motion files that match no recording).
-
-    Returns:
-        :class:`Recording` per audio file, in name order.
-
-    Raises:
-        FileNotFoundError / NotADirectoryError: no such folder.
-        ValueError: an empty folder, no audio file in it, an unreadable or too short recording, a
-            motion file without ``pose``/``params``, with NaN, at another frame rate, or whose frame
-            count differs from its recording's duration by more than 2 frames.
-    """
-    from jaxtalk.audio import load_audio
-    from jaxtalk.commands.inference import AUDIO_SUFFIXES
-    from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
-
-    folder = Path(folder)
-    if not folder.exists():
-        raise FileNotFoundError(f"--real-voice folder not found: {str(folder)!r}")
-    if not folder.is_dir():
-        raise NotADirectoryError(f"--real-voice takes a folder of recordings, got the file {str(folder)!r}")
-    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
-    if not files:
-        raise ValueError(f"the --real-voice folder {str(folder)!r} is empty: put recordings in it "
-                         f"({', '.join(AUDIO_SUFFIXES)}), each optionally with its tracked motion as STEM.npz")
-    audio_files = [p for p in files if p.suffix.lower() in AUDIO_SUFFIXES]
-    if not audio_files:
-        raise ValueError(f"the --real-voice folder {str(folder)!r} has no audio file ({', '.join(AUDIO_SUFFIXES)}); "
-                         f"found {', '.join(p.name for p in files[:5])}{' ...' if len(files) > 5 else ''}")
-    stems = [p.stem for p in audio_files]
-    twice = sorted({s for s in stems if stems.count(s) > 1})
-    if twice:
-        raise ValueError(f"{str(folder)!r} has several audio files named {', '.join(twice)} (one motion file each "
-                         "could belong to): keep one")
-    recordings = []
-    for path in audio_files:
-        audio = load_audio(path)
-        frames = audio.shape[0] / AUDIO_SAMPLE_RATE * MOTION_FPS
-        if frames < min_frames:
-            raise ValueError(f"{str(path)!r} lasts {audio.shape[0] / AUDIO_SAMPLE_RATE:.2f} s; real-voice evaluation "
-                             f"needs at least {min_frames / MOTION_FPS:g} s ({min_frames} frames)")
-        motion = path.with_suffix(".npz")
-        tracked = _tracked_jaw(motion, frames) if motion.is_file() else None
-        recordings.append(Recording(path.stem, path, audio, tracked, motion if tracked is not None else None))
-    unmatched = [p.name for p in files if p.suffix.lower() == ".npz" and p.stem not in stems]
-    if unmatched:
-        echo(f"note: {', '.join(unmatched)} match(es) no recording (motion goes beside its audio as STEM.npz)")
-    return recordings
-
-
-# The columns of a real-voice table after the recording and its frames (SpeechSync's fields).
-_SYNC_COLUMNS = ("speech_frames", "corr", "best_lag", "best_corr", "loudness_corr", "loudness_best_lag",
-                 "speech_corr", "loudness_speech_corr", "loudness_pred_corr", "loudness_pred_best_lag",
-                 "jaw_silence", "jaw_speech")
-
-
-def _sync_row(name: str, tracked: str | None, sync: Any) -> dict[str, Any]:
-    values = sync.to_dict()
-    return {"recording": name, "tracked": tracked, "frames": values["frames"],
-            **{k: values[k] for k in _SYNC_COLUMNS}}
-
-
-def _mean_row(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """The recordings' plain mean per column over those that have it (the tracked-jaw columns: the
-    recordings with tracked motion; None where none has it)."""
-    tracked = sum(r["tracked"] == "yes" for r in rows)
-    out: dict[str, Any] = {"recording": "mean", "tracked": f"{tracked} of {len(rows)}",
-                           "frames": sum(r["frames"] for r in rows),
-                           "speech_frames": sum(r["speech_frames"] for r in rows)}
-    for key in _SYNC_COLUMNS[1:]:
-        values = [r[key] for r in rows if r[key] is not None]
-        out[key] = float(np.mean(values)) if values else None
-    return out
 
 
 def _turn_frames(record: RunRecord) -> int:
@@ -724,8 +590,9 @@ def _turn_frames(record: RunRecord) -> int:
 def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOptions,
                       echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
     from jaxtalk.commands.inference import SampleOptions, stream_audio
+    from jaxtalk.data.recordings import mean_row, recording_sync, sync_row
     from jaxtalk.layout import JAW_OPEN_INDEX
-    from jaxtalk.metrics.speech_sync import speech_sync, style_rest_jaw
+    from jaxtalk.metrics.speech_sync import style_rest_jaw
     from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
     model, turn = run.record.model, _turn_frames(run.record)
@@ -738,6 +605,8 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
          f"{title} (step {run.step})")
     rest_frames = -(-int(REST_SECONDS * MOTION_FPS) // turn) * turn
     silence = np.zeros(rest_frames * AUDIO_SAMPLE_RATE // MOTION_FPS, np.float32)
+    silent = Recording(f"digital silence ({silence.shape[0] / AUDIO_SAMPLE_RATE:g} s)", Path(opts.real_voice),
+                       silence, None, None)
     quiet = lambda line: None  # noqa: E731  (per-chunk times: `jaxtalk stream` prints them)
     style_note = ""
     if model == "toktalk":  # streamed in the run's default style: where its mouth rests is the target in silence
@@ -752,19 +621,15 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
         rows = []
         for rec in recordings:
             pred = stream_audio(run, rec.audio, dataclasses.replace(sample, input=rec.path), echo=quiet)
-            n = pred.shape[0] if rec.tracked_jaw is None else min(pred.shape[0], rec.tracked_jaw.shape[0])
-            sync = speech_sync(pred[:n, JAW_OPEN_INDEX], rec.audio, AUDIO_SAMPLE_RATE,
-                               tracked_jaw=None if rec.tracked_jaw is None else rec.tracked_jaw[:n], max_lag=_MAX_LAG)
-            rows.append(_sync_row(rec.name, "no" if rec.tracked_jaw is None else "yes", sync))
+            rows.append(sync_row(rec.name, "no" if rec.tracked_jaw is None else "yes", recording_sync(rec, pred)))
             r = rows[-1]
-            echo(f"  {rec.name}: {n} frames" + (f", corr {r['corr']:.3f} (loudness follower "
-                                                f"{r['loudness_corr']:.3f})" if r["corr"] is not None else ""))
-        rest = stream_audio(run, silence, sample, echo=quiet)[:, JAW_OPEN_INDEX]
-        rest_row = _sync_row(f"digital silence ({silence.shape[0] / AUDIO_SAMPLE_RATE:g} s)", None,
-                             speech_sync(rest, silence, AUDIO_SAMPLE_RATE, max_lag=_MAX_LAG))
+            echo(f"  {rec.name}: {r['frames']} frames" + (f", corr {r['corr']:.3f} (loudness follower "
+                                                          f"{r['loudness_corr']:.3f})" if r["corr"] is not None else ""))
+        rest = stream_audio(run, silence, sample, echo=quiet)
+        rest_row = sync_row(silent.name, None, recording_sync(silent, rest))
         tables.append(EvalTable(f"{title} on real voices ({Path(opts.real_voice).name}{label}): predicted jaw "
                                 "opening (rad) vs the tracked jaw and the loudness; lags in frames, positive = late"
-                                + style_note, [*rows, _mean_row(rows), rest_row]))
+                                + style_note, [*rows, mean_row(rows), rest_row]))
     return len(recordings), tables
 
 
@@ -788,7 +653,7 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
         ValueError: an unknown split, a split without clips the model can use, ``max_clips < 1``,
             data whose features differ from the run's, ``--flame`` for a model other than TokTalk;
             with ``real_voice``: a run without a jaw (ATS, STM, the DualTalk baseline), options of
-            prepared data, a bad folder or recording (:func:`read_recordings`).
+            prepared data, a bad folder or recording (:func:`jaxtalk.data.recordings.read_recordings`).
     """
     record = RunRecord.load(opts.run_dir)
     if record.model not in _EVALUATORS:
@@ -824,7 +689,7 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
         data = open_eval_data(record, opts.data, opts.cache_dir, run_features(opts.run_dir).get("audio"))
         data.split(split)  # an unknown split: ValueError naming the known ones
     else:  # a bad folder or file is refused before the run is loaded
-        recordings = read_recordings(opts.real_voice, min_frames=max(_MAX_LAG + 3, _turn_frames(record)), echo=echo)
+        recordings = read_recordings(opts.real_voice, min_frames=max(MAX_LAG + 3, _turn_frames(record)), echo=echo)
     if latest_checkpoint_step(checkpoint_dir(opts.run_dir)) is None:
         raise FileNotFoundError(f"{opts.run_dir} is not trained yet (no checkpoint in {checkpoint_dir(opts.run_dir)}); "
                                 "train it with `jaxtalk train`")

@@ -22,13 +22,13 @@ from typing import Any
 import numpy as np
 from jaxtyping import Float
 
+from jaxtalk.audio.io import AUDIO_SUFFIXES
 from jaxtalk.checks import check_temperature
 from jaxtalk.runs import LoadedRun, RunRecord, load_run
 
 __all__ = ["SampleOptions", "SampleResult", "MeshOptions", "sample_run", "stream_run", "stream_audio", "animate_run",
-           "check_sampling_options", "AUDIO_SUFFIXES"]
+           "check_sampling_options"]
 
-AUDIO_SUFFIXES = (".wav", ".flac", ".ogg", ".aiff", ".aif")
 _SPEECH_MODELS = ("toktalk", "timar")
 
 

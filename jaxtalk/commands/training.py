@@ -96,6 +96,11 @@ class TrainOptions:
         init: fine-tune: start from this run's newest parameters (a trained or converted run of the same
             model), with its config and, for turn models, its normaliser (so the inputs keep the
             standardisation the weights were trained with); None: fresh parameters.
+        real_voice: TokTalk: a folder of real recordings (and their tracked motion as ``STEM.npz``) that
+            every evaluation also streams, recording ``real_corr`` and the other real-voice metrics
+            (:func:`jaxtalk.models.toktalk.validation.real_voice_validation`); None: none.
+        select: TokTalk: the metric the best checkpoint is chosen by (``LVE_mm2``, ``real_corr``); None:
+            a resumed run's own, else ``LVE_mm2``.
     """
 
     model: str
@@ -114,6 +119,8 @@ class TrainOptions:
     distributed: bool = False
     profile: tuple[int, int] | None = None
     init: Path | None = None
+    real_voice: Path | None = None
+    select: str | None = None
 
 
 @dataclasses.dataclass
@@ -194,9 +201,12 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
             fit the model, an existing run of another model or with other settings, ``--no-resume``
             on an existing run, ``--steps`` below the step the run already reached, ``features`` for a
             model that reads no speech features, unknown ``features``, or a prepared folder or run of
-            other features.
-        FileNotFoundError: a data folder that is not prepared, or a speech encoder's checkpoint folder,
-            its ``config.json`` or weights missing (before any data is prepared).
+            other features; ``--real-voice`` or ``--select`` for a model other than TokTalk, a bad
+            ``--real-voice`` folder, an unknown ``--select`` metric or one the recordings cannot give
+            (checked before anything is opened).
+        FileNotFoundError: a data folder that is not prepared, a speech encoder's checkpoint folder,
+            its ``config.json`` or weights missing (before any data is prepared), a ``--real-voice``
+            folder that does not exist.
         jaxtalk.files.FolderInUseError: another process is training into ``opts.out_dir``.
     """
     import jax
@@ -213,6 +223,7 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         # First: reading the checkpoint directory below (orbax) starts the JAX backend, and only a
         # backend started after initialize() sees the other processes.
         initialize()
+    recordings = _real_voices(opts, echo)
     out = Path(opts.out_dir)
     _check_run_folder(out)
     stop = StopRequest()
@@ -222,12 +233,37 @@ def train_run(opts: TrainOptions, *, echo: Callable[[str], None] = print) -> Tra
         held.enter_context(_stop_on_interrupt(stop, out))
         if jax.process_index() == 0:
             held.enter_context(folder_lock(out))
-        return _train_into(opts, out, spec, stop, start, echo)
+        return _train_into(opts, out, spec, stop, start, echo, recordings)
+
+
+def _real_voices(opts: TrainOptions, echo: Callable[[str], None]) -> Any:
+    """The ``--real-voice`` recordings, read once, and ``--select`` checked against them, before any
+    folder or data is opened (None without ``--real-voice``)."""
+    if opts.real_voice is None and opts.select is None:
+        return None
+    given = " and ".join(f for f, v in (("--real-voice", opts.real_voice), ("--select", opts.select)) if v is not None)
+    if opts.model != "toktalk":
+        raise ValueError(f"{given}: TokTalk settings (its validation streams real recordings); not for "
+                         f"{opts.model}")
+    from jaxtalk.data.recordings import read_recordings
+    from jaxtalk.models.toktalk.validation import REAL_VOICE_RECORDINGS, selection_mode
+
+    recordings = None if opts.real_voice is None else read_recordings(opts.real_voice, echo=echo)
+    if opts.select is not None:
+        selection_mode(opts.select, recordings)
+    if recordings is not None:
+        chosen = recordings[:REAL_VOICE_RECORDINGS]
+        tracked = sum(r.tracked_jaw is not None for r in chosen)
+        first = f"the first {len(chosen)} of {len(recordings)}" if len(recordings) > len(chosen) else f"{len(chosen)}"
+        echo(f"real voices: each evaluation streams {first} recordings of {opts.real_voice} ({tracked} with tracked "
+             "motion) at 1 sampler step in the run's default style")
+    return recordings
 
 
 def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, start: float,
-                echo: Callable[[str], None]) -> TrainSummary:
-    """:func:`train_run` once the run folder is held: read it, open the data, train."""
+                echo: Callable[[str], None], recordings: Any = None) -> TrainSummary:
+    """:func:`train_run` once the run folder is held: read it, open the data, train (``recordings``:
+    the ``--real-voice`` recordings already read, or None)."""
     import jax
 
     from jaxtalk.train import latest_checkpoint_step
@@ -316,6 +352,8 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
                              f"({done + 1}..{opts.steps})")
         kw["observers"] = [TraceSteps(*opts.profile, out / PROFILE_DIR)]
     kw["observers"] = [*kw.get("observers", ()), stop]
+    if opts.model == "toktalk":  # None: no real voices, and a resumed run's own selection
+        kw.update(real_voice=recordings, select=opts.select)
     info = RunInfo(preset=preset, items=tuple(opts.overrides), data_spec=opts.data, settings=settings)
     with warnings.catch_warnings():
         # The library's warnings (a smaller batch than asked, ...) as one line each, not Python's

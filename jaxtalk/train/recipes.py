@@ -251,14 +251,17 @@ def merged_eval(*eval_fns: Callable[[Any, Any, int], dict[str, float]] | None
     return eval_fn
 
 
-def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any, best_metric: str = "val_loss") -> dict[str, Any]:
+def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any, best_metric: str | None = "val_loss",
+               best_mode: str = "min") -> dict[str, Any]:
     """The loop's evaluation arguments: validate every ``eval_every`` steps and, with checkpoints, keep
-    the state of the lowest ``best_metric`` in ``<ckpt_dir>/best`` (nothing when there is no
-    validation split). A resumed run whose best checkpoint was chosen by another metric (a run
-    started before its model selected by sampling) keeps selecting by that one, with a warning."""
+    the state of the best ``best_metric`` (the lowest with ``best_mode="min"``, the highest with
+    ``"max"``) in ``<ckpt_dir>/best`` (nothing when there is no validation split; no best checkpoint
+    with ``best_metric=None``). A resumed run whose best checkpoint was chosen by another metric (a run
+    started before its model selected by sampling) keeps selecting by that one, and in its direction,
+    with a warning."""
     if eval_fn is None:
         return {}
-    if ckpt_dir is not None:
+    if ckpt_dir is not None and best_metric is not None:
         from jaxtalk.train.checkpoint import read_best
 
         record = read_best(ckpt_dir)
@@ -266,9 +269,9 @@ def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any, best_metric:
         if saved is not None and saved != best_metric:
             warnings.warn(f"this run's best checkpoint was chosen by {saved!r}; it keeps selecting by it rather "
                           f"than {best_metric!r}", stacklevel=3)
-            best_metric = saved
+            best_metric, best_mode = saved, record["mode"]
     return {"eval_fn": eval_fn, "eval_every": eval_every,
-            "best_metric": best_metric if ckpt_dir is not None else None}
+            "best_metric": best_metric if ckpt_dir is not None else None, "best_mode": best_mode}
 
 
 def fit_recipe(
@@ -294,6 +297,7 @@ def fit_recipe(
     window_frames: int | None = None,
     sample_eval: Callable[[Any, Any, int], dict[str, float]] | None = None,
     best_metric: str | None = None,
+    best_mode: str = "min",
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """What every recipe does once its windows, loss and initial parameters are set: the grain loader
@@ -320,8 +324,11 @@ def fit_recipe(
         window_frames: the window setting the recipe was given (recorded with the run).
         sample_eval: a validation that samples the model as users do (its metrics join the loss's at
             every evaluation), or None.
-        best_metric: the evaluation metric the best checkpoint is chosen by (lower is better); None:
-            the validation loss. Falls back to the validation loss when ``sample_eval`` is None.
+        best_metric: the evaluation metric the best checkpoint is chosen by (a metric of
+            ``sample_eval``); None: the validation loss (lower is better; no best checkpoint when there
+            is no validation loss either). Falls back to the validation loss when ``sample_eval`` is
+            None.
+        best_mode: ``"min"`` (lower is better) or ``"max"``: the direction of ``best_metric``.
         **loop_kwargs: passed to :func:`jaxtalk.train.train`.
 
     Returns:
@@ -342,12 +349,16 @@ def fit_recipe(
     if run_dir is not None and ckpt_dir is None:
         ckpt_dir = checkpoint_dir(run_dir)
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
-    eval_fn = merged_eval(split_validation(data, recipe, loss_fn, batch_size, eval_key), sample_eval)
-    selection = best_metric if sample_eval is not None and best_metric is not None else "val_loss"
+    val_eval = split_validation(data, recipe, loss_fn, batch_size, eval_key)
+    eval_fn = merged_eval(val_eval, sample_eval)
+    if sample_eval is not None and best_metric is not None:
+        selection, mode = best_metric, best_mode
+    else:  # the validation loss, when there is one
+        selection, mode = ("val_loss" if val_eval is not None else None), "min"
     if ckpt_dir is not None:  # the run folder of the run layout: <run>/checkpoint is the checkpoint directory
         loop_kwargs.setdefault("log_dir", Path(ckpt_dir).parent)
     result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
-                   mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir, selection), **loop_kwargs)
+                   mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir, selection, mode), **loop_kwargs)
     if run_info is not None and run_info.settings is not None:  # the run records the batch it trained with
         run_info = dataclasses.replace(run_info, settings=dataclasses.replace(run_info.settings, batch_size=batch_size))
     if run_dir is not None and jax.process_index() == 0:  # every process checkpoints; one writes the record

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,10 +28,11 @@ import numpy as np
 
 from jaxtalk.data.batching import fit_length, window_starts
 from jaxtalk.data.loader import PreparedData
+from jaxtalk.data.recordings import Recording
 from jaxtalk.models.toktalk.config import TokTalkConfig
-from jaxtalk.runs import RunInfo
+from jaxtalk.runs import RunInfo, checkpoint_dir
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, spread
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, merged_eval, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TokTalkWindows", "AdapterWindows", "default_window", "check_data", "base_trainable",
@@ -159,6 +160,8 @@ def train(
     mesh: Any = None,
     eval_every: int | None = None,
     val_clips: int = VAL_CLIPS,
+    real_voice: str | Path | Sequence[Recording] | None = None,
+    select: str | None = None,
     **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train the base model (decoder + style encoder) on ``data``'s training split with the CFM loss.
@@ -182,17 +185,37 @@ def train(
             on up to :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of the ``val`` split and
             streams ``val_clips`` of its clips at 1 and ``config.sample_steps`` steps
             (:func:`~jaxtalk.models.toktalk.validation.streamed_validation`: LVE, MVE, jitter); the best
-            checkpoint is the one of the lowest streamed LVE (the validation loss when nothing streams).
+            checkpoint is the one of the lowest streamed LVE (the validation loss when nothing streams),
+            or of the metric ``select`` names.
         val_clips: clips streamed at each evaluation (0: the validation loss only).
+        real_voice: a folder of real recordings (with their tracked motion as ``STEM.npz``), or the
+            recordings already read (:func:`jaxtalk.data.recordings.read_recordings`): each evaluation
+            also streams the first :data:`~jaxtalk.models.toktalk.validation.REAL_VOICE_RECORDINGS` of
+            them as ``jaxtalk stream`` does, at 1 sampler step in the run's default style clip, with the
+            tokenizer the data was prepared with, and records ``real_corr``, ``real_loudness_corr``,
+            ``real_best_lag`` (with tracked motion) and ``real_silence_minus_rest``
+            (:func:`~jaxtalk.models.toktalk.validation.real_voice_validation`). None: no real voices.
+        select: the metric the best checkpoint is chosen by: ``LVE_mm2`` (the lowest) or ``real_corr``
+            (the highest; needs ``real_voice`` with tracked motion). None: a resumed run's own, else
+            ``LVE_mm2``.
         **loop_kwargs: passed to :func:`jaxtalk.train.train` (``progress``, ``save_every``, ...).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult` (``extra``: the window size).
+
+    Raises:
+        ValueError: data without the config's tokens; with ``real_voice``: a bad folder (see
+            ``read_recordings``), data prepared without a tokenizer for audio, an offline config; an
+            unknown ``select`` or one whose recordings are missing (a resumed run selected by
+            ``real_corr`` needs ``real_voice`` again).
     """
     from jaxtalk.models.toktalk.loss import make_loss_fn
     from jaxtalk.models.toktalk.model import fit_flow_scale, init_params
 
     check_data(config, data)
+    real_eval, best_metric, best_mode = _real_voice_selection(config, data, real_voice, select,
+                                                              ckpt_dir if ckpt_dir is not None or run_dir is None
+                                                              else checkpoint_dir(run_dir))
     window = window_frames or default_window(config)
     recipe = TokTalkWindows(config, window, hop_frames=window // 4, seed=seed)
     k_init, k_train, k_eval = jax.random.split(key, 3)
@@ -206,13 +229,46 @@ def train(
                                                       style_mask=stacked["style_mask"])
     from jaxtalk.models.toktalk.validation import SELECTION_METRIC, streamed_validation
 
-    # The best checkpoint is the one users would pick: the lowest streamed lip error on val clips.
+    # The best checkpoint is the one users would pick: by default the lowest streamed lip error on val
+    # clips (the validation loss when no val clip streams).
     sample_eval = streamed_validation(config, data, "val", key=jax.random.fold_in(k_eval, 1), clips=val_clips)
+    if best_metric == SELECTION_METRIC and sample_eval is None:
+        best_metric = None
     return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
-                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
+                      sample_eval=merged_eval(sample_eval, real_eval), best_metric=best_metric, best_mode=best_mode,
+                      steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
                       metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames,
                       trainable=base_trainable, **loop_kwargs)
+
+
+def _real_voice_selection(config: TokTalkConfig, data: PreparedData,
+                          real_voice: str | Path | Sequence[Recording] | None, select: str | None,
+                          ckpt_dir: Any) -> tuple[Any, str, str]:
+    """``(real-voice eval_fn or None, best metric, its mode)`` of :func:`train`, every setting checked
+    before anything is trained."""
+    from jaxtalk.data.recordings import read_recordings
+    from jaxtalk.models.toktalk.validation import (REAL_VOICE_TRACKED, SELECTION_METRIC, real_voice_validation,
+                                                   selection_mode)
+    from jaxtalk.runs import default_style_clip
+    from jaxtalk.train.checkpoint import read_best
+
+    recordings = read_recordings(real_voice) if isinstance(real_voice, (str, Path)) else real_voice
+    saved = read_best(ckpt_dir) if ckpt_dir is not None else None
+    if saved is not None and saved["metric"] in REAL_VOICE_TRACKED and recordings is None:
+        # A resumed run keeps its selection (train.recipes.evaluation), which needs the recordings again.
+        raise ValueError(f"this run selects its best checkpoint by {saved['metric']} on real recordings "
+                         f"({ckpt_dir}/best): resume it with --real-voice FOLDER")
+    if select is None:
+        select = saved["metric"] if saved is not None and saved["metric"] in REAL_VOICE_TRACKED else SELECTION_METRIC
+    mode = selection_mode(select, recordings)
+    if recordings is None:
+        return None, select, mode
+    tokenizer = data.tokenizer()
+    if tokenizer is None:
+        raise ValueError(f"--real-voice: {data.root} was prepared from its own token files and has no tokenizer "
+                         "to turn the recordings into tokens; prepare the data with --tokens vq")
+    return real_voice_validation(config, recordings, tokenizer, default_style_clip(data, config)), select, mode
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -8,6 +8,17 @@ evenly spread set of clips of the split chunk by chunk (:func:`~jaxtalk.models.t
 at each of the run's sampler step counts, with the same keys every time, and scores them on the built-in
 face (:func:`~jaxtalk.face.builtin_face`) like ``jaxtalk eval``: LVE (mm^2, lips), MVE (mm) and jitter
 (mm/frame^2), frame-weighted over the clips.
+
+:func:`real_voice_validation` adds what SynthTalk cannot show: how the mouth follows real speech. Each
+evaluation streams the first :data:`REAL_VOICE_RECORDINGS` recordings of a ``--real-voice`` folder
+(:func:`jaxtalk.data.recordings.read_recordings`, read once before training) as ``jaxtalk stream`` does
+with its defaults, at :data:`REAL_VOICE_STEPS` sampler step: the run's tokenizer, the run's default
+style clip (the training clip saved as ``style.npy``, :func:`jaxtalk.runs.default_style_clip`: real
+recordings have no speaker in the data, and it is the style a user streams in), the seed 0. The
+predicted jaw is measured as ``jaxtalk eval --real-voice`` measures it
+(:func:`~jaxtalk.data.recordings.recording_sync`, averaged by :func:`~jaxtalk.data.recordings.mean_row`).
+A run may select its best checkpoint by ``real_corr`` instead of the streamed lip error
+(:data:`SELECTABLE`, :func:`selection_mode`).
 """
 
 from __future__ import annotations
@@ -17,10 +28,15 @@ from typing import Any
 
 import jax
 import numpy as np
+from jaxtyping import Float
 
+from jaxtalk.data.recordings import Recording, mean_row, recording_sync, sync_row
 from jaxtalk.face import builtin_face
+from jaxtalk.layout import JAW_OPEN_INDEX
 from jaxtalk.metrics import jitter, lve, mve
+from jaxtalk.metrics.speech_sync import style_rest_jaw
 from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.models.toktalk.live import frames_for_audio
 from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
 from jaxtalk.models.toktalk.sample import default_grid
 from jaxtalk.models.toktalk.stream import stream
@@ -28,11 +44,28 @@ from jaxtalk.train.loop import EvalFn
 from jaxtalk.train.recipes import VAL_CLIPS, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["streamed_validation", "SELECTION_METRIC"]
+__all__ = ["streamed_validation", "real_voice_validation", "selection_mode", "SELECTION_METRIC", "SELECTABLE",
+           "REAL_VOICE_METRICS", "REAL_VOICE_TRACKED", "REAL_VOICE_RECORDINGS", "REAL_VOICE_STEPS"]
 
-# The metric a TokTalk run selects its best checkpoint by: the streamed lip error, averaged over the
-# run's sampler step counts.
+# The metric a TokTalk run selects its best checkpoint by unless told otherwise: the streamed lip
+# error, averaged over the run's sampler step counts.
 SELECTION_METRIC = "LVE_mm2"
+# The metrics a run may select its best checkpoint by, and which way is better.
+SELECTABLE = {"LVE_mm2": "min", "real_corr": "max"}
+# The real-voice metrics: the mean over the tracked recordings of the predicted jaw's correlation with
+# the tracked jaw, of the loudness follower's (a constant of the folder, for reference) and of the best
+# lag; and over every recording, the predicted jaw's mean in silence less the style clip's rest jaw.
+REAL_VOICE_TRACKED = ("real_corr", "real_loudness_corr", "real_best_lag")
+REAL_VOICE_METRICS = (*REAL_VOICE_TRACKED, "real_silence_minus_rest")
+# Recordings streamed at each evaluation (the folder's first, in name order): each costs a stream of
+# its whole length at every evaluation.
+REAL_VOICE_RECORDINGS = 8
+# Sampler steps of the real-voice streams: the fastest live setting, and the one whose lip error the
+# streamed validation tracks too.
+REAL_VOICE_STEPS = 1
+# The seed of the real-voice streams: `jaxtalk stream`'s default, so that a logged value is what
+# `jaxtalk stream RUN RECORDING --sample-steps 1` gives with that checkpoint's parameters.
+_STREAM_SEED = 0
 
 
 def streamed_validation(
@@ -107,6 +140,101 @@ def streamed_validation(
             frames += t
         out = {name: value / frames for name, value in sums.items()}
         out[SELECTION_METRIC] = float(np.mean([out[f"LVE_mm2_{n}step"] for n in steps]))
+        return out
+
+    return eval_fn
+
+
+def selection_mode(select: str, recordings: Sequence[Recording] | None) -> str:
+    """Check the metric a run is asked to select its best checkpoint by; return its mode.
+
+    Args:
+        select: a key of :data:`SELECTABLE`.
+        recordings: the real voices streamed at each evaluation (None: none).
+
+    Returns:
+        ``"min"`` or ``"max"`` (which way is better).
+
+    Raises:
+        ValueError: an unknown metric, or a real-voice metric without real voices with tracked motion.
+    """
+    if select not in SELECTABLE:
+        raise ValueError(f"--select {select}: not a metric a TokTalk run selects by; choose one of "
+                         f"{', '.join(SELECTABLE)}")
+    if select in REAL_VOICE_TRACKED:
+        if recordings is None:
+            raise ValueError(f"--select {select} measures the streamed jaw on real recordings: add --real-voice "
+                             "FOLDER (recordings with their tracked motion as STEM.npz)")
+        if not any(r.tracked_jaw is not None for r in recordings[:REAL_VOICE_RECORDINGS]):
+            where = f" of {recordings[0].path.parent}" if recordings else ""
+            raise ValueError(f"--select {select} compares the predicted jaw with tracked motion, and none of the "
+                             f"recordings{where} streamed at each evaluation has any: put each one's tracked motion "
+                             f"beside it as STEM.npz, or select {SELECTION_METRIC}")
+    return SELECTABLE[select]
+
+
+def real_voice_validation(
+    config: TokTalkConfig,
+    recordings: Sequence[Recording],
+    tokenizer: Any,
+    style: Float[np.ndarray, "frames 56"],
+) -> EvalFn:
+    """An ``eval_fn`` for the training loop that streams real recordings and measures the predicted jaw.
+
+    The first :data:`REAL_VOICE_RECORDINGS` recordings are tokenized once with ``tokenizer`` and, at every
+    evaluation, streamed chunk by chunk (:func:`~jaxtalk.models.toktalk.stream.stream`, what ``jaxtalk
+    stream`` computes through the live path) at :data:`REAL_VOICE_STEPS` sampler step with the key of
+    seed 0, each cut to its audio's frames (:func:`~jaxtalk.models.toktalk.live.frames_for_audio`).
+
+    Args:
+        config: the model config (a causal one: only those stream).
+        recordings: the recordings (:func:`jaxtalk.data.recordings.read_recordings`).
+        tokenizer: the VQ tokenizer the run's data was prepared with (the one the run saves).
+        style: ``(S, 56)`` reference motion, its first ``4 * style_frames`` frames encoded at each
+            evaluation (the run's default style clip, :func:`jaxtalk.runs.default_style_clip`).
+
+    Returns:
+        ``eval_fn(params, ema_params, step) -> {"real_silence_minus_rest"}`` plus, when a recording has
+        tracked motion, ``"real_corr", "real_loudness_corr", "real_best_lag"`` (see
+        :data:`REAL_VOICE_METRICS`; NaN where no recording gives a value), scored on the EMA parameters
+        when the run keeps them.
+
+    Raises:
+        ValueError: a non-causal config, no recordings, a style clip shorter than ``style_min_frames``.
+    """
+    if not config.causal:
+        raise ValueError("--real-voice streams the recordings chunk by chunk; this TokTalk config is the offline "
+                         "(non-causal) one, which does not stream: train a causal one (--set causal=true)")
+    if not recordings:
+        raise ValueError("real_voice_validation needs at least one recording")
+    style = np.asarray(style, np.float32)[: 4 * config.style_frames]
+    if style.ndim != 2 or style.shape[0] < config.style_min_frames:
+        raise ValueError(f"the style clip has shape {style.shape}: it needs at least {config.style_min_frames} frames")
+    rest = style_rest_jaw(style[:, JAW_OPEN_INDEX])
+    chosen = list(recordings[:REAL_VOICE_RECORDINGS])
+    items = []
+    for rec in chosen:
+        tokens = np.asarray(tokenizer.encode(rec.audio).embeddings, np.float32)
+        items.append((rec, tokens[None], frames_for_audio(config, tokens.shape[0], rec.audio.shape[0])))
+    tracked = any(rec.tracked_jaw is not None for rec in chosen)
+    grid = default_grid(config, REAL_VOICE_STEPS)
+    key = jax.random.key(_STREAM_SEED)
+
+    def value(v: float | None) -> float:
+        return float("nan") if v is None else float(v)
+
+    def eval_fn(params: Any, ema_params: Any, step: int) -> dict[str, float]:
+        use = host_copy(ema_params if ema_params is not None else params)
+        style_vec = encode_style(use, config, style[None])
+        rows = []
+        for rec, tokens, frames in items:
+            motion = np.asarray(stream(use, config, tokens, style_vec, key, ts=grid), np.float32)[0, :frames]
+            rows.append(sync_row(rec.name, "no" if rec.tracked_jaw is None else "yes", recording_sync(rec, motion)))
+        mean = mean_row(rows)
+        out = {"real_silence_minus_rest": value(mean["jaw_silence"]) - rest}
+        if tracked:
+            out.update(real_corr=value(mean["corr"]), real_loudness_corr=value(mean["loudness_corr"]),
+                       real_best_lag=value(mean["best_lag"]))
         return out
 
     return eval_fn
