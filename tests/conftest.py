@@ -118,6 +118,19 @@ def _optimized_if_marked(request, monkeypatch):
 
 
 @pytest.fixture
+def no_typecheck():
+    """Turn the jaxtyping checker off so the library's own ValueErrors are what is tested (the checker
+    refuses a wrong shape first under pytest; users get the ValueError)."""
+    import jaxtyping
+
+    jaxtyping.config.update("jaxtyping_disable", True)
+    try:
+        yield
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", False)
+
+
+@pytest.fixture
 def key():
     return jax.random.key(0)
 

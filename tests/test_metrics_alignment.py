@@ -2,21 +2,12 @@
 
 from __future__ import annotations
 
-import jaxtyping
 import numpy as np
 import pytest
 
 from jaxtalk.metrics import alignment, trajectory_dfd, trajectory_dtw
 
 
-@pytest.fixture
-def no_typecheck():
-    """Turn the jaxtyping checker off so the library's own ValueErrors are what is tested."""
-    jaxtyping.config.update("jaxtyping_disable", True)
-    try:
-        yield
-    finally:
-        jaxtyping.config.update("jaxtyping_disable", False)
 
 
 def brute_force(a: np.ndarray, b: np.ndarray, kind: str) -> float:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import jaxtyping
 import numpy as np
 import pytest
 
@@ -20,14 +19,6 @@ from jaxtalk.metrics import (
 JAW = slice(50, 53)
 
 
-@pytest.fixture
-def no_typecheck():
-    """Turn the jaxtyping checker off so the library's own ValueErrors are what is tested."""
-    jaxtyping.config.update("jaxtyping_disable", True)
-    try:
-        yield
-    finally:
-        jaxtyping.config.update("jaxtyping_disable", False)
 
 
 def random_params(frames: int, seed: int) -> np.ndarray:

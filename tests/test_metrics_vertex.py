@@ -4,21 +4,12 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import jaxtyping
 import numpy as np
 import pytest
 
 from jaxtalk.metrics import delta_cd, delta_m, dfd, dtw, fdd, fdd_batch, jitter, lve, mod, mve, vertex
 
 
-@pytest.fixture
-def no_typecheck():
-    """Turn the jaxtyping checker off so the library's own ValueErrors are what is tested."""
-    jaxtyping.config.update("jaxtyping_disable", True)
-    try:
-        yield
-    finally:
-        jaxtyping.config.update("jaxtyping_disable", False)
 
 
 def zeros(frames: int = 2, verts: int = 4) -> np.ndarray:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 
-import jaxtyping
 import numpy as np
 import pytest
 
@@ -17,15 +16,6 @@ from jaxtalk.metrics.speech_sync import (SILENCE_DB, SPEECH_ABOVE_FLOOR_DB, fram
                                          speech_sync, voice_activity)
 
 
-@pytest.fixture
-def no_typecheck():
-    """Turn the jaxtyping checker off so the library's own ValueErrors are what is tested (the checker
-    refuses a wrong shape first under pytest; users get the ValueError)."""
-    jaxtyping.config.update("jaxtyping_disable", True)
-    try:
-        yield
-    finally:
-        jaxtyping.config.update("jaxtyping_disable", False)
 
 
 def _square(db: float, samples: int) -> np.ndarray:
