@@ -11,6 +11,7 @@ import dataclasses
 import functools
 import sys
 import time
+import warnings
 from pathlib import Path
 from collections.abc import Callable
 from typing import Annotated, Any
@@ -42,11 +43,28 @@ USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, FileExistsErro
                ViewerError)
 
 
+def _one_line_notes(show: Callable[..., Any]) -> Callable[..., Any]:
+    """``warnings.showwarning`` that prints a warning whose category has a ``cli_prefix`` (a face file's
+    KTX2 textures passed over: ``note: ...``) as one line, and hands every other warning to ``show``."""
+
+    def showwarning(message: Any, category: type[Warning], filename: str, lineno: int, file: Any = None,
+                    line: str | None = None) -> None:
+        prefix = getattr(category, "cli_prefix", None)
+        if prefix is None:
+            show(message, category, filename, lineno, file, line)
+        else:
+            typer.echo(f"{prefix}: {message}", err=True)
+
+    return showwarning
+
+
 def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
-            return fn(*args, **kwargs)
+            with warnings.catch_warnings():
+                warnings.showwarning = _one_line_notes(warnings.showwarning)
+                return fn(*args, **kwargs)
         except USER_ERRORS as err:
             if _STATE["debug"]:
                 raise

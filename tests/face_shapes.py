@@ -168,3 +168,59 @@ def posed(seed: int, *arrays: np.ndarray) -> list[np.ndarray]:
     rotation = Rotation.random(random_state=seed).as_matrix()
     shift = np.random.default_rng(seed).uniform(-1.5, 1.5, size=3)
     return [a @ rotation.T + shift for a in arrays]
+
+
+def write_face_kit_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Write a face as an artist's kit writes it: ``o`` / ``g`` lines, three ``usemtl`` blocks that share
+    vertices along their borders, a texture coordinate and a normal of its own at every corner (so that no
+    two corners of a vertex agree), quads, and corners written ``v/vt/vn``, ``v//vn`` and, in the last
+    block, ``-k/vt`` (counting back from the last vertex).
+
+    Returns:
+        The triangles a reader that keeps the ``v`` records must give, in file order: each quad as
+        ``(a, b, c), (a, c, d)``.
+    """
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    count = vertices.shape[0]
+    # Quads from pairs of neighbouring triangles: (a, b, c) and its neighbour across c->a, (a, c, d).
+    by_edge = {(int(t[i]), int(t[(i + 1) % 3])): (k, i) for k, t in enumerate(faces) for i in range(3)}
+    used, polygons = np.zeros(len(faces), bool), []
+    for k, (a, b, c) in enumerate(faces.tolist()):
+        if used[k]:
+            continue
+        used[k] = True
+        other = by_edge.get((a, c))
+        if k % 2 == 0 and other is not None and not used[other[0]]:
+            n, i = other
+            used[n] = True
+            polygons.append([a, b, c, int(faces[n][(i + 2) % 3])])
+        else:
+            polygons.append([a, b, c])
+    lines = ["# a face kit: skin, eyes and teeth share vertices", "mtllib kit.mtl", "o head"]
+    lines += [f"v {x!r} {y!r} {z!r}" for x, y, z in vertices.tolist()]
+    corners = sum(len(p) for p in polygons)
+    rng = np.random.default_rng(0)
+    lines += [f"vt {u:.6f} {w:.6f}" for u, w in rng.uniform(size=(corners, 2))]
+    lines += [f"vn {x:.6f} {y:.6f} {z:.6f}" for x, y, z in rng.normal(size=(corners, 3))]
+    blocks = np.array_split(np.arange(len(polygons)), 3)
+    block_vertices = [{v for p in block for v in polygons[p]} for block in blocks]
+    assert block_vertices[0] & block_vertices[1] and block_vertices[1] & block_vertices[2], "blocks share no vertex"
+    corner, expected = 0, []
+    for block, (material, head) in zip(blocks, [("skin", ["g face"]), ("eyes", ["g eyes", "s 1"]),
+                                                  ("teeth", ["o mouth", "g teeth"])]):
+        lines += [*head, f"usemtl {material}"]
+        for p in block:
+            polygon = polygons[p]
+            cells = []
+            for v in polygon:
+                corner += 1
+                if material == "skin":
+                    cells.append(f"{v + 1}/{corner}/{corner}")
+                elif material == "eyes":
+                    cells.append(f"{v + 1}//{corner}")
+                else:
+                    cells.append(f"{v - count}/{corner}")
+            lines.append("f " + " ".join(cells))
+            expected += [[polygon[0], polygon[i], polygon[i + 1]] for i in range(1, len(polygon) - 1)]
+    path.write_text("\n".join(lines) + "\n")
+    return np.array(expected, np.int64)

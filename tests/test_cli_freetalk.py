@@ -47,7 +47,7 @@ def files(tmp_path_factory, synthtalk_tiny):
     mesh.export(root / "face.obj")
     trimesh.PointCloud(vertices).export(root / "cloud.ply")
     return {"wav": root / "speech.wav", "ply": root / "face.ply", "obj": root / "face.obj",
-            "cloud": root / "cloud.ply", "vertices": vertices, "root": root}
+            "cloud": root / "cloud.ply", "vertices": vertices, "faces": np.asarray(face.faces), "root": root}
 
 
 @pytest.mark.slow
@@ -64,6 +64,24 @@ def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, st
     gif = files["root"] / "anim.gif"
     _ok(["render", out, "--faces", files["obj"], "--out", gif, "--size", "96"])
     assert gif.stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_sample_onto_an_obj_kit_keeps_its_vertices(ats_run, stm_run, files):
+    """An OBJ as face kits ship it (materials, groups, a UV and a normal per corner, quads): the animation
+    has the file's ``v`` records, in count and order, and renders with the file as --faces."""
+    from face_shapes import write_face_kit_obj
+
+    kit = files["root"] / "kit.obj"
+    write_face_kit_obj(kit, files["vertices"], files["faces"])
+    out = files["root"] / "kit.npy"
+    output = _ok(["sample", ats_run, files["wav"], "--stm", stm_run, "--mesh", kit, "--out", out])
+    assert f"{files['vertices'].shape[0]} vertices" in output
+    verts = np.load(out)
+    assert verts.shape == (30, files["vertices"].shape[0], 3) and np.isfinite(verts).all()
+    # In the file's order: every vertex stays within a few cm (tens of mm) of its own `v` record.
+    assert np.abs(verts - files["vertices"]).max() < 50.0
+    _ok(["render", out, "--faces", kit, "--out", files["root"] / "kit.gif", "--size", "64"])
 
 
 @pytest.mark.slow

@@ -32,14 +32,14 @@ SIZE = 320
 
 @pytest.fixture(scope="module")
 def node_tools():
-    """``tests/js/node_modules`` (gltf-validator, playwright-core), installed by ``npm ci`` once."""
+    """``tests/js/node_modules`` (gltf-validator, playwright-core, gltfpack), installed by ``npm ci`` once."""
     if shutil.which("node") is None or shutil.which("npm") is None:
         pytest.skip("Node.js and npm are not installed: the glTF validator and browser tests need them")
     # One install for every pytest worker: the first takes the lock, the others wait and reuse it.
     with open(JS / ".install.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (JS / "node_modules" / "gltf-validator" / "package.json").is_file() or not (
-                JS / "node_modules" / "playwright-core" / "package.json").is_file():
+        wanted = json.loads((JS / "package.json").read_text())["dependencies"]
+        if any(not (JS / "node_modules" / name / "package.json").is_file() for name in wanted):
             done = subprocess.run(["npm", "ci", "--ignore-scripts", "--no-audit", "--no-fund"], cwd=JS,
                                   capture_output=True, text=True)
             if done.returncode != 0:

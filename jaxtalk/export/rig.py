@@ -33,8 +33,6 @@ __all__ = ["Rig", "load_rig", "arkit_rig", "arkit_shape_name", "check_arkit_name
 RIG_SUFFIXES = (".glb", ".gltf")
 # File stems (lower case) that name the neutral of an OBJ folder.
 NEUTRAL_NAMES = ("neutral", "base", "basis", "rest", "default")
-# Extensions whose data pygltflib cannot read as plain arrays.
-_COMPRESSED = ("KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression")
 
 _ARKIT_LOWER = {n.lower(): n for n in ARKIT_NAMES}
 _SIDE = re.compile(r"^(?P<stem>.*?)(?:(?:[_.\- ](?P<letter>[LRlr]))|(?:[_.\- ]?(?P<word>[Ll]eft|[Rr]ight)))$")
@@ -201,8 +199,10 @@ def load_rig(path: str | Path) -> Rig:
     """Read a blendshape rig: a ``.glb`` / ``.gltf`` with morph targets, or a folder of OBJ shapes.
 
     glTF: the mesh with morph targets and the most vertices is the face (a head file's eyes and teeth
-    are separate meshes); its primitives are joined, the node's transform applied (a skinned mesh is
-    read in its bind pose), the targets named by ``extras.targetNames`` (``target_k`` where unnamed).
+    are separate meshes); its primitives are joined (those sharing a ``POSITION`` accessor share its
+    vertices), the node's transform applied (a skinned mesh is read in its bind pose), the targets named
+    by ``extras.targetNames`` (``target_k`` where unnamed). Meshopt- and Draco-compressed buffers are
+    decoded and quantized attributes dequantized (:func:`jaxtalk.geometry.mesh_io.read_gltf`).
     A bone whose name holds ``head`` (else ``neck``) in the mesh's skin is the head bone, its rest
     position the head's pivot.
 
@@ -211,7 +211,8 @@ def load_rig(path: str | Path) -> Rig:
 
     Raises:
         FileNotFoundError: no such file or folder.
-        ValueError: an unreadable or compressed file, a mesh without morph targets, an OBJ folder without
+        ValueError: an unreadable file or compressed data that does not decode, a mesh without morph
+            targets, an OBJ folder without
             a neutral or with shapes of another vertex count, two shapes (files or morph targets) on one
             ARKit name (:func:`check_arkit_names`).
     """
@@ -226,38 +227,6 @@ def load_rig(path: str | Path) -> Rig:
     return _load_gltf(path)
 
 
-def _node_matrix(node) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    if node.matrix:
-        return np.asarray(node.matrix, np.float64).reshape(4, 4).T  # stored column-major
-    m = np.eye(4)
-    m[:3, :3] = Rotation.from_quat(np.asarray(node.rotation or [0.0, 0.0, 0.0, 1.0], np.float64)).as_matrix() @ np.diag(
-        np.asarray(node.scale or [1.0, 1.0, 1.0], np.float64))
-    m[:3, 3] = np.asarray(node.translation or [0.0, 0.0, 0.0], np.float64)
-    return m
-
-
-def _world_matrices(gltf) -> dict[int, np.ndarray]:
-    out: dict[int, np.ndarray] = {}
-
-    def visit(node: int, parent: np.ndarray) -> None:
-        if node in out:  # a malformed file whose nodes form a cycle
-            return
-        out[node] = parent @ _node_matrix(gltf.nodes[node])
-        for child in gltf.nodes[node].children or []:
-            visit(child, out[node])
-
-    scenes = gltf.scenes or []
-    roots = [n for s in scenes for n in (s.nodes or [])]
-    if not roots:  # no scene: every node that is nobody's child
-        children = {c for n in gltf.nodes for c in (n.children or [])}
-        roots = [i for i in range(len(gltf.nodes)) if i not in children]
-    for root in roots:
-        visit(root, np.eye(4))
-    return out
-
-
 def _target_position(target) -> int | None:
     return target.get("POSITION") if isinstance(target, dict) else getattr(target, "POSITION", None)
 
@@ -265,21 +234,12 @@ def _target_position(target) -> int | None:
 def _load_gltf(path: Path) -> Rig:
     import pygltflib
 
-    from jaxtalk.export.playback import read_accessor
+    from jaxtalk.geometry.mesh_io import node_world_matrices, read_gltf
 
-    try:
-        gltf = pygltflib.GLTF2().load(str(path))
-        if path.suffix.lower() == ".gltf":  # external or embedded buffers -> one blob
-            gltf.convert_buffers(pygltflib.BufferFormat.BINARYBLOB)
-        blob = gltf.binary_blob() or b""
-    except Exception as err:  # pygltflib raises whatever its parser meets
-        raise ValueError(f"{str(path)!r} is not a readable glTF file ({err})") from None
-    compressed = [e for e in (gltf.extensionsRequired or []) if e in _COMPRESSED]
-    if compressed:
-        raise ValueError(f"{str(path)!r} stores its meshes compressed ({', '.join(compressed)}), which this reader "
-                         "cannot decode: save it uncompressed (e.g. `gltf-transform copy` after decoding, or "
-                         "Blender's glTF export without compression) and retarget onto that")
-    world = _world_matrices(gltf)
+    # Buffers joined, meshopt / Draco compression decoded, quantized attributes read as floats.
+    doc = read_gltf(path)
+    gltf = doc.gltf
+    world = node_world_matrices(gltf)
     best = None
     for node_index, node in enumerate(gltf.nodes):
         if node.mesh is None:
@@ -288,7 +248,7 @@ def _load_gltf(path: Path) -> Rig:
         prims = [p for p in mesh.primitives if p.targets]
         if not prims:
             continue
-        count = sum(gltf.accessors[p.attributes.POSITION].count for p in prims)
+        count = sum(gltf.accessors[a].count for a in {p.attributes.POSITION for p in prims})
         if best is None or count > best[0]:
             best = (count, node_index, prims)
     if best is None:
@@ -308,23 +268,29 @@ def _load_gltf(path: Path) -> Rig:
     except ValueError as err:
         raise ValueError(f"{str(path)!r}: morph targets {err}") from None
     neutral_parts, delta_parts, face_parts, offset = [], [], [], 0
+    # Primitives that share a POSITION accessor (one vertex buffer, an index buffer per material) share its
+    # vertices: as load_mesh reads the file, each stored vertex once.
+    offsets: dict[int, tuple[int, int]] = {}
     for prim in prims:
-        base = read_accessor(gltf, blob, prim.attributes.POSITION).astype(np.float64)
-        deltas = np.zeros((num_targets, *base.shape))
-        for k, target in enumerate(prim.targets):
-            position = _target_position(target)
-            if position is not None:
-                deltas[k] = read_accessor(gltf, blob, position)
-        if prim.indices is not None:
-            tri = read_accessor(gltf, blob, prim.indices).astype(np.int64).reshape(-1, 3)
-        else:
-            tri = np.arange(base.shape[0] - base.shape[0] % 3, dtype=np.int64).reshape(-1, 3)
         if prim.mode not in (None, pygltflib.TRIANGLES):
             raise ValueError(f"{str(path)!r}: mesh {mesh.name!r} is not made of triangles (primitive mode {prim.mode})")
-        neutral_parts.append(base)
-        delta_parts.append(deltas)
-        face_parts.append(tri + offset)
-        offset += base.shape[0]
+        if prim.attributes.POSITION not in offsets:
+            base = doc.accessor(prim.attributes.POSITION).astype(np.float64)
+            deltas = np.zeros((num_targets, *base.shape))
+            for k, target in enumerate(prim.targets):
+                position = _target_position(target)
+                if position is not None:
+                    deltas[k] = doc.accessor(position)
+            offsets[prim.attributes.POSITION] = (offset, base.shape[0])
+            neutral_parts.append(base)
+            delta_parts.append(deltas)
+            offset += base.shape[0]
+        start, count = offsets[prim.attributes.POSITION]
+        if prim.indices is not None:
+            tri = doc.accessor(prim.indices).astype(np.int64).reshape(-1, 3)
+        else:
+            tri = np.arange(count - count % 3, dtype=np.int64).reshape(-1, 3)
+        face_parts.append(tri + start)
     # A skinned mesh ignores its node's transform (glTF 2.0, 3.7.3.3): its bind pose is as stored.
     m = np.eye(4) if node.skin is not None else world.get(node_index, np.eye(4))
     neutral = np.concatenate(neutral_parts) @ m[:3, :3].T + m[:3, 3]

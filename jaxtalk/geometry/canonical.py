@@ -4,9 +4,9 @@ STM (FreeTalk's Sparse-To-Mesh) is intrinsic except for its xyz/normal input: it
 in metres, centred, looking along +z with +y up (the built-in face's frame). A scan or an artist's
 head comes in millimetres or centimetres, anywhere in space, facing anywhere. This module:
 
-* :func:`load_mesh`: OBJ / PLY / GLB / GLTF / OFF / STL through trimesh (a scene is flattened with its
-  node transforms), vertices in file order, with clear errors for a missing file, a point cloud or a
-  file with no triangles.
+* :func:`load_mesh`: OBJ / PLY / GLB / GLTF / OFF / STL with the file's own vertices in the file's order
+  (:mod:`jaxtalk.geometry.mesh_io`; a glTF scene is flattened with its node transforms), with clear errors
+  for a missing file, a point cloud or a file with no triangles.
 * :func:`detect_units`: the unit from the largest bounding-box side, which for a face or a head is
   8-45 cm: one of ``m``, ``cm``, ``mm`` (and ``um``, the Basel Face Model's micrometres) fits, or the
   size makes no sense for a face and the error says so.
@@ -44,12 +44,12 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from jaxtalk.geometry.mesh_io import MESH_SUFFIXES, load_mesh
 from jaxtalk.types import Float, Int
 
 __all__ = [
@@ -68,7 +68,6 @@ __all__ = [
 
 # Metres per unit.
 UNITS: dict[str, float] = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
-MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 # The largest bounding-box side of a face mask (about 15-20 cm) or a whole head with neck (up to
 # about 35 cm), with margin. The ranges of the units do not overlap, so detection is unambiguous.
 FACE_EXTENT_M = (0.08, 0.45)
@@ -169,53 +168,6 @@ class Canonicalization:
     def displacements_to_user(self, displacements: Float[np.ndarray, "*n 3"]) -> Float[np.ndarray, "*n 3"]:
         """Template-frame displacements (metres) -> the user's units and frame (no translation)."""
         return np.asarray(displacements, np.float64) @ self.rotation / self.scale
-
-
-def load_mesh(path: str | os.PathLike[str]) -> tuple[Float[np.ndarray, "verts 3"], Int[np.ndarray, "faces 3"]]:
-    """Read a triangle mesh (OBJ, PLY, GLB/GLTF, OFF, STL) with trimesh, vertices in file order.
-
-    Quads and polygons are triangulated by trimesh; a GLB/GLTF scene's meshes are concatenated with
-    their node transforms applied. Vertices are not merged or reordered (``process=False``), so an
-    output vertex sequence lines up with the file the user has.
-
-    Args:
-        path: the mesh file.
-
-    Returns:
-        ``(vertices (V, 3) float64, faces (F, 3) int64)`` as stored (the file's units).
-
-    Raises:
-        FileNotFoundError: no such file.
-        ValueError: an unsupported suffix, an unreadable file, a point cloud or a mesh without
-            triangles.
-    """
-    import trimesh  # local: importing trimesh is not free
-
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"mesh file not found: {str(p)!r}")
-    if p.suffix.lower() not in MESH_SUFFIXES:
-        raise ValueError(f"{str(p)!r}: expected a mesh file ({', '.join(MESH_SUFFIXES)}), got {p.suffix or 'no suffix'!r}")
-    try:
-        loaded = trimesh.load(p, process=False, maintain_order=True)
-    except Exception as err:  # trimesh raises many types for a broken file
-        raise ValueError(f"{str(p)!r} could not be read as a mesh: {err}") from None
-    if isinstance(loaded, trimesh.Scene):
-        meshes = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
-        if not meshes:
-            kinds = sorted({type(g).__name__ for g in loaded.geometry.values()}) or ["nothing"]
-            raise ValueError(f"{str(p)!r} holds no triangle mesh (found: {', '.join(kinds)})")
-        loaded = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
-    if isinstance(loaded, trimesh.PointCloud):
-        raise ValueError(f"{str(p)!r} is a point cloud ({len(loaded.vertices)} points, no faces); "
-                         "a mesh with triangles is needed")
-    if not isinstance(loaded, trimesh.Trimesh):
-        raise ValueError(f"{str(p)!r} is a {type(loaded).__name__}, not a triangle mesh")
-    vertices = np.asarray(loaded.vertices, np.float64)
-    faces = np.asarray(loaded.faces, np.int64).reshape(-1, 3)
-    if faces.shape[0] == 0:
-        raise ValueError(f"{str(p)!r} has {vertices.shape[0]} vertices but no faces; a mesh with triangles is needed")
-    return vertices, faces
 
 
 def _extent(vertices: np.ndarray) -> float:
