@@ -207,8 +207,7 @@ def test_a_face_kits_separate_eyes_teeth_and_lashes_are_left_out_and_named(templ
     assert canons[0].ignored == (642, 642, 386, 8, 8) and canons[1].ignored == ()
     assert canons[0].reference == canons[1].reference == "mediapipe"
     assert np.linalg.norm(placed[0] - placed[1], axis=1).max() < 1e-3
-    assert "left out 5 separate parts inside the face (eyes, teeth and the like: 642, 642, 386, 8, 8 vertices)" in \
-        canons[0].describe()
+    assert "left out 5 separate parts lying inside the rest (642, 642, 386, 8, 8 vertices)" in canons[0].describe()
     head = fs.procedural_head()
     assert cn._inner_parts(head.vertices, head.faces)[1] == ()
 

@@ -106,8 +106,8 @@ class Registration:
         line = (f"registered ({self.method}{via}, units {self.units}): {self.fitted} of {self.total} rig vertices on "
                 f"the motion's mesh, mean distance {self.residual * 1e3:.2f} mm")
         if self.ignored:
-            line += (f"; its separate parts inside the face (eyes, teeth and the like: "
-                     f"{', '.join(str(n) for n in self.ignored)} vertices) left out of the alignment")
+            line += (f"; left out of the alignment: {len(self.ignored)} separate parts lying inside the rest "
+                     f"({', '.join(str(n) for n in self.ignored)} vertices)")
         return line
 
 

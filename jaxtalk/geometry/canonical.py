@@ -200,8 +200,9 @@ class Canonicalization:
                 f"mean distance {self.residual * 1000:.1f} mm)")
         if self.ignored:
             counts = ", ".join(str(n) for n in self.ignored)
-            line += (f"; left out {len(self.ignored)} separate part{'s' if len(self.ignored) > 1 else ''} inside the face "
-                     f"(eyes, teeth and the like: {counts} vertices)")
+            # Named by size, not by kind: eyeballs and teeth look like this, and so do a scan's loose bits.
+            line += (f"; left out {len(self.ignored)} separate part{'s' if len(self.ignored) > 1 else ''} lying inside "
+                     f"the rest ({counts} vertices)")
         return line
 
     def to_template(self, points: Float[np.ndarray, "*n 3"]) -> Float[np.ndarray, "*n 3"]:
