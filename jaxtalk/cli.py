@@ -341,7 +341,7 @@ def sample(
     mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).")] = None,
     emotion: Annotated[str | None, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary (default neutral).")] = None,
     intensity: Annotated[float | None, typer.Option(help="FreeTalk: emotion intensity, continuous in [1, levels] (default 1).")] = None,
-    units: Annotated[str | None, typer.Option(help="FreeTalk: the mesh's units, m|cm|mm|um (default: from its size).")] = None,
+    units: Annotated[str | None, typer.Option(help="FreeTalk: the mesh's units, m|dm|cm|mm|um (default: from its size).")] = None,
     landmarks: Annotated[Path | None, typer.Option(help="FreeTalk: the mesh's 68 landmarks, (68, 3) positions or (68,) "
                                                         "vertex indices (.npy/.txt), to guide the alignment.")] = None,
 ) -> None:
@@ -600,8 +600,11 @@ def retarget(
     mesh: Annotated[Path | None, typer.Option(help="The mesh file (OBJ, PLY, GLB/GLTF) a vertex sequence was animated "
                                                    "on, when it is neither a built-in face nor the rig's mesh.")] = None,
     flame: Annotated[Path | None, typer.Option(help="FLAME 2020 model file the parameters are posed on.")] = None,
-    units: Annotated[str | None, typer.Option(help="Units of the rig or mesh file (m, cm, mm, um; default: from its "
-                                                   "size).")] = None,
+    units: Annotated[str | None, typer.Option(help="Units of the rig or mesh file (m, dm, cm, mm, um; default: from "
+                                                   "its size).")] = None,
+    landmarks: Annotated[Path | None, typer.Option(help="The rig file's 68 landmarks, (68, 3) positions in its units or "
+                                                        "(68,) vertex indices (.npy/.txt), to register it by (as "
+                                                        "sample's --landmarks align a mesh).")] = None,
     fps: Annotated[float, typer.Option(help="Frame rate of a vertex sequence (an .npz states its own).")] = 25.0,
     smoothness: Annotated[float, typer.Option(help="Temporal smoothness of the weights (0: frames independent).")] = 0.05,
     l1: Annotated[float, typer.Option(help="L1 penalty (sparser weights).")] = 0.0,
@@ -613,7 +616,7 @@ def retarget(
     from jaxtalk.commands.retargeting import RetargetOptions, retarget_file
 
     retarget_file(RetargetOptions(motion=motion, rig=rig, out=out, audio=audio, mesh=mesh, flame=flame, units=units,
-                                  fps=fps, smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry, overwrite=overwrite),
+                                  landmarks=landmarks, fps=fps, smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry, overwrite=overwrite),
                   echo=typer.echo)
 
 

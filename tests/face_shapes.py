@@ -67,6 +67,15 @@ def template() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(face.template, np.float64), np.asarray(face.faces, np.int64), landmarks[list(SEMANTIC.values())]
 
 
+def template_landmarks() -> np.ndarray:
+    """The template's 68 landmarks (metres), which let :func:`~jaxtalk.geometry.canonical.canonicalize`
+    fit real faces through MediaPipe's face."""
+    from jaxtalk.face import builtin_face
+    from jaxtalk.models.freetalk.data import neutral_landmarks
+
+    return neutral_landmarks(builtin_face(0, resolution="low")).astype(np.float64)
+
+
 def mediapipe_face() -> Shape:
     """MediaPipe's canonical face as its OBJ file has it (``jaxtalk/geometry/data``), in metres."""
     from jaxtalk.geometry.canonical import MEDIAPIPE_FACE_FILE, load_mesh
@@ -79,6 +88,23 @@ def mediapipe_face() -> Shape:
 def procedural_head(identity: int = 2) -> Shape:
     """A built-in face (``default`` resolution) with the back of the skull, a neck and two ears, each
     its own component (metres)."""
+    return _head(identity, f"built-in head (identity {identity}): face, skull, neck, ears")
+
+
+def captured_head(identity: int = 2) -> Shape:
+    """A whole head in the way of a captured ARKit head (three.js's ``facecap.glb``): a deep skull and a
+    short neck tilted forward, so that the head's longest axis runs from the chin to the back of the skull
+    (its principal axes point nowhere in particular), with eyeballs, teeth and lashes of their own
+    (:func:`with_inner_parts`, eyes and mouth open)."""
+    head = _head(identity, f"captured-style head (identity {identity}): deep skull, short tilted neck, ears",
+                 skull=((0.08, 0.11, 0.12), (0.0, 0.03, -0.04)), neck=(0.05, 0.4))
+    return with_inner_parts(head, holes=True, lashes=True)
+
+
+def _head(identity: int, name: str, skull: tuple = ((0.08, 0.115, 0.1), (0.0, 0.015, -0.005)),
+          neck: tuple = (0.128, 0.0)) -> Shape:
+    """A built-in face with the back of a skull (half-axes, centre), a neck (height, forward tilt in
+    radians, open at both ends) and two ears, each its own component (metres)."""
     import trimesh
 
     from jaxtalk.face import builtin_face
@@ -86,15 +112,16 @@ def procedural_head(identity: int = 2) -> Shape:
 
     face = builtin_face(identity, resolution="default")
     parts = [trimesh.Trimesh(np.asarray(face.template, np.float64), np.asarray(face.faces), process=False)]
-    skull = trimesh.creation.icosphere(subdivisions=4)
-    skull.apply_scale([0.08, 0.115, 0.1])
-    skull.apply_translation([0.0, 0.015, -0.005])
-    skull.update_faces(skull.triangles_center[:, 2] < 0.015)  # behind the face
-    neck = trimesh.creation.cylinder(radius=0.052, height=0.128, sections=48)  # open ends below
-    neck.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-    neck.apply_translation([0.0, -0.15, -0.03])
-    neck.update_faces(np.abs(neck.face_normals[:, 1]) < 0.5)
-    parts += [skull, neck]
+    back = trimesh.creation.icosphere(subdivisions=4)
+    back.apply_scale(skull[0])
+    back.apply_translation(skull[1])
+    back.update_faces(back.triangles_center[:, 2] < 0.015)  # behind the face
+    height, tilt = neck
+    column = trimesh.creation.cylinder(radius=0.052, height=height, sections=48)  # open ends below
+    column.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2 + tilt, [1, 0, 0]))
+    column.apply_translation([0.0, -0.086 - height / 2, -0.03])
+    column.update_faces(np.abs(column.face_normals @ [0.0, np.cos(tilt), np.sin(tilt)]) < 0.5)
+    parts += [back, column]
     for side in (-1.0, 1.0):
         ear = trimesh.creation.icosphere(subdivisions=3)
         ear.apply_scale([0.012, 0.03, 0.018])
@@ -102,8 +129,7 @@ def procedural_head(identity: int = 2) -> Shape:
         parts.append(ear)
     head = trimesh.util.concatenate(parts)
     points = neutral_landmarks(face).astype(np.float64)[list(SEMANTIC.values())]
-    return Shape(f"built-in head (identity {identity}): face, skull, neck, ears", np.asarray(head.vertices, np.float64),
-                 np.asarray(head.faces, np.int64), points)
+    return Shape(name, np.asarray(head.vertices, np.float64), np.asarray(head.faces, np.int64), points)
 
 
 def cut_mask(shape: Shape) -> Shape:
@@ -224,3 +250,57 @@ def write_face_kit_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> n
             expected += [[polygon[0], polygon[i], polygon[i + 1]] for i in range(1, len(polygon) - 1)]
     path.write_text("\n".join(lines) + "\n")
     return np.array(expected, np.int64)
+
+
+def with_inner_parts(shape: Shape, *, holes: bool = False, lashes: bool = False, parts: bool = True) -> Shape:
+    """``shape`` as a face kit has it: two eyeballs (spheres of 12 mm radius whose fronts show 1 mm in front
+    of the face's surface at the eyes, as an open eye's do), a row of teeth (a curved box 10 mm high and
+    5 mm thick, 3 mm behind the lips) and, with ``lashes``, a thin sheet of lashes over each eye, each
+    its own component after the face's vertices (which keep their indices). With ``holes`` the eyes
+    and the mouth are cut open first (the eyeballs and teeth show through); ``parts=False`` gives that
+    face alone. Built in the template's frame (where the semantic points put the face) and carried back
+    into the shape's own."""
+    import trimesh
+
+    from jaxtalk.geometry.canonical import umeyama
+
+    scale, rotation, shift = umeyama(shape.points, template()[2], scale=True)
+    face = scale * shape.vertices @ rotation.T + shift  # template frame, metres
+    _, mouth_r, mouth_l, eye_or, eye_ir, eye_il, eye_ol = scale * shape.points @ rotation.T + shift
+    eyes = [((outer + inner) / 2, float(np.linalg.norm(outer - inner))) for outer, inner in
+            ((eye_or, eye_ir), (eye_il, eye_ol))]
+    middle, width = (mouth_r + mouth_l) / 2, float(np.linalg.norm(mouth_l - mouth_r))
+
+    def front_at(x: float, y: float) -> float:
+        """The face's depth (z) at (x, y): its front-most vertex within 4 mm across."""
+        return float(face[np.linalg.norm(face[:, :2] - [x, y], axis=1) < 0.004, 2].max())
+
+    kept = np.ones(len(shape.faces), bool)
+    if holes:  # an ellipse over each eye, a slit between the lips
+        centre = face[shape.faces].mean(axis=1)
+        for c, w in eyes:
+            kept &= ((centre[:, 0] - c[0]) / (0.4 * w)) ** 2 + ((centre[:, 1] - c[1]) / 0.005) ** 2 > 1
+        kept &= ~((np.abs(centre[:, 1] - middle[1]) < 0.002) & (np.abs(centre[:, 0] - middle[0]) < 0.45 * width))
+    added = []
+    for c, w in eyes:
+        eye = trimesh.creation.icosphere(subdivisions=3, radius=0.012)
+        eye.apply_translation([c[0], c[1], front_at(*c[:2]) + 0.001 - 0.012])
+        added.append(eye)
+        if lashes:
+            sheet = trimesh.creation.box([w, 0.0005, 0.008])
+            sheet.apply_translation([c[0], c[1] + 0.005, front_at(*c[:2]) + 0.002])
+            added.append(sheet)
+    # The teeth: a box bent along an arc through the mouth corners, its front 3 mm behind the lips.
+    radius, front = 0.6 * width, front_at(*middle[:2]) - 0.003
+    teeth = trimesh.creation.box([1.0, 0.010, 0.005]).subdivide().subdivide().subdivide()
+    u, y, d = teeth.vertices.T  # u in [-0.5, 0.5] along the row, d across its thickness
+    angle = u * 2.0 * np.arcsin(min(1.0, 0.55 * width / radius))
+    bend = radius - 0.0025 - d
+    teeth.vertices = np.c_[middle[0] + bend * np.sin(angle), middle[1] + y, front - radius + bend * np.cos(angle)]
+    added.append(teeth)
+    extra = trimesh.util.concatenate(added) if parts else trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
+    placed = ((np.asarray(extra.vertices) - shift) @ rotation) / scale  # back into the shape's frame
+    vertices = np.concatenate([shape.vertices, placed])
+    faces = np.concatenate([shape.faces[kept], np.asarray(extra.faces, np.int64).reshape(-1, 3) + len(shape.vertices)])
+    what = ("open eyes and mouth, " if holes else "") + ("eyeballs, teeth" + (", lashes" if lashes else "") if parts else "")
+    return Shape(f"{shape.name} ({what.rstrip(', ') or 'as it is'})", vertices, faces, shape.points)

@@ -108,7 +108,7 @@ def test_sample_onto_a_mesh_user_errors_are_one_line(ats_run, stm_run, files, tm
     _user_error([*base, files["ply"], "--intensity", "4"], "intensity must lie in [1, 3]")
     _user_error([*base, files["cloud"]], "is a point cloud")
     _user_error([*base, tmp_path / "missing.obj"], "mesh file not found")
-    _user_error([*base, files["ply"], "--units", "inch"], "--units must be one of m, cm, mm, um, got 'inch'")
+    _user_error([*base, files["ply"], "--units", "inch"], "--units must be one of m, dm, cm, mm, um, got 'inch'")
     _user_error([*base, files["ply"], "--units", "m"], "check the units")
     _user_error([*base, files["ply"], "--out", tmp_path / "x.npz"], "must end in .npy")
     _user_error([*base, files["ply"], "--cfg-scale", "2"], "--cfg-scale: not an option of a FreeTalk run")

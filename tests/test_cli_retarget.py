@@ -64,6 +64,24 @@ def test_a_rig_file_and_a_vertex_sequence(talk, tmp_path):
     assert GlbAnimation(tmp_path / "out.glb").num_frames == 40
 
 
+def test_a_rig_file_registered_by_its_landmarks(talk, tmp_path):
+    """--landmarks: the rig file's 68 landmarks (positions in its units, as sample's --landmarks take them)
+    register it; the built-in rig needs none."""
+    from jaxtalk.face import builtin_face
+    from jaxtalk.models.freetalk.data import neutral_landmarks
+
+    rig = arkit_rig("low")  # the built-in face at low resolution; the parameters are posed on the default one
+    export_rig_animation(rig, np.zeros((1, 52)), tmp_path / "rig.glb")
+    np.save(tmp_path / "rig_landmarks.npy", neutral_landmarks(builtin_face(0, resolution="low")).astype(np.float64))
+    printed = cli_ok(["retarget", talk / "talk.npz", "--rig", tmp_path / "rig.glb", "--landmarks",
+                      tmp_path / "rig_landmarks.npy", "--out", tmp_path / "out.glb"])
+    assert "registered (landmarks, units m)" in printed
+    data = json.loads((tmp_path / "out.json").read_text())
+    assert data["registration"]["method"] == "landmarks"
+    cli_error(["retarget", talk / "talk.npz", "--landmarks", tmp_path / "rig_landmarks.npy", "--out",
+               tmp_path / "b.glb"], "--landmarks", "built-in rig")
+
+
 def test_bad_inputs_are_refused_in_one_line(talk, tmp_path):
     np.save(tmp_path / "bad.npy", np.zeros((4, 10, 3)))
     cli_error(["retarget", tmp_path / "bad.npy", "--out", tmp_path / "a.glb"], "10 vertices", "--mesh")

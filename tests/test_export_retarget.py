@@ -303,6 +303,51 @@ def test_a_rig_on_another_mesh_is_registered_and_retargeted(tmp_path):
         assert np.abs(result.weights[:, k] - same.weights[:, k]).max() < 0.1, name
 
 
+def mediapipe_rig() -> Rig:
+    """MediaPipe's canonical face (a real face, centimetres in its file, metres here) as a 52-shape ARKit rig:
+    each of its vertices takes the built-in rig's shapes at the built-in face's closest vertex, once the two
+    faces are put together by their semantic points."""
+    import face_shapes as fs
+    from scipy.spatial import cKDTree
+
+    from jaxtalk.geometry.canonical import umeyama
+
+    shape, rig = fs.mediapipe_face(), arkit_rig("default")
+    s, rot, t = umeyama(shape.points, fs.template()[2], scale=True)
+    near = cKDTree(rig.neutral).query(s * shape.vertices @ rot.T + t)[1]
+    return Rig(names=rig.names, neutral=shape.vertices, deltas=rig.deltas[:, near] @ rot / s, faces=shape.faces,
+               name="mediapipe")
+
+
+def test_a_real_faces_rig_registers_as_freetalk_aligns_a_mesh_whatever_its_scale_and_pose():
+    """A rig on a real face (MediaPipe's) is registered through MediaPipe's canonical face, as FreeTalk aligns a
+    mesh (the template's landmarks carry it over). Stored in metres, decimetres (as a captured head's glTF file
+    may be), centimetres and millimetres (0.1x, 1x, 10x and 100x of decimetres) and turned: each unit is found,
+    and the weights are the same within 1e-3. A well-conditioned solve (more L2), so that the weights differ
+    only where the registrations do."""
+    rig, face = mediapipe_rig(), low_face()
+    frames = 30
+    rng = np.random.default_rng(0)
+    params = np.zeros((frames, 56), np.float32)
+    params[:, :50] = rng.normal(0.0, 0.5, (frames, 50)) * (rng.random((frames, 50)) < 0.2)
+    params[:, 50] = np.linspace(0.0, 0.3, frames)
+    penalties = Penalties(smoothness=0.05, l2=1e-2)
+    weights = []
+    for k, (factor, unit) in enumerate([(1.0, "dm"), (0.1, "m"), (10.0, "cm"), (100.0, "mm")]):
+        turn = np.eye(3) if k == 0 else Rotation.random(random_state=k).as_matrix()
+        scale = 10.0 * factor  # file units per metre
+        moved = Rig(names=rig.names, neutral=scale * (rig.neutral @ turn.T + [0.3, 1.5, -0.2]),
+                    deltas=scale * rig.deltas @ turn.T, faces=rig.faces, name=unit)
+        retargeter = Retargeter.for_face(moved, face, penalties)
+        registration = retargeter.registration
+        assert (registration.units, registration.method, registration.reference) == (unit, "icp", "mediapipe")
+        weights.append(retargeter(params).weights)
+    difference = max(np.abs(w - weights[0]).max() for w in weights[1:])
+    print(f"weights at 0.1x-100x and turned: at most {difference:.1e} apart")
+    assert difference < 1e-3
+    assert np.corrcoef(weights[0][:, ARKIT_NAMES.index("jawOpen")], params[:, 50])[0, 1] > 0.99
+
+
 def test_a_mesh_that_is_not_a_face_is_refused():
     import trimesh
 

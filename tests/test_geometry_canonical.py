@@ -6,10 +6,14 @@ holes), in millimetres, centimetres and metres and in a random pose, must align:
 scale near 1, and its nose tip, mouth corners and eye corners where the template has them. Shapes that
 are no face (a sphere, an ellipsoid, a box, a cylinder, a smooth mask without features, a torus) must
 be refused with the error that says so. menpo3d's head scan and FLAME's template run the same checks
-when they are on disk (``experiments/fetch_real_scan.sh``; FLAME's file is the user's own).
+when they are on disk (``experiments/fetch_real_scan.sh``; FLAME's file is the user's own). A face kit's
+separate eyeballs, teeth and lashes are left out and named; a head whose principal axes say nothing
+about its pose (a captured head's) aligns in any rotation; a head in decimetres is found to be one.
 """
 
 from __future__ import annotations
+
+import functools
 
 import face_shapes as fs
 import numpy as np
@@ -20,6 +24,7 @@ from jaxtalk.geometry.canonical import (
     MEDIAPIPE_IBUG,
     UNITS,
     canonicalize,
+    detect_units,
     reference_face,
 )
 
@@ -184,3 +189,61 @@ def test_a_real_head_scan_and_flames_template_align_when_present(loader, unit, t
     canon, error_mm = _align(shape, unit, 40 + ["mm", "cm", "m"].index(unit), template)
     assert canon.units == unit and canon.reference == "mediapipe" and 0.85 < canon.fitted_scale < 1.05
     assert error_mm.max() < 13.0 and error_mm.mean() < 7.0, dict(zip(fs.SEMANTIC, error_mm.round(1)))
+
+
+def test_a_face_kits_separate_eyes_teeth_and_lashes_are_left_out_and_named(template):
+    """MediaPipe's face with its eyes and mouth cut open and eyeballs, teeth and lashes of their own (a face
+    kit): the parts are named by their vertex counts and left out, so the face lands where the same face
+    without them does (its semantic points within 1 mm). A head's skull, neck and ears, which lie outside
+    the rest of it, stay."""
+    tv, tf, landmarks, _ = template
+    kit = fs.with_inner_parts(fs.mediapipe_face(), holes=True, lashes=True)
+    bare = fs.with_inner_parts(fs.mediapipe_face(), holes=True, parts=False)
+    placed, canons = [], []
+    for shape in (kit, bare):
+        vertices, points = fs.posed(60, shape.vertices, shape.points)
+        canons.append(canonicalize(vertices * 1000, shape.faces, tv, tf, template_landmarks=landmarks))
+        placed.append(canons[-1].to_template(points * 1000))
+    assert canons[0].ignored == (642, 642, 386, 8, 8) and canons[1].ignored == ()
+    assert canons[0].reference == canons[1].reference == "mediapipe"
+    assert np.linalg.norm(placed[0] - placed[1], axis=1).max() < 1e-3
+    assert "left out 5 separate parts lying inside the rest (642, 642, 386, 8, 8 vertices)" in canons[0].describe()
+    head = fs.procedural_head()
+    assert cn._inner_parts(head.vertices, head.faces)[1] == ()
+
+
+@functools.lru_cache(maxsize=1)
+def _captured_head_upright_error_mm() -> float:
+    tv, tf, points = fs.template()
+    head = fs.captured_head()
+    canon = canonicalize(head.vertices * 1000, head.faces, tv, tf, template_landmarks=fs.template_landmarks())
+    return float(np.linalg.norm(canon.to_template(head.points * 1000) - points, axis=1).max() * 1000)
+
+
+@pytest.mark.parametrize("first", [0, 5, 10, 15], ids=lambda first: f"poses {first}-{first + 4}")
+def test_a_head_whose_principal_axes_say_nothing_aligns_in_any_rotation(first, template):
+    """A captured head (deep skull, short tilted neck: its longest axis runs from the chin to the back of the
+    skull) with eyeballs, teeth and lashes, in 20 random rotations (scipy's Rotation.random, seeded) and
+    places: none is refused, and its nose tip, mouth corners and eye corners land within 1.5x the error
+    of the head as stored. Before the search started from an even grid of rotations too, such a head
+    turned 30 or 60 degrees about x or y was refused (only the file's own axes found its face)."""
+    tv, tf, landmarks, points = template
+    head = fs.captured_head()
+    upright = _captured_head_upright_error_mm()
+    for seed in range(first, first + 5):
+        vertices, semantic = fs.posed(seed, head.vertices, head.points)
+        canon = canonicalize(vertices * 1000, head.faces, tv, tf, template_landmarks=landmarks)
+        error = np.linalg.norm(canon.to_template(semantic * 1000) - points, axis=1).max() * 1000
+        assert error <= 1.5 * upright, (seed, error, upright)
+        assert canon.ignored == (642, 642, 386, 8, 8)
+
+
+def test_a_head_in_decimetres_is_found_to_be_in_decimetres():
+    """A glTF file states metres, yet a captured head may come ten times too large (decimetres): its size says
+    so. Every unit is told apart by size alone, and a size that is no face's in any unit names them all."""
+    head = fs.procedural_head().vertices
+    for unit, metres in UNITS.items():
+        assert detect_units(head / metres) == unit
+    assert detect_units(head * 10) == "dm"
+    with pytest.raises(ValueError, match="--units m, dm, cm, mm, um"):
+        detect_units(head * 2)

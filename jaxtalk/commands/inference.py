@@ -445,7 +445,7 @@ class MeshOptions:
         mesh: the mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).
         emotion: a name of the ATS run's emotion vocabulary.
         intensity: continuous, in ``[1, num_intensities]``.
-        units: the mesh's unit (``m``, ``cm``, ``mm``, ``um``); None: detected from its size.
+        units: the mesh's unit (``m``, ``dm``, ``cm``, ``mm``, ``um``); None: detected from its size.
         landmarks: optional landmark file (see :func:`jaxtalk.models.freetalk.animate.read_landmarks`).
     """
 
@@ -496,11 +496,8 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     landmarks = None if mesh_opts.landmarks is None else read_landmarks(mesh_opts.landmarks, vertices)
     t0 = time.perf_counter()
     mesh = prepare_user_mesh(stm, (vertices, faces), units=mesh_opts.units, landmarks=landmarks)
-    c = mesh.canonical
-    via = " via MediaPipe's canonical face" if c.reference == "mediapipe" else ""
-    echo(f"mesh {mesh_opts.mesh}: {vertices.shape[0]} vertices, {faces.shape[0]} faces, units {c.units}, aligned to "
-         f"the template by {c.method}{via} (scale {c.fitted_scale:.3f}, mean distance {c.residual * 1000:.1f} mm) in "
-         f"{time.perf_counter() - t0:.1f} s")
+    echo(f"mesh {mesh_opts.mesh}: {vertices.shape[0]} vertices, {faces.shape[0]} faces, {mesh.canonical.describe()} "
+         f"in {time.perf_counter() - t0:.1f} s")
     verts = animate(ats, stm, audio, mesh_opts.emotion, mesh_opts.intensity, mesh, key=jax.random.key(opts.seed),
                     sample_steps=opts.sample_steps)
     atomic_save_npy(out, verts)

@@ -40,6 +40,8 @@ class RetargetOptions:
         mesh: the mesh file a vertex sequence was animated on.
         flame: a FLAME 2020 model file that the parameters are posed on.
         units: the unit of a rig or mesh file (None: detected).
+        landmarks: the rig file's 68 landmarks (a file :func:`~jaxtalk.models.freetalk.animate.read_landmarks`
+            reads: ``(68, 3)`` positions in its units or ``(68,)`` vertex indices), to register it by.
         fps: frame rate of a vertex sequence (an npz states its own).
         smoothness, l1, l2, symmetry: the solver's penalties.
         overwrite: let the names the command picks replace existing files.
@@ -52,6 +54,7 @@ class RetargetOptions:
     mesh: Path | None = None
     flame: Path | None = None
     units: str | None = None
+    landmarks: Path | None = None
     fps: float = MOTION_FPS
     smoothness: float = 0.05
     l1: float = 0.0
@@ -110,7 +113,8 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     # command derives from it, which replace no existing file without --overwrite.
     claim_outputs([Output(out, named=opts.out is not None, suffixes=(".glb",)), Output(csv), Output(json_path),
                    Output(audio_path_for(out))],
-                  inputs=[opts.motion, rig_path, opts.audio, opts.mesh, opts.flame], overwrite=opts.overwrite)
+                  inputs=[opts.motion, rig_path, opts.audio, opts.mesh, opts.flame, opts.landmarks],
+                  overwrite=opts.overwrite)
     penalties = Penalties(smoothness=opts.smoothness, l1=opts.l1, l2=opts.l2, symmetry=opts.symmetry)
     if not (np.isfinite(opts.fps) and opts.fps > 0):
         raise ValueError(f"--fps must be a positive number, got {opts.fps}")
@@ -121,24 +125,31 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     if suffix not in (".npz", ".npy"):
         raise ValueError(f"{str(motion_path)!r}: expected .npz parameters or .npy vertices, got {suffix or 'no suffix'!r}")
     if builtin:
+        if opts.landmarks is not None:
+            raise ValueError("--landmarks are the rig file's 68 landmarks; the built-in rig needs none (pass --rig FILE)")
         rig = arkit_rig()
     else:
         rig = load_rig(rig_path)
         if opts.units is not None:
             rig = dataclasses.replace(rig, units=opts.units)
     echo(rig.describe())
+    landmarks = None
+    if opts.landmarks is not None:
+        from jaxtalk.models.freetalk.animate import read_landmarks  # the reader FreeTalk's sample uses
+
+        landmarks = read_landmarks(opts.landmarks, rig.neutral)
 
     audio = None
     if suffix == ".npz":
         if opts.mesh is not None:
             raise ValueError("--mesh is for a vertex sequence (.npy); parameters are posed on the face model")
         params, audio, fps = read_head_clip(motion_path)
-        retargeter = Retargeter.for_face(rig, face_model(opts.flame), penalties)
+        retargeter = Retargeter.for_face(rig, face_model(opts.flame), penalties, landmarks=landmarks)
         motion = params
     else:
         if opts.flame is not None:
             raise ValueError("--flame is for head parameters (.npz); a vertex sequence carries its own mesh")
-        motion, retargeter = _vertex_motion(motion_path, rig, opts, penalties)
+        motion, retargeter = _vertex_motion(motion_path, rig, opts, penalties, landmarks)
         fps = float(opts.fps)
     if opts.audio is not None:
         from jaxtalk.audio import load_audio
@@ -169,7 +180,9 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
                               "penalties": dataclasses.asdict(penalties), "rms_error_m": result.rms_error,
                               "registration": {"method": retargeter.registration.method,
                                                "residual_m": retargeter.registration.residual,
-                                               "fitted_vertices": retargeter.registration.fitted}})
+                                               "fitted_vertices": retargeter.registration.fitted,
+                                               "reference": retargeter.registration.reference,
+                                               "ignored_part_vertices": list(retargeter.registration.ignored)}})
     written = write_audio_beside(out, audio, AUDIO_SAMPLE_RATE) if audio is not None else None
     lines = [f"written {summary.describe()}", f"written {csv} (Live Link Face CSV, 61 curves)",
              f"written {json_path}",
@@ -179,7 +192,7 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     return RetargetReport(out, csv, json_path, written, lines)
 
 
-def _vertex_motion(path: Path, rig, opts: RetargetOptions, penalties):
+def _vertex_motion(path: Path, rig, opts: RetargetOptions, penalties, landmarks):
     """The vertex sequence and its retargeter: on ``--mesh``, the rig's own mesh, or a built-in face."""
     from jaxtalk.data.formats import load_npy
     from jaxtalk.export import Retargeter
@@ -206,13 +219,15 @@ def _vertex_motion(path: Path, rig, opts: RetargetOptions, penalties):
         if neutral.shape[0] != verts.shape[1]:
             raise ValueError(f"{str(opts.mesh)!r} has {neutral.shape[0]} vertices but {str(path)!r} animates "
                              f"{verts.shape[1]}: not the mesh these vertices belong to")
-        return verts, Retargeter.for_mesh(rig, neutral, faces, units=opts.units, penalties=penalties)
+        return verts, Retargeter.for_mesh(rig, neutral, faces, units=opts.units, penalties=penalties,
+                                          landmarks=landmarks)
     if verts.shape[1] == rig.num_vertices:
-        return verts, Retargeter.for_mesh(rig, rig.neutral, rig.faces, units=rig.units, penalties=penalties)
+        return verts, Retargeter.for_mesh(rig, rig.neutral, rig.faces, units=rig.units, penalties=penalties,
+                                          landmarks=landmarks)
     for resolution in ("low", "default", "high"):
         face = builtin_face(0, resolution=resolution)
         if face.num_vertices == verts.shape[1]:
             return verts, Retargeter.for_mesh(rig, np.asarray(face.template), np.asarray(face.faces), template=face,
-                                              penalties=penalties)
+                                              penalties=penalties, landmarks=landmarks)
     raise ValueError(f"{str(path)!r} animates {verts.shape[1]} vertices: neither the rig's {rig.num_vertices} nor a "
                      "built-in face's; pass --mesh, the mesh file it was animated on")

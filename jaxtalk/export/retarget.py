@@ -2,9 +2,10 @@
 
 Once, on the host (:class:`Retargeter`):
 
-1. the rig's neutral is registered to the template face with FreeTalk's canonicalisation
-   (:func:`jaxtalk.geometry.canonical.canonicalize`: units, similarity transform, a refusal for a mesh that
-   is not a face); a rig on the motion's own mesh needs none;
+1. the rig's neutral is registered to the template face exactly as FreeTalk aligns a mesh it animates
+   (:func:`jaxtalk.geometry.canonical.align_to_face`: units, similarity transform through MediaPipe's
+   canonical face or the template, separate eyes and teeth left out, any pose, or the rig's 68 landmarks
+   when given; a refusal for a mesh that is not a face); a rig on the motion's own mesh needs none;
 2. every rig vertex finds its closest point on the motion's mesh (in the template's frame); vertices
    farther than ``max_distance`` or beyond the mesh's rim (the back of a head, the neck, the inside of the
    mouth of a face mask) are left out of the fit;
@@ -77,6 +78,10 @@ class Registration:
 
     Attributes:
         method: ``"same mesh"`` (the rig is the motion's mesh), ``"icp"`` or ``"landmarks"``.
+        reference: the face fitted to the rig (``"mediapipe"``, ``"template"``, ``"landmarks"``), or
+            ``""`` for the same mesh.
+        ignored: the vertex counts of the rig's separate inner parts (eyes, teeth, a tongue) left out of
+            the alignment (:attr:`jaxtalk.geometry.canonical.Canonicalization.ignored`).
         residual: mean distance (metres, template frame) from the fitted rig vertices to the motion's mesh.
         fitted: rig vertices used in the fit (the rest are beyond the motion's mesh).
         total: the rig's vertices.
@@ -92,10 +97,18 @@ class Registration:
     rotation: np.ndarray
     translation: np.ndarray
     units: str
+    reference: str = ""
+    ignored: tuple[int, ...] = ()
 
     def describe(self) -> str:
-        return (f"registered ({self.method}, units {self.units}): {self.fitted} of {self.total} rig vertices on the "
-                f"motion's mesh, mean distance {self.residual * 1e3:.2f} mm")
+        """One line: how the rig was registered and how many of its vertices the fit uses."""
+        via = " via MediaPipe's canonical face" if self.reference == "mediapipe" else ""
+        line = (f"registered ({self.method}{via}, units {self.units}): {self.fitted} of {self.total} rig vertices on "
+                f"the motion's mesh, mean distance {self.residual * 1e3:.2f} mm")
+        if self.ignored:
+            line += (f"; left out of the alignment: {len(self.ignored)} separate parts lying inside the rest "
+                     f"({', '.join(str(n) for n in self.ignored)} vertices)")
+        return line
 
 
 class RetargetResult(NamedTuple):
@@ -214,20 +227,31 @@ class Retargeter:
     # ---- construction ------------------------------------------------------------------------------
     @classmethod
     def for_face(cls, rig: Rig, face: LinearFaceModel, penalties: Penalties = DEFAULT_PENALTIES, *,
-                 max_distance: float = DEFAULT_MAX_DISTANCE) -> Retargeter:
+                 max_distance: float = DEFAULT_MAX_DISTANCE,
+                 landmarks: Float[np.ndarray, "68 3"] | None = None) -> Retargeter:
         """Retarget 56-d parameters posed on ``face`` (the built-in face or FLAME) onto ``rig``.
 
+        Args:
+            rig: the blendshape rig.
+            face: the face model the parameters are posed on.
+            penalties: the solver's penalties.
+            max_distance: rig vertices farther than this (template metres) from the face are not fitted.
+            landmarks: optional ``(68, 3)`` positions of the 68 standard landmarks on the rig's neutral (its
+                units and frame), which then register it (as FreeTalk's ``--landmarks`` align a mesh).
+
         Raises:
-            ValueError: a rig that does not register to the face (see :func:`canonicalize`).
+            ValueError: a rig that does not register to the face (see
+                :func:`~jaxtalk.geometry.canonical.align_to_face`).
         """
         neutral = np.asarray(face.template, np.float64)
         faces = np.asarray(face.faces, np.int64)
-        return cls._build(rig, neutral, faces, face, face, None, penalties, max_distance)
+        return cls._build(rig, neutral, faces, face, face, None, penalties, max_distance, landmarks=landmarks)
 
     @classmethod
     def for_mesh(cls, rig: Rig, neutral: Float[np.ndarray, "verts 3"], faces: Int[np.ndarray, "tris 3"], *,
                  template: LinearFaceModel | None = None, units: str | None = None,
-                 penalties: Penalties = DEFAULT_PENALTIES, max_distance: float = DEFAULT_MAX_DISTANCE) -> Retargeter:
+                 penalties: Penalties = DEFAULT_PENALTIES, max_distance: float = DEFAULT_MAX_DISTANCE,
+                 landmarks: Float[np.ndarray, "68 3"] | None = None) -> Retargeter:
         """Retarget vertex sequences on the mesh ``(neutral, faces)`` (FreeTalk's output on a user's mesh, or
         any animation of the rig's own mesh) onto ``rig``.
 
@@ -238,11 +262,13 @@ class Retargeter:
             template: the face both meshes are registered to (default: the built-in face).
             units: the mesh's unit (None: detected from its size).
             penalties, max_distance: as for :meth:`for_face`.
+            landmarks: the rig's 68 landmarks, as for :meth:`for_face` (they also align the mesh when it is
+                the rig's own).
 
         Raises:
             ValueError: a mesh or rig that does not register to the face.
         """
-        from jaxtalk.geometry.canonical import canonicalize
+        from jaxtalk.geometry.canonical import align_to_face
 
         if template is None:
             from jaxtalk.face import builtin_face
@@ -253,21 +279,22 @@ class Retargeter:
         if neutral.ndim != 2 or neutral.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
             raise ValueError(f"the motion's mesh must be (V, 3) vertices and (F, 3) faces, got {neutral.shape} and "
                              f"{faces.shape}")
-        t_verts, t_faces = np.asarray(template.template, np.float64), np.asarray(template.faces)
+        t_verts = np.asarray(template.template, np.float64)
         if neutral.shape == t_verts.shape and np.allclose(neutral, t_verts, atol=1e-6):
             to_template = None  # the template itself
         else:
-            to_template = canonicalize(neutral, faces, t_verts, t_faces, units=units or (rig.units if _same(
-                neutral, rig.neutral) else None))
+            own = _same(neutral, rig.neutral)  # the rig's own mesh: its units and landmarks are the mesh's
+            to_template = align_to_face(neutral, faces, template, units=units or (rig.units if own else None),
+                                        landmarks=landmarks if own else None)
         in_template = neutral if to_template is None else to_template.to_template(neutral)
         return cls._build(rig, in_template, faces, template, None, to_template, penalties, max_distance,
-                          original=neutral)
+                          original=neutral, landmarks=landmarks)
 
     @classmethod
     def _build(cls, rig: Rig, neutral: np.ndarray, faces: np.ndarray, template: LinearFaceModel,
                face: LinearFaceModel | None, to_template: Any, penalties: Penalties, max_distance: float,
-               original: np.ndarray | None = None) -> Retargeter:
-        from jaxtalk.geometry.canonical import canonicalize
+               original: np.ndarray | None = None, landmarks: np.ndarray | None = None) -> Retargeter:
+        from jaxtalk.geometry.canonical import align_to_face
 
         if not (np.isfinite(max_distance) and max_distance > 0):
             raise ValueError(f"max_distance must be a positive distance in metres, got {max_distance}")
@@ -285,8 +312,9 @@ class Retargeter:
             fitted = np.arange(n)
             registration = Registration("same mesh", 0.0, n, n, scale, rot, trans, units)
         else:
-            t_verts, t_faces = np.asarray(template.template, np.float64), np.asarray(template.faces)
-            canon = canonicalize(rig.neutral, rig.faces, t_verts, t_faces, units=rig.units)
+            # The alignment FreeTalk gives a mesh it animates (one code path): with the template's landmarks,
+            # a real face is fitted through MediaPipe's canonical face, not the built-in face's features.
+            canon = align_to_face(rig.neutral, rig.faces, template, units=rig.units, landmarks=landmarks)
             rig_t = canon.to_template(rig.neutral)
             corners, bary, distance = _closest_points(neutral, faces, rig_t)
             rim = _boundary_vertices(faces, neutral.shape[0])
@@ -298,7 +326,8 @@ class Retargeter:
                                  "register to it")
             corners, bary = corners[fitted], bary[fitted]
             registration = Registration(canon.method, float(distance[fitted].mean()), int(fitted.size),
-                                        rig.num_vertices, canon.scale, canon.rotation, canon.translation, canon.units)
+                                        rig.num_vertices, canon.scale, canon.rotation, canon.translation, canon.units,
+                                        canon.reference, canon.ignored)
         # The head's rigid part, for Procrustes on vertex sequences: the fitted rig vertices that the rig's
         # shapes move least (a rig's shapes say where its face moves; the forehead and temples do not).
         mobility = np.linalg.norm(rig.deltas[:, fitted], axis=-1).max(axis=0)
@@ -598,7 +627,7 @@ def _closest_points(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
 def retarget(motion: np.ndarray, rig: Rig, *, face: LinearFaceModel | None = None,
              mesh: tuple[np.ndarray, np.ndarray] | None = None, smoothness: float = DEFAULT_PENALTIES.smoothness,
              l1: float = DEFAULT_PENALTIES.l1, l2: float = DEFAULT_PENALTIES.l2,
-             symmetry: float = DEFAULT_PENALTIES.symmetry) -> RetargetResult:
+             symmetry: float = DEFAULT_PENALTIES.symmetry, landmarks: np.ndarray | None = None) -> RetargetResult:
     """Retarget a clip onto ``rig`` in one call (builds a :class:`Retargeter`; keep one to retarget many).
 
     Args:
@@ -608,6 +637,7 @@ def retarget(motion: np.ndarray, rig: Rig, *, face: LinearFaceModel | None = Non
         mesh: ``(neutral, faces)`` the vertices were animated on (default: the rig's own mesh when ``V``
             matches it, else the built-in face of that vertex count).
         smoothness, l1, l2, symmetry: :class:`Penalties`.
+        landmarks: optional ``(68, 3)`` landmarks on the rig's neutral (its units) to register it by.
 
     Raises:
         ValueError: bad shapes or values, a mesh that matches nothing, a rig that does not register.
@@ -617,7 +647,7 @@ def retarget(motion: np.ndarray, rig: Rig, *, face: LinearFaceModel | None = Non
     penalties = Penalties(smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry)
     x = np.asarray(motion)
     if x.ndim == 2 and x.shape[1] == PARAM_DIM:
-        return Retargeter.for_face(rig, face if face is not None else builtin_face(0), penalties)(x)
+        return Retargeter.for_face(rig, face if face is not None else builtin_face(0), penalties, landmarks=landmarks)(x)
     if x.ndim != 3 or x.shape[2] != 3:
         raise ValueError(f"motion must be (frames, {PARAM_DIM}) parameters or (frames, verts, 3) vertices, "
                          f"got shape {x.shape}")
@@ -629,8 +659,8 @@ def retarget(motion: np.ndarray, rig: Rig, *, face: LinearFaceModel | None = Non
                 candidate = builtin_face(0, resolution=resolution)
                 if candidate.num_vertices == x.shape[1]:
                     return Retargeter.for_mesh(rig, np.asarray(candidate.template), np.asarray(candidate.faces),
-                                               template=candidate, penalties=penalties)(x)
+                                               template=candidate, penalties=penalties, landmarks=landmarks)(x)
             else:
                 raise ValueError(f"motion animates {x.shape[1]} vertices, neither the rig's {rig.num_vertices} nor a "
                                  "built-in face's: give the mesh it was animated on")
-    return Retargeter.for_mesh(rig, *mesh, penalties=penalties)(x)
+    return Retargeter.for_mesh(rig, *mesh, penalties=penalties, landmarks=landmarks)(x)

@@ -8,10 +8,13 @@ head comes in millimetres or centimetres, anywhere in space, facing anywhere. Th
   (:mod:`jaxtalk.geometry.mesh_io`; a glTF scene is flattened with its node transforms), with clear errors
   for a missing file, a point cloud or a file with no triangles.
 * :func:`detect_units`: the unit from the largest bounding-box side, which for a face or a head is
-  8-45 cm: one of ``m``, ``cm``, ``mm`` (and ``um``, the Basel Face Model's micrometres) fits, or the
-  size makes no sense for a face and the error says so.
+  8-45 cm: one of ``m``, ``dm`` (a captured head that a glTF file, nominally in metres, stores ten
+  times too large), ``cm``, ``mm`` (and ``um``, the Basel Face Model's micrometres) fits, or the size
+  makes no sense for a face and the error says so.
 * :func:`canonicalize`: a similarity transform (scale, rotation, translation) from the user's frame to
   the template's, landmark-free by default (with 68 user landmarks, Umeyama on the landmarks).
+* :func:`align_to_face`: :func:`canonicalize` onto a face model's neutral with that face's own
+  landmarks, the one way FreeTalk's meshes and the retargeter's rigs are aligned.
 
 The landmark-free alignment fits a *reference face* to the user's surface and carries it over to the
 template through the two faces' landmarks. The built-in template is a procedural face whose
@@ -19,15 +22,26 @@ forehead, nose bridge and chin lie about 2 cm behind a real face's, so a surface
 face lines up skin instead of features (or lays it upside down on the chin). The reference for real
 faces is MediaPipe's canonical face (an average real face, Apache-2.0, ``data/``); the template itself
 is the reference for meshes of its own kind (the built-in faces). Both are tried when the template's
-landmarks are given, and the one that fits the user's surface better is used. For each reference:
+landmarks are given, and the one that fits the user's surface better is used.
+
+Separate surfaces inside the face (eyeballs, teeth, gums, a tongue, lashes, a mouth bag: what a face
+kit or a captured head adds beside its skin) are left out of the fit (:func:`_inner_parts`): a
+connected component (coincident vertices merged) that lies within the convex hull of the rest of the
+mesh is one of them; the reference face has none, and they pull the fit onto the wrong reference.
+:attr:`Canonicalization.ignored` names them by their vertex counts. For each reference:
 
 1. Its inner face (:class:`_Face`: the front of the face inside an ellipse, the rim left out because a
    cropped mask may not reach it), each point weighted by its relief, is placed on the user's surface
    in candidate poses: the rotations that map the principal axes of the two surfaces onto each other
    (24, each also turned about the user's longest axis, along which a head's crown-to-neck runs, since
    a head's width and depth are alike) and the 24 of the file's own axes, at the reference's size,
-   each put at the front of the user's surface as seen from the candidate's forward direction in two
-   ways (:func:`_front_anchors`: the middle of the front, and the nose tip).
+   plus :data:`_GRID_ROTATIONS` rotations spread evenly over all of them (:func:`_rotation_grid`):
+   a head whose longest axis runs diagonally (from the chin to the back of the skull, as a captured
+   head with a short neck has it) has principal axes that point nowhere in particular, and the file's
+   own axes only help a head stored upright, so without the grid such a head turned 30 or 60 degrees
+   about x or y was refused. Each is put at the front of the user's surface as seen from the
+   candidate's forward direction in two ways (:func:`_front_anchors`: the middle of the front, and
+   the nose tip).
 2. The best distinct candidates (where they start) take a few steps of rigid, trimmed, point-to-plane
    ICP; the best of those by how well they fit both ways (:func:`_pose_score`: the reference onto the
    user's surface, and the user's surface over the reference's inner face back onto it) run to
@@ -64,12 +78,15 @@ __all__ = [
     "detect_units",
     "reference_face",
     "canonicalize",
+    "face_reference",
+    "align_to_face",
 ]
 
 # Metres per unit.
-UNITS: dict[str, float] = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
+UNITS: dict[str, float] = {"m": 1.0, "dm": 1e-1, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
 # The largest bounding-box side of a face mask (about 15-20 cm) or a whole head with neck (up to
-# about 35 cm), with margin. The ranges of the units do not overlap, so detection is unambiguous.
+# about 35 cm), with margin. The ranges of the units do not overlap (the range spans a factor of 5.6,
+# neighbouring units a factor of 10), so detection is unambiguous.
 FACE_EXTENT_M = (0.08, 0.45)
 # The reference face for real faces: MediaPipe's canonical face (468 vertices, centimetres, +y up,
 # +z toward the viewer), and the vertex of it at each of these iBUG-68 landmarks: chin 8, brows 17,
@@ -99,10 +116,17 @@ _FRONT_DEPTH_M = 0.05
 # (relative to the reference's) the search starts from.
 _TURNS = tuple(range(-75, 91, 15))
 _SEARCH_SCALES = (0.7, 0.85, 1.0, 1.2, 1.45)
+# Rotations of the even grid every search also starts from (_rotation_grid): any rotation lies within
+# 21 degrees of one of them (12 on average), which a few steps of ICP close.
+_GRID_ROTATIONS = 1000
 # The search fits this many points of the inner face; this many distinct candidates (20 degrees or
 # 1 cm apart) take _FIRST_STEPS steps of ICP, and the best _REFINED of them run to convergence.
 _PROBE_POINTS = 120
 _TRIED = 40
+# The grid's candidates are ranked apart (they are many and most lie far off: ranked together with the
+# principal-axes ones they crowd out the right start of a head whose axes say where its face is), and
+# this many distinct ones of them take the first steps of ICP too.
+_GRID_TRIED = 40
 _FIRST_STEPS = 6
 _REFINED = 6
 # ICP leaves out pairs farther apart than _TRIM x the median distance (and than the floor, metres).
@@ -121,6 +145,13 @@ _COARSE_STRIDE = 4
 _FIELD_VOXEL_M = 0.003
 _FIELD_MAX_VOXELS = 160
 _FIELD_CAP_M = 0.025
+# A connected component with at least this fraction of its area inside the convex hull of the rest of
+# the mesh (within _HULL_TOLERANCE_M) is an inner part (eyeballs, teeth, tongue), left out of the fit;
+# only the _MAX_PARTS largest components besides the largest are considered (scan debris is too small
+# to matter either way).
+_INNER_FRACTION = 0.9
+_HULL_TOLERANCE_M = 0.001
+_MAX_PARTS = 32
 # Samples of each surface (area-weighted).
 _FACE_POINTS = 4000
 _USER_POINTS = 20000
@@ -142,6 +173,8 @@ class Canonicalization:
         method: ``"icp"`` (landmark-free) or ``"landmarks"``.
         reference: the face fitted to the user's surface: ``"mediapipe"`` (MediaPipe's canonical face,
             carried over to the template by the landmarks of both), ``"template"`` or ``"landmarks"``.
+        ignored: the vertex counts of the separate parts inside the face (eyeballs, teeth, a tongue)
+            left out of the landmark-free fit, largest first; empty when there were none.
     """
 
     units: str
@@ -151,11 +184,25 @@ class Canonicalization:
     residual: float
     method: str
     reference: str = "template"
+    ignored: tuple[int, ...] = ()
 
     @property
     def fitted_scale(self) -> float:
         """The similarity scale beyond the unit conversion (1 = the template's size)."""
         return self.scale / UNITS[self.units]
+
+    def describe(self) -> str:
+        """One line for a person: the units, how and through which face it was aligned, the scale, the
+        mean distance and the separate parts left out."""
+        via = " via MediaPipe's canonical face" if self.reference == "mediapipe" else ""
+        line = (f"units {self.units}, aligned to the template by {self.method}{via} (scale {self.fitted_scale:.3f}, "
+                f"mean distance {self.residual * 1000:.1f} mm)")
+        if self.ignored:
+            counts = ", ".join(str(n) for n in self.ignored)
+            # Named by size, not by kind: eyeballs and teeth look like this, and so do a scan's loose bits.
+            line += (f"; left out {len(self.ignored)} separate part{'s' if len(self.ignored) > 1 else ''} lying inside "
+                     f"the rest ({counts} vertices)")
+        return line
 
     def to_template(self, points: Float[np.ndarray, "*n 3"]) -> Float[np.ndarray, "*n 3"]:
         """User positions -> template frame (metres)."""
@@ -181,7 +228,7 @@ def detect_units(vertices: Float[np.ndarray, "verts 3"]) -> str:
         vertices: ``(V, 3)`` positions.
 
     Returns:
-        ``"m"``, ``"cm"``, ``"mm"`` or ``"um"``: the unit in which the largest side lies in
+        ``"m"``, ``"dm"``, ``"cm"``, ``"mm"`` or ``"um"``: the unit in which the largest side lies in
         :data:`FACE_EXTENT_M`.
 
     Raises:
@@ -196,7 +243,7 @@ def detect_units(vertices: Float[np.ndarray, "verts 3"]) -> str:
     raise ValueError(
         f"the mesh's largest side is {extent:.4g} units, which is not the size of a face or a head "
         f"({lo * 100:.0f}-{hi * 100:.0f} cm) in any unit ({sizes}); give its units "
-        "(--units m, cm, mm or um) if it really is a face"
+        f"(--units {', '.join(UNITS)}) if it really is a face"
     )
 
 
@@ -225,6 +272,57 @@ def _surface_samples(vertices: np.ndarray, faces: np.ndarray, count: int, seed: 
     w = rng.dirichlet(np.ones(3), size=count)
     normals = cross[pick] / np.maximum(2.0 * area[pick], np.finfo(float).tiny)[:, None]
     return np.einsum("nk,nkd->nd", w, tri[pick]), normals
+
+
+def _inner_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, tuple[int, ...]]:
+    """``(kept, ignored)``: which triangles the fit uses, and the vertex counts of the separate parts
+    inside the face that it leaves out (largest first).
+
+    A face kit or a captured head brings eyeballs, teeth, gums, a tongue or lashes as surfaces of their
+    own beside the skin. The reference faces have none of them, and where they show (an eyeball in an
+    open eye, teeth between parted lips) they pull the fit, or make the wrong reference fit better. Such
+    a part is a connected component (coincident vertices merged: :func:`face_components`) other than
+    the largest, with at least :data:`_INNER_FRACTION` of its area inside the convex hull of the rest of
+    the mesh. What lies outside the rest (a skull, a neck, ears, a face beside the back of its head)
+    stays, and a mesh of one piece is untouched.
+    """
+    from scipy.spatial import ConvexHull
+
+    from jaxtalk.geometry.mesh_checks import face_components
+
+    labels = face_components(vertices, faces)
+    count = int(labels.max()) + 1 if labels.size else 0
+    kept = np.ones(len(faces), bool)
+    if count < 2:
+        return kept, ()
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    order = np.argsort(-np.bincount(labels, area, minlength=count), kind="stable")
+    candidates = order[1:1 + _MAX_PARTS]
+
+    def hull_points(part: int) -> np.ndarray:
+        points = vertices[np.unique(faces[labels == part])]
+        try:
+            return points[ConvexHull(points).vertices]
+        except Exception:  # scipy's QhullError: a flat or tiny part is its own hull
+            return points
+
+    outline = {int(part): hull_points(int(part)) for part in (order[0], *candidates)}
+    rest_of = vertices[np.unique(faces[~np.isin(labels, list(outline))])]  # the parts too small to consider
+    ignored = []
+    for part in candidates:
+        others = np.concatenate([rest_of] + [pts for other, pts in outline.items() if other != part])
+        try:
+            hull = ConvexHull(others)
+        except Exception:  # the rest is flat: nothing lies inside it
+            continue
+        mine = labels == part
+        centres = tri[mine].mean(axis=1)
+        inside = np.all(centres @ hull.equations[:, :3].T + hull.equations[:, 3] <= _HULL_TOLERANCE_M, axis=1)
+        if area[mine] @ inside >= _INNER_FRACTION * area[mine].sum():
+            kept &= ~mine
+            ignored.append(int(np.unique(faces[mine]).size))
+    return kept, tuple(sorted(ignored, reverse=True))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -295,6 +393,22 @@ def _axis_rotations() -> np.ndarray:
     return np.stack(out)
 
 
+@functools.lru_cache(maxsize=2)
+def _rotation_grid(count: int) -> np.ndarray:
+    """``(count, 3, 3)`` rotations spread evenly over all rotations (a super-Fibonacci spiral of unit
+    quaternions, Alexa 2022): deterministic, and every rotation lies near one of them (see
+    :data:`_GRID_ROTATIONS`)."""
+    from scipy.spatial.transform import Rotation
+
+    s = np.arange(count) + 0.5
+    near, far = np.sqrt(s / count), np.sqrt(1.0 - s / count)
+    a, b = 2.0 * np.pi * s / np.sqrt(2.0), 2.0 * np.pi * s / 1.533751168755204288118041
+    grid = Rotation.from_quat(np.stack([near * np.sin(a), near * np.cos(a), far * np.sin(b), far * np.cos(b)], axis=1))
+    out = grid.as_matrix()
+    out.setflags(write=False)
+    return out
+
+
 def _front_anchors(points: np.ndarray, forward: np.ndarray) -> np.ndarray:
     """``(2, N, 3)``: where a face's front is, seen from each of ``N`` forward directions, in two ways.
 
@@ -314,15 +428,17 @@ def _front_anchors(points: np.ndarray, forward: np.ndarray) -> np.ndarray:
     return np.stack([middle, (tip.T @ points) / tip.sum(axis=0)[:, None]])
 
 
-def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(N,)`` scales, ``(N, 3, 3)`` rotations and ``(N, 3)`` translations (face -> user) to start the
-    search from.
+def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(N,)`` scales, ``(N, 3, 3)`` rotations, ``(N, 3)`` translations (face -> user) to start the
+    search from, and ``(N,)`` which of them come from the even grid.
 
     The rotations map the face's principal axes onto the user's (the 24 ways), each also turned about
     the user's longest axis by :data:`_TURNS` (a head is longest from the crown to the neck, while
     its width and depth are alike, so its principal axes across may lie anywhere), plus the 24 of the
-    user file's own axes; each at the scales of :data:`_SEARCH_SCALES` (a face may be some way from
-    the reference's size) and placed by the front anchors (:func:`_front_anchors`) in both ways."""
+    user file's own axes and the even grid of :func:`_rotation_grid` (where the principal axes say
+    nothing about the face's pose); each at the scales of :data:`_SEARCH_SCALES` (a face may be some
+    way from the reference's size) and placed by the front anchors (:func:`_front_anchors`) in both
+    ways."""
     from scipy.spatial.transform import Rotation
 
     cube = _axis_rotations()
@@ -332,12 +448,17 @@ def _candidates(face: _Face, user: _Surface) -> tuple[np.ndarray, np.ndarray, np
     rotations = np.concatenate([(spins[:, None] @ aligned[None]).reshape(-1, 3, 3), cube])
     forward, which = np.unique(rotations[:, :, 2].round(12), axis=0, return_inverse=True)
     user_anchors = _front_anchors(user.coarse, forward)[:, which.reshape(-1)]  # (2, R, 3)
+    # The grid's anchors do not depend on the face: the surface holds them for every reference.
+    grid = np.r_[np.zeros(len(rotations), bool), np.ones(_GRID_ROTATIONS, bool)]
+    rotations = np.concatenate([rotations, _rotation_grid(_GRID_ROTATIONS)])
+    user_anchors = np.concatenate([user_anchors, user.grid_anchors], axis=1)
     face_anchors = _front_anchors(face.points, np.array([[0.0, 0.0, 1.0]]))[:, 0]  # (2, 3)
     scales = np.asarray(_SEARCH_SCALES, np.float64)
     # (S, 2, R, 3): scale x anchor x rotation
     translations = user_anchors[None] - scales[:, None, None, None] * np.einsum("rij,aj->ari", rotations, face_anchors)[None]
     count = translations.shape[1] * translations.shape[2]
-    return (np.repeat(scales, count), np.tile(rotations, (len(scales) * 2, 1, 1)), translations.reshape(-1, 3))
+    return (np.repeat(scales, count), np.tile(rotations, (len(scales) * 2, 1, 1)), translations.reshape(-1, 3),
+            np.tile(grid, len(scales) * 2))
 
 
 def umeyama(src: Float[np.ndarray, "n 3"], dst: Float[np.ndarray, "*frames n 3"],
@@ -389,6 +510,8 @@ class _Surface:
         field, origin, spacing: the distance to the nearest sample on a voxel grid (capped at
             :data:`_FIELD_CAP_M`), read by :meth:`distance` to score thousands of candidate poses at
             once; accurate to about a voxel.
+        grid_anchors: ``(2, G, 3)`` the front anchors (:func:`_front_anchors`) seen from the forward
+            direction of each rotation of :func:`_rotation_grid`, which every reference shares.
     """
 
     points: np.ndarray
@@ -398,6 +521,7 @@ class _Surface:
     field: np.ndarray
     origin: np.ndarray
     spacing: float
+    grid_anchors: np.ndarray
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Distance (metres, at most :data:`_FIELD_CAP_M`) of each point to the surface, from the field."""
@@ -424,7 +548,9 @@ def _surface(vertices: np.ndarray, faces: np.ndarray) -> _Surface:
     empty = np.ones(index.max(axis=0) + 1 + int(np.ceil(_FIELD_CAP_M / spacing)), bool)
     empty[index[:, 0], index[:, 1], index[:, 2]] = False
     field = np.minimum(distance_transform_edt(empty) * spacing, _FIELD_CAP_M)
-    return _Surface(points, tree, vecs[:, :, 0], points[::_COARSE_STRIDE], field, origin, spacing)
+    coarse = points[::_COARSE_STRIDE]
+    grid_anchors = _front_anchors(coarse, _rotation_grid(_GRID_ROTATIONS)[:, :, 2])
+    return _Surface(points, tree, vecs[:, :, 0], coarse, field, origin, spacing, grid_anchors)
 
 
 def _icp(points: np.ndarray, weights: np.ndarray, user: _Surface, pose: Pose, iterations: int, scale: bool = False) -> Pose:
@@ -517,16 +643,19 @@ def _fit(face: _Face, user: _Surface) -> Pose:
     """The landmark-free pose of a face on the user's surface (face -> user).
 
     The candidates of :func:`_candidates` are ranked by :func:`_fit_score` where they start; the
-    best :data:`_TRIED` distinct ones take a few steps of rigid ICP (a start a little off may look
-    worse than a wrong one until it has moved), the best :data:`_REFINED` of those by
-    :func:`_pose_score` run to convergence, and the best of them is refined with the scale free."""
-    scales, rotations, translations = _candidates(face, user)
+    best :data:`_TRIED` distinct ones of the principal and file axes and the best :data:`_GRID_TRIED`
+    of the even grid take a few steps of rigid ICP (a start a little off may look worse than a wrong
+    one until it has moved), the best :data:`_REFINED` of those by :func:`_pose_score` run to
+    convergence, and the best of them is refined with the scale free."""
+    scales, rotations, translations, grid = _candidates(face, user)
     probe = slice(None, None, max(1, len(face.core) // _PROBE_POINTS))
     points, weights = face.core[probe], face.weights[probe]
     moved = scales[:, None, None] * np.einsum("rij,pj->rpi", rotations, points) + translations[:, None]
     score = _fit_score(user.distance(moved) / scales[:, None], weights)
-    tried = [_icp(points, weights, user, (scales[i], rotations[i], translations[i]), _FIRST_STEPS)
-             for i in _distinct(scales, rotations, translations, np.argsort(score), _TRIED)]
+    order = np.argsort(score)
+    starts = (_distinct(scales, rotations, translations, order[~grid[order]], _TRIED)
+              + _distinct(scales, rotations, translations, order[grid[order]], _GRID_TRIED))
+    tried = [_icp(points, weights, user, (scales[i], rotations[i], translations[i]), _FIRST_STEPS) for i in starts]
     tried.sort(key=lambda pose: _pose_score(face, user, pose, probe))
     refined = [_icp(points, weights, user, pose, 30) for pose in tried[:_REFINED]]
     best = min(refined, key=lambda pose: _pose_score(face, user, pose, probe))
@@ -551,7 +680,7 @@ def canonicalize(
         template_vertices: ``(Vt, 3)`` the template face in metres, in the model's frame (+y up, +z
             out of the face).
         template_faces: ``(Ft, 3)`` its triangles.
-        units: the user's unit (``m``, ``cm``, ``mm``, ``um``); None: :func:`detect_units`.
+        units: the user's unit (``m``, ``dm``, ``cm``, ``mm``, ``um``); None: :func:`detect_units`.
         landmarks: optional ``(68, 3)`` positions of the 68 standard landmarks on the user's mesh
             (its units); with them, the similarity that fits them to the template's is the answer.
         template_landmarks: ``(68, 3)`` the template's landmarks (required with ``landmarks``).
@@ -560,7 +689,8 @@ def canonicalize(
             template itself is the only reference.
 
     Returns:
-        A :class:`Canonicalization`.
+        A :class:`Canonicalization` (landmark-free: with the separate inner parts it left out, see
+        :func:`_inner_parts`).
 
     Raises:
         ValueError: an unknown unit, a size that is not a face's, landmarks of the wrong shape or
@@ -596,7 +726,8 @@ def canonicalize(
         residual = float(np.linalg.norm(s * lm * unit @ rot.T + trans - tl, axis=1).mean())
         canon = Canonicalization(units, unit * s, rot, trans, residual, "landmarks", "landmarks")
         return _checked(canon, None, canon.fitted_scale)
-    user = _surface(v * unit, f)
+    kept, ignored = _inner_parts(v * unit, f)
+    user = _surface(v * unit, f[kept])
     references = [("template", _face(np.asarray(template_vertices, np.float64), np.asarray(template_faces, np.int64)),
                    (1.0, np.eye(3), np.zeros(3)))]
     if tl is not None:
@@ -614,8 +745,57 @@ def canonicalize(
             best = (fit, name, _compose(pose, to_reference), float(distances.mean()) / to_reference[0], 1 / pose[0])
     fit, name, (s, rot, trans), residual, reference_scale = best  # template (m) -> user (m)
     canon = Canonicalization(units=units, scale=unit / s, rotation=rot.T, translation=-(rot.T @ trans) / s,
-                             residual=residual, method="icp", reference=name)
+                             residual=residual, method="icp", reference=name, ignored=ignored)
     return _checked(canon, fit, reference_scale)
+
+
+def face_reference(face: Any) -> tuple[Float[np.ndarray, "verts 3"], Int[np.ndarray, "faces 3"],
+                                         Float[np.ndarray, "68 3"] | None]:
+    """``(vertices, faces, landmarks)`` of a face model's neutral (metres, float64), as
+    :func:`canonicalize` takes a template: the landmarks at the zero parameter vector, or None where the
+    model has none (a FLAME model loaded without its landmark embedding has NaN landmarks).
+
+    Args:
+        face: a :class:`~jaxtalk.face.model.LinearFaceModel` (the built-in face or FLAME).
+    """
+    from jaxtalk.models.freetalk.data import neutral_landmarks
+
+    landmarks = neutral_landmarks(face).astype(np.float64)
+    return (np.asarray(face.template, np.float64), np.asarray(face.faces, np.int64),
+            landmarks if np.all(np.isfinite(landmarks)) else None)
+
+
+def align_to_face(
+    vertices: Float[np.ndarray, "verts 3"],
+    faces: Int[np.ndarray, "faces 3"],
+    face: Any,
+    *,
+    units: str | None = None,
+    landmarks: Float[np.ndarray, "68 3"] | None = None,
+) -> Canonicalization:
+    """Align a user's mesh to a face model's neutral with the face's own landmarks (:func:`face_reference`):
+    what FreeTalk does to a mesh it animates and the retargeter to a rig, so that both accept the same
+    meshes (with the landmarks, real faces are aligned through MediaPipe's canonical face; see the
+    module docstring).
+
+    Args:
+        vertices: ``(V, 3)`` the user's mesh, in its own units and pose.
+        faces: ``(F, 3)`` its triangles.
+        face: the :class:`~jaxtalk.face.model.LinearFaceModel` whose frame the mesh is put in.
+        units: the mesh's unit (a key of :data:`UNITS`); None: :func:`detect_units`.
+        landmarks: optional ``(68, 3)`` positions of the 68 standard landmarks on the mesh (its units).
+
+    Returns:
+        A :class:`Canonicalization` into the face's frame.
+
+    Raises:
+        ValueError: as :func:`canonicalize`, or user landmarks with a face model that has none.
+    """
+    tv, tf, tl = face_reference(face)
+    if landmarks is not None and tl is None:
+        raise ValueError("the face model has no landmarks (a FLAME model loaded without its landmark embedding), so "
+                         "the mesh's landmarks cannot be matched to it; load it with one, or leave out the landmarks")
+    return canonicalize(vertices, faces, tv, tf, units=units, landmarks=landmarks, template_landmarks=tl)
 
 
 def _checked(canon: Canonicalization, fit: float | None, scale: float) -> Canonicalization:

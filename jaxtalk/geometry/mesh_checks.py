@@ -14,7 +14,7 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["MeshReport", "CleanedMesh", "validate_mesh", "inspect_mesh", "clean_mesh"]
+__all__ = ["MeshReport", "CleanedMesh", "validate_mesh", "inspect_mesh", "clean_mesh", "face_components"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -174,6 +174,42 @@ def inspect_mesh(vertices: np.ndarray, faces: np.ndarray, *, merge_tolerance: fl
     )
 
 
+def _merged(v: np.ndarray, merge_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(first, inverse)``: the first input vertex of each group of coincident ones (positions within
+    ``merge_tolerance`` x the bounding-box diagonal), and each input vertex's group."""
+    diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) or 1.0
+    keys = np.round(v / (merge_tolerance * diag)).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1)
+
+
+def face_components(vertices: np.ndarray, faces: np.ndarray, *, merge_tolerance: float = 1e-10) -> np.ndarray:
+    """``(F,)`` the connected component of each face, coincident vertices merged first (as
+    :func:`clean_mesh` merges them), so that a surface split along texture seams is one component while
+    separate surfaces (eyeballs, teeth, a tongue beside a face) are each their own.
+
+    Args:
+        vertices: (V, 3) positions.
+        faces: (F, 3) indices.
+        merge_tolerance: merge distance relative to the bounding-box diagonal.
+
+    Returns:
+        Component labels ``0 .. C-1`` per face.
+    """
+    v, f = validate_mesh(vertices, faces)
+    if f.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    _, inverse = _merged(v, merge_tolerance)
+    merged = inverse[f]
+    n = int(inverse.max()) + 1
+    edges = merged[:, [0, 1, 1, 2]].reshape(-1, 2)
+    adj = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, labels = sp.csgraph.connected_components(adj, directed=False)
+    # Relabel 0 .. C-1 over the faces' components only (vertices no face uses have labels of their own).
+    _, per_face = np.unique(labels[merged[:, 0]], return_inverse=True)
+    return per_face.reshape(-1).astype(np.int64)
+
+
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, *, merge_tolerance: float = 1e-10) -> CleanedMesh:
     """Merge duplicate vertices, drop zero-area and repeated faces, drop isolated vertices.
 
@@ -197,10 +233,7 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, *, merge_tolerance: floa
     v, f = validate_mesh(vertices, faces)
     if f.shape[0] == 0:
         raise ValueError("clean_mesh needs faces; got a point cloud (faces.shape = (0, 3))")
-    diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) or 1.0
-    keys = np.round(v / (merge_tolerance * diag)).astype(np.int64)
-    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    first, inverse = _merged(v, merge_tolerance)
     # Keep the earliest vertex of every duplicate group so the cleaned order follows the input.
     order = np.argsort(first, kind="stable")
     rank = np.empty_like(order)

@@ -6,7 +6,7 @@ in centimetres, a remeshed face):
 1. :func:`prepare_user_mesh` (once per mesh): check and clean the mesh (merge duplicate vertices,
    drop zero-area faces and isolated vertices: :func:`jaxtalk.geometry.mesh_checks.clean_mesh`), find
    its units and the similarity transform into the frame STM was trained in
-   (:func:`jaxtalk.geometry.canonical.canonicalize`), then precompute STM's mesh operators (the robust
+   (:func:`jaxtalk.geometry.canonical.align_to_face`, as the retargeter aligns a rig), then precompute STM's mesh operators (the robust
    intrinsic Laplacian where the cotangent one is unsafe: non-manifold edges, duplicates, degenerate
    faces) and its static per-vertex features.
 2. ATS samples the landmark displacements with DDIM from the audio features its run was trained on.
@@ -36,7 +36,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from jaxtalk.data.batching import window_starts
-from jaxtalk.geometry.canonical import Canonicalization, canonicalize, load_mesh
+from jaxtalk.geometry.canonical import Canonicalization, align_to_face, load_mesh
 from jaxtalk.geometry.mesh_checks import CleanedMesh, clean_mesh, validate_mesh
 from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM, sample_displacements
 from jaxtalk.models.freetalk.stm import STMMesh, prepare_mesh, stm_decode, stm_mesh_features
@@ -128,7 +128,7 @@ def prepare_user_mesh(
     Args:
         stm: the trained STM (its template face sets the canonical frame).
         mesh: a mesh file (OBJ, PLY, GLB/GLTF, OFF, STL) or ``(vertices (V, 3), faces (F, 3))``.
-        units: the mesh's unit (``m``, ``cm``, ``mm``, ``um``); None: detected from its size.
+        units: the mesh's unit (``m``, ``dm``, ``cm``, ``mm``, ``um``); None: detected from its size.
         landmarks: optional ``(68, 3)`` landmark positions on the mesh (its units) to guide the
             alignment (see :func:`read_landmarks`).
         cache_dir: disk cache for the mesh operators.
@@ -154,9 +154,11 @@ def prepare_user_mesh(
     if cleaned.vertices.shape[0] <= k:
         raise ValueError(f"the mesh has {cleaned.vertices.shape[0]} usable vertices (of {v.shape[0]}); this STM "
                          f"needs more than its {k} Laplacian eigenpairs, i.e. a face mesh of at least {k + 1} vertices")
-    tv, tf, tl = stm.template()
-    canon = canonicalize(cleaned.vertices, cleaned.faces, tv, tf, units=units, landmarks=landmarks,
-                         template_landmarks=tl)
+    face = stm.face()
+    # The same alignment as a retargeted rig's (one code path): the template's landmarks carry MediaPipe's
+    # canonical face over, so that real faces are aligned by a real face.
+    canon = align_to_face(cleaned.vertices, cleaned.faces, face, units=units, landmarks=landmarks)
+    tv = np.asarray(face.template, np.float64)
     placed = canon.to_template(cleaned.vertices)
     stm_mesh = prepare_mesh(placed, cleaned.faces, stm.config, cache_dir=cache_dir)
     features = stm_mesh_features(stm.params, stm.config, stm_mesh)

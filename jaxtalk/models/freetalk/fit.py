@@ -97,13 +97,17 @@ class FittedSTM:
     params: PyTree
     resolution: str = "low"
 
+    def face(self) -> Any:
+        """The template face model (the built-in face, identity 0, at STM's resolution)."""
+        from jaxtalk.face import builtin_face
+
+        return builtin_face(0, resolution=self.resolution)
+
     def template(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(vertices (V, 3) m, faces (F, 3), landmarks (68, 3) m)`` of the template face."""
-        from jaxtalk.face import builtin_face
-        from jaxtalk.models.freetalk.data import neutral_landmarks
+        from jaxtalk.geometry.canonical import face_reference
 
-        face = builtin_face(0, resolution=self.resolution)
-        return np.asarray(face.template, np.float64), np.asarray(face.faces), neutral_landmarks(face).astype(np.float64)
+        return face_reference(self.face())  # the built-in face always has its landmarks
 
     @classmethod
     def from_run(cls, run_dir: str | os.PathLike[str], *, best: bool = False) -> FittedSTM:
