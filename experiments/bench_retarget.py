@@ -1,12 +1,13 @@
-"""Benchmark blendshape retargeting: the jitted FISTA solve of a clip onto the built-in ARKit rig.
+"""Benchmark blendshape retargeting: the jitted projected-Newton solve of a clip onto the built-in ARKit rig.
 
 A clip of ``--frames`` frames of the rig's own random animation (each of the 52 weights on in 30 % of
 frames) is retargeted through :class:`jaxtalk.export.Retargeter` on the rig's own mesh. Reported: the
 first call (tracing + compile + solve), then over ``--repeats`` calls the median and minimum of the
 solve alone (``RetargetResult.seconds``, which ends with ``block_until_ready``) and of the whole call
-(registration-free host work, right-hand sides and the solve), the iterations the solver ran and the
-fit's RMS error. The solve is a loop of small (52 x 52) matrix products, latency-bound rather than
-FLOP-bound, so it is reported as frames per second of solve time, not against the matmul peak.
+(registration-free host work, right-hand sides and the solve), the most Newton steps a frame took and the
+fit's RMS error. The solve is a loop over frames of small (52 x 52) factorisations and products,
+latency-bound rather than FLOP-bound, so it is reported as frames per second of solve time, not against
+the matmul peak.
 
 Usage: python experiments/bench_retarget.py [--frames 250 1000] [--repeats 10] [--resolution low]
     [--out experiments/results/bench_retarget.json]

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import bad_numpy_files, cli_error, cli_ok, jax_flag
+from helpers import bad_numpy_files, cli_error, cli_ok
 
 from jaxtalk.export import (
     GlbAnimation,
@@ -16,6 +16,7 @@ from jaxtalk.export import (
     read_live_link_csv,
 )
 from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
+from jaxtalk.export.solver import DEFAULT_TOL
 
 
 @pytest.fixture(scope="module")
@@ -206,6 +207,8 @@ def _peak_rss(args: list) -> tuple[int, str]:
 @pytest.mark.slow
 @pytest.mark.optimized
 def test_half_an_hour_retargets_in_bounded_memory_and_its_windows_join_as_one_solve(tmp_path):
+    import jax
+
     from jaxtalk.data.formats import MotionClip, save_npz
     from jaxtalk.export import DEFAULT_WINDOW, Retargeter
     from jaxtalk.face import builtin_face
@@ -228,32 +231,19 @@ def test_half_an_hour_retargets_in_bounded_memory_and_its_windows_join_as_one_so
     assert peak - short < 2048 * (frames - short_frames), (short, peak)
     assert f"{frames} frames x 52 shapes in {frames // DEFAULT_WINDOW} windows" in printed, printed
 
-    # Where two windows join, the weights are one solve's of the frames around the seam (two look-aheads
-    # either side: beyond reach of its own ends), to the solver's precision: the float32 windows are as
-    # close to the exact solve (float64, converged) there as a float32 solve of those frames is anywhere.
+    # Where two windows join, the weights are those of the frames around the seam solved in one piece from the
+    # weights written before them (each frame depends only on the frames up to it): to the solver's tolerance,
+    # through the .glb's float32 storage.
     weights = GlbAnimation(tmp_path / "long.glb").morph_weights()
     assert weights.shape == (frames, 52)
-    rig, face = arkit_rig(), builtin_face(0)
-    retargeter = Retargeter.for_face(rig, face)
-    ahead, _ = retargeter.lookahead()
-    with jax_flag("jax_enable_x64", True):
-        exact = Retargeter.for_face(rig, face)
-    def moved(diff: np.ndarray) -> float:  # metres: how far weights that far apart put the rig's vertices
-        return float(np.linalg.norm(np.einsum("tk,kvc->tvc", diff, rig.deltas), axis=-1).max())
-
+    # Compiled afresh, with the optimisations the command ran with: a program an earlier test compiled
+    # without them would round differently.
+    jax.clear_caches()
+    retargeter = Retargeter.for_face(arkit_rig(), builtin_face(0))
     middle = frames // 2 // DEFAULT_WINDOW * DEFAULT_WINDOW
-    for seam in (DEFAULT_WINDOW, middle, frames - DEFAULT_WINDOW):  # the last window starts earlier
-        around = slice(seam - 2 * ahead, seam + 2 * ahead)
-        with jax_flag("jax_enable_x64", True):
-            truth = exact(params[around], window=None, tol=1e-11, max_iter=100_000).weights
-        # away from the ends, where a solve of these frames alone is the one cut short
-        inner = slice(ahead, 3 * ahead)
-        float32 = retargeter(params[around], window=None).weights[inner] - truth[inner]
-        at = [2 * ahead - 1, 2 * ahead]  # the last frame of one window, the first of the next
-        error = weights[around][at] - truth[at]
-        print(f"seam at frame {seam}: weights within {np.abs(error).max():.1e} of the exact solve, the rig's "
-              f"vertices within {moved(error) * 1e3:.1e} mm (a float32 solve of these frames: "
-              f"{np.abs(float32).max():.1e}, {moved(float32) * 1e3:.1e} mm)")
-        # twice the solver's own float32 precision, plus the .glb's float32 storage
-        assert np.abs(error).max() <= 2 * np.abs(float32).max() + 1e-7, seam
-        assert moved(error) <= 2 * moved(float32) + 1e-9, seam
+    for seam in (DEFAULT_WINDOW, middle, frames - DEFAULT_WINDOW):
+        around = slice(seam - 50, seam + 50)
+        solved = retargeter(params[around], previous=weights[seam - 51], window=None).weights
+        error = np.abs(solved - weights[around]).max()
+        print(f"seam at frame {seam}: the frames around it solved in one piece are within {error:.1e}")
+        assert error <= DEFAULT_TOL, seam

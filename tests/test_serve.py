@@ -143,6 +143,21 @@ def test_concurrent_clients_each_get_their_own_stream_equal_to_the_offline_engin
     assert not np.allclose(results[0]["params"][:20], results[1]["params"][:20])  # not one shared stream
 
 
+def test_a_streams_arkit_output_is_what_jaxtalk_retarget_gives_its_motion(server, live, speech):
+    """The live solve is the offline one: a client's ARKit weights, chunk after chunk, are those of
+    `jaxtalk retarget` (the same retargeter, penalties and solver) over the whole utterance's motion."""
+    from jaxtalk.export import DEFAULT_PENALTIES, Retargeter, arkit_rig
+    from jaxtalk.export.solver import DEFAULT_TOL
+
+    got = stream_through(server.url, speech[1], piece=2560, seed=3, outputs=("params", "arkit"))
+    want = offline(live, speech[1], 3)
+    result = Retargeter.for_face(arkit_rig(), builtin_face(0), DEFAULT_PENALTIES)(want)
+    assert got["arkit"].shape == (want.shape[0], 55)
+    # JSON carries 6 decimals: 5e-7 of rounding on top of the solver's tolerance
+    np.testing.assert_allclose(got["arkit"][:, :52], result.weights, atol=5e-7 + DEFAULT_TOL, rtol=0)
+    np.testing.assert_allclose(got["arkit"][:, 52:], result.head_angles, atol=5e-7 + 1e-7, rtol=0)
+
+
 class NeverReading:
     """A WebSocket client on a bare socket (websockets' sans-I/O protocol) that reads nothing until told to:
     a hung process, or one whose network stalls. Its receive buffer is small, so the server's replies

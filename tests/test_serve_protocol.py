@@ -109,7 +109,9 @@ def test_outputs_are_built_once_per_server_and_an_unavailable_one_says_why():
 
 
 def test_the_arkit_output_opens_jaw_open_with_the_jaw_and_turns_the_head_with_the_neck_across_chunks():
+    from jaxtalk.export import arkit_rig, retarget
     from jaxtalk.export.arkit import ARKIT_NAMES
+    from jaxtalk.export.solver import DEFAULT_TOL
 
     arkit = build_outputs(("arkit",), {})["arkit"]
     assert arkit.channels == (*ARKIT_NAMES, "HeadYaw", "HeadPitch", "HeadRoll")
@@ -124,6 +126,10 @@ def test_the_arkit_output_opens_jaw_open_with_the_jaw_and_turns_the_head_with_th
         chunks.append(values)
     values = np.concatenate(chunks)
     assert values.shape == (frames, 55) and np.isfinite(values).all()
+    # The chunks' weights are `jaxtalk retarget`'s of the whole motion (the solver looks back only).
+    whole = retarget(params, arkit_rig())
+    assert np.abs(values[:, :52] - whole.weights).max() <= DEFAULT_TOL
+    np.testing.assert_allclose(values[:, 52:], whole.head_angles, atol=1e-7)  # float32 values
     weights = values[:, :52]
     assert weights.min() >= 0.0 and weights.max() <= 1.0
     jaw_open = weights[:, ARKIT_NAMES.index("jawOpen")]

@@ -158,9 +158,7 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
     echo(retargeter.registration.describe())
     # Solved a window at a time (Retargeter.__call__): memory stays bounded whatever the clip's length.
     result = retargeter(motion)
-    windows = "" if result.windows == 1 else (
-        f" in {result.windows} windows of {DEFAULT_WINDOW} frames ({result.lookahead} frames of look-ahead; where "
-        f"they join, within {result.seam_bound:.0e} of one whole-clip solve)")
+    windows = "" if result.windows == 1 else f" in {result.windows} windows of {DEFAULT_WINDOW} frames"
     echo(f"solved {result.weights.shape[0]} frames x {rig.num_shapes} shapes{windows} in {result.seconds * 1e3:.0f} "
          f"ms ({result.iterations} iterations): fit error {result.rms_error * 1e3:.3f} mm RMS, weights in "
          f"[{result.weights.min():.3f}, {result.weights.max():.3f}]")

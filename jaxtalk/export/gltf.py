@@ -38,7 +38,6 @@ from pathlib import Path
 
 import numpy as np
 import pygltflib
-from scipy.spatial.transform import Rotation
 
 from jaxtalk.checks import check_finite
 from jaxtalk.face.model import LinearFaceModel
@@ -285,6 +284,26 @@ def _times(writer: _GlbWriter, frames: int, fps: float | int) -> int:
     return writer.streamed(frames, 1, rows, bounds=([0.0], [float(np.float32(frames - 1) / rate)]))
 
 
+def _quaternions(rotations: np.ndarray) -> np.ndarray:
+    """``(T, 3, 3)`` rotation matrices -> ``(T, 4)`` unit quaternions ``(x, y, z, w)``, glTF's order.
+
+    Shepperd's method, as scipy's ``Rotation.from_matrix`` (the same quaternions, with the same sign: the
+    largest component positive) without its checks of each matrix, which cost a live stream's morph output
+    more than the rest of its chunk: each row of ``4 q_i q`` comes from the matrix's diagonal and
+    off-diagonal sums, and the one of the largest ``q_i`` is normalised.
+    """
+    m = np.asarray(rotations, np.float64)
+    a, b, c = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    squares = np.stack([1 + a - b - c, 1 - a + b - c, 1 - a - b + c, 1 + a + b + c], axis=1)  # 4 q_i^2
+    xy, xz, yz = m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1]
+    wx, wy, wz = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
+    rows = np.stack([np.stack([squares[:, 0], xy, xz, wx], axis=1), np.stack([xy, squares[:, 1], yz, wy], axis=1),
+                     np.stack([xz, yz, squares[:, 2], wz], axis=1), np.stack([wx, wy, wz, squares[:, 3]], axis=1)],
+                    axis=1)  # (T, 4, 4): row i is 4 q_i q
+    q = rows[np.arange(m.shape[0]), np.argmax(squares, axis=1)]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
 def _continuous(quaternions: np.ndarray) -> np.ndarray:
     """q and -q are one rotation: flip signs so consecutive keys are on the same side (no spin)."""
     q = quaternions.copy()
@@ -362,7 +381,7 @@ def _rotation_channels(face: LinearFaceModel, local_r: np.ndarray,
     names = _joint_names(face)
     out = {}
     for j in (face.neck_joint, face.jaw_joint):
-        quats = Rotation.from_matrix(local_r[:, j]).as_quat()  # glTF's order
+        quats = _quaternions(local_r[:, j])
         last = None if previous is None else previous.get(names[j])
         if last is not None and np.dot(quats[0], last) < 0:
             quats[0] = -quats[0]
@@ -552,7 +571,7 @@ def export_rig_animation(
         def quaternions() -> Iterator[np.ndarray]:
             last = None
             for a in range(0, frames, _KEY_ROWS):
-                q = Rotation.from_matrix(rot[a:a + _KEY_ROWS]).as_quat()
+                q = _quaternions(rot[a:a + _KEY_ROWS])
                 if last is not None and np.dot(q[0], last) < 0:  # one sign across chunks too (_continuous)
                     q[0] = -q[0]
                 q = _continuous(q)

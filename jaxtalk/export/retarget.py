@@ -13,10 +13,14 @@ Once, on the host (:class:`Retargeter`):
    and ``B^T`` carried back onto the motion's mesh, so that a frame's right-hand side is one product
    with that frame's displacements.
 
-Per frame (jitted, batched over frames): the head's rigid rotation is taken out (the neck rotation of the
-parameters; Procrustes on the upper face of a vertex sequence), the rest of the displacement is fitted by
-:func:`jaxtalk.export.solver.solve_weights` (weights in ``[0, 1]``, temporal smoothness, left/right symmetry
-of the pairs found by name, L1/L2). The head's rotation is reported as yaw, pitch and roll in radians, in
+Per frame (jitted): the head's rigid rotation is taken out (the neck rotation of the parameters; Procrustes
+on the upper face of a vertex sequence), the rest of the displacement is fitted by
+:func:`jaxtalk.export.solver.solve_weights` (weights in ``[0, 1]``, temporal smoothness towards the previous
+frame's weights, left/right symmetry of the pairs found by name, L1/L2). For head parameters the whole map
+from a frame's parameters to the fit's right-hand side ``B^T d`` is precomputed once (:func:`_param_projection`:
+the face model's skinning is linear in each joint's transform, so ``B^T d`` is one product of the frame's
+joint transforms and expression with a fixed matrix) and evaluated inside the solver's frame loop: no
+vertex is posed to solve a frame. The head's rotation is reported as yaw, pitch and roll in radians, in
 the template's frame (x: the subject's left, y: up, z: out of the face):
 
 * yaw about +y, positive when the face turns towards the subject's left;
@@ -28,13 +32,14 @@ composed as ``R = R_y(yaw) R_x(pitch) R_z(roll)``. The jaw stays in the fitted m
 
 Penalties are relative to the fit term, which is divided by the rig's mean squared shape norm over the
 fitted vertices: a residual as large as one average shape at full weight costs 1/2, as does a weight jump
-of ``1 / sqrt(smoothness)`` between frames.
+of ``1 / sqrt(smoothness)`` from the previous frame.
 
-A clip of any length runs in bounded memory: it is solved in windows of :data:`DEFAULT_WINDOW` frames,
-each solved on past its end by a look-ahead (:meth:`Retargeter.lookahead`, set by how fast the smoothness
-term's coupling decays) and tied to the last weights already kept, so that where windows join the weights
-are one whole-clip solve's to within the solver's tolerance; per-vertex arrays exist for a few hundred
-frames at a time. What a clip keeps is its weights, ``frames x shapes``, and the head's rotations.
+A frame's weights depend only on its own motion and the frames before it (the smoothness term looks back),
+so a clip is the same solved whole, in windows, or streamed chunk by chunk (:meth:`Retargeter.stream_step`,
+which ``jaxtalk serve``'s ``arkit`` output runs): each piece is tied to the last weights of the one before.
+A clip of any length runs in bounded memory: it is solved in windows of :data:`DEFAULT_WINDOW` frames, and
+per-vertex arrays (a vertex sequence's displacements, the fit's residual) exist for a few hundred frames at
+a time. What a clip keeps is its weights, ``frames x shapes``, and the head's rotations.
 """
 
 from __future__ import annotations
@@ -48,12 +53,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.export.rig import Rig
-from jaxtalk.export.solver import DEFAULT_MAX_ITER, DEFAULT_TOL, Penalties, solve_weights, symmetry_matrix
-from jaxtalk.face.model import LinearFaceModel
-from jaxtalk.types import PARAM_DIM, Float, Int
+from jaxtalk.export.solver import (
+    DEFAULT_MAX_ITER,
+    DEFAULT_TOL,
+    Penalties,
+    SolveInfo,
+    bucket,
+    solve_frames,
+    solve_weights,
+    symmetry_matrix,
+)
+from jaxtalk.face.model import LinearFaceModel, _pose_feature, _restrict, _skeleton, _world_transforms, rodrigues
+from jaxtalk.types import EXP_DIM, PARAM_DIM, Array, Float, Int
 
 __all__ = ["Retargeter", "RetargetResult", "Registration", "StreamState", "retarget", "head_angles",
-           "DEFAULT_PENALTIES", "DEFAULT_MAX_DISTANCE", "DEFAULT_WINDOW", "MAX_LOOKAHEAD"]
+           "DEFAULT_PENALTIES", "DEFAULT_MAX_DISTANCE", "DEFAULT_WINDOW"]
 
 # What `jaxtalk retarget` uses unless told otherwise: a little smoothing and ridge, no sparsity or symmetry.
 DEFAULT_PENALTIES = Penalties(smoothness=0.05, l1=0.0, l2=1e-4, symmetry=0.0)
@@ -62,12 +76,9 @@ DEFAULT_MAX_DISTANCE = 0.01
 # The fraction of the fitted rig vertices, those the rig's shapes move least, that Procrustes on a vertex
 # sequence takes for the head's rigid part.
 _RIGID_FRACTION = 0.1
-# Frames a clip is solved in at once (40 s at 25 fps), each window followed by its look-ahead
-# (Retargeter.lookahead): the weights, frames x shapes, are all a clip of any length keeps.
+# Frames a clip is solved in at once (40 s at 25 fps): the weights, frames x shapes, are all a clip of any
+# length keeps.
 DEFAULT_WINDOW = 1000
-# The longest look-ahead: beyond it (a very smooth solve of shapes the fit barely sees) the seams are
-# within RetargetResult.seam_bound of one whole-clip solve instead of the solver's tolerance.
-MAX_LOOKAHEAD = 4 * DEFAULT_WINDOW
 # Frames whose per-vertex arrays (displacements, the fit's residual) exist at once: what bounds memory.
 _PIECE = 250
 
@@ -119,13 +130,10 @@ class RetargetResult(NamedTuple):
         head_rotation: ``(T, 3, 3)`` the head's rotation in the template's frame.
         head_angles: ``(T, 3)`` yaw, pitch, roll in radians (module docstring).
         rms_error: metres, root-mean-square distance of the fitted rig vertices from the motion, over every
-            frame (what the weights cannot reproduce).
-        iterations: solver steps (of the window that took the most).
+            frame (what the weights cannot reproduce); NaN when the call was asked not to measure it.
+        iterations: solver steps (of the frame that took the most).
         seconds: wall time of the solves.
         windows: how many windows the clip was solved in (1: one solve of the whole clip).
-        lookahead: frames solved after each window and dropped (:meth:`Retargeter.lookahead`).
-        seam_bound: how far, at most, the weights where two windows join may lie from one whole-clip
-            solve's (``rho ** lookahead``, :meth:`Retargeter.lookahead`); 0 for one window.
     """
 
     weights: Float[np.ndarray, "frames k"]
@@ -135,8 +143,6 @@ class RetargetResult(NamedTuple):
     iterations: int
     seconds: float
     windows: int = 1
-    lookahead: int = 0
-    seam_bound: float = 0.0
 
 
 class StreamState(NamedTuple):
@@ -146,12 +152,18 @@ class StreamState(NamedTuple):
 
 
 def head_angles(rotations: Float[np.ndarray, "*frames 3 3"]) -> Float[np.ndarray, "*frames 3"]:
-    """Yaw, pitch, roll (radians) of rotation matrices in the template's frame (module docstring)."""
-    from scipy.spatial.transform import Rotation
+    """Yaw, pitch, roll (radians) of rotation matrices in the template's frame (module docstring).
 
+    In closed form (a stream asks every chunk, where a general Euler-angle conversion costs more than the
+    chunk's solve): ``R = R_y(yaw) R_x(pitch) R_z(roll)`` has ``R[1, 2] = -sin(pitch)``, ``R[0, 2] / R[2, 2]
+    = tan(yaw)`` and ``R[1, 0] / R[1, 1] = tan(roll)``, with pitch in ``[-pi/2, pi/2]`` (a head never nods
+    through a right angle, where yaw and roll would be one turn).
+    """
     r = np.asarray(rotations, np.float64)
-    flat = Rotation.from_matrix(r.reshape(-1, 3, 3)).as_euler("YXZ")  # intrinsic: R = Ry Rx Rz
-    return flat.reshape(*r.shape[:-2], 3)
+    pitch = np.arcsin(np.clip(-r[..., 1, 2], -1.0, 1.0))
+    yaw = np.arctan2(r[..., 0, 2], r[..., 2, 2])
+    roll = np.arctan2(r[..., 1, 0], r[..., 1, 1])
+    return np.stack([yaw, pitch, roll], axis=-1)
 
 
 def _boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
@@ -182,13 +194,86 @@ def _params_displacements(face: LinearFaceModel, params):
     return face.vertices_seq(still) - jnp.asarray(face.template, still.dtype)[None]
 
 
+def _skeleton_model(face: LinearFaceModel, dtype: Any) -> LinearFaceModel:
+    """``face`` without its mesh, on the device: the joints and their expression regression, all that a
+    frame's right-hand side poses (:func:`_param_features`), small enough to pass to every chunk's solve."""
+    children, aux = _restrict(face, jnp.zeros((0,), jnp.int32)).tree_flatten()
+    children = [{} if name == "regions" else None if c is None else
+                jnp.asarray(c, dtype if np.issubdtype(np.asarray(c).dtype, np.floating) else None)
+                for name, c in zip(LinearFaceModel._LEAVES, children)]
+    return LinearFaceModel.tree_unflatten(aux, children)
+
+
+def _param_features(skeleton: LinearFaceModel, params: Float[Array, "56"]) -> Float[Array, " features"]:
+    """One frame's features ``[u, (R_j - I) (x) u, t_j]`` (:func:`_param_projection`), the neck at rest."""
+    still = params.at[PARAM_DIM - 3:].set(0.0)  # the head's rotation is reported, not fitted
+    rotations, joints = _skeleton(skeleton, still)
+    transforms = _world_transforms(rotations, joints, skeleton.parents)  # (J, 12): [R row-major | t]
+    u = [jnp.ones((1,), still.dtype), still[:EXP_DIM]]
+    if skeleton.pose_basis is not None:
+        u.append(_pose_feature(rotations))
+    u = jnp.concatenate(u)
+    bend = transforms[:, :9] - jnp.eye(3, dtype=still.dtype).reshape(1, 9)
+    return jnp.concatenate([u, (bend[:, :, None] * u[None, None, :]).reshape(-1), transforms[:, 9:].reshape(-1)])
+
+
+def _param_projection(face: LinearFaceModel, bs: Float[np.ndarray, "verts 3 k"]) -> Float[np.ndarray, "features k"]:
+    """The fixed matrix ``P`` with ``B^T d = phi P`` for a frame's features ``phi`` (:func:`_param_features`).
+
+    The face poses a vertex as ``x_v = sum_j w_vj (R_j r_v + t_j)``, its rest position
+    ``r_v = sum_m u_m r^m_v`` linear in ``u = [1, expression, pose features]`` (``r^0`` the template, then
+    the expression and pose-corrective bases). With ``s_v = sum_j w_vj`` (1 on a proper skinning),
+
+        d_v = x_v - r^0_v = sum_j w_vj ((R_j - I) r_v + t_j) + (r_v - r^0_v) + (s_v - 1) r_v,
+
+    each term a product of a frame's ``u``, ``R_j - I`` or ``t_j`` with per-vertex constants: summed against
+    ``B^T`` (``bs``, per vertex) once, here, they leave ``phi P`` per frame. ``R_j - I`` rather than ``R_j``
+    keeps the rest pose out of the sums, whose float32 rounding would otherwise swamp small expressions.
+    """
+    used = np.flatnonzero(np.any(bs != 0, axis=(1, 2)))  # the vertices the fit sees
+    b = np.asarray(bs, np.float64)[used]
+    skin = np.asarray(face.weights, np.float64)[used]
+    parts = [np.asarray(face.template, np.float64)[used, :, None], np.asarray(face.exp_basis, np.float64)[used]]
+    if face.pose_basis is not None:
+        parts.append(np.asarray(face.pose_basis, np.float64)[used])
+    r = np.concatenate(parts, axis=-1)  # (n, 3, M)
+    n, _, m = r.shape
+    k = b.shape[-1]
+    # sum_v w_vj b_vak r_vbm, one (3K x n) @ (n x 3M) product per joint, rows ordered (j, a, b, m)
+    bend = np.stack([(b * skin[:, j, None, None]).reshape(n, 3 * k).T @ r.reshape(n, 3 * m)
+                     for j in range(skin.shape[1])])
+    bend = bend.reshape(-1, 3, k, 3, m).transpose(0, 1, 3, 4, 2).reshape(-1, k)
+    shift = np.einsum("nj,nak->jak", skin, b).reshape(-1, k)
+    offsets = r.copy()
+    offsets[..., 0] = 0.0  # r_v - r^0_v
+    linear = np.einsum("nak,nam->mk", b, offsets + (skin.sum(axis=1) - 1.0)[:, None, None] * r)
+    return np.concatenate([linear, bend, shift])
+
+
+@jax.jit
+def _param_rhs(skeleton: LinearFaceModel, projection, params):
+    return jax.vmap(lambda p: _param_features(skeleton, p) @ projection)(params)
+
+
+@jax.jit
+def _solve_params(skeleton: LinearFaceModel, projection, params, count, gram, sym, previous, anchored, lam, lower,
+                  upper, tol, max_iter):
+    """Weights and head rotations of a window of parameters (frames from ``count`` on are padding): each
+    frame's right-hand side is made inside the solver's frame loop, so a frame's arithmetic is the same
+    whatever window or chunk it is solved in."""
+    weights, info = solve_frames(lambda p: _param_features(skeleton, p) @ projection, params, gram, sym, previous,
+                                 anchored, lam, lower, upper, tol, max_iter, count=count)
+    return weights, info, rodrigues(params[:, PARAM_DIM - 3:])
+
+
 class Retargeter:
     """The precomputed retargeting of one kind of motion onto one rig (module docstring).
 
     Build with :meth:`for_face` (56-d parameters on a face model) or :meth:`for_mesh` (vertex sequences
     on a mesh); then :meth:`__call__` a whole clip, or :meth:`init_stream` / :meth:`stream_step` chunk by
-    chunk (the smoothness term carries across chunks). Penalties and solver settings are traced: a new
-    :class:`Penalties` never recompiles; a new chunk length compiles once.
+    chunk (the smoothness term carries across chunks; the weights are the whole clip's). Penalties and
+    solver settings are traced: a new :class:`Penalties` never recompiles; chunk lengths share one program
+    per power of two.
     """
 
     def __init__(self, rig: Rig, *, neutral: np.ndarray, faces: np.ndarray, template: LinearFaceModel,
@@ -217,12 +302,14 @@ class Retargeter:
         np.add.at(bs, corners.reshape(-1), (bary[:, :, None, None] * np.moveaxis(basis, 0, -1)[:, None]).reshape(
             -1, 3, rig.num_shapes))
         dtype = jnp.result_type(float)
-        self._gram64 = gram / self._scale  # the lookahead's eigenvalues, in float64
-        self._lookaheads: dict[tuple[Penalties, float], tuple[int, float]] = {}
         self._gram = jnp.asarray(gram / self._scale, dtype)
         self._residual_args = (jnp.asarray(basis, dtype), jnp.asarray(corners), jnp.asarray(bary, dtype))
         self._bs = jnp.asarray(bs / self._scale, dtype)
         self._symmetry = jnp.asarray(symmetry_matrix(rig.pairs(), rig.num_shapes), dtype)
+        self._box = (jnp.zeros((rig.num_shapes,), dtype), jnp.ones((rig.num_shapes,), dtype))
+        if face is not None:  # parameters: the map from a frame's parameters to B^T d / scale, made once
+            self._projection = jnp.asarray(_param_projection(face, bs / self._scale), dtype)
+            self._skeleton = _skeleton_model(face, dtype)
 
     # ---- construction ------------------------------------------------------------------------------
     @classmethod
@@ -369,8 +456,6 @@ class Retargeter:
                 raise ValueError(f"motion must be (frames, {PARAM_DIM}) head parameters, got shape {x.shape}")
             if not np.all(np.isfinite(x)):
                 raise ValueError("motion holds NaN or inf")
-            from jaxtalk.face.model import rodrigues
-
             params = jnp.asarray(x, jnp.result_type(float))
             disp = _params_displacements(self.face, params)
             return disp, np.asarray(rodrigues(params[:, PARAM_DIM - 3:]), np.float64)
@@ -403,53 +488,37 @@ class Retargeter:
         """``B^T d / scale`` per frame, jitted."""
         return _rhs(self._bs, jnp.asarray(displacements, self._bs.dtype))
 
-    def lookahead(self, penalties: Penalties | None = None, tol: float = DEFAULT_TOL) -> tuple[int, float]:
-        """``(frames, bound)``: how many frames to solve past a window's end so that its last kept frame is the
-        whole clip's solve's to within ``tol``, and the bound that length gives (:data:`MAX_LOOKAHEAD` caps it).
+    def param_rhs(self, params: Float[np.ndarray, "frames 56"]) -> Float[Array, "frames k"]:
+        """``B^T d / scale`` of head parameters (a :meth:`for_face` retargeter) through the precomputed
+        projection, as the solver evaluates it frame by frame; what :meth:`rhs` of their
+        :meth:`displacements` gives, to rounding.
 
-        The smoothness term couples each frame to its neighbours only, so a change at one frame reaches a
-        frame ``d`` away damped by ``rho ** d``: for the slowest direction, the smallest eigenvalue ``h`` of
-        one frame's Hessian (the fit's Gram matrix plus the L2 and symmetry terms, in the solver's units),
-        ``s (2 w_t - w_{t-1} - w_{t+1}) + h w_t = 0`` decays with ``rho = a - sqrt(a^2 - 1)``, ``a = 1 + h / 2s``
-        (bounds the solution keeps active only steepen the decay). Ending the solve at the look-ahead's last
-        frame moves that frame's weights by at most the box's width (1), hence ``rho ** d <= tol``: about 330
-        frames for the built-in rig at the default penalties; none without smoothness (frames independent).
+        Raises:
+            ValueError: a retargeter of vertex sequences.
         """
-        penalties = penalties or self.penalties
-        if penalties.smoothness == 0:
-            return 0, 0.0
-        if (penalties, tol) not in self._lookaheads:  # a stream asks every chunk
-            self._lookaheads[penalties, tol] = self._lookahead(penalties, tol)
-        return self._lookaheads[penalties, tol]
-
-    def _lookahead(self, penalties: Penalties, tol: float) -> tuple[int, float]:
-        hessian = (self._gram64 + penalties.l2 * np.eye(self.rig.num_shapes)
-                   + penalties.symmetry * np.asarray(self._symmetry, np.float64))
-        h = max(float(np.linalg.eigvalsh(hessian)[0]), 0.0)
-        a = 1.0 + h / (2.0 * penalties.smoothness)
-        rho = a - np.sqrt(a * a - 1.0)
-        frames = MAX_LOOKAHEAD if rho >= 1.0 else min(MAX_LOOKAHEAD, int(np.ceil(np.log(tol) / np.log(rho))))
-        return max(frames, 1), float(rho ** max(frames, 1))
+        if self.face is None:
+            raise ValueError("param_rhs is for a retargeter of head parameters (Retargeter.for_face)")
+        return _param_rhs(self._skeleton, self._projection, jnp.asarray(params, self._projection.dtype))
 
     def __call__(self, motion: Any, *, previous: np.ndarray | None = None, penalties: Penalties | None = None,
                  tol: float = DEFAULT_TOL, max_iter: int = DEFAULT_MAX_ITER,
-                 window: int | None = DEFAULT_WINDOW) -> RetargetResult:
+                 window: int | None = DEFAULT_WINDOW, fit_error: bool = True) -> RetargetResult:
         """Retarget a clip: ``(T, 56)`` parameters (:meth:`for_face`) or ``(T, V, 3)`` vertices (:meth:`for_mesh`).
 
-        A clip longer than ``window`` plus the :meth:`lookahead` is solved a window at a time: each window of
-        ``window`` frames is solved together with the look-ahead after it (whose weights are dropped, then
-        solved again as the next window's), its first frame tied by the smoothness term to the last weights
-        already kept. Only the frames of the window being solved have per-vertex arrays (and those
-        :data:`_PIECE` frames at a time), so memory does not grow with the clip: a memory-mapped ``.npy``
-        is read a window at a time. Where two windows join, the weights are one whole-clip solve's to
-        within ``seam_bound`` (the solver's ``tol`` unless the look-ahead was capped).
+        A clip longer than ``window`` is solved a window at a time, each window tied by the smoothness term
+        to the last weights already kept: a frame's weights depend only on the frames up to it, so the
+        windows give the whole clip's weights. Only the frames of the window being solved have per-vertex
+        arrays (and those :data:`_PIECE` frames at a time), so memory does not grow with the clip: a
+        memory-mapped ``.npy`` is read a window at a time.
 
         Args:
             motion: the clip (any array-like that slices by frame: a NumPy array, a memory map).
             previous: the weights of the frame before it (a stream's last frame), or None.
             penalties: instead of the retargeter's own.
             tol, max_iter: the solver's stopping rule.
-            window: frames kept per window; None solves the whole clip at once (memory grows with it).
+            window: frames per window; None solves the whole clip at once (memory grows with it).
+            fit_error: measure ``rms_error`` (posing the motion's vertices for parameters; a live stream
+                that does not report it leaves it out, and ``rms_error`` is NaN).
 
         Raises:
             ValueError: a wrong shape, NaN or inf, a window below one frame.
@@ -458,29 +527,24 @@ class Retargeter:
         frames = self._frames(motion)
         if window is not None and (isinstance(window, bool) or int(window) != window or window < 1):
             raise ValueError(f"window must be a whole number of frames >= 1 (or None), got {window!r}")
-        ahead, bound = self.lookahead(penalties, tol)
-        if window is None or frames <= window + ahead:
-            span = keep = frames  # one solve of the whole clip
-        else:
-            span, keep = int(window) + ahead, int(window)
+        span = frames if window is None else min(int(window), frames)
         weights = np.empty((frames, self.rig.num_shapes))
         rotations = np.empty((frames, 3, 3))
         squared, iterations, seconds, windows, done = 0.0, 0, 0.0, 0, 0
         while done < frames:
-            # Every window is `span` frames (the last one ends at the clip's end and starts earlier), so
-            # one compiled solve serves them all; it is tied to the frame before it, already kept.
+            # Every window is `span` frames, so one compiled solve serves them all: the last one ends at the
+            # clip's end and starts earlier, solving again frames already kept (to the same weights: each
+            # depends only on the frames before it) from the weights kept before it.
             start = min(done, frames - span)
             anchor = previous if start == 0 else weights[start - 1]
-            stop = min(done + keep, frames)
-            w, rot, sq, info, spent = self._window(motion, start, start + span, done - start, stop - start, anchor,
-                                                   penalties, tol, max_iter)
-            weights[done:stop], rotations[done:stop] = w, rot
+            w, rot, sq, info, spent = self._window(motion, start, start + span, done - start, anchor, penalties, tol,
+                                                   max_iter, fit_error)
+            weights[done:start + span], rotations[done:start + span] = w, rot
             squared += sq
             iterations, seconds, windows = max(iterations, int(info.iterations)), seconds + spent, windows + 1
-            done = stop
-        rms = float(np.sqrt(squared / (frames * self.corners.shape[0])))
-        return RetargetResult(weights, rotations, head_angles(rotations), rms, iterations, seconds, windows,
-                              ahead if windows > 1 else 0, bound if windows > 1 else 0.0)
+            done = start + span
+        rms = float(np.sqrt(squared / (frames * self.corners.shape[0]))) if fit_error else float("nan")
+        return RetargetResult(weights, rotations, head_angles(rotations), rms, iterations, seconds, windows)
 
     def _frames(self, motion: Any) -> int:
         """The clip's frame count, its shape checked (values are checked a piece at a time)."""
@@ -495,31 +559,59 @@ class Retargeter:
                                  f"{shape}")
         return int(shape[0])
 
-    def _window(self, motion: Any, start: int, stop: int, first: int, last: int, anchor: np.ndarray | None,
-                penalties: Penalties, tol: float, max_iter: int) -> tuple[np.ndarray, np.ndarray, float, Any, float]:
-        """Solve frames ``[start, stop)``, tied to ``anchor``; keep ``[first, last)`` of them (window positions).
+    def _window(self, motion: Any, start: int, stop: int, first: int, anchor: np.ndarray | None,
+                penalties: Penalties, tol: float, max_iter: int, fit_error: bool
+                ) -> tuple[np.ndarray, np.ndarray, float, SolveInfo, float]:
+        """Solve frames ``[start, stop)``, tied to ``anchor``; keep those from ``first`` on (window positions).
 
-        Returns the kept weights and rotations, their summed squared residual, the solver's info and its time.
+        Returns the kept weights and rotations, their summed squared residual (0 without ``fit_error``), the
+        solver's info and its time.
         """
+        if self.face is not None:
+            dtype = np.dtype(self._gram.dtype)
+            params = np.asarray(motion[start:stop], dtype)
+            if not np.all(np.isfinite(params)):
+                raise ValueError("motion holds NaN or inf")
+            count = stop - start
+            # Frames past the clip's end round the count up to a power of two; the solver skips them.
+            padded = np.concatenate([params, np.repeat(params[-1:], bucket(count) - count, axis=0)])
+            prev = np.zeros(self.rig.num_shapes, dtype) if anchor is None else np.asarray(anchor, dtype)
+            clock = time.perf_counter()
+            # NumPy arguments: a jitted call takes them as they are, where jnp.asarray would dispatch a
+            # conversion each (a stream's chunk is short enough for that to show).
+            weights, info, rot = _solve_params(
+                self._skeleton, self._projection, padded, np.int32(count), self._gram, self._symmetry, prev,
+                np.bool_(anchor is not None), penalties.as_array().astype(dtype), *self._box, dtype.type(tol),
+                np.int32(max_iter))
+            weights, rot = np.asarray(weights, np.float64)[:count], np.asarray(rot, np.float64)[:count]
+            spent = time.perf_counter() - clock
+            squared = 0.0
+            if fit_error:
+                for a in range(first, count, _PIECE):
+                    b = min(a + _PIECE, count)
+                    disp, _ = self.displacements(params[a:b])
+                    squared += float(np.sum(self._squared_residuals(disp, weights[a:b]), dtype=np.float64))
+            return weights[first:], rot[first:], squared, info, spent
         rhs, kept = [], []
-        rotations = np.empty((last - first, 3, 3))
+        rotations = np.empty((stop - start - first, 3, 3))
         for a in range(0, stop - start, _PIECE):
             b = min(a + _PIECE, stop - start)
             disp, rot = self.displacements(motion[start + a:start + b])
             rhs.append(self.rhs(disp))
-            lo, hi = max(a, first), min(b, last)
-            if lo < hi:  # a piece with kept frames: its displacements wait for the weights' residual
-                kept.append((a, lo, hi, disp))
-                rotations[lo - first:hi - first] = rot[lo - a:hi - a]
+            if b > first:  # a piece with kept frames: its displacements wait for the weights' residual
+                lo = max(a, first)
+                kept.append((a, lo, disp))
+                rotations[lo - first:b - first] = rot[lo - a:]
         clock = time.perf_counter()
         weights, info = self.solve(jnp.concatenate(rhs), anchor, penalties=penalties, tol=tol, max_iter=max_iter)
         weights = jax.block_until_ready(weights)
         spent = time.perf_counter() - clock
         squared = 0.0
-        for a, lo, hi, disp in kept:
-            per_frame = self._squared_residuals(disp, weights[a:a + disp.shape[0]])
-            squared += float(np.sum(per_frame[lo - a:hi - a], dtype=np.float64))
-        return np.asarray(weights[first:last], np.float64), rotations, squared, info, spent
+        if fit_error:
+            for a, lo, disp in kept:
+                per_frame = self._squared_residuals(disp, weights[a:a + disp.shape[0]])
+                squared += float(np.sum(per_frame[lo - a:], dtype=np.float64))
+        return np.asarray(weights[first:], np.float64), rotations, squared, info, spent
 
     def _squared_residuals(self, displacements: Any, weights: Any) -> np.ndarray:
         dtype = self._bs.dtype
@@ -596,7 +688,9 @@ class Retargeter:
 
     def stream_step(self, state: StreamState, chunk: np.ndarray, **kw: Any) -> tuple[StreamState, RetargetResult]:
         """Retarget one chunk of a stream; its first frame is tied to the previous chunk's last by the
-        smoothness term. Returns the new state and the chunk's result."""
+        smoothness term, so the chunks' weights are those of their frames retargeted as one clip. ``kw``
+        goes to :meth:`__call__` (``fit_error=False`` skips the fit error, which poses the face's vertices).
+        Returns the new state and the chunk's result."""
         result = self(chunk, previous=state.previous, **kw)
         return StreamState(result.weights[-1].copy()), result
 

@@ -138,7 +138,8 @@ class ArkitOutput:
     """The 52 ARKit shape weights (in Live Link Face's order) and the head's yaw, pitch and roll (radians),
     solved per chunk onto the built-in ARKit rig (:func:`~jaxtalk.export.arkit_rig`) by the retargeting
     solver (:class:`~jaxtalk.export.Retargeter`). The per-client state is the solver's last frame, which
-    the smoothness term ties the next chunk's first frame to, so a stream has no jumps at chunk seams.
+    the smoothness term ties the next chunk's first frame to: a stream's weights are those ``jaxtalk
+    retarget`` gives its whole motion (the solver looks back only), with no jumps at chunk seams.
     """
 
     name = "arkit"
@@ -158,7 +159,8 @@ class ArkitOutput:
         params = np.asarray(params, np.float32)
         if params.shape[0] == 0:
             return state, np.zeros((0, len(self.channels)), np.float32)
-        state, result = self.retargeter.stream_step(state, params)
+        # The fit error would pose the face's vertices, the one per-vertex cost left: nobody reads it here.
+        state, result = self.retargeter.stream_step(state, params, fit_error=False)
         return state, np.concatenate([result.weights, result.head_angles], axis=1).astype(np.float32)
 
     def describe(self) -> dict[str, Any]:
