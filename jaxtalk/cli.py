@@ -606,7 +606,7 @@ def retarget(
                                                         "(68,) vertex indices (.npy/.txt), to register it by (as "
                                                         "sample's --landmarks align a mesh).")] = None,
     fps: Annotated[float, typer.Option(help="Frame rate of a vertex sequence (an .npz states its own).")] = 25.0,
-    smoothness: Annotated[float, typer.Option(help="Temporal smoothness of the weights (0: frames independent).")] = 0.05,
+    smoothness: Annotated[float, typer.Option(help="Temporal smoothness of the weights (0: frames independent).")] = 0.01,
     l1: Annotated[float, typer.Option(help="L1 penalty (sparser weights).")] = 0.0,
     l2: Annotated[float, typer.Option(help="L2 penalty.")] = 1e-4,
     symmetry: Annotated[float, typer.Option(help="Tie of left/right shape pairs (found by name).")] = 0.0,

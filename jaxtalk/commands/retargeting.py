@@ -56,7 +56,7 @@ class RetargetOptions:
     units: str | None = None
     landmarks: Path | None = None
     fps: float = MOTION_FPS
-    smoothness: float = 0.05
+    smoothness: float = 0.01
     l1: float = 0.0
     l2: float = 1e-4
     symmetry: float = 0.0

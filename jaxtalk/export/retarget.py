@@ -70,7 +70,7 @@ __all__ = ["Retargeter", "RetargetResult", "Registration", "StreamState", "retar
            "DEFAULT_PENALTIES", "DEFAULT_MAX_DISTANCE", "DEFAULT_WINDOW"]
 
 # What `jaxtalk retarget` uses unless told otherwise: a little smoothing and ridge, no sparsity or symmetry.
-DEFAULT_PENALTIES = Penalties(smoothness=0.05, l1=0.0, l2=1e-4, symmetry=0.0)
+DEFAULT_PENALTIES = Penalties(smoothness=0.01, l1=0.0, l2=1e-4, symmetry=0.0)
 # Rig vertices farther than this (template metres) from the motion's mesh after registration are not fitted.
 DEFAULT_MAX_DISTANCE = 0.01
 # The fraction of the fitted rig vertices, those the rig's shapes move least, that Procrustes on a vertex
