@@ -3,7 +3,9 @@
 ears, a BFM-style mask, the head as a noisy scan, and menpo3d's head scan and FLAME's template with masks
 cut from them where they are on disk), a face kit (MediaPipe's face with its eyes and mouth open and
 eyeballs, teeth and lashes of their own) and a captured-style head (deep skull, short tilted neck, so that
-its longest axis runs from the chin to the back of the skull; with eyeballs, teeth and lashes), each in 20
+its longest axis runs from the chin to the back of the skull; with eyeballs, teeth and lashes) and, where
+``experiments/fetch_ict_face_kit.sh`` has fetched it, a public face kit as shipped (the ICT Face Model's
+neutral head: centimetres, 12 materials, eyes, lashes, teeth, gums and tongue), each in 20
 random poses (scipy's ``Rotation.random`` seeded, and a shift of up to 1.5 m), the poses taking turns in
 millimetres, centimetres and metres.
 
@@ -41,7 +43,9 @@ UNIT_CYCLE = ("mm", "cm", "m")
 
 def _shapes() -> list[fs.Shape]:
     kit = fs.with_inner_parts(fs.mediapipe_face(), holes=True, lashes=True)
-    return [*canonical_alignment._shapes(), kit, fs.captured_head()]
+    shapes = [*canonical_alignment._shapes(), kit, fs.captured_head()]
+    public_kit = fs.ict_face_kit()  # bash experiments/fetch_ict_face_kit.sh
+    return shapes if public_kit is None else [*shapes, public_kit]
 
 
 def _summary(values: list[float]) -> dict[str, float] | None:

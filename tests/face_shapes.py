@@ -31,6 +31,13 @@ REAL_SCAN = ROOT / ".cache" / "assets" / "james.obj"
 # its landmark_embedding as .npz with full_faces / full_bary) puts it here.
 FLAME_TEMPLATE = ROOT / ".cache" / "assets" / "flame_head_template.obj"
 FLAME_LANDMARKS = ROOT / ".cache" / "assets" / "flame_landmarks.npz"
+# The ICT Face Model's neutral head (``experiments/fetch_ict_face_kit.sh``) and its 68 Multi-PIE landmarks,
+# as its README lists them (0-based vertex indices).
+ICT_FACE_KIT = ROOT / ".cache" / "assets" / "ict_face_kit.obj"
+ICT_LANDMARKS = (1225, 1888, 1052, 367, 1719, 1722, 2199, 1447, 966, 3661, 4390, 3927, 3924, 2608, 3272, 4088, 3443,
+                 268, 493, 1914, 2044, 1401, 3615, 4240, 4114, 2734, 2509, 978, 4527, 4942, 4857, 1140, 2075, 1147,
+                 4269, 3360, 1507, 1542, 1537, 1528, 1518, 1511, 3742, 3751, 3756, 3721, 3725, 3732, 5708, 5695, 2081,
+                 0, 4275, 6200, 6213, 6346, 6461, 5518, 5957, 5841, 5702, 5711, 5533, 6216, 6207, 6470, 5517, 5966)
 
 # iBUG-68 indices of the semantic points checked after alignment.
 SEMANTIC = {"nose tip": 30, "mouth corner r": 48, "mouth corner l": 54, "eye outer r": 36, "eye inner r": 39,
@@ -184,6 +191,19 @@ def flame_template() -> Shape | None:
     emb = np.load(FLAME_LANDMARKS)
     landmarks = np.einsum("nk,nkd->nd", emb["full_bary"].reshape(-1, 3), v[f[emb["full_faces"].reshape(-1)]])
     return Shape("FLAME template head", v, f, landmarks[list(SEMANTIC.values())])
+
+
+def ict_face_kit() -> Shape | None:
+    """The ICT Face Model's neutral head as its kit ships it (26,719 vertices, centimetres, 12 materials: skin,
+    neck, scleras, irises, lashes, teeth, gums and tongue...) with its own 68 landmarks, or None when
+    ``experiments/fetch_ict_face_kit.sh`` has not fetched it."""
+    from jaxtalk.geometry.canonical import load_mesh
+
+    if not ICT_FACE_KIT.is_file():
+        return None
+    v, f = load_mesh(ICT_FACE_KIT)
+    points = v[np.asarray(ICT_LANDMARKS)[list(SEMANTIC.values())]]
+    return Shape("ICT Face Model kit (cm, eyes, lashes, teeth, gums)", v * 1e-2, f, points * 1e-2)
 
 
 def posed(seed: int, *arrays: np.ndarray) -> list[np.ndarray]:

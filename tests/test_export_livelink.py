@@ -110,6 +110,17 @@ def test_a_rigs_weights_and_head_angles_become_the_61_curves_a_packet_carries():
     assert every[0, :52].min() == 1.0 and not every[0, 52:].any()
 
 
+def test_a_shape_of_both_sides_split_into_halves_is_the_curve_of_their_mean():
+    # ICT-FaceKit splits ARKit's browInnerUp and cheekPuff into _L / _R halves; a whole shape wins over halves.
+    names = ["browInnerUp_L", "browInnerUp_R", "cheekPuff_L", "cheekPuff_R", "cheekPuff", "mouthClose_L"]
+    weights = np.array([[0.2, 0.6, 0.9, 0.1, 0.3, 0.8]])
+    out = live_link_curves(names, weights)
+    index = {name: i for i, name in enumerate(LIVE_LINK_CURVES)}
+    assert out[0, index["BrowInnerUp"]] == pytest.approx(0.4)
+    assert out[0, index["CheekPuff"]] == pytest.approx(0.3)
+    assert out[0, index["MouthClose"]] == 0.0 and np.count_nonzero(out[0]) == 2  # one half alone is no curve
+
+
 @pytest.mark.parametrize("text, want", [
     ("10.0.0.5:9000", ("10.0.0.5", 9000)), (":9000", ("127.0.0.1", 9000)), ("9000", ("127.0.0.1", 9000)),
     ("studio-pc", ("studio-pc", 11111)), ("[::1]:7000", ("::1", 7000)), ("localhost", ("localhost", 11111)),

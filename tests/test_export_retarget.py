@@ -284,6 +284,21 @@ def test_glb_and_obj_folder_rigs_load_back_as_written(tmp_path):
     np.testing.assert_allclose(objs.deltas[0], rig.deltas[17], atol=1e-6)
 
 
+def test_an_obj_folder_rig_finds_its_neutral_by_a_word_of_its_name(tmp_path):
+    rig = low_rig()
+    folder = tmp_path / "kit"
+    folder.mkdir()
+    _write_obj(folder / "generic_neutral_mesh.obj", rig.neutral, rig.faces)  # as ICT-FaceKit names it
+    _write_obj(folder / "jawOpen.obj", rig.neutral + rig.deltas[17], rig.faces)
+    _write_obj(folder / "mouthSmile_L.obj", rig.neutral + rig.deltas[23], rig.faces)
+    objs = load_rig(folder)
+    assert objs.names == ("jawOpen", "mouthSmile_L")
+    np.testing.assert_allclose(objs.neutral, rig.neutral, atol=1e-6)
+    _write_obj(folder / "neutral.obj", rig.neutral, rig.faces)
+    with pytest.raises(ValueError, match="several neutral shapes"):
+        load_rig(folder)
+
+
 # ---- retargeting -----------------------------------------------------------------------------------------
 def rig_animation(frames: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from jaxtalk.export.arkit import ARKIT_NAMES, LIVE_LINK_CURVES
-from jaxtalk.export.rig import arkit_shape_name
+from jaxtalk.export.rig import arkit_halves, arkit_shape_name
 from jaxtalk.files import atomic_output, check_output_path
 from jaxtalk.types import Float
 
@@ -51,7 +51,8 @@ def live_link_timecode(frame: int, fps: float | int) -> str:
 
 def arkit_weights(names: tuple[str, ...] | list[str], weights: Float[np.ndarray, "frames k"]
                   ) -> Float[np.ndarray, "frames 52"]:
-    """A rig's weights in ARKit's 52 (Live Link order), matched by name; shapes it lacks are 0."""
+    """A rig's weights in ARKit's 52 (Live Link order), matched by name; a shape of both sides that the rig
+    splits into halves is their mean (:func:`~jaxtalk.export.rig.arkit_halves`); shapes it lacks are 0."""
     w = np.asarray(weights, np.float64)
     out = np.zeros((w.shape[0], len(ARKIT_NAMES)))
     index = {n: i for i, n in enumerate(ARKIT_NAMES)}
@@ -61,6 +62,8 @@ def arkit_weights(names: tuple[str, ...] | list[str], weights: Float[np.ndarray,
         if arkit is not None and arkit not in seen:
             out[:, index[arkit]] = w[:, k]
             seen.add(arkit)
+    for arkit, (left, right) in arkit_halves(names).items():
+        out[:, index[arkit]] = (w[:, left] + w[:, right]) / 2
     return out
 
 

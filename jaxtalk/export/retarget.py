@@ -113,12 +113,13 @@ class Registration:
 
     def describe(self) -> str:
         """One line: how the rig was registered and how many of its vertices the fit uses."""
+        from jaxtalk.geometry.canonical import describe_parts
+
         via = " via MediaPipe's canonical face" if self.reference == "mediapipe" else ""
         line = (f"registered ({self.method}{via}, units {self.units}): {self.fitted} of {self.total} rig vertices on "
                 f"the motion's mesh, mean distance {self.residual * 1e3:.2f} mm")
         if self.ignored:
-            line += (f"; left out of the alignment: {len(self.ignored)} separate parts lying inside the rest "
-                     f"({', '.join(str(n) for n in self.ignored)} vertices)")
+            line += f"; left out of the alignment: {describe_parts(self.ignored)}"
         return line
 
 

@@ -27,11 +27,12 @@ import numpy as np
 from jaxtalk.export.arkit import ARKIT_NAMES
 from jaxtalk.types import Float, Int
 
-__all__ = ["Rig", "load_rig", "arkit_rig", "arkit_shape_name", "check_arkit_names", "symmetric_pairs", "side_of",
-           "NEUTRAL_NAMES", "RIG_SUFFIXES"]
+__all__ = ["Rig", "load_rig", "arkit_rig", "arkit_shape_name", "arkit_halves", "check_arkit_names", "symmetric_pairs",
+           "side_of", "NEUTRAL_NAMES", "RIG_SUFFIXES"]
 
 RIG_SUFFIXES = (".glb", ".gltf")
-# File stems (lower case) that name the neutral of an OBJ folder.
+# Words that name the neutral of an OBJ folder: the whole file stem (lower case) or one of its words
+# between _ - . or spaces, as kits name it (ICT-FaceKit's generic_neutral_mesh.obj).
 NEUTRAL_NAMES = ("neutral", "base", "basis", "rest", "default")
 
 _ARKIT_LOWER = {n.lower(): n for n in ARKIT_NAMES}
@@ -63,6 +64,24 @@ def arkit_shape_name(name: str) -> str | None:
     """
     stem, side = side_of(name)
     return _ARKIT_LOWER.get((stem + (side or "")).lower())
+
+
+def arkit_halves(names: Sequence[str]) -> dict[str, tuple[int, int]]:
+    """ARKit's shapes of both sides at once (``browInnerUp``, ``cheekPuff``, ...) that a rig splits into a left
+    and a right half (ICT-FaceKit's ``browInnerUp_L`` / ``browInnerUp_R``) and has no whole shape for.
+
+    Returns:
+        ARKit name -> ``(left, right)`` shape indices; ARKit's curve is the mean of the two halves' weights
+        (both halves at ``w`` make the whole shape at ``w``).
+    """
+    whole = {arkit_shape_name(n) for n in names}
+    sides: dict[str, dict[str, int]] = {}
+    for i, name in enumerate(names):
+        stem, side = side_of(name)
+        arkit = _ARKIT_LOWER.get(stem.lower())
+        if side is not None and arkit is not None and arkit not in whole:
+            sides.setdefault(arkit, {}).setdefault(side, i)
+    return {arkit: (s["Left"], s["Right"]) for arkit, s in sides.items() if len(s) == 2}
 
 
 def symmetric_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
@@ -188,10 +207,11 @@ class Rig:
 
     def describe(self) -> str:
         """One line for a user."""
-        arkit, pairs = len(self.arkit), len(self.pairs())
+        arkit, pairs, halves = len(self.arkit), len(self.pairs()), sorted(arkit_halves(self.names))
         head = f", head bone {self.head_bone!r}" if self.head_bone else ""
+        split = f", {', '.join(halves)} from left and right halves" if halves else ""
         return (f"rig {self.name!r}: {self.num_vertices} vertices, {self.faces.shape[0]} triangles, "
-                f"{self.num_shapes} shapes ({arkit} ARKit-named, {pairs} left/right pairs){head}")
+                f"{self.num_shapes} shapes ({arkit} ARKit-named{split}, {pairs} left/right pairs){head}")
 
 
 # ---- loading ---------------------------------------------------------------------------------------
@@ -206,7 +226,8 @@ def load_rig(path: str | Path) -> Rig:
     A bone whose name holds ``head`` (else ``neck``) in the mesh's skin is the head bone, its rest
     position the head's pivot.
 
-    OBJ folder: ``neutral.obj`` (or ``base`` / ``basis`` / ``rest`` / ``default``) and one OBJ per shape,
+    OBJ folder: ``neutral.obj`` (or ``base`` / ``basis`` / ``rest`` / ``default``, alone or as a word of
+    the name: ``generic_neutral_mesh.obj``) and one OBJ per shape,
     each with the neutral's vertices in the same order; a shape is named by its file's stem.
 
     Raises:
@@ -313,7 +334,7 @@ def _load_obj_folder(folder: Path) -> Rig:
     from jaxtalk.geometry.canonical import load_mesh
 
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".obj" and p.is_file())
-    neutral_files = [p for p in files if p.stem.lower() in NEUTRAL_NAMES]
+    neutral_files = [p for p in files if set(re.split(r"[_.\- ]+", p.stem.lower())) & set(NEUTRAL_NAMES)]
     if not neutral_files:
         raise ValueError(f"{str(folder)!r} holds no neutral shape: name it neutral.obj (found {len(files)} OBJ files)")
     if len(neutral_files) > 1:

@@ -68,6 +68,7 @@ from jaxtalk.types import Float, Int
 
 __all__ = [
     "UNITS",
+    "describe_parts",
     "umeyama",
     "MESH_SUFFIXES",
     "FACE_EXTENT_M",
@@ -159,6 +160,17 @@ _USER_POINTS = 20000
 Pose = tuple[float, np.ndarray, np.ndarray]  # (scale, rotation, translation): x -> scale * rotation @ x + translation
 
 
+def describe_parts(ignored: tuple[int, ...], shown: int = 6) -> str:
+    """The separate parts an alignment left out, for a person: ``"3 separate parts lying inside the rest
+    (642, 642, 386 vertices)"``; past ``shown`` parts, the largest and the total (a face kit has dozens).
+    Named by size, not by kind: eyeballs and teeth look like this, and so do a scan's loose bits."""
+    many = len(ignored) > shown
+    counts = ", ".join(str(n) for n in ignored[:shown]) + (", ..." if many else "")
+    total = f"; {sum(ignored)} vertices in all" if many else ""
+    return (f"{len(ignored)} separate part{'s' if len(ignored) > 1 else ''} lying inside the rest "
+            f"({counts} vertices{total})")
+
+
 @dataclasses.dataclass(frozen=True)
 class Canonicalization:
     """``x_template = scale * rotation @ x_user + translation`` (``x_user`` in the user's units).
@@ -198,10 +210,7 @@ class Canonicalization:
         line = (f"units {self.units}, aligned to the template by {self.method}{via} (scale {self.fitted_scale:.3f}, "
                 f"mean distance {self.residual * 1000:.1f} mm)")
         if self.ignored:
-            counts = ", ".join(str(n) for n in self.ignored)
-            # Named by size, not by kind: eyeballs and teeth look like this, and so do a scan's loose bits.
-            line += (f"; left out {len(self.ignored)} separate part{'s' if len(self.ignored) > 1 else ''} lying inside "
-                     f"the rest ({counts} vertices)")
+            line += f"; left out {describe_parts(self.ignored)}"
         return line
 
     def to_template(self, points: Float[np.ndarray, "*n 3"]) -> Float[np.ndarray, "*n 3"]:
