@@ -47,7 +47,7 @@ WORKER = textwrap.dedent('''
     else:  # TIMAR small, turn by turn (its only mode: no whole-sequence variant)
         from jaxtalk.models.timar.config import TimarConfig
         from jaxtalk.models.timar.model import init_params
-        from jaxtalk.models.timar.stream import stream_conversation
+        from jaxtalk.models.timar.streaming import stream_conversation
         cfg = TimarConfig.small()
         params = init_params(cfg, jax.random.key(0))
         frames = int(minutes * 60) * cfg.frames_per_turn

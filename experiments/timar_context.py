@@ -35,7 +35,7 @@ from timar_common import (  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_training_args(ap)
-    ap.add_argument("--cfg-scale", type=float, default=1.5)
+    ap.add_argument("--cfg-scale", type=float, default=0.5, help="guidance weight w (the paper's omega - 1)")
     ap.add_argument("--contexts", default="0,1,3,7")
     ap.add_argument("--modes", default="sample,mean",
                     help="sample = 5-step DDIM samples (the paper); mean = the guided posterior mean (point estimate)")

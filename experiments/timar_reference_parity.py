@@ -283,8 +283,8 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
     from jaxtalk.models.timar.convert import convert_state_dict, infer_config
     from jaxtalk.models.timar.encoder import TimarEncoder
     from jaxtalk.models.timar.head import apply_head
-    from jaxtalk.models.timar.sample import respaced_schedule
-    from jaxtalk.models.timar.stream import init_stream, stream_step
+    from jaxtalk.models.timar.sampling import respaced_schedule
+    from jaxtalk.models.timar.streaming import init_stream, stream_step
     from jaxtalk.models.timar.tokens import turn_layout
     from jaxtalk.masks import mask_to_bias
     from jaxtalk.samplers.diffusion import DiffusionState, _tables, ddpm_step
@@ -368,7 +368,8 @@ def _jaxtalk_turn_speech(ref: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def ref_cfg(args: dict) -> float:
-    return float(args.get("cfg", CFG))
+    """jaxtalk's guidance weight for the public code's ``--cfg`` omega (``u + omega (c - u)``): omega - 1."""
+    return float(args.get("cfg", CFG)) - 1.0
 
 
 def differences(stages: dict[str, tuple[np.ndarray, np.ndarray, bool]]) -> list[tuple[str, float, float, bool]]:

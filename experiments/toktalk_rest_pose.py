@@ -15,7 +15,7 @@ import numpy as np
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.runs import _restore_state, build_config, checkpoint_dir, model_spec
 from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
-from jaxtalk.models.toktalk.stream import stream
+from jaxtalk.models.toktalk.streaming import stream
 from jaxtalk.face import builtin_face
 run, step, split = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 data = PreparedData(".cache/prepared/synthtalk-small-seed0")

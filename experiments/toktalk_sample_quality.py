@@ -33,7 +33,7 @@ from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.loss import flow_matching_terms
 from jaxtalk.models.toktalk.noise import prior_noise
 from jaxtalk.models.toktalk.model import Condition, frames_for_tokens, interpolate_tokens, to_flow_space, velocity
-from jaxtalk.models.toktalk.sample import default_grid
+from jaxtalk.models.toktalk.sampling import default_grid
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

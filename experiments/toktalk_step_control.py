@@ -101,8 +101,8 @@ def score(run_dir: Path, nods: Path, *, step_counts: list[int], temperatures: li
     from jaxtalk.face import builtin_face
     from jaxtalk.metrics import lve, mve
     from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
-    from jaxtalk.models.toktalk.sample import default_grid
-    from jaxtalk.models.toktalk.stream import stream
+    from jaxtalk.models.toktalk.sampling import default_grid
+    from jaxtalk.models.toktalk.streaming import stream
     from jaxtalk.runs import load_run
     from jaxtalk.train.recipes import spread
 

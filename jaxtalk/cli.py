@@ -316,7 +316,20 @@ _OUT = Annotated[Path | None, typer.Option(help="Output .npz, replaced if it exi
                                                  "the input, which needs --overwrite to replace a file).")]
 _STYLE = Annotated[Path | None, typer.Option(help="TokTalk: reference motion .npz for the speaking style.")]
 _PARTNER = Annotated[Path | None, typer.Option(help="TIMAR: the partner's audio (default: silence).")]
-_CFG = Annotated[float | None, typer.Option(help="Guidance scale (default: the model's).")]
+_CFG = Annotated[float | None, typer.Option(help="Guidance weight w of (1 + w) cond - w uncond: 0 = none, -1 = "
+                                                 "unconditional (every model; the default is the run's).")]
+def _step_counts(values: list[str]) -> tuple[int, ...]:
+    """``eval --sample-steps``: one whole number per use (as ``sample`` and ``stream`` take it)."""
+    for value in values:
+        if "," in value:
+            raise ValueError(f"--sample-steps takes one number per use, as in sample and stream; for several, "
+                             f"repeat it: {' '.join('--sample-steps ' + v.strip() for v in value.split(','))}")
+    try:
+        return tuple(int(v) for v in values)
+    except ValueError:
+        raise ValueError(f"--sample-steps must be a whole number of steps, got {values!r}") from None
+
+
 _SAMPLE_STEPS = Annotated[int | None, typer.Option("--sample-steps", help="Sampler steps: Euler (TokTalk) or DDIM / DDPM "
                                                                            "(ATS, TIMAR) (default: the model's).")]
 _TEMPERATURE = Annotated[float | None, typer.Option(help="Scale of the sampler's noise, >= 0 (TokTalk: the starting "
@@ -397,8 +410,9 @@ def eval_(
     cache_dir: Annotated[Path, typer.Option(help="Where synthtalk: data is prepared.")] = Path(".cache/prepared"),
     best: Annotated[bool, typer.Option(help="Evaluate the best-validated checkpoint (checkpoint/best).")] = False,
     sample_steps: Annotated[
-        str | None, typer.Option(help="TokTalk: Euler step counts, comma separated (one row each; default the "
-                                      "run's sample_steps), e.g. 1,10.")
+        list[str] | None, typer.Option("--sample-steps", help="TokTalk: Euler steps, one table each; repeat it for "
+                                                               "several: --sample-steps 1 --sample-steps 10 (default "
+                                                               "the run's sample_steps).")
     ] = None,
     offline: Annotated[bool, typer.Option(help="TokTalk: also sample whole clips offline (full attention).")] = False,
     temperature: _TEMPERATURE = None,
@@ -425,10 +439,7 @@ def eval_(
     if json_out is not None:
         # Every file inside the run folder is an input of eval (its history, checkpoints, assets).
         claim_outputs([Output(json_out, named=True)], inputs=[run, flame, real_voice])
-    try:
-        steps = tuple(int(s) for s in sample_steps.split(",")) if sample_steps else ()
-    except ValueError:
-        raise ValueError(f"--sample-steps must be comma-separated integers, got {sample_steps!r}") from None
+    steps = _step_counts(sample_steps or [])
     report = evaluate_run(EvalOptions(run_dir=run, data=data, split=split, max_clips=max_clips, seed=seed,
                                       flame=flame, cache_dir=cache_dir, best=best, sample_steps=steps,
                                       offline=offline, temperature=temperature, real_voice=real_voice),

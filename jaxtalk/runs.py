@@ -173,6 +173,30 @@ RENAMED_FIELDS = {
 }
 
 
+# The run record's format. 2: every model's cfg_scale is one guidance weight w (0 = no guidance); TIMAR's
+# records of format 1 hold the paper's omega = 1 + w.
+RUN_FORMAT = 2
+
+
+def _migrated(raw: dict[str, Any]) -> dict[str, Any]:
+    """A run record as today's jaxtalk reads it: renamed config fields under their current names and, from
+    format 1, TIMAR's guidance omega as the weight ``omega - 1`` (in ``config`` and the ``--set`` items)."""
+    raw = _renamed(raw.get("model", ""), raw)
+    if raw.get("format", 1) < 2 and raw.get("model") == "timar":
+        config = dict(raw.get("config", {}))
+        if "cfg_scale" in config:
+            config["cfg_scale"] = float(config["cfg_scale"]) - 1.0
+        items = []
+        for item in raw.get("items", []):
+            key, sep, value = item.partition("=")
+            try:
+                items.append(f"{key}={float(value) - 1.0:g}" if sep and key.strip() == "cfg_scale" else item)
+            except ValueError:
+                items.append(item)
+        raw = {**raw, "config": config, "items": items}
+    return {**raw, "format": RUN_FORMAT}
+
+
 def _renamed(model: str, raw: dict[str, Any]) -> dict[str, Any]:
     """A run record's dict with renamed config fields (in ``config`` and the ``--set`` items) under
     their current names."""
@@ -290,6 +314,7 @@ class RunRecord:
             (source and feature settings).
         seed: training seed.
         extra: what the recipe fitted on the training split (normalisers, meshes, window sizes).
+        format: the record's format (:data:`RUN_FORMAT`); an older record is brought up to it on loading.
     """
 
     model: str
@@ -301,6 +326,7 @@ class RunRecord:
     data: dict[str, Any]
     seed: int
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
+    format: int = RUN_FORMAT
 
     def save(self, run_dir: str | Path) -> Path:
         """Write ``run_dir/run.json`` (atomically) and return its path."""
@@ -321,7 +347,7 @@ class RunRecord:
             raise FileNotFoundError(f"{run_dir} is not a training run (no {RUN_FILE}; make one with `jaxtalk train`)")
         try:
             raw = json.loads(path.read_text())
-            return cls(**_renamed(raw.get("model", ""), raw))
+            return cls(**_migrated(raw))
         except (json.JSONDecodeError, TypeError) as err:
             raise ValueError(f"{path} is not a run record of this jaxtalk version ({err}); train it again") from None
 

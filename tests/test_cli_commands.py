@@ -186,6 +186,27 @@ def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise():
     assert RunRecord(**{**dataclasses.asdict(record), "config": config}).model_config().noise_frames == 2.0
 
 
+def test_a_timar_run_of_format_one_reads_its_guidance_omega_as_todays_weight(tmp_path):
+    import dataclasses
+    import json
+
+    from jaxtalk.models.timar import TimarConfig
+    from jaxtalk.runs import RUN_FORMAT, RunRecord
+
+    # Format 1 stored the paper's omega (u + omega (c - u)); today's cfg_scale is w = omega - 1.
+    config = {**dataclasses.asdict(TimarConfig.small()), "cfg_scale": 2.5}
+    raw = dict(model="timar", preset="small", items=["cfg_scale=2.5", "width=64"], config=config, train={},
+               optim={}, data={}, seed=0, extra={})
+    (tmp_path / "run.json").write_text(json.dumps(raw))
+    record = RunRecord.load(tmp_path)
+    assert record.format == RUN_FORMAT == 2
+    assert record.model_config().cfg_scale == 1.5 and record.items == ["cfg_scale=1.5", "width=64"]
+    # A record of today's format is read as written, and saving keeps the format.
+    record.save(tmp_path)
+    assert RunRecord.load(tmp_path).model_config().cfg_scale == 1.5
+    assert json.loads((tmp_path / "run.json").read_text())["format"] == 2
+
+
 @pytest.mark.slow
 def test_a_run_written_before_the_one_vocabulary_renames_samples_and_resumes(run, tmp_path):
     import json

@@ -102,7 +102,7 @@ def test_checker_reports_exactly_the_planted_upward_and_sideways_imports(tmp_pat
         "types.py": "import numpy\n",
         "data/__init__.py": "",
         # upward, hidden inside a function: still found
-        "data/features.py": "def f():\n    from jaxtalk.models.toktalk.sample import sample\n    return sample\n",
+        "data/features.py": "def f():\n    from jaxtalk.models.toktalk.sampling import sample\n    return sample\n",
         "data/ok.py": "from jaxtalk.types import Float\nfrom . import features\n",
         "train/__init__.py": "import jaxtalk.commands.training\n",  # a foundation importing an application
         "models/__init__.py": "",
@@ -114,7 +114,7 @@ def test_checker_reports_exactly_the_planted_upward_and_sideways_imports(tmp_pat
         "scratch.py": "",
     })
     assert layer_violations(package) == [
-        "jaxtalk/data/features.py -> jaxtalk.models.toktalk.sample",
+        "jaxtalk/data/features.py -> jaxtalk.models.toktalk.sampling",
         "jaxtalk/models/timar/loss.py -> jaxtalk.models.toktalk",
         "jaxtalk/models/toktalk/loss.py -> jaxtalk.cli",
         "jaxtalk/scratch.py -> unclassified",

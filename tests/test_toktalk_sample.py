@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from jaxtalk.models import toktalk as tt
-import importlib
 
-sample_mod = importlib.import_module("jaxtalk.models.toktalk.sample")  # the package re-exports sample()
+import jaxtalk.models.toktalk.sampling as sample_mod
 from jaxtalk.samplers import cosine_grid, uniform_grid
 
 CFG = tt.TokTalkConfig.tiny()

@@ -16,7 +16,7 @@ Each model is scored the way it is used:
   the upper face less than the truth); MOD (mm, mouth-opening distance); jitter (mm per frame^2, mean
   vertex acceleration).
 * TIMAR: every conversation side of the split whose partner is prepared is streamed turn by turn
-  (:func:`jaxtalk.models.timar.stream.stream`, standardised with the run's normaliser; a
+  (:func:`jaxtalk.models.timar.streaming.stream`, standardised with the run's normaliser; a
   partner without tracked motion is the run's still pose, as in training), and scored with the
   DualTalk benchmark (:func:`jaxtalk.metrics.conversation_metrics`) per group (exp, jaw, pose): FD,
   P-FD, MSE, SID (k-means fit on the ground truth) and rPCC, in the published scaling
@@ -316,7 +316,6 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
     from jaxtalk.metrics import jitter
     from jaxtalk.models import toktalk
     from jaxtalk.models.toktalk.model import frames_for_tokens
-    from jaxtalk.models.toktalk.sample import default_grid
 
     config = run.config
     clips = [i for i in data.split(split) if data.clips[i]["tokens"]]
@@ -362,13 +361,12 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
         gt = np.asarray(rec["motion"], np.float32)[:t]
         vg = np.asarray(face.vertices_seq(gt))
         for name, mode, steps in variants:
-            grid = default_grid(config, steps)
             if mode == "stream":
-                out = toktalk.stream(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid,
-                                     temperature=opts.temperature)
+                out = toktalk.stream(run.params, config, tokens, style_vec, jax.random.fold_in(key, n),
+                                     sample_steps=steps, temperature=opts.temperature)
             else:
-                out = toktalk.sample(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid,
-                                     temperature=opts.temperature)
+                out = toktalk.sample(run.params, config, tokens, style_vec, jax.random.fold_in(key, n),
+                                     sample_steps=steps, temperature=opts.temperature)
             pred = np.asarray(out, np.float32)[0][:t]
             scored = vertex_metrics(pred, gt, face, gt_vertices=vg, template=template)
             per[name].append(scored)
@@ -396,7 +394,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     from jaxtalk.models.timar.data import Normalizer
     from jaxtalk.data.conversation import side_streams
     from jaxtalk.models.timar.recipe import agent_sides
-    from jaxtalk.models.timar.stream import stream
+    from jaxtalk.models.timar.streaming import stream
 
     # The DualTalk baseline is scored on the same sides, normaliser and context, predicting each turn
     # from a window of its past turns and the whole current turn instead of streaming.

@@ -280,7 +280,7 @@ def sample_run(opts: SampleOptions) -> SampleResult:
                                      sample_steps=opts.sample_steps, temperature=opts.temperature)[:, :frames]
     else:
         from jaxtalk.models.timar.data import Normalizer
-        from jaxtalk.models.timar.stream import stream
+        from jaxtalk.models.timar.streaming import stream
 
         from jaxtalk.audio import load_audio
 
@@ -343,7 +343,7 @@ def _stream_audio(run: LoadedRun, audio: np.ndarray, opts: SampleOptions,
         timer(n, time.perf_counter() - t0, chunk_s, max(n - len(timer.ms), 1))
         return np.asarray(np.concatenate(outs), np.float32), audio, chunk_s
     from jaxtalk.models.timar.data import Normalizer
-    from jaxtalk.models.timar.stream import init_stream, stream_step
+    from jaxtalk.models.timar.streaming import init_stream, stream_step
 
     streams, audio, turns = _timar_inputs(run, audio, opts)
     f = config.frames_per_turn

@@ -26,8 +26,8 @@ from jaxtalk.models.toktalk.model import (
     to_flow_space,
     velocity,
 )
-from jaxtalk.models.toktalk.sample import sample, sample_long
-from jaxtalk.models.toktalk.stream import (
+from jaxtalk.models.toktalk.sampling import sample, sample_long
+from jaxtalk.models.toktalk.streaming import (
     AdapterState,
     StreamState,
     init_stream,

@@ -111,7 +111,8 @@ def sample(
         key: PRNG key for the starting noise (required unless ``noise`` is given).
         num_frames: expected number of frames (checked against the token count and rate).
         sample_steps: Euler steps (default ``config.sample_steps``; static).
-        ts: explicit ``(N + 1,)`` time grid (traced values); default: the cosine grid.
+        ts: an explicit ``(N + 1,)`` time grid instead (traced values); default: the cosine grid of
+            ``sample_steps`` steps.
         cfg_scale: guidance weight w (traced; default ``config.cfg_scale``).
         temperature: scale of the starting noise, drawn or given (traced; default ``config.temperature``).
         known: ``(B, T, param_dim)`` frames to inpaint, with ``known_mask`` ``(B, T)`` bool.

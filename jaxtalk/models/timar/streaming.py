@@ -38,7 +38,7 @@ from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.data.turns import check_streams
 from jaxtalk.checks import check_temperature
-from jaxtalk.models.timar.sample import MAR_TEMPERATURE, resolve_sampler, sample_frames
+from jaxtalk.models.timar.sampling import MAR_TEMPERATURE, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.masks import mask_to_bias
 from jaxtalk.nn.precision import compute_in
@@ -316,16 +316,16 @@ def stream_step(
         state: current :class:`StreamState`.
         user_speech, agent_speech: ``(B, F, speech_dim)`` this turn's speech features.
         user_motion: ``(B, F, 56)`` this turn's user motion.
-        cfg_scale: ``()`` omega (traced; default ``config.cfg_scale``).
+        cfg_scale: ``()`` guidance weight w, 0 = none (traced; default ``config.cfg_scale``).
         sample_steps: respaced diffusion steps (static; default ``config.sample_steps``).
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"``; None: the config's (see
-            :func:`~jaxtalk.models.timar.sample.sample_frames`).
+            :func:`~jaxtalk.models.timar.sampling.sample_frames`).
         eta: DDIM stochasticity (traced).
-        temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`;
-            None: MAR's default, :data:`~jaxtalk.models.timar.sample.MAR_TEMPERATURE`).
+        temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sampling.sample_frames`;
+            None: MAR's default, :data:`~jaxtalk.models.timar.sampling.MAR_TEMPERATURE`).
         guidance: must match the state.
         initial_noise, step_noise: explicit standard normal draws instead of the turn's key (see
-            :func:`~jaxtalk.models.timar.sample.sample_frames`; for reproducing another
+            :func:`~jaxtalk.models.timar.sampling.sample_frames`; for reproducing another
             implementation's random stream).
 
     Returns:
