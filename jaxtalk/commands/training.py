@@ -152,7 +152,7 @@ def recipe_for(model: str, preset: str = "small") -> tuple[Callable[..., Any], A
     """``(train function, default TrainSettings)`` of ``model``'s recipe for a config preset (from
     :data:`jaxtalk.runs.REGISTRY`)."""
     spec = model_spec(model)
-    return spec.train_fn(), spec.settings(preset)
+    return spec.train, spec.settings(preset)
 
 
 def split_overrides(model: str, items: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
