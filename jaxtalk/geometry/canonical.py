@@ -767,9 +767,9 @@ def face_reference(face: Any) -> tuple[Float[np.ndarray, "verts 3"], Int[np.ndar
     Args:
         face: a :class:`~jaxtalk.face.model.LinearFaceModel` (the built-in face or FLAME).
     """
-    from jaxtalk.models.freetalk.data import neutral_landmarks
+    from jaxtalk.types import PARAM_DIM
 
-    landmarks = neutral_landmarks(face).astype(np.float64)
+    landmarks = np.asarray(face.landmarks(np.zeros(PARAM_DIM, np.float32)), np.float64)
     return (np.asarray(face.template, np.float64), np.asarray(face.faces, np.int64),
             landmarks if np.all(np.isfinite(landmarks)) else None)
 
