@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from jaxtalk import benchmarking as bm
-from jaxtalk.data.formats import dualtalk_to_params56, load_npz
+from jaxtalk.data.formats import dualtalk_to_params56
+from jaxtalk.files import load_npz
 from jaxtalk.export import export_rig_animation, load_rig
 from jaxtalk.export.rig import arkit_halves, arkit_shape_name
 from jaxtalk.layout import JAW_OPEN_INDEX

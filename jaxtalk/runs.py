@@ -538,7 +538,7 @@ class LoadedRun:
         Raises:
             FileNotFoundError: a run without one (not TokTalk).
         """
-        from jaxtalk.data.formats import load_npy
+        from jaxtalk.files import load_npy
 
         path = self.run_dir / STYLE_FILE
         if not path.is_file():

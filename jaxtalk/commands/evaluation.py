@@ -266,7 +266,7 @@ def _same_tokenizer(run: LoadedRun, data: Any) -> bool:
     ours, theirs = run.run_dir / TOKENIZER_FILE, (data.root / data.manifest["tokenizer"]) if data.manifest.get("tokenizer") else None
     if not ours.is_file() or theirs is None or not theirs.is_file():
         return True
-    from jaxtalk.data.formats import load_npz
+    from jaxtalk.files import load_npz
 
     a, b = load_npz(ours), load_npz(theirs)
     return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)

@@ -200,7 +200,7 @@ def _toktalk_tokens(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
         tokenizer = _toktalk_tokenizer(run)
         audio = load_audio(opts.input)
         return np.asarray(tokenizer.encode(audio).embeddings, np.float32), audio
-    from jaxtalk.data.formats import load_npy
+    from jaxtalk.files import load_npy
 
     tokens = load_npy(opts.input, what="token file")
     if tokens.ndim != 2 or tokens.shape[1] != config.speech_dim or tokens.shape[0] < 1:

@@ -93,7 +93,7 @@ def read_landmarks(path: str | os.PathLike[str], vertices: np.ndarray) -> Float[
     if not p.is_file():
         raise FileNotFoundError(f"landmark file not found: {str(p)!r}")
     if p.suffix.lower() == ".npy":
-        from jaxtalk.data.formats import load_npy
+        from jaxtalk.files import load_npy
 
         arr = load_npy(p, what="landmark file")
     else:
