@@ -1,4 +1,4 @@
-"""Peak memory of offline sampling on long inputs (issue 32): whole-sequence vs bounded.
+"""Peak memory of offline sampling on long inputs: whole-sequence vs bounded.
 
 Every row runs in a fresh subprocess and reports its peak resident set size (``ru_maxrss``) and wall
 time. TokTalk's ``sample`` holds O(frames^2) attention (a 20-minute clip asked for 45 GB on the

@@ -1,4 +1,4 @@
-"""Where TIMAR loses the context (issue 29 §5): a linear probe on the head's conditions.
+"""Where TIMAR loses the context: a linear probe on the head's conditions.
 
 On the mimicry control corpus a ridge probe on the user's past motion explains +0.12 more of the
 agent's neck variance with 7 past turns than with none (``timar_context_control.py``), while TIMAR's

@@ -1,4 +1,4 @@
-"""TIMAR parity with the public reference code, number for number (issue 27).
+"""TIMAR parity with the public reference code, number for number.
 
 Builds the public code's ``TIMAR`` (``CoderChen01/towards-seamless-interaction``, ``model/timar.py``)
 at a given size with random weights (every parameter drawn at random, including the ones the code

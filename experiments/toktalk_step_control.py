@@ -1,4 +1,4 @@
-"""Positive control for TokTalk's step-count claim (issue 29 §5): a corpus where the step count must matter.
+"""Positive control for TokTalk's step-count claim: a corpus where the step count must matter.
 
 TokTalk's Table 5 says more Euler steps lower MSE and jitter. For a well-trained flow the maths says
 otherwise for MSE: one Euler step from t = 0 lands on ``z + v(z, 0, c)``, and the optimal velocity at

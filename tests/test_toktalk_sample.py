@@ -142,7 +142,7 @@ def test_sample_bad_input_errors(params):
         tt.sample(params, CFG, tokens, style)
 
 
-# ------------------------------------------------------------------ sample_long (issue 32, item 1)
+# ------------------------------------------------------------------ sample_long
 
 
 def test_sample_long_is_bitwise_sample_when_the_input_fits_one_window(params):
