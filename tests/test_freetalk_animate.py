@@ -413,3 +413,9 @@ def test_an_ats_run_recorded_before_the_vocabulary_setting_loads_as_emovoca():
     assert record.model_config().emotions == EMOTIONS
     with pytest.raises(ValueError, match="no vocabulary on record"):
         dataclasses.replace(record, config={**old, "num_emotions": 8}).model_config()
+
+
+def test_fitted_models_open_from_a_loaded_run_and_say_so_when_given_a_path():
+    for cls in (FittedATS, FittedSTM):
+        with pytest.raises(ValueError, match=r"from_run takes a loaded run: from_run\(jaxtalk.runs.load_run\('runs/x'\)\)"):
+            cls.from_run("runs/x")
