@@ -1,11 +1,11 @@
-"""The README's performance tables from ``jaxtalk bench`` JSON files (``--train`` adds the training table).
+"""The performance tables of docs/performance.md from ``jaxtalk bench`` JSON files (``--train`` adds the training table).
 
     jaxtalk bench --train --paper --out experiments/results/bench_all.json
     python experiments/bench_readme.py experiments/results/bench_all.json > /tmp/performance.md
 
 Prints Markdown per file: the machine and the limits the run measured, then one table per benchmark
-table of the run (every row, the columns that matter to a reader), so every table the README quotes
-names its run.
+table of the run (every row, the columns that matter to a reader), so every table docs/performance.md
+quotes names its run.
 """
 
 from __future__ import annotations
