@@ -276,8 +276,8 @@ def step_rate(setup: dict, batch: dict, repeats: int) -> dict:
         jax.block_until_ready(metrics)
         times.append(time.perf_counter() - t0)
     med = statistics.median(times[1:])
-    return {"step_ms": med * 1e3, "timed_steps": len(times) - 1, "steps_per_s": 1 / med, "needed_win_s": BATCH / med, "compile_s": compile_s,
-            "step_load": f"{load0}->{_load()}"}
+    return {"step_ms": med * 1e3, "timed_steps": len(times) - 1, "steps_per_s": 1 / med, "needed_win_s": BATCH / med,
+            "compile_s": compile_s, "step_load": f"{load0}->{_load()}"}
 
 
 def loader_vs_step(data: Any, seconds: float, repeats: int) -> list[dict]:

@@ -53,7 +53,8 @@ def performance_section(payload: dict[str, Any], titles: tuple[str, ...] = ()) -
             f"{m['cpu_model']}, {m['cpu_cores']} cores, backend {m['backend']} ({m['device_kind']}), "
             f"jax {m['jax']}, 1-minute load average {m['load_avg_1m']}; float32 matmul peak measured in the same "
             f"run: {payload['matmul_peak_gflop_s']:.0f} GFLOP/s"
-            + (f", memory bandwidth {payload['memory_bandwidth_gb_s']:.1f} GB/s." if payload.get("memory_bandwidth_gb_s") else "."))
+            + (f", memory bandwidth {payload['memory_bandwidth_gb_s']:.1f} GB/s."
+               if payload.get("memory_bandwidth_gb_s") else "."))
     parts = [head]
     for table in payload["tables"]:
         if titles and not table["title"].startswith(titles):

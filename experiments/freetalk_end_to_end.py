@@ -7,8 +7,9 @@ audio with the clip's own emotion label and intensity, i.e. the whole chain a us
 * ATS: an ``ats`` run folder (``--ats``; ``jaxtalk train ats --data synthtalk:small --set max_frames=50
   --set window_frames=50``), sampled over whole test clips with :func:`freetalk.animate.landmark_track`
   (training-length windows, cross-faded).
-* STM: trained here with its recipe on its seen meshes (identities 0-2 on three topologies), once with the paper's DiffusionNet decoder and once with the supplement's
-  per-vertex MLP decoder (the decoder-substitution ablation); each is a run folder under ``--work``.
+* STM: trained here with its recipe on its seen meshes (identities 0-2 on three topologies), once with
+  the paper's DiffusionNet decoder and once with the supplement's per-vertex MLP decoder (the
+  decoder-substitution ablation); each is a run folder under ``--work``.
 
 Table 1 (per mesh, seen / unseen identities and topologies, SynthTalk test clips, head pose removed):
 LVE (lips, mm^2), MVE (mm), FDD (upper face, mm^2) for the chain, for STM on the true landmarks

@@ -101,9 +101,11 @@ def main() -> None:
             m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=0.5,
                                 sampler=args.sampler), test_convs, corpus)
             n_params = sum(int(x.size) for x in jax.tree.leaves(res.state.eval_params))
-            record["variants"][label] = {**m, "steps": args.steps, "train_s": train_s, "final_loss": [h["loss"] for h in res.history if "loss" in h][-1],
+            record["variants"][label] = {**m, "steps": args.steps, "train_s": train_s,
+                                         "final_loss": [h["loss"] for h in res.history if "loss" in h][-1],
                                          "sampler": args.sampler, "params": n_params,
-                                         "layers": [cfg.num_layers, cfg.decoder_layers if cfg.architecture == "encoder_decoder" else 0],
+                                         "layers": [cfg.num_layers,
+                                                    cfg.decoder_layers if cfg.architecture == "encoder_decoder" else 0],
                                          "head": [cfg.head_blocks, cfg.head_width]}
     rows = [{"variant": k, "steps": v.get("steps"), "params": v.get("params"), **{key: v.get(key) for key in KEYS}}
             for k, v in record["variants"].items()]

@@ -275,7 +275,9 @@ def load_reference(path: str | Path) -> tuple[dict, dict[str, np.ndarray], dict[
     return args, state, outs
 
 
-def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray, bool]]:
+def jaxtalk_stages(
+    args: dict, state: dict[str, np.ndarray], ref: dict[str, np.ndarray]
+) -> dict[str, tuple[np.ndarray, np.ndarray, bool]]:
     """jaxtalk's value of every stage next to the reference's: ``{stage: (jaxtalk, reference, sampled)}``."""
     import jax
     import jax.numpy as jnp

@@ -5,8 +5,8 @@ with ``--seeds`` training seeds, evaluated at n = 0 / 1 / 3 / 7 turns of context
 out-of-distribution conversations (both roles of each) with the DualTalk metrics per group (FD, P-FD,
 MSE, SID, rPCC, published scaling), beside the mean pose (the training mean, every frame) and the
 oracle (the generator's expectation). TIMAR streams turn by turn (its config's sampler: 5-step DDIM
-samples for ``small``; ``mean`` rows, on the test split at n = 0 and 7, give its guided posterior mean); the baseline reads the window of
-turns ``[t - n, t]`` whole, as DualTalk reads a clip.
+samples for ``small``; ``mean`` rows, on the test split at n = 0 and 7, give its guided posterior
+mean); the baseline reads the window of turns ``[t - n, t]`` whole, as DualTalk reads a clip.
 
 Table 2 (variants at equal steps, n = 7, test): TIMAR's default against the MLP head, bidirectional
 attention, the MAE-style encoder-decoder and the diffusion head's depth K and width d_m (Table 5),

@@ -176,7 +176,8 @@ def main() -> None:
     finally:
         reference.close()
     shown = [{k: v for k, v in r.items() if not k.endswith("runs_s")} for r in rows]
-    print_table(shown, f"TokTalk paper chunk, {STEPS} Euler steps + CFG: jaxtalk vs CosyVoice's decoder (float32 peak {peak:.0f} GFLOP/s)")
+    print_table(shown, f"TokTalk paper chunk, {STEPS} Euler steps + CFG: jaxtalk vs CosyVoice's decoder "
+                       f"(float32 peak {peak:.0f} GFLOP/s)")
     write_json(args.out, {"machine": machine_info(), "matmul_peak_gflop_s": peak, "args": vars(args), "rows": rows})
 
 

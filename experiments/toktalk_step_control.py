@@ -175,7 +175,8 @@ def mean_pose_row(run_dir: Path, nods: Path, clips: int) -> dict:
         amp.append(np.abs(r).mean() / a)
         share.append((np.abs(r) > a / 2).mean())
         mse.append(((r - nod) ** 2).mean() / a**2)
-    return {"checkpoint": "mean pose", "amplitude": float(np.mean(amp)), "bimodal_share": float(np.mean(share)), "nod_mse": float(np.mean(mse))}
+    return {"checkpoint": "mean pose", "amplitude": float(np.mean(amp)), "bimodal_share": float(np.mean(share)),
+            "nod_mse": float(np.mean(mse))}
 
 
 def main() -> None:

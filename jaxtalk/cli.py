@@ -336,7 +336,8 @@ _TEMPERATURE = Annotated[float | None, typer.Option(help="Scale of the sampler's
                                                          "noise, default the model's; TIMAR: MAR's temperature, default "
                                                          "1); below 1 trades diversity for accuracy.")]
 _SEED = Annotated[int, typer.Option(help="Noise seed.")]
-_BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest selection metric: TokTalk's streamed lip error, else validation loss).")]
+_BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest selection metric: TokTalk's "
+                                            "streamed lip error, else validation loss).")]
 
 
 def _frames(count: int) -> str:
@@ -351,9 +352,12 @@ def sample(
     cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, temperature: _TEMPERATURE = None, seed: _SEED = 0,
     best: _BEST = False, overwrite: _OVERWRITE = False,
     stm: Annotated[Path | None, typer.Option(help="FreeTalk: the STM run that maps an ATS run's landmarks onto --mesh.")] = None,
-    mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).")] = None,
-    emotion: Annotated[str | None, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary (default neutral).")] = None,
-    intensity: Annotated[float | None, typer.Option(help="FreeTalk: emotion intensity, continuous in [1, levels] (default 1).")] = None,
+    mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, "
+                                                   "STL).")] = None,
+    emotion: Annotated[str | None, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary (default "
+                                                     "neutral).")] = None,
+    intensity: Annotated[float | None, typer.Option(help="FreeTalk: emotion intensity, continuous in [1, levels] "
+                                                         "(default 1).")] = None,
     units: Annotated[str | None, typer.Option(help="FreeTalk: the mesh's units, m|dm|cm|mm|um (default: from its size).")] = None,
     landmarks: Annotated[Path | None, typer.Option(help="FreeTalk: the mesh's 68 landmarks, (68, 3) positions or (68,) "
                                                         "vertex indices (.npy/.txt), to guide the alignment.")] = None,
@@ -465,7 +469,8 @@ def bench(
                                                         "step, FLOPs, fraction of peak, compile time, memory, loader "
                                                         "time per batch and the loop's host overhead.")] = False,
     preset: Annotated[list[str] | None, typer.Option("--preset", help="With --train: the presets to train, small or paper "
-                                                                     "(repeatable; default small, and paper with --paper).")] = None,
+                                                                     "(repeatable; default small, and paper with "
+                                                                     "--paper).")] = None,
     sampling: Annotated[bool, typer.Option(help="With --train: also the sampling tables of the chosen models.")] = True,
     data: Annotated[str, typer.Option(help="With --train: the prepared data the models train on (a folder or "
                                            "synthtalk:SIZE).")] = "synthtalk:tiny",
@@ -539,8 +544,9 @@ def bench(
                f"memory bandwidth {bandwidth:.1f} GB/s (start {bandwidths[0]:.1f}, end {bandwidths[1]:.1f})")
     for table in tables:
         _echo_table(table.rows, table.title)
-    payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "matmul_peaks_gflop_s": peaks, "memory_bandwidth_gb_s": bandwidth,
-                               "memory_bandwidths_gb_s": bandwidths, "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
+    payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "matmul_peaks_gflop_s": peaks,
+                               "memory_bandwidth_gb_s": bandwidth, "memory_bandwidths_gb_s": bandwidths,
+                               "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
     if train_models:
         payload["train"] = {"data": data, "presets": presets, "models": train_models, "set": list(set_ or ()),
                             "paper_batch": paper_batch}
@@ -604,8 +610,8 @@ def retarget(
                                           "a neutral.obj, or 'builtin' (the built-in 52-shape ARKit rig).")] = "builtin",
     out: Annotated[Path | None, typer.Option(help="Output .glb, replaced if it exists (default retarget.glb, which needs "
                                                   "--overwrite to replace a file); OUT.csv (Live Link Face), OUT.json and "
-                                                  "the audio OUT.glb.wav go beside it, and like the default they replace an existing file only "
-                                                  "with --overwrite.")] = None,
+                                                  "the audio OUT.glb.wav go beside it, and like the default they replace "
+                                                  "an existing file only with --overwrite.")] = None,
     audio: Annotated[Path | None, typer.Option(help="Audio to write beside the .glb (default: the audio stored in the "
                                                     ".npz).")] = None,
     mesh: Annotated[Path | None, typer.Option(help="The mesh file (OBJ, PLY, GLB/GLTF) a vertex sequence was animated "
@@ -627,7 +633,8 @@ def retarget(
     from jaxtalk.commands.retargeting import RetargetOptions, retarget_file
 
     retarget_file(RetargetOptions(motion=motion, rig=rig, out=out, audio=audio, mesh=mesh, flame=flame, units=units,
-                                  landmarks=landmarks, fps=fps, smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry, overwrite=overwrite),
+                                  landmarks=landmarks, fps=fps, smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry,
+                                  overwrite=overwrite),
                   echo=typer.echo)
 
 

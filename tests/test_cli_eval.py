@@ -2,8 +2,9 @@
 
 Tiny TokTalk, TIMAR and ATS runs are trained through the CLI for two steps on SynthTalk tiny, once per
 session (``trained_toktalk``, ``trained_timar``, ``trained_ats`` in conftest); STM, whose training renders
-several meshes (minutes), is evaluated from its initial parameters saved as a step-0 checkpoint. Scores of two-step models mean nothing, so the
-checks are on the wiring: the tables' shape, finite numbers, the mean-pose rows recomputed by hand from
+several meshes (minutes), is evaluated from its initial parameters saved as a step-0 checkpoint. Scores of
+two-step models mean nothing, so the checks are on the wiring: the tables' shape, finite numbers, the
+mean-pose rows recomputed by hand from
 the data, and the oracle beating the mean pose on SynthTalk. The real DualTalk demo clips (no oracle,
 audio-only partners) run through prepare, train and eval when ``../shared`` is present.
 """

@@ -57,7 +57,8 @@ def _pose(vertices: np.ndarray, seed: int, scale: float) -> tuple[np.ndarray, np
 def _speech(seconds: float, seed: int = 0) -> np.ndarray:
     t = np.arange(int(16000 * seconds)) / 16000
     rng = np.random.default_rng(seed)
-    return (0.3 * np.sin(2 * np.pi * 180 * t) * (1 + np.sin(2 * np.pi * 3 * t)) + 0.01 * rng.normal(size=t.size)).astype(np.float32)
+    return (0.3 * np.sin(2 * np.pi * 180 * t) * (1 + np.sin(2 * np.pi * 3 * t))
+            + 0.01 * rng.normal(size=t.size)).astype(np.float32)
 
 
 # -------------------------------------------------------------------------------------- units, pose

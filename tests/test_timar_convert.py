@@ -249,7 +249,7 @@ def test_cli_without_torch_is_one_line_and_writes_nothing(tmp_path):
                            "--features", f"wav2vec2:{w2v}"], capture_output=True, text=True, cwd=ROOT,
                           env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 2, proc.stderr
-    lines = [l for l in proc.stderr.splitlines() if l.strip()]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and TORCH_HINT in lines[0], proc.stderr
     assert not out.exists() and not list(tmp_path.glob(".run.*"))
 

@@ -15,12 +15,11 @@ from jaxtalk.models.timar.sampling import respaced_schedule
 from jaxtalk.models.timar.sampling import conditions as _conditions_eager
 from jaxtalk.models.timar.sampling import sample_frames as _sample_frames_eager
 
-conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
-sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler", "precompute"))
-
-
 # The package re-exports the function ``sample``; the module is needed for its jit cache.
 import jaxtalk.models.timar.sampling as sample_mod
+
+conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
+sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler", "precompute"))
 
 CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)
 B, N, F = 2, 2, 5

@@ -648,7 +648,9 @@ class TokenizerStream:
         """More samples needed before :meth:`push` emits the next group (0: it would now)."""
         return max(self._needed(self.tokens + self.group) - self.samples, 0)
 
-    def push(self, audio: Float[np.ndarray | Array, "..."]) -> tuple[Int[np.ndarray, " tokens"], Float[np.ndarray, "tokens width"]]:
+    def push(
+        self, audio: Float[np.ndarray | Array, "..."]
+    ) -> tuple[Int[np.ndarray, " tokens"], Float[np.ndarray, "tokens width"]]:
         """Add audio; return the ids and embeddings of every group it completes (possibly none).
 
         Raises:

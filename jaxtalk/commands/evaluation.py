@@ -263,7 +263,8 @@ def _same_tokenizer(run: LoadedRun, data: Any) -> bool:
     """Whether the data's tokens come from the tokenizer the run was trained with (unknown: True)."""
     from jaxtalk.runs import TOKENIZER_FILE
 
-    ours, theirs = run.run_dir / TOKENIZER_FILE, (data.root / data.manifest["tokenizer"]) if data.manifest.get("tokenizer") else None
+    ours, theirs = (run.run_dir / TOKENIZER_FILE,
+                    (data.root / data.manifest["tokenizer"]) if data.manifest.get("tokenizer") else None)
     if not ours.is_file() or theirs is None or not theirs.is_file():
         return True
     from jaxtalk.files import load_npz
@@ -309,7 +310,9 @@ def _rows(per: dict[str, list[dict[str, float | None]]], frames: list[int], *, l
             for name, items in per.items() if items]
 
 
-def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+def _eval_toktalk(
+    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
+) -> tuple[int, list[EvalTable]]:
     import jax
 
     from jaxtalk.face import builtin_face
@@ -386,7 +389,9 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
 _GROUP_COLUMNS = ("FD", "P-FD", "MSE", "SID", "rPCC")
 
 
-def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+def _eval_timar(
+    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
+) -> tuple[int, list[EvalTable]]:
     import jax
 
     from jaxtalk.data.batching import fit_length
@@ -470,7 +475,9 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     return len(gts), tables
 
 
-def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+def _eval_ats(
+    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
+) -> tuple[int, list[EvalTable]]:
     import jax
 
     from jaxtalk.face import builtin_face
@@ -514,7 +521,8 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
         batch = items[b:b + per_call]
         batch = batch + [batch[-1]] * (per_call - len(batch))  # one compiled shape
         audio = np.stack([recs[n]["speech"][st:st + lengths[b]] for n, st in batch]).astype(np.float32)
-        emotion = np.concatenate([emotion_ids(data.clips[chosen[n]]["emotion"] or NEUTRAL, run.config.emotions) for n, _ in batch])
+        emotion = np.concatenate([emotion_ids(data.clips[chosen[n]]["emotion"] or NEUTRAL, run.config.emotions)
+                                  for n, _ in batch])
         intensity = np.asarray([data.clips[chosen[n]]["intensity"] if data.clips[chosen[n]]["intensity"] is not None
                                 else 1.0 for n, _ in batch], np.float32)
         out = sample_displacements(fitted, audio, emotion, intensity, jax.random.fold_in(key, b))
@@ -535,7 +543,9 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
                                    "built-in face (head pose removed); LVE over the mouth landmarks 48-67", rows)]
 
 
-def _eval_stm(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+def _eval_stm(
+    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
+) -> tuple[int, list[EvalTable]]:
     from jaxtalk.metrics import jitter, lve, mve
     from jaxtalk.models.freetalk import stm
     from jaxtalk.models.freetalk.data import face_mesh, without_head_pose

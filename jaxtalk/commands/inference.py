@@ -4,8 +4,9 @@ Inputs: an audio file (WAV/FLAC, any rate, mono or stereo) or, for TokTalk, a ``
 embeddings ``(tokens, speech_dim)`` at the model's token rate (e.g. your own audio-LLM tokens). Every
 default comes from the run folder, never from a regenerated corpus: TokTalk turns audio into tokens
 with the tokenizer its data was prepared with and takes its default style clip from the run; TIMAR
-turns audio into per-turn speech features with the same front end as ``prepare`` and animates the agent (the partner is silent and still unless
-``--partner`` names their audio). Outputs are written with :func:`jaxtalk.data.formats.save_npz`
+turns audio into per-turn speech features with the same front end as ``prepare`` and animates the
+agent (the partner is silent and still unless ``--partner`` names their audio). Outputs are written
+with :func:`jaxtalk.data.formats.save_npz`
 (``params (T, 56)``, ``fps``, and the audio), in raw FLAME units.
 """
 

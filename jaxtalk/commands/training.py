@@ -319,8 +319,8 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
         settings = dataclasses.replace(settings, batch_size=int(existing.train["batch_size"]))
     if settings.window_frames is not None and spec.windows is not None:
         raise ValueError(f"window_frames is not a {opts.model} setting ({opts.model} windows are {spec.windows})")
-    echo(f"{'resuming' if done else 'training'} {opts.model} ({preset or 'custom config'}) from step {done} to {opts.steps} on {data}; "
-         f"checkpoints in {checkpoint_dir(out)}")
+    echo(f"{'resuming' if done else 'training'} {opts.model} ({preset or 'custom config'}) from step {done} to {opts.steps} "
+         f"on {data}; checkpoints in {checkpoint_dir(out)}")
     optim = settings.optim(opts.steps)
     echo(settings.describe(opts.steps))
     mesh = None

@@ -24,8 +24,9 @@ Audio is loaded through ``jaxtalk.audio.load_audio`` (mono, 16 kHz); silent trac
 (a listener's channel can be silent).
 
 Every ``.npz`` / ``.npy`` a user hands jaxtalk (these layouts, a command's motion, tokens, landmarks or
-faces) is read by :func:`jaxtalk.files.load_npz` / :func:`~jaxtalk.files.load_npy`: never unpickled, and whatever is wrong with a file
-(not a zip archive, not a NumPy file, object arrays, damage) is one line naming it.
+faces) is read by :func:`jaxtalk.files.load_npz` / :func:`~jaxtalk.files.load_npy`: never unpickled,
+and whatever is wrong with a file (not a zip archive, not a NumPy file, object arrays, damage) is one
+line naming it.
 """
 
 from __future__ import annotations

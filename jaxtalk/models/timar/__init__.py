@@ -1,8 +1,9 @@
 """TIMAR: turn-level interleaved masked autoregression with a per-frame diffusion head.
 
 Modules: ``config`` (presets), ``tokens`` (turn layout, separators, interleave), ``encoder``
-(embedding + turn-causal fusion, and the MAE-style encoder-decoder variant), ``head`` (per-frame adaLN diffusion head, vmapped), ``model``
-(parameters, window pass), ``loss`` (masking, CFG dropout, grouped x0 diffusion loss), ``sampling``
+(embedding + turn-causal fusion, and the MAE-style encoder-decoder variant), ``head`` (per-frame adaLN
+diffusion head, vmapped), ``model`` (parameters, window pass), ``loss`` (masking, CFG dropout, grouped x0
+diffusion loss), ``sampling``
 (respaced DDIM/DDPM with traced CFG: :func:`sample`), ``streaming`` (turn-by-turn engine with a KV cache:
 :func:`init_stream`, :func:`stream_step`, :func:`stream`), ``data``
 (SynthTalk conversations -> turn windows, normalisation), ``convert`` (the public code's checkpoints ->

@@ -344,7 +344,8 @@ def stream_step(
         raise ValueError(f"cfg_scale must be a scalar, got shape {cfg.shape}")
     return _step(
         params, config, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
-        jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature, default=MAR_TEMPERATURE),
+        jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32),
+        check_temperature(temperature, default=MAR_TEMPERATURE),
         sample_steps, sampler,
         bool(guidance), _mode(config, state),
         None if initial_noise is None else jnp.asarray(initial_noise, jnp.float32),
@@ -394,8 +395,8 @@ def stream(
     for i in range(turns):  # host loop: one turn arrives at a time in a stream
         sl = slice(i * f, (i + 1) * f)
         state, x = stream_step(
-            params, config, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl], cfg_scale=cfg_scale, sample_steps=sample_steps, sampler=sampler,
-            temperature=temperature, guidance=guidance,
+            params, config, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl], cfg_scale=cfg_scale,
+            sample_steps=sample_steps, sampler=sampler, temperature=temperature, guidance=guidance,
         )
         out.append(x)
     return jnp.concatenate(out, axis=1)
