@@ -531,8 +531,8 @@ def bench(
                                               overrides=overrides, repeats=repeats, loop_steps=loop_steps,
                                               paper_batch=paper_batch, profile_dir=profile, echo=typer.echo))
     # The peak again at the end, and the better of the two for every row: on a shared machine one
-    # measurement can land in a slow spell (102 against 178-204 GFLOP/s in runs of one afternoon),
-    # which would put rows above 1.0 of "peak".
+    # measurement can land in a slow spell, which would put rows above 1.0 of "peak"
+    # (docs/design-decisions.md).
     typer.echo("measuring the float32 matmul peak and the memory bandwidth again")
     peaks = [peak, measure_matmul_peak() / 1e9]
     bandwidths = [bandwidth, measure_memory_bandwidth() / 1e9]

@@ -440,8 +440,7 @@ def _decode(params, config: STMConfig, features, disp, ops):
     # Frame by frame (lax.map), not all frames at once: one frame's working set (the V x 68 x heads
     # attention logits, 6 MB at 5.9k vertices; the decoder's (V, C) features and one-ring gathers)
     # stays in cache, where 25 frames at once (the (V, T C) layout with its wide eigenbasis matmuls)
-    # stream hundreds of MB through memory per pass. Measured on 2 shared cores at 5.9k vertices:
-    # fusion ~5x and decoder ~3x faster per frame (experiments/bench_freetalk.py).
+    # stream hundreds of MB through memory per pass (the measurement: docs/design-decisions.md).
     return jax.lax.map(frame, disp) / config.displacement_scale
 
 

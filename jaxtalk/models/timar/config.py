@@ -77,8 +77,8 @@ class TimarConfig:
             frame's ONE encoder feature (MAR's public code: 4). The encoder only learns through the
             head's high-noise draws (at low noise the noisy frame alone gives x0 away), so more
             draws give it a less noisy gradient; they are cheap when the head is small next to the
-            encoder (the paper's sizes). Default 1: on a 64-wide CPU model 4 draws made a step 1.5x
-            slower and reached the same held-out loss at equal steps.
+            encoder (the paper's sizes). Default 1: at CPU sizes more draws cost time per step for no
+            lower held-out loss; see docs/design-decisions.md.
         mask_ratio_min: lower end of the truncated normal of the mask ratio (upper end 1); 1.0
             masks every agent frame (the ``small`` preset: training then matches inference).
         mask_ratio_std: its standard deviation (mean 1.0).
@@ -255,13 +255,12 @@ class TimarConfig:
         """A CPU-sized model (trains in minutes on 2 cores) on jaxtalk's 80-band log-mel features,
         trained with every agent frame masked.
 
-        How it differs from ``paper`` and why (each measured at CPU scale): 128 wide x 4 layers and a
-        128-wide head (minutes per run instead of GPU-days); every agent frame masked (below); one
-        diffusion draw per frame (4 made a step 1.5x slower for the same held-out loss at equal steps,
-        see ``diffusion_batch_mul``); a fixed variance and deterministic DDIM, the sampler that
-        needs no learned variance; and AdamW at 1e-3 at batch 16 with 20 warm-up steps, decaying to a
-        tenth (``PRESET_DEFAULTS["small"]``), for runs of a few thousand steps rather than the
-        paper's 400 epochs at 1e-4.
+        How it differs from ``paper`` and why (the measurements: docs/design-decisions.md): 128 wide x
+        4 layers and a 128-wide head (minutes per run instead of GPU-days); every agent frame masked
+        (below); one diffusion draw per frame (see ``diffusion_batch_mul``); a fixed variance and
+        deterministic DDIM, the sampler that needs no learned variance; and AdamW at 1e-3 at batch 16
+        with 20 warm-up steps, decaying to a tenth (``PRESET_DEFAULTS["small"]``), for runs of a few
+        thousand steps rather than the paper's 400 epochs at 1e-4.
 
         Args:
             **overrides: any field to change.
