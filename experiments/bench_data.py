@@ -16,7 +16,7 @@ model recipe beside that model's training step rate, and resident memory while s
    data, windows as their ``train`` builds them) ``make_loader(..., batch_size)`` windows/s (after the
    first batch) and the jitted train step's rate on this CPU (``make_train_step`` of the recipe's
    loss and init, median of timed steps after compile) measured in the same run; needed windows/s =
-   steps/s x batch, and the ratio loader / needed (the issue asks for >= 5). ``nocache_win_s``: the
+   steps/s x batch, and the ratio loader / needed (the target is >= 5). ``nocache_win_s``: the
    same loader with ``cache_bytes=0`` (every window reads its records again: the loader before its
    cache, and what a dataset much larger than the cache gets). ``batch_sha1`` hashes the first
    batches (``same_batches``: equal with and without the cache), so a loader change can be checked
@@ -33,7 +33,7 @@ model recipe beside that model's training step rate, and resident memory while s
 Timings are wall clock on a shared machine: every row carries the 1-minute load average.
 
 Run: ``python experiments/bench_data.py [--quick] [--hubert PATH] [--out experiments/results/bench_data.json]``
-(``--quick``: SynthTalk tiny, a 0.5-GB stream, fewer steps; a smoke run, not the issue's numbers).
+(``--quick``: SynthTalk tiny, a 0.5-GB stream, fewer steps; a smoke run, not the target's numbers).
 """
 
 from __future__ import annotations
@@ -276,8 +276,8 @@ def step_rate(setup: dict, batch: dict, repeats: int) -> dict:
         jax.block_until_ready(metrics)
         times.append(time.perf_counter() - t0)
     med = statistics.median(times[1:])
-    return {"step_ms": med * 1e3, "timed_steps": len(times) - 1, "steps_per_s": 1 / med, "needed_win_s": BATCH / med, "compile_s": compile_s,
-            "step_load": f"{load0}->{_load()}"}
+    return {"step_ms": med * 1e3, "timed_steps": len(times) - 1, "steps_per_s": 1 / med, "needed_win_s": BATCH / med,
+            "compile_s": compile_s, "step_load": f"{load0}->{_load()}"}
 
 
 def loader_vs_step(data: Any, seconds: float, repeats: int) -> list[dict]:

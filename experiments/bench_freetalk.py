@@ -3,7 +3,7 @@
 STM: the built-in face at "high" resolution (~5.9k vertices; FLAME has 5,023), ``small`` and
 ``paper`` configurations, 25 landmark frames decoded per call with the mesh features precomputed.
 The per-mesh precompute (operators: Laplacian, eigenbasis, gradients; then the DiffusionNet encoder
-features) is timed separately. Target (issue 5): STM ``small`` at least 25 frames/s on this CPU.
+features) is timed separately. Target: STM ``small`` at least 25 frames/s on this CPU.
 
 ATS: a 4-s clip (100 frames at 25 fps), DDIM with 100 and 10 steps, ``small`` and ``paper``
 configurations (random weights: speed does not depend on them).

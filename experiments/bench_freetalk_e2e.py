@@ -2,7 +2,8 @@
 ~100k vertices, the per-mesh precompute reported apart.
 
 Meshes: the built-in face at "high" resolution (5.9k vertices), subdivided once (23.5k) and twice
-(94k) with trimesh, and the 94k mesh cut into 40 separate strips (a broken scan), each in millimetres, rotated and shifted, so the whole user path runs
+(94k) with trimesh, and the 94k mesh cut into 40 separate strips (a broken scan), each in
+millimetres, rotated and shifted, so the whole user path runs
 (:func:`jaxtalk.models.freetalk.animate.prepare_user_mesh`: cleaning, unit detection, PCA + ICP
 alignment, Laplacian + eigenbasis + gradients, STM's static features). Models at random weights
 (speed does not depend on them), ``small`` presets (``--paper``: STM ``paper`` too).
@@ -115,7 +116,8 @@ def main() -> None:
             total = ats_run + stm_run
             disp = ft.displace(stm_fit, mesh, track)
             rows.append({
-                "finite": bool(np.all(np.isfinite(disp))), "STM": name, "mesh": label, "vertices": mesh.num_vertices, "precompute_s": precompute,
+                "finite": bool(np.all(np.isfinite(disp))), "STM": name, "mesh": label, "vertices": mesh.num_vertices,
+                "precompute_s": precompute,
                 "of_which_features_s": feat_run, "ats_compile_s": ats_compile, "stm_compile_s": stm_compile,
                 "ats_s_per_audio_s": ats_run / args.seconds, "stm_s_per_audio_s": stm_run / args.seconds,
                 "total_s_per_audio_s": total / args.seconds, "real_time": total < args.seconds,

@@ -13,7 +13,7 @@ Part 2, DiffusionNet width 128, 4 blocks, xyz in, 3 out, on the ~6.7k mesh with 
 machine's measured float32 matmul rate, whose ratio is the floor on seconds per frame (the network
 is matmul-bound: ~8.8 GFLOP per frame at this size, see ``jaxtalk.geometry.diffusionnet``).
 
-Reference timings on this machine (from the issue): precompute 0.96 / 5.2 / 23.5 s (eigsh 0.35 /
+Reference timings on this machine (measured when the benchmark was written): precompute 0.96 / 5.2 / 23.5 s (eigsh 0.35 /
 3.0 / 14.7 s, gradient loop 0.55 / 2.1 / 8.3 s); PyTorch DiffusionNet 0.127 s per frame. The CPU
 is shared with other jobs while these run, so absolute numbers are inflated: compare rows of one run.
 

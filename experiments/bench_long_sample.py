@@ -1,9 +1,10 @@
-"""Peak memory of offline sampling on long inputs (issue 32): whole-sequence vs bounded.
+"""Peak memory of offline sampling on long inputs: whole-sequence vs bounded.
 
 Every row runs in a fresh subprocess and reports its peak resident set size (``ru_maxrss``) and wall
 time. TokTalk's ``sample`` holds O(frames^2) attention (a 20-minute clip asked for 45 GB on the
 paper preset); ``sample_long`` (what ``jaxtalk sample`` runs) works on minute-long windows. FreeTalk's
-ATS sampled every window of a clip in one call; it now samples 8 at a time (both rows use the log-mel front end, now computed in 60-s pieces: before, a 60-min clip peaked at 4.4 GB). TIMAR streams turn by
+ATS sampled every window of a clip in one call; it now samples 8 at a time (both rows use the log-mel
+front end, now computed in 60-s pieces: before, a 60-min clip peaked at 4.4 GB). TIMAR streams turn by
 turn with a fixed context in both ``sample`` and ``stream``. The whole-sequence rows stop at lengths a
 CPU can hold; the bounded rows go to an hour.
 
@@ -47,7 +48,7 @@ WORKER = textwrap.dedent('''
     else:  # TIMAR small, turn by turn (its only mode: no whole-sequence variant)
         from jaxtalk.models.timar.config import TimarConfig
         from jaxtalk.models.timar.model import init_params
-        from jaxtalk.models.timar.stream import stream_conversation
+        from jaxtalk.models.timar.streaming import stream_conversation
         cfg = TimarConfig.small()
         params = init_params(cfg, jax.random.key(0))
         frames = int(minutes * 60) * cfg.frames_per_turn
@@ -65,7 +66,8 @@ WORKER = textwrap.dedent('''
 
 def run_row(model: str, method: str, minutes: float) -> dict:
     """One measurement in a fresh process: ``{"frames", "base_mb", "peak_mb", "wall_s"}``."""
-    proc = subprocess.run([sys.executable, "-c", WORKER, model, method, str(minutes)], capture_output=True, text=True, check=False)
+    proc = subprocess.run([sys.executable, "-c", WORKER, model, method, str(minutes)],
+                          capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit {proc.returncode}"}
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -88,7 +90,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="only rows of at most 10 minutes")
     parser.add_argument("--model", choices=("toktalk", "freetalk", "timar"), help="only this model's rows")
     args = parser.parse_args()
-    print("peak RSS of offline sampling, fresh process per row (TokTalk tiny; ATS small, 1 layer, 2 DDIM steps; TIMAR small; CPU)")
+    print("peak RSS of offline sampling, fresh process per row "
+          "(TokTalk tiny; ATS small, 1 layer, 2 DDIM steps; TIMAR small; CPU)")
     print(f"{'method':>20} {'minutes':>8} {'frames':>8} {'peak MB':>9} {'wall s':>8}")
     for model, method, minutes, quick in ROWS:
         if (args.quick and not quick) or (args.model and model != args.model):

@@ -1,11 +1,11 @@
-"""The README's performance tables from ``jaxtalk bench`` JSON files (``--train`` adds the training table).
+"""The performance tables of docs/performance.md from ``jaxtalk bench`` JSON files (``--train`` adds the training table).
 
     jaxtalk bench --train --paper --out experiments/results/bench_all.json
     python experiments/bench_readme.py experiments/results/bench_all.json > /tmp/performance.md
 
 Prints Markdown per file: the machine and the limits the run measured, then one table per benchmark
-table of the run (every row, the columns that matter to a reader), so every table the README quotes
-names its run.
+table of the run (every row, the columns that matter to a reader), so every table docs/performance.md
+quotes names its run.
 """
 
 from __future__ import annotations
@@ -53,7 +53,8 @@ def performance_section(payload: dict[str, Any], titles: tuple[str, ...] = ()) -
             f"{m['cpu_model']}, {m['cpu_cores']} cores, backend {m['backend']} ({m['device_kind']}), "
             f"jax {m['jax']}, 1-minute load average {m['load_avg_1m']}; float32 matmul peak measured in the same "
             f"run: {payload['matmul_peak_gflop_s']:.0f} GFLOP/s"
-            + (f", memory bandwidth {payload['memory_bandwidth_gb_s']:.1f} GB/s." if payload.get("memory_bandwidth_gb_s") else "."))
+            + (f", memory bandwidth {payload['memory_bandwidth_gb_s']:.1f} GB/s."
+               if payload.get("memory_bandwidth_gb_s") else "."))
     parts = [head]
     for table in payload["tables"]:
         if titles and not table["title"].startswith(titles):

@@ -1,7 +1,8 @@
 """Benchmark the headless renderer: frames per second on one CPU core, and a 10-s clip to mp4.
 
-Part 1: ``render_frame`` (with the mouth cavity from the rest pose) of the built-in face (low ~1k, default ~3.7k, high ~5.9k vertices) at 256
-and 512 px, with and without 2x supersampling; wall and process-CPU time per frame (median of
+Part 1: ``render_frame`` (with the mouth cavity from the rest pose) of the built-in face (low ~1k,
+default ~3.7k, high ~5.9k vertices) at 256 and 512 px, with and without 2x supersampling; wall and
+process-CPU time per frame (median of
 repeats, after a warm-up frame). Process CPU time is reported because the machine is shared: wall
 time is inflated by other jobs, CPU time much less. Target: >= 10 frames/s at 256-512 px.
 Part 2: a 10-s clip (250 frames, jaw and lips moving, 16 kHz audio) rendered and encoded to mp4

@@ -27,8 +27,8 @@ from jaxtalk.bench import timar_stream
 from jaxtalk.benchmarking import machine_info, measure_matmul_peak, print_table, time_jitted, write_json, xla_flops
 from jaxtalk.models.timar import TimarConfig, init_params
 from jaxtalk.models.timar.head import apply_head_modulated, head_condition, head_modulations, time_embedding
-from jaxtalk.models.timar.sample import respaced_schedule, sample_frames
-from jaxtalk.models.timar.stream import _condition, init_stream
+from jaxtalk.models.timar.sampling import respaced_schedule, sample_frames
+from jaxtalk.models.timar.streaming import _condition, init_stream
 
 
 def _turn_inputs(config: TimarConfig, batch: int, turns: int, seed: int = 0):
@@ -50,7 +50,7 @@ def head_latency(steps: int, repeats: int, precompute: bool | None = None):
     cfg = TimarConfig.paper(num_layers=1)  # only the head is used
     params = init_params(cfg, jax.random.key(0))
     z = jax.random.normal(jax.random.key(1), (1, 25, cfg.width))
-    fn = lambda p, zc, zu, k: sample_frames(p, cfg, zc, zu, k, cfg_scale=1.5, sample_steps=steps,  # noqa: E731
+    fn = lambda p, zc, zu, k: sample_frames(p, cfg, zc, zu, k, cfg_scale=0.5, sample_steps=steps,  # noqa: E731
                                             precompute=precompute)
     timing = time_jitted(fn, params, z, z * 0.5, jax.random.key(2), repeats=repeats, warmup=1)
     zz = jnp.concatenate([z, z * 0.5])
@@ -81,7 +81,7 @@ def paper_turn(repeats: int, peak: float):
 
         def step(p, s, a, b, c, k, mode=mode):
             s2, z = _condition(p, cfg, s, a, b, c, True, mode)
-            return sample_frames(p, cfg, z[:1], z[1:], k, cfg_scale=1.5, sample_steps=5)
+            return sample_frames(p, cfg, z[:1], z[1:], k, cfg_scale=0.5, sample_steps=5)
 
         args = (params, state, us, um, as_, jax.random.key(0))
         timing = time_jitted(step, *args, repeats=repeats, warmup=1)

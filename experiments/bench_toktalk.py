@@ -45,8 +45,8 @@ def main() -> None:
     print_table(decoders, "one chunk's sampler on the streaming window: the causal decoder vs the offline one")
     growth = toktalk_growth(TokTalkConfig.small(), 50, args.repeats)
     print_table([growth], "small preset: per-chunk latency at chunk 2 vs chunk 50 (target ratio <= 1.10)")
-    write_json(args.out, {"machine": machine_info(), "matmul_peak_gflop_s": peak, "memory_bandwidth_gb_s": bandwidth, "latency": rows,
-                          "growth": growth, "decoders": decoders})
+    write_json(args.out, {"machine": machine_info(), "matmul_peak_gflop_s": peak, "memory_bandwidth_gb_s": bandwidth,
+                          "latency": rows, "growth": growth, "decoders": decoders})
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The accelerator check of issue 28, on whatever device JAX finds (GPU, TPU, or the CPU):
+# The accelerator check, on whatever device JAX finds (GPU, TPU, or the CPU):
 #   1. `jaxtalk bench --paper --train`: every model's train step (small and paper) and the sampling
 #      tables, with the float32 matmul peak measured on the device;
 #   2. a 2-minute TIMAR `paper` training (steps/s after the first, compiled, step);

@@ -137,7 +137,8 @@ def main() -> None:
             child.stdin.close()
             child.wait()
     jax_s, ref_s = statistics.median(times["jaxtalk"]), statistics.median(times["reference"])
-    row = {"vertices": len(v), "frames": FRAMES, "jaxtalk_s": jax_s, "reference_s": ref_s, "reference_over_jaxtalk": ref_s / jax_s,
+    row = {"vertices": len(v), "frames": FRAMES, "jaxtalk_s": jax_s, "reference_s": ref_s,
+           "reference_over_jaxtalk": ref_s / jax_s,
            "jaxtalk_params": sum(int(np.prod(leaf.shape)) for leaf in jax.tree.leaves(params)), "reference_params": ref_params,
            "gflops": None if flops is None else flops / 1e9,
            "jaxtalk_of_peak": None if flops is None else flops / jax_s / 1e9 / peak,

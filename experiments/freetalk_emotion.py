@@ -20,7 +20,7 @@ Every sample is drawn with ``--seeds`` noise seeds (the same seeds for every lab
 are pooled over seeds, windows and frames; ``upper_se`` is the seed-to-seed standard error of
 ``upper`` (how much of a difference between intensities is noise).
 
-Checks (issue 5): ``upper`` grows with intensity and differs between emotions (coefficient of
+Checks: ``upper`` grows with intensity and differs between emotions (coefficient of
 variation at intensity 3, and its correlation with ``true``). Accuracy: lip-landmark error (mm) of
 ATS samples with the true labels against the mean-pose baseline and the generator's oracle motion,
 on the same windows.
@@ -32,12 +32,12 @@ second run with the same arguments loads it instead of training again, an interr
 Usage: python experiments/freetalk_emotion.py [--size small|tiny] [--steps N] [--ddim-steps N]
        [--seeds N] [--train-seed S] [--ckpt-dir DIR] [--cache DIR] [--out PATH]
 
-``--emotion-gain K`` trains and scores on the positive-control corpus (issue 29 §5): SynthTalk with
+``--emotion-gain K`` trains and scores on the positive-control corpus: SynthTalk with
 every emotion's face offset K times its own (``SizeSpec.emotion_gain``), so that the label and its
 intensity change the face by a known, large amount; ``true`` and ``along`` use the scaled offsets.
 
 The verdict's ``gain_ratio`` (intensity 1 -> 3 along the true direction, over the generator's own gain)
-is the number the scale curve of issue 29 plots against the training budget
+is the number the scale curve (experiments/scale_curves.py) plots against the training budget
 (``experiments/scale_curves.py``).
 """
 

@@ -7,8 +7,9 @@ audio with the clip's own emotion label and intensity, i.e. the whole chain a us
 * ATS: an ``ats`` run folder (``--ats``; ``jaxtalk train ats --data synthtalk:small --set max_frames=50
   --set window_frames=50``), sampled over whole test clips with :func:`freetalk.animate.landmark_track`
   (training-length windows, cross-faded).
-* STM: trained here with its recipe on its seen meshes (identities 0-2 on three topologies), once with the paper's DiffusionNet decoder and once with the supplement's
-  per-vertex MLP decoder (the decoder-substitution ablation); each is a run folder under ``--work``.
+* STM: trained here with its recipe on its seen meshes (identities 0-2 on three topologies), once with
+  the paper's DiffusionNet decoder and once with the supplement's per-vertex MLP decoder (the
+  decoder-substitution ablation); each is a run folder under ``--work``.
 
 Table 1 (per mesh, seen / unseen identities and topologies, SynthTalk test clips, head pose removed):
 LVE (lips, mm^2), MVE (mm), FDD (upper face, mm^2) for the chain, for STM on the true landmarks
@@ -48,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from freetalk_topology import HELD_OUT, SEEN, evaluate  # noqa: E402
 
 from jaxtalk import benchmarking as bm  # noqa: E402
-from jaxtalk.runs import checkpoint_dir  # noqa: E402
+from jaxtalk.runs import checkpoint_dir, load_run  # noqa: E402
 from jaxtalk.commands.training import TrainOptions, train_run  # noqa: E402
 from jaxtalk.data import synthtalk  # noqa: E402
 from jaxtalk.data.synthtalk.emotions import face_offset  # noqa: E402
@@ -73,7 +74,7 @@ def stm_run(run_dir: Path, args: argparse.Namespace, decoder: str) -> FittedSTM:
                                steps=args.stm_steps, seed=0, cache_dir=args.cache))
     else:
         print(f"found the finished run {run_dir} (step {done}): not training again", flush=True)
-    return FittedSTM.from_run(run_dir)
+    return FittedSTM.from_run(load_run(run_dir))
 
 
 def decode(fitted: FittedSTM, m: data.FaceMesh, tracks: list[np.ndarray]) -> list[np.ndarray]:
@@ -255,12 +256,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results/freetalk_end_to_end.json"))
     args = parser.parse_args()
     corpus = synthtalk.generate(args.size, seed=0, cache_dir=args.cache / "synthtalk")
-    ats_fit = FittedATS.from_run(args.ats, best=True)
+    ats_fit = FittedATS.from_run(load_run(args.ats, best=True))
     stms = {dec: stm_run(args.work / f"stm_{dec}", args, dec) for dec in ("diffusionnet", "mlp")}
     clips = [c for c in corpus.split("test") if not corpus.clips[c].is_conversation][: args.test_clips]
     payload: dict = {"args": {k: str(v) for k, v in vars(args).items()}}
     if not args.only_real:
-        ats_emotion = FittedATS.from_run(args.ats, best=args.emotion_checkpoint == "best")
+        ats_emotion = FittedATS.from_run(load_run(args.ats, best=args.emotion_checkpoint == "best"))
         tables(args, corpus, ats_fit, ats_emotion, stms, clips, payload)
     if args.real_mesh is not None:
         payload["real_mesh"] = real_mesh(args, corpus, ats_fit, stms["diffusionnet"], clips[0], jax.random.key(3))

@@ -9,7 +9,7 @@ evaluated on SynthTalk's test clips, fed the ground-truth landmark motion (this 
   * held-out meshes: topologies and identities never seen in training.
 Beside the model: the mean-pose baseline (the mesh's mean training displacement) and the oracle
 (SynthTalk's deterministic motion, the best any model can do from audio; here STM sees the true
-landmarks, so it can beat the oracle on blinks). Bar (issue 5): held-out LVE within 20% of seen LVE.
+landmarks, so it can beat the oracle on blinks). Bar: held-out LVE within 20% of seen LVE.
 
 Metrics: LVE, MVE, FDD, DTW, DFD, delta_M, delta_Cd (``jaxtalk.metrics``), in millimetres
 (squared where the metric is squared). Lip and upper-face vertices of a remeshed face are those whose

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The newcomer's wait (issue 28 section 6): a fresh clone of this checkout, then README command 1
+# The newcomer's wait: a fresh clone of this checkout, then README command 1
 # (a new virtual environment, `pip install -e ".[test]"`, `jaxtalk demo`), each phase timed.
 # Run on an otherwise idle machine. Writes the demo's log and a JSON of the phase times to
 # $OUT (default experiments/results/newcomer_wait).

@@ -31,7 +31,7 @@ from jaxtalk.audio import load_audio
 from jaxtalk.commands.inference import SampleOptions, stream_run
 from jaxtalk.layout import JAW_OPEN_INDEX
 from jaxtalk.metrics.speech_sync import frame_loudness, speech_sync, style_rest_jaw, voice_activity
-from jaxtalk.data.formats import load_npy
+from jaxtalk.files import load_npy
 from jaxtalk.runs import STYLE_FILE
 
 SR = 16000

@@ -1,4 +1,4 @@
-"""Control: does a SynthTalk mouth that leads its sound by more (0.10-0.16 s instead of 0.04-0.08 s)
+r"""Control: does a SynthTalk mouth that leads its sound by more (0.10-0.16 s instead of 0.04-0.08 s)
 make the demo model lead on real speech? (The tracked jaw of the DualTalk clip leads the clip's loudness
 by 3 frames; the demo model follows the loudness 1-3 frames late.)
 
@@ -7,7 +7,8 @@ experiments/real_voice.py on the run:
 
     python experiments/real_voice_lead.py PREPARED_DIR
     jaxtalk train toktalk --data PREPARED_DIR --preset small --set sample_steps=1 --steps 400 --out RUN
-    python experiments/real_voice.py --real ../shared/data/dualtalk_demo --out experiments/results/real_voice/lead_0.10-0.16.json RUN
+    python experiments/real_voice.py --real ../shared/data/dualtalk_demo \
+        --out experiments/results/real_voice/lead_0.10-0.16.json RUN
 """
 import sys
 

@@ -4,11 +4,12 @@ The rig is a folder of OBJ shapes (``--rig``; the ICT Face Model's neutral head 
 shapes under ARKit's names, ``bash experiments/fetch_ict_face_kit.sh --rig``: a captured head in
 centimetres with eyes, lashes, teeth, gums and tongue) and the same rig written as a glTF file with its
 morph targets, then compressed by ``gltfpack -cc`` (meshopt, quantized positions: how three.js's
-``facecap.glb`` is shipped; gltfpack also merges vertices that are equal in every attribute). The motion is the FLAME parameters DualTalk tracked on a real 30-s recording
-(``--motion``). Reported per rig file: the command's lines, its wall time, the shapes matched to ARKit's
-names (whole, or as left and right halves), ``jawOpen`` against the motion's jaw opening (Pearson r), the weights' range, the fit's RMS error,
-the Khronos validator's errors and warnings on the output (where Node.js and ``tests/js`` are there), and
-for the compressed file the largest weight difference from the folder's.
+``facecap.glb`` is shipped; gltfpack also merges vertices that are equal in every attribute). The motion
+is the FLAME parameters DualTalk tracked on a real 30-s recording (``--motion``). Reported per rig file:
+the command's lines, its wall time, the shapes matched to ARKit's names (whole, or as left and right
+halves), ``jawOpen`` against the motion's jaw opening (Pearson r), the weights' range, the fit's RMS
+error, the Khronos validator's errors and warnings on the output (where Node.js and ``tests/js`` are
+there), and for the compressed file the largest weight difference from the folder's.
 
 Usage: python experiments/retarget_public_rig.py --rig .cache/assets/ict_face_kit --motion CLIP.npz
     [--work runs/public_rig] [--out experiments/results/retarget/public_rig.json]
@@ -27,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from jaxtalk import benchmarking as bm
-from jaxtalk.data.formats import dualtalk_to_params56, load_npz
+from jaxtalk.data.formats import dualtalk_to_params56
+from jaxtalk.files import load_npz
 from jaxtalk.export import export_rig_animation, load_rig
 from jaxtalk.export.rig import arkit_halves, arkit_shape_name
 from jaxtalk.layout import JAW_OPEN_INDEX

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from jaxtalk import benchmarking as bm
-from jaxtalk.data.formats import dualtalk_to_params56, load_npz
+from jaxtalk.data.formats import dualtalk_to_params56
+from jaxtalk.files import load_npz
 from jaxtalk.export import Retargeter, arkit_rig
 from jaxtalk.export.solver import Penalties
 from jaxtalk.face import builtin_face

@@ -1,4 +1,4 @@
-"""Issue 29 §4: each paper claim that did not hold at CPU scale, as a gap against scale, with its verdict.
+"""Each paper claim that did not hold at CPU scale, as a gap against scale, with its verdict.
 
 Reads the result files the claim's own experiment wrote (nothing is retrained here) and plots, per
 claim, the gap in the direction the paper claims (positive = the claim holds) against the training

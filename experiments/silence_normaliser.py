@@ -36,7 +36,7 @@ from jaxtalk.metrics import lve
 from jaxtalk.metrics.speech_sync import style_rest_jaw
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk import recipe
-from jaxtalk.models.toktalk.sample import default_grid
+from jaxtalk.models.toktalk.sampling import default_grid
 from jaxtalk.train import OptimConfig
 
 SR = 16000

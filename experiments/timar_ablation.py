@@ -71,7 +71,7 @@ def main() -> None:
     add_training_args(ap)
     ap.add_argument("--context", type=int, default=7)
     ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated subset of {list(VARIANTS)} ('' = none)")
-    ap.add_argument("--scales", default="0,0.5,1,1.5,2,3", help="CFG sweep ('' = no sweep)")
+    ap.add_argument("--scales", default="0,0.5,1,1.5,2,3", help="CFG sweep in the paper's omega (= 1 + cfg_scale; '' = no sweep)")
     ap.add_argument("--sampler", default="ddim", help="ddim (5-step samples, the paper) or mean (the guided posterior mean)")
     ap.add_argument("--load-model", default=None, help="model for the CFG sweep (default: the retrained default variant)")
     ap.add_argument("--eval-convs", type=int, default=None, help="evaluate on the first N test conversations only")
@@ -98,12 +98,14 @@ def main() -> None:
             res, norm, _ = train_model(args, cfg, seed=args.seed)
             train_s = time.perf_counter() - t0
             trained[name] = (cfg, res.state.eval_params, norm)
-            m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=1.5,
+            m = metrics(predict(cfg, res.state.eval_params, norm, test_convs, context=args.context, cfg_scale=0.5,
                                 sampler=args.sampler), test_convs, corpus)
             n_params = sum(int(x.size) for x in jax.tree.leaves(res.state.eval_params))
-            record["variants"][label] = {**m, "steps": args.steps, "train_s": train_s, "final_loss": [h["loss"] for h in res.history if "loss" in h][-1],
+            record["variants"][label] = {**m, "steps": args.steps, "train_s": train_s,
+                                         "final_loss": [h["loss"] for h in res.history if "loss" in h][-1],
                                          "sampler": args.sampler, "params": n_params,
-                                         "layers": [cfg.num_layers, cfg.decoder_layers if cfg.architecture == "encoder_decoder" else 0],
+                                         "layers": [cfg.num_layers,
+                                                    cfg.decoder_layers if cfg.architecture == "encoder_decoder" else 0],
                                          "head": [cfg.head_blocks, cfg.head_width]}
     rows = [{"variant": k, "steps": v.get("steps"), "params": v.get("params"), **{key: v.get(key) for key in KEYS}}
             for k, v in record["variants"].items()]
@@ -120,7 +122,7 @@ def main() -> None:
             raise SystemExit("the CFG sweep needs --load-model or the default variant in --variants")
         sweep = []
         for w in scales:
-            m = metrics(predict(cfg, params, norm, test_convs, context=min(args.context, cfg.max_turns - 1), cfg_scale=w,
+            m = metrics(predict(cfg, params, norm, test_convs, context=min(args.context, cfg.max_turns - 1), cfg_scale=w - 1.0,
                                 sampler=args.sampler), test_convs, corpus)
             sweep.append({"omega": w, "FD_exp": m["FD_exp"], "P-FD_exp": m["P-FD_exp"], "FD_jaw": m["FD_jaw"],
                           "P-FD_jaw": m["P-FD_jaw"], "FD_pose": m["FD_pose"], "P-FD_pose": m["P-FD_pose"],

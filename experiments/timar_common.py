@@ -27,7 +27,7 @@ from jaxtalk.layout import GROUPS
 from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar import TimarConfig
 from jaxtalk.models.timar.data import Normalizer
-from jaxtalk.models.timar.stream import stream
+from jaxtalk.models.timar.streaming import stream
 from jaxtalk.train.recipes import TrainSettings
 
 
@@ -224,7 +224,7 @@ def context_sensitivity(config, params, normalizer, convs, *, cfg_scale, windows
     (the training mean) for scale.
     """
     from jaxtalk.models.timar.config import LOSS_GROUPS
-    from jaxtalk.models.timar.sample import sample
+    from jaxtalk.models.timar.sampling import sample
 
     f, n = config.frames_per_turn, config.max_turns
     length = n * f

@@ -1,8 +1,9 @@
 """TIMAR Table 1 on SynthTalk: conversational metrics vs context history n in {0, 1, 3, 7}.
 
 Trains a TIMAR model on the SynthTalk conversations with TIMAR's recipe (``timar_common.train_model``:
-both role assignments of every train conversation, 8-turn windows, on the prepared corpus), then streams every test and out-of-distribution conversation turn by
-turn with n previous turns of context (past agent motion masked, window sliding once full) and
+both role assignments of every train conversation, 8-turn windows, on the prepared corpus), then
+streams every test and out-of-distribution conversation turn by turn with n previous turns of context
+(past agent motion masked, window sliding once full) and
 reports FD, P-FD, MSE, SID, rPCC per group (exp / jaw / pose) next to a mean-pose baseline (the
 training mean, every frame) and the oracle (the generator's deterministic part), for samples (5-step
 DDIM, the paper's sampling) and the model's point estimate (the guided posterior mean,
@@ -35,7 +36,7 @@ from timar_common import (  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_training_args(ap)
-    ap.add_argument("--cfg-scale", type=float, default=1.5)
+    ap.add_argument("--cfg-scale", type=float, default=0.5, help="guidance weight w (the paper's omega - 1)")
     ap.add_argument("--contexts", default="0,1,3,7")
     ap.add_argument("--modes", default="sample,mean",
                     help="sample = 5-step DDIM samples (the paper); mean = the guided posterior mean (point estimate)")

@@ -1,4 +1,4 @@
-"""Can TIMAR's encoder learn the mimicry context when that is all it is trained for? (issue 29 §5)
+"""Can TIMAR's encoder learn the mimicry context when that is all it is trained for?
 
 ``timar_context_probe.py`` finds that a trained TIMAR's head conditions carry no more of the context
 than a freshly initialised encoder's. This separates the two explanations left: the ARCHITECTURE (the

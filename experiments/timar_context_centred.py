@@ -40,7 +40,7 @@ def main() -> None:
     ap.add_argument("--size", default="small")
     ap.add_argument("--effects", default="default", choices=sorted(EFFECTS))
     ap.add_argument("--cache-dir", default=".cache/prepared")
-    ap.add_argument("--cfg-scale", type=float, default=1.5)
+    ap.add_argument("--cfg-scale", type=float, default=0.5, help="guidance weight w (the paper's omega - 1)")
     ap.add_argument("--splits", default="test,ood")
     ap.add_argument("--out", default="experiments/results/timar_context_centred.json")
     args = ap.parse_args()

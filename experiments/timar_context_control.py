@@ -17,7 +17,7 @@ fit pooled over every train side and speaker (penalty chosen on the val sides), 
 sides. The gain from k = 0 to 7 is what context can add to a
 linear reader of the observable conversation.
 
-The issue's bar: raise :class:`~jaxtalk.data.synthtalk.dyadic.DyadicEffects` until this gain is at least
+The bar: raise :class:`~jaxtalk.data.synthtalk.dyadic.DyadicEffects` until this gain is at least
 0.10, then train TIMAR with and without context on that corpus. Motion only (no audio), so a corpus
 takes seconds to a minute.
 

@@ -1,11 +1,11 @@
-"""Where TIMAR loses the context (issue 29 §5): a linear probe on the head's conditions.
+"""Where TIMAR loses the context: a linear probe on the head's conditions.
 
 On the mimicry control corpus a ridge probe on the user's past motion explains +0.12 more of the
 agent's neck variance with 7 past turns than with none (``timar_context_control.py``), while TIMAR's
 own prediction follows the truth with a correlation of 0.05-0.11 (``timar_context_centred.py``). The
 information passes two stages: the encoder turns the window into the diffusion head's conditions
 ``z`` (one ``width``-vector per frame of the current turn), and the head turns ``z`` into motion. This
-script reads ``z`` where the stream makes it (:func:`~jaxtalk.models.timar.stream.stream_condition`,
+script reads ``z`` where the stream makes it (:func:`~jaxtalk.models.timar.streaming.stream_condition`,
 turn by turn, ``n`` past turns, every agent frame masked as at inference) and fits the same kind of
 probe as the control: ridge from ``z`` (centred per side, scaled to unit spread on the train sides,
 penalty chosen on the val sides) to the agent's centred neck (and upper face), R^2 on the test sides.
@@ -33,7 +33,7 @@ import numpy as np
 from jaxtalk.benchmarking import machine_info, print_table, write_json
 from jaxtalk.models.timar.data import conversations
 from jaxtalk.models.timar.model import init_params
-from jaxtalk.models.timar.stream import init_stream, stream_condition
+from jaxtalk.models.timar.streaming import init_stream, stream_condition
 
 from timar_common import EFFECTS, load_corpus, load_model, padded_streams  # noqa: E402
 from timar_context_control import GROUP_CHANNELS, fit_ridge  # noqa: E402

@@ -34,7 +34,7 @@ from jaxtalk.benchmarking import print_table, write_json
 from jaxtalk.data.formats import read_dualtalk
 from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar.data import turn_speech_features
-from jaxtalk.models.timar.stream import stream
+from jaxtalk.models.timar.streaming import stream
 
 from timar_common import load_model  # noqa: E402  (sibling script)
 
@@ -54,7 +54,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="experiments/results/timar_context_model.pkl")
     ap.add_argument("--context", type=int, default=7)
-    ap.add_argument("--cfg-scale", type=float, default=1.5)
+    ap.add_argument("--cfg-scale", type=float, default=0.5, help="guidance weight w (the paper's omega - 1)")
     ap.add_argument("--render", action="store_true")
     ap.add_argument("--out", default="experiments/results/timar_dualtalk.json")
     args = ap.parse_args()

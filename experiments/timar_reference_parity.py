@@ -1,4 +1,4 @@
-"""TIMAR parity with the public reference code, number for number (issue 27).
+"""TIMAR parity with the public reference code, number for number.
 
 Builds the public code's ``TIMAR`` (``CoderChen01/towards-seamless-interaction``, ``model/timar.py``)
 at a given size with random weights (every parameter drawn at random, including the ones the code
@@ -275,7 +275,9 @@ def load_reference(path: str | Path) -> tuple[dict, dict[str, np.ndarray], dict[
     return args, state, outs
 
 
-def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray, bool]]:
+def jaxtalk_stages(
+    args: dict, state: dict[str, np.ndarray], ref: dict[str, np.ndarray]
+) -> dict[str, tuple[np.ndarray, np.ndarray, bool]]:
     """jaxtalk's value of every stage next to the reference's: ``{stage: (jaxtalk, reference, sampled)}``."""
     import jax
     import jax.numpy as jnp
@@ -283,8 +285,8 @@ def jaxtalk_stages(args: dict, state: dict[str, np.ndarray], ref: dict[str, np.n
     from jaxtalk.models.timar.convert import convert_state_dict, infer_config
     from jaxtalk.models.timar.encoder import TimarEncoder
     from jaxtalk.models.timar.head import apply_head
-    from jaxtalk.models.timar.sample import respaced_schedule
-    from jaxtalk.models.timar.stream import init_stream, stream_step
+    from jaxtalk.models.timar.sampling import respaced_schedule
+    from jaxtalk.models.timar.streaming import init_stream, stream_step
     from jaxtalk.models.timar.tokens import turn_layout
     from jaxtalk.masks import mask_to_bias
     from jaxtalk.samplers.diffusion import DiffusionState, _tables, ddpm_step
@@ -368,7 +370,8 @@ def _jaxtalk_turn_speech(ref: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def ref_cfg(args: dict) -> float:
-    return float(args.get("cfg", CFG))
+    """jaxtalk's guidance weight for the public code's ``--cfg`` omega (``u + omega (c - u)``): omega - 1."""
+    return float(args.get("cfg", CFG)) - 1.0
 
 
 def differences(stages: dict[str, tuple[np.ndarray, np.ndarray, bool]]) -> list[tuple[str, float, float, bool]]:

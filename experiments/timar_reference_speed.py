@@ -7,7 +7,7 @@ Both run the released model's shapes with random weights (32 timm blocks of widt
 * reference: ``TIMAR.sample(..., history, num_iter=1, cfg=2.0, mask_history_agent=True)`` (the public
   evaluation's call; the random small wav2vec 2.0 replaced by precomputed speech, so only TIMAR is
   timed), under torch's CPU threads;
-* jaxtalk: :func:`jaxtalk.models.timar.stream.stream_step` on ``TimarConfig.reference()`` (compiled
+* jaxtalk: :func:`jaxtalk.models.timar.stream_step` on ``TimarConfig.reference()`` (compiled
   once before timing).
 
 It prints the seconds per turn of each (median over the timed turns, turn 1 excluded from the
@@ -98,7 +98,7 @@ def _jaxtalk(args: argparse.Namespace) -> dict:
 
     from jaxtalk.models.timar.config import TimarConfig
     from jaxtalk.models.timar.model import init_params
-    from jaxtalk.models.timar.stream import init_stream, stream_step
+    from jaxtalk.models.timar.streaming import init_stream, stream_step
 
     config = TimarConfig.reference(dropout=0.0)
     params = init_params(config, jax.random.key(0))
@@ -110,7 +110,7 @@ def _jaxtalk(args: argparse.Namespace) -> dict:
     times = []
     for _ in range(args.turns):
         t0 = time.perf_counter()
-        state, y = stream_step(params, config, state, speech, motion, speech, cfg_scale=CFG, sample_steps=STEPS)
+        state, y = stream_step(params, config, state, speech, motion, speech, cfg_scale=CFG - 1.0, sample_steps=STEPS)
         jax.block_until_ready(y)
         times.append(time.perf_counter() - t0)
     a = jnp.ones((2048, 2048), jnp.float32)

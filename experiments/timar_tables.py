@@ -5,8 +5,8 @@ with ``--seeds`` training seeds, evaluated at n = 0 / 1 / 3 / 7 turns of context
 out-of-distribution conversations (both roles of each) with the DualTalk metrics per group (FD, P-FD,
 MSE, SID, rPCC, published scaling), beside the mean pose (the training mean, every frame) and the
 oracle (the generator's expectation). TIMAR streams turn by turn (its config's sampler: 5-step DDIM
-samples for ``small``; ``mean`` rows, on the test split at n = 0 and 7, give its guided posterior mean); the baseline reads the window of
-turns ``[t - n, t]`` whole, as DualTalk reads a clip.
+samples for ``small``; ``mean`` rows, on the test split at n = 0 and 7, give its guided posterior
+mean); the baseline reads the window of turns ``[t - n, t]`` whole, as DualTalk reads a clip.
 
 Table 2 (variants at equal steps, n = 7, test): TIMAR's default against the MLP head, bidirectional
 attention, the MAE-style encoder-decoder and the diffusion head's depth K and width d_m (Table 5),
@@ -59,7 +59,7 @@ CACHE = ".cache/prepared"
 CONTEXTS = (0, 1, 3, 7)
 GROUP_KEYS = ("FD_exp", "FD_jaw", "FD_pose", "P-FD_exp", "P-FD_jaw", "P-FD_pose", "MSE_exp", "MSE_jaw", "MSE_pose",
               "SID_fit_gt_exp", "SID_fit_gt_jaw", "SID_fit_gt_pose", "rPCC_exp", "rPCC_jaw", "rPCC_pose")
-CFG_SCALE = 1.5
+CFG_SCALE = 0.5  # jaxtalk's guidance weight: the paper's omega = 1.5
 
 
 def model_config(name: str, width: int, layers: int):
@@ -131,7 +131,7 @@ def predictions(d, config, norm, convs, context: int, mode: str, noise_seed: int
     side's turns and cropped after. Exact for both models: TIMAR is turn-causal, and the baseline's
     window for a real turn holds only real turns."""
     from jaxtalk.models.dualtalk import predict_turns
-    from jaxtalk.models.timar.stream import stream
+    from jaxtalk.models.timar.streaming import stream
 
     us, um, as_ = padded_streams(convs, norm)
     if d["name"] == "dualtalk":

@@ -61,8 +61,10 @@ def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0, chunk_f
         raise ValueError(f"the demo's run trains on SynthTalk of its own seed: seed={seed} but corpus.seed={corpus.seed}")
     cfg = model_config(chunk_frames)
     # "-causal-": the causal (streaming) model; folders of the older offline model are not reused.
-    options = DemoOptions(out_dir=CACHE / f"{corpus.key}-causal-n{model_config(chunk_frames).noise_frames:g}-s{steps}-c{chunk_frames}-seed{seed}", size=corpus.size,
-                          seed=seed, train_steps=steps, progress=True, cache_dir=DATA, chunk_frames=chunk_frames)
+    options = DemoOptions(out_dir=CACHE / (f"{corpus.key}-causal-n{model_config(chunk_frames).noise_frames:g}"
+                                           f"-s{steps}-c{chunk_frames}-seed{seed}"),
+                          size=corpus.size, seed=seed, train_steps=steps, progress=True, cache_dir=DATA,
+                          chunk_frames=chunk_frames)
     t0 = time.perf_counter()
     trained = train_or_load(options)
     base, history = jax.tree.map(jnp.asarray, trained.params), trained.history

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Does the default `jaxtalk train toktalk` on SynthTalk small stay better than the mean pose on held-out
-# speakers however long it trains? (issue 29, section 1)
+# speakers however long it trains?
 #
 # For each seed: 6,000 steps of the default recipe with its streamed validation every 500 steps on ALL 20
 # val clips (held-out speakers; 1 and `sample_steps` Euler steps at the preset's temperature), then the

@@ -15,7 +15,7 @@ dynamics) and MOD (mm, mouth opening); frame-weighted over clips.
 Bars (at the first step count): TokTalk with style beats the mean pose by >= 30% on LVE; style beats
 no style; adapted within 15% of the base model.
 
-Usage: ``python experiments/toktalk_quality.py [--size small] [--steps 1200] [--sample-steps 1,10]``
+Usage: ``python experiments/toktalk_quality.py [--size small] [--steps 1200] [--sample-steps 1 10]``
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import numpy as np
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
 from jaxtalk.models import toktalk as tt
-from jaxtalk.models.toktalk.sample import default_grid
+from jaxtalk.models.toktalk.sampling import default_grid
 from jaxtalk.data.loader import iter_windows, open_data
 from jaxtalk.models.toktalk.recipe import TokTalkWindows
 from toktalk_common import DATA, RESULTS, evaluate, load_corpus, style_clip_for, trained_small, weighted_mean
@@ -39,13 +39,13 @@ def main() -> None:
     parser.add_argument("--size", default="small")
     parser.add_argument("--steps", type=int, default=1200, help="base training steps (the demo's: 1200)")
     parser.add_argument("--adapter-steps", type=int, default=400)
-    parser.add_argument("--sample-steps", default="1,10", help="Euler step counts, comma separated")
+    parser.add_argument("--sample-steps", type=int, nargs="+", default=[1, 10], help="Euler step counts")
     parser.add_argument("--clips", type=int, default=0, help="test clips to use (0: all)")
     parser.add_argument("--style-seconds", type=float, default=8.0,
                         help="length of the reference clip (a crop of another clip of the same speaker)")
     parser.add_argument("--out", default=str(RESULTS / "toktalk_quality.json"))
     args = parser.parse_args()
-    step_counts = [int(s) for s in args.sample_steps.split(",")]
+    step_counts = list(args.sample_steps)
     corpus = load_corpus(args.size)
     cfg, params, train_info = trained_small(corpus, args.steps, args.adapter_steps)
     rng = np.random.default_rng(0)

@@ -12,7 +12,7 @@ run as one batch of 2 (CosyVoice's ``solve_euler``), random weights (speed does 
   ``torch.inference_mode`` with torch's threads set to the CPU count, in a child process run by
   ``--torch-python`` (an environment with torch, diffusers 0.27, einops and conformer; the reference
   needs them, jaxtalk does not), its Euler loop written as ``solve_euler`` does it;
-* jaxtalk: :func:`jaxtalk.models.toktalk.sample.generate_frames` on ``TokTalkConfig.paper()`` with the
+* jaxtalk: :func:`jaxtalk.models.toktalk.sampling.generate_frames` on ``TokTalkConfig.paper()`` with the
   same window, compiled once before timing (the streaming engine's step is this call plus slicing).
 
 Rounds alternate: one jaxtalk run, one reference run, ``--rounds`` times per window, so a slow
@@ -113,7 +113,7 @@ def jaxtalk_chunk(w: int):
     from jaxtalk.benchmarking import xla_flops
     from jaxtalk.models import toktalk as tt
     from jaxtalk.models.toktalk.model import Condition, velocity
-    from jaxtalk.models.toktalk.sample import default_grid, generate_frames
+    from jaxtalk.models.toktalk.sampling import default_grid, generate_frames
 
     config = tt.TokTalkConfig.paper(context_frames=w - 10, overlap_frames=0 if w == 10 else 5)
     params = random_params(lambda k: tt.init_params(config, k))
@@ -176,7 +176,8 @@ def main() -> None:
     finally:
         reference.close()
     shown = [{k: v for k, v in r.items() if not k.endswith("runs_s")} for r in rows]
-    print_table(shown, f"TokTalk paper chunk, {STEPS} Euler steps + CFG: jaxtalk vs CosyVoice's decoder (float32 peak {peak:.0f} GFLOP/s)")
+    print_table(shown, f"TokTalk paper chunk, {STEPS} Euler steps + CFG: jaxtalk vs CosyVoice's decoder "
+                       f"(float32 peak {peak:.0f} GFLOP/s)")
     write_json(args.out, {"machine": machine_info(), "matmul_peak_gflop_s": peak, "args": vars(args), "rows": rows})
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.runs import _restore_state, build_config, checkpoint_dir, model_spec
 from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
-from jaxtalk.models.toktalk.stream import stream
+from jaxtalk.models.toktalk.streaming import stream
 from jaxtalk.face import builtin_face
 run, step, split = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 data = PreparedData(".cache/prepared/synthtalk-small-seed0")
@@ -27,7 +27,8 @@ by = {}
 for i in data.split(split):
     by.setdefault(data.clips[i]["speaker"], []).append(i)
 speakers = [s for s in by if len(by[s]) >= 2][:6]
-face = builtin_face(0); lips = face.regions["lips"]
+face = builtin_face(0)
+lips = face.regions["lips"]
 rest = {s: np.mean([np.asarray(data.record(i, ("motion",))["motion"]).mean(0) for i in by[s]], 0) for s in speakers}
 def run_clip(tok_clip, style_clip):
     rec = data.record(tok_clip, ("motion", "tokens"))
@@ -45,6 +46,7 @@ for a, b in zip(speakers, speakers[1:] + speakers[:1]):
     own = run_clip(by[a][0], by[a][1])          # A's voice, A's style
     swapped = run_clip(by[b][0], by[a][1])      # B's voice, A's style
     rows.append((lipdist(own, rest[a]), lipdist(swapped, rest[a]), lipdist(swapped, rest[b]), lipdist(rest[a], rest[b])))
-    print(f"{a}<-{b}: own-voice mean vs A rest {rows[-1][0]:.1f}; B-voice mean vs A rest {rows[-1][1]:.1f}, vs B rest {rows[-1][2]:.1f}; A rest vs B rest {rows[-1][3]:.1f} mm^2", flush=True)
+    print(f"{a}<-{b}: own-voice mean vs A rest {rows[-1][0]:.1f}; B-voice mean vs A rest {rows[-1][1]:.1f}, "
+          f"vs B rest {rows[-1][2]:.1f}; A rest vs B rest {rows[-1][3]:.1f} mm^2", flush=True)
 r = np.array(rows).mean(0)
 print(f"{split} mean: own {r[0]:.1f}, swapped->A {r[1]:.1f}, swapped->B {r[2]:.1f}, A vs B {r[3]:.1f}")

@@ -2,8 +2,9 @@
 setting, and its flow loss by flow time.
 
 For ``--clips`` test clips of the run's data (style: another clip of the same speaker, as ``jaxtalk
-eval``): LVE (mm^2), vertex jitter (mm/frame^2) and parameter jitter (the TokTalk tables' unit) of offline samples (full attention and chunk mask)
-at 1/2/5/10/20 Euler steps, with and without guidance, and of the streaming engine; the data's own
+eval``): LVE (mm^2), vertex jitter (mm/frame^2) and parameter jitter (the TokTalk tables' unit) of
+offline samples (full attention and chunk mask) at 1/2/5/10/20 Euler steps, with and without guidance,
+and of the streaming engine; the data's own
 jitter beside them. Then, on validation windows, the conditional flow loss at fixed flow times next to
 the loss of the preconditioning's linear part alone (``F = 0``): where the network gains little over
 it, samples keep the noise the linear part cannot remove. A high-frequency split of the 1-step output
@@ -33,7 +34,7 @@ from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.loss import flow_matching_terms
 from jaxtalk.models.toktalk.noise import prior_noise
 from jaxtalk.models.toktalk.model import Condition, frames_for_tokens, interpolate_tokens, to_flow_space, velocity
-from jaxtalk.models.toktalk.sample import default_grid
+from jaxtalk.models.toktalk.sampling import default_grid
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -139,7 +140,8 @@ def loss_by_time(run, data, clips, by_speaker, args):
             base.append(float(jnp.mean(jnp.square(v0 - u))))
             # Second-difference energy of the predicted clean motion x_t + (1 - t) v vs the data's.
             x_hat = x_t + (1 - t) * v
-            hf.append(float(jnp.mean(jnp.square(jnp.diff(x_hat, 2, axis=1)))) / float(jnp.mean(jnp.square(jnp.diff(x1, 2, axis=1)))))
+            hf.append(float(jnp.mean(jnp.square(jnp.diff(x_hat, 2, axis=1))))
+                      / float(jnp.mean(jnp.square(jnp.diff(x1, 2, axis=1)))))
         rows.append({"t": t, "flow_loss": float(np.mean(losses)), "linear_part_loss": float(np.mean(base)),
                      "gain": 1 - float(np.mean(losses)) / float(np.mean(base)),
                      "x1_hat_accel_energy_vs_data": float(np.mean(hf))})

@@ -1,4 +1,4 @@
-"""Positive control for TokTalk's step-count claim (issue 29 §5): a corpus where the step count must matter.
+"""Positive control for TokTalk's step-count claim: a corpus where the step count must matter.
 
 TokTalk's Table 5 says more Euler steps lower MSE and jitter. For a well-trained flow the maths says
 otherwise for MSE: one Euler step from t = 0 lands on ``z + v(z, 0, c)``, and the optimal velocity at
@@ -101,8 +101,8 @@ def score(run_dir: Path, nods: Path, *, step_counts: list[int], temperatures: li
     from jaxtalk.face import builtin_face
     from jaxtalk.metrics import lve, mve
     from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
-    from jaxtalk.models.toktalk.sample import default_grid
-    from jaxtalk.models.toktalk.stream import stream
+    from jaxtalk.models.toktalk.sampling import default_grid
+    from jaxtalk.models.toktalk.streaming import stream
     from jaxtalk.runs import load_run
     from jaxtalk.train.recipes import spread
 
@@ -175,7 +175,8 @@ def mean_pose_row(run_dir: Path, nods: Path, clips: int) -> dict:
         amp.append(np.abs(r).mean() / a)
         share.append((np.abs(r) > a / 2).mean())
         mse.append(((r - nod) ** 2).mean() / a**2)
-    return {"checkpoint": "mean pose", "amplitude": float(np.mean(amp)), "bimodal_share": float(np.mean(share)), "nod_mse": float(np.mean(mse))}
+    return {"checkpoint": "mean pose", "amplitude": float(np.mean(amp)), "bimodal_share": float(np.mean(share)),
+            "nod_mse": float(np.mean(mse))}
 
 
 def main() -> None:

@@ -25,10 +25,9 @@ import numpy as np
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
 from jaxtalk.models import toktalk as tt
-import importlib
 
-stream_mod = importlib.import_module("jaxtalk.models.toktalk.stream")  # the package re-exports stream()
-from jaxtalk.models.toktalk.sample import default_grid
+import jaxtalk.models.toktalk.streaming as stream_mod
+from jaxtalk.models.toktalk.sampling import default_grid
 from toktalk_common import RESULTS, evaluate, load_corpus, style_clip_for, trained_small, weighted_mean
 
 CHUNKS = (10, 20, 30)

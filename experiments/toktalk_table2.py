@@ -120,7 +120,8 @@ def main() -> None:
                 report = out / f"test_{which}.json"
                 if not report.is_file():
                     run(["jaxtalk", "eval", str(out), "--split", "test", "--max-clips", str(args.clips),
-                         "--sample-steps", "1,10", "--json", str(report), *(["--best"] if which == "best" else [])])
+                         "--sample-steps", "1", "--sample-steps", "10", "--json", str(report),
+                         *(["--best"] if which == "best" else [])])
                 rows += [{"condition": cond, "seed": seed, "checkpoint": which, **r}
                          for r in table_rows(json.loads(report.read_text()))]
     print_table(rows, f"TokTalk conditioned on tokens vs log-mel, test split ({args.clips} clips of held-out speakers)")

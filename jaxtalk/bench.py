@@ -132,7 +132,7 @@ def toktalk_chunk(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     from jaxtalk.benchmarking import parameter_bytes_read, xla_flops
     from jaxtalk.models import toktalk as tt
     from jaxtalk.models.toktalk.model import Condition, velocity
-    from jaxtalk.models.toktalk.sample import default_grid
+    from jaxtalk.models.toktalk.sampling import default_grid
 
     params = random_params(lambda k: tt.init_params(config, k))
     rng = np.random.default_rng(0)
@@ -182,8 +182,8 @@ def toktalk_window(config: Any, name: str, repeats: int = 10) -> dict[str, Any]:
     import jax.numpy as jnp
 
     from jaxtalk.models import toktalk as tt
-    from jaxtalk.models.toktalk.sample import default_grid, generate_frames
-    from jaxtalk.models.toktalk.stream import overlap_window_mask
+    from jaxtalk.models.toktalk.sampling import default_grid, generate_frames
+    from jaxtalk.models.toktalk.streaming import overlap_window_mask
 
     params = random_params(lambda k: tt.init_params(config, k))
     rng = np.random.default_rng(0)
@@ -263,7 +263,7 @@ def timar_stream(config: Any, *, context: int = 7, turns: int = 12, repeats: int
     import jax
 
     from jaxtalk.models.timar import init_params
-    from jaxtalk.models.timar.stream import init_stream, stream_step
+    from jaxtalk.models.timar.streaming import init_stream, stream_step
 
     params = random_params(lambda k: init_params(config, k))
     f = config.frames_per_turn
@@ -303,8 +303,8 @@ def timar_turn(config: Any, name: str, *, context: int = 7, turn: int = 0, repea
     from jaxtalk.benchmarking import time_jitted, xla_flops
     from jaxtalk.models.timar import init_params
     from jaxtalk.models.timar.head import apply_head
-    from jaxtalk.models.timar.sample import sample_frames
-    from jaxtalk.models.timar.stream import _condition, init_stream
+    from jaxtalk.models.timar.sampling import sample_frames
+    from jaxtalk.models.timar.streaming import _condition, init_stream
 
     steps = config.sample_steps if sample_steps is None else sample_steps
     params = random_params(lambda k: init_params(config, k))
@@ -347,7 +347,7 @@ def timar_head(steps: int, repeats: int = 3, config: Any = None) -> dict[str, An
 
     from jaxtalk.benchmarking import time_jitted
     from jaxtalk.models.timar import TimarConfig, init_params
-    from jaxtalk.models.timar.sample import sample_frames
+    from jaxtalk.models.timar.sampling import sample_frames
 
     cfg = TimarConfig.paper(num_layers=1) if config is None else config  # only the head is used
     params = random_params(lambda k: init_params(cfg, k))

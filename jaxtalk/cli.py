@@ -316,14 +316,28 @@ _OUT = Annotated[Path | None, typer.Option(help="Output .npz, replaced if it exi
                                                  "the input, which needs --overwrite to replace a file).")]
 _STYLE = Annotated[Path | None, typer.Option(help="TokTalk: reference motion .npz for the speaking style.")]
 _PARTNER = Annotated[Path | None, typer.Option(help="TIMAR: the partner's audio (default: silence).")]
-_CFG = Annotated[float | None, typer.Option(help="Guidance scale (default: the model's).")]
+_CFG = Annotated[float | None, typer.Option(help="Guidance weight w of (1 + w) cond - w uncond: 0 = none, -1 = "
+                                                 "unconditional (every model; the default is the run's).")]
+def _step_counts(values: list[str]) -> tuple[int, ...]:
+    """``eval --sample-steps``: one whole number per use (as ``sample`` and ``stream`` take it)."""
+    for value in values:
+        if "," in value:
+            raise ValueError(f"--sample-steps takes one number per use, as in sample and stream; for several, "
+                             f"repeat it: {' '.join('--sample-steps ' + v.strip() for v in value.split(','))}")
+    try:
+        return tuple(int(v) for v in values)
+    except ValueError:
+        raise ValueError(f"--sample-steps must be a whole number of steps, got {values!r}") from None
+
+
 _SAMPLE_STEPS = Annotated[int | None, typer.Option("--sample-steps", help="Sampler steps: Euler (TokTalk) or DDIM / DDPM "
                                                                            "(ATS, TIMAR) (default: the model's).")]
 _TEMPERATURE = Annotated[float | None, typer.Option(help="Scale of the sampler's noise, >= 0 (TokTalk: the starting "
                                                          "noise, default the model's; TIMAR: MAR's temperature, default "
                                                          "1); below 1 trades diversity for accuracy.")]
 _SEED = Annotated[int, typer.Option(help="Noise seed.")]
-_BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest selection metric: TokTalk's streamed lip error, else validation loss).")]
+_BEST = Annotated[bool, typer.Option(help="Use the run's best-validated checkpoint (lowest selection metric: TokTalk's "
+                                            "streamed lip error, else validation loss).")]
 
 
 def _frames(count: int) -> str:
@@ -338,9 +352,12 @@ def sample(
     cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None, temperature: _TEMPERATURE = None, seed: _SEED = 0,
     best: _BEST = False, overwrite: _OVERWRITE = False,
     stm: Annotated[Path | None, typer.Option(help="FreeTalk: the STM run that maps an ATS run's landmarks onto --mesh.")] = None,
-    mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, STL).")] = None,
-    emotion: Annotated[str | None, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary (default neutral).")] = None,
-    intensity: Annotated[float | None, typer.Option(help="FreeTalk: emotion intensity, continuous in [1, levels] (default 1).")] = None,
+    mesh: Annotated[Path | None, typer.Option(help="FreeTalk: the face mesh to animate (OBJ, PLY, GLB/GLTF, OFF, "
+                                                   "STL).")] = None,
+    emotion: Annotated[str | None, typer.Option(help="FreeTalk: an emotion of the ATS run's vocabulary (default "
+                                                     "neutral).")] = None,
+    intensity: Annotated[float | None, typer.Option(help="FreeTalk: emotion intensity, continuous in [1, levels] "
+                                                         "(default 1).")] = None,
     units: Annotated[str | None, typer.Option(help="FreeTalk: the mesh's units, m|dm|cm|mm|um (default: from its size).")] = None,
     landmarks: Annotated[Path | None, typer.Option(help="FreeTalk: the mesh's 68 landmarks, (68, 3) positions or (68,) "
                                                         "vertex indices (.npy/.txt), to guide the alignment.")] = None,
@@ -397,8 +414,9 @@ def eval_(
     cache_dir: Annotated[Path, typer.Option(help="Where synthtalk: data is prepared.")] = Path(".cache/prepared"),
     best: Annotated[bool, typer.Option(help="Evaluate the best-validated checkpoint (checkpoint/best).")] = False,
     sample_steps: Annotated[
-        str | None, typer.Option(help="TokTalk: Euler step counts, comma separated (one row each; default the "
-                                      "run's sample_steps), e.g. 1,10.")
+        list[str] | None, typer.Option("--sample-steps", help="TokTalk: Euler steps, one table each; repeat it for "
+                                                               "several: --sample-steps 1 --sample-steps 10 (default "
+                                                               "the run's sample_steps).")
     ] = None,
     offline: Annotated[bool, typer.Option(help="TokTalk: also sample whole clips offline (full attention).")] = False,
     temperature: _TEMPERATURE = None,
@@ -425,10 +443,7 @@ def eval_(
     if json_out is not None:
         # Every file inside the run folder is an input of eval (its history, checkpoints, assets).
         claim_outputs([Output(json_out, named=True)], inputs=[run, flame, real_voice])
-    try:
-        steps = tuple(int(s) for s in sample_steps.split(",")) if sample_steps else ()
-    except ValueError:
-        raise ValueError(f"--sample-steps must be comma-separated integers, got {sample_steps!r}") from None
+    steps = _step_counts(sample_steps or [])
     report = evaluate_run(EvalOptions(run_dir=run, data=data, split=split, max_clips=max_clips, seed=seed,
                                       flame=flame, cache_dir=cache_dir, best=best, sample_steps=steps,
                                       offline=offline, temperature=temperature, real_voice=real_voice),
@@ -454,7 +469,8 @@ def bench(
                                                         "step, FLOPs, fraction of peak, compile time, memory, loader "
                                                         "time per batch and the loop's host overhead.")] = False,
     preset: Annotated[list[str] | None, typer.Option("--preset", help="With --train: the presets to train, small or paper "
-                                                                     "(repeatable; default small, and paper with --paper).")] = None,
+                                                                     "(repeatable; default small, and paper with "
+                                                                     "--paper).")] = None,
     sampling: Annotated[bool, typer.Option(help="With --train: also the sampling tables of the chosen models.")] = True,
     data: Annotated[str, typer.Option(help="With --train: the prepared data the models train on (a folder or "
                                            "synthtalk:SIZE).")] = "synthtalk:tiny",
@@ -515,8 +531,8 @@ def bench(
                                               overrides=overrides, repeats=repeats, loop_steps=loop_steps,
                                               paper_batch=paper_batch, profile_dir=profile, echo=typer.echo))
     # The peak again at the end, and the better of the two for every row: on a shared machine one
-    # measurement can land in a slow spell (102 against 178-204 GFLOP/s in runs of one afternoon),
-    # which would put rows above 1.0 of "peak".
+    # measurement can land in a slow spell, which would put rows above 1.0 of "peak"
+    # (docs/design-decisions.md).
     typer.echo("measuring the float32 matmul peak and the memory bandwidth again")
     peaks = [peak, measure_matmul_peak() / 1e9]
     bandwidths = [bandwidth, measure_memory_bandwidth() / 1e9]
@@ -528,8 +544,9 @@ def bench(
                f"memory bandwidth {bandwidth:.1f} GB/s (start {bandwidths[0]:.1f}, end {bandwidths[1]:.1f})")
     for table in tables:
         _echo_table(table.rows, table.title)
-    payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "matmul_peaks_gflop_s": peaks, "memory_bandwidth_gb_s": bandwidth,
-                               "memory_bandwidths_gb_s": bandwidths, "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
+    payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "matmul_peaks_gflop_s": peaks,
+                               "memory_bandwidth_gb_s": bandwidth, "memory_bandwidths_gb_s": bandwidths,
+                               "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
     if train_models:
         payload["train"] = {"data": data, "presets": presets, "models": train_models, "set": list(set_ or ()),
                             "paper_batch": paper_batch}
@@ -593,8 +610,8 @@ def retarget(
                                           "a neutral.obj, or 'builtin' (the built-in 52-shape ARKit rig).")] = "builtin",
     out: Annotated[Path | None, typer.Option(help="Output .glb, replaced if it exists (default retarget.glb, which needs "
                                                   "--overwrite to replace a file); OUT.csv (Live Link Face), OUT.json and "
-                                                  "the audio OUT.glb.wav go beside it, and like the default they replace an existing file only "
-                                                  "with --overwrite.")] = None,
+                                                  "the audio OUT.glb.wav go beside it, and like the default they replace "
+                                                  "an existing file only with --overwrite.")] = None,
     audio: Annotated[Path | None, typer.Option(help="Audio to write beside the .glb (default: the audio stored in the "
                                                     ".npz).")] = None,
     mesh: Annotated[Path | None, typer.Option(help="The mesh file (OBJ, PLY, GLB/GLTF) a vertex sequence was animated "
@@ -616,7 +633,8 @@ def retarget(
     from jaxtalk.commands.retargeting import RetargetOptions, retarget_file
 
     retarget_file(RetargetOptions(motion=motion, rig=rig, out=out, audio=audio, mesh=mesh, flame=flame, units=units,
-                                  landmarks=landmarks, fps=fps, smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry, overwrite=overwrite),
+                                  landmarks=landmarks, fps=fps, smoothness=smoothness, l1=l1, l2=l2, symmetry=symmetry,
+                                  overwrite=overwrite),
                   echo=typer.echo)
 
 

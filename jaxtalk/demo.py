@@ -271,8 +271,7 @@ def train_or_load(options: DemoOptions, echo: Callable[[str], None] = print) -> 
     else:
         echo(f"found a finished checkpoint at step {done} in {ckpt}: no retraining (use --retrain)")
     # The run's validation streams held-out speakers and keeps the checkpoint with the lowest lip
-    # error (TokTalk's selection metric); on SynthTalk small that is an early one (later steps fit
-    # the training speakers' rest poses at the held-out speakers' expense), so ship it.
+    # error (TokTalk's selection metric): ship that one, not the newest (docs/design-decisions.md).
     best = read_best(ckpt)
     run = load_run(out, best=best is not None)
     if best is not None:

@@ -1,4 +1,6 @@
-"""Writing files a user keeps: one atomic writer and one rule for what a command may replace.
+"""Writing files a user keeps: one atomic writer and one rule for what a command may replace; and the
+one reader of the ``.npz`` / ``.npy`` arrays a user gives (:func:`load_npz`, :func:`load_npy`: nothing
+unpickled, one-line errors).
 
 Atomic: every file jaxtalk writes goes to a temporary file in the target's folder (a unique name, so
 concurrent writers never share one), then ``os.replace`` puts it in place. An interrupted or failing
@@ -39,6 +41,8 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "load_npz",
+    "load_npy",
     "Output",
     "OutputError",
     "atomic_output",
@@ -365,3 +369,117 @@ def folder_lock(folder: str | os.PathLike) -> Iterator[Path]:
         if created:
             with contextlib.suppress(OSError):
                 folder.rmdir()  # only if still empty
+
+
+# ---- reading the arrays a user gives ----------------------------------------------------------------
+def _stored_dtype(handle) -> np.dtype | None:
+    """The dtype a NumPy array file's header declares, or None when the bytes are not one.
+
+    Only the header is read: what follows is never parsed, so nothing is unpickled.
+    """
+    from numpy.lib import format as npy_format
+
+    try:
+        version = npy_format.read_magic(handle)
+        # Versions 2.0 and 3.0 differ from 1.0 in the header length's width only (3.0 also allows
+        # UTF-8 field names, which the 2.0 reader decodes as latin-1: the dtype's kind is the same).
+        header = npy_format.read_array_header_1_0 if version == (1, 0) else npy_format.read_array_header_2_0
+        return header(handle)[2]
+    except (ValueError, EOFError, OSError, SyntaxError, TypeError):
+        return None
+
+
+def _object_arrays(path: Path, keys: list[str] | None = None) -> ValueError:
+    """The error for object arrays (of an ``.npz``'s ``keys``; None: an ``.npy``'s one array)."""
+    # Object arrays are pickles, which can run code when read: jaxtalk reads numbers only, whoever
+    # wrote the file.
+    if keys is None:
+        return ValueError(f"{str(path)!r} holds an object array, which jaxtalk never reads: save a plain numeric "
+                          "array")
+    names = ", ".join(repr(k) for k in keys)
+    return ValueError(f"{str(path)!r} holds object arrays ({names}), which jaxtalk never reads: save plain "
+                      "numeric arrays")
+
+
+def load_npz(path: str | os.PathLike, *, what: str = "file") -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, read without unpickling anything.
+
+    The one reader of the ``.npz`` files a user gives jaxtalk: whatever is wrong with one, the error is
+    one line that names the file and the problem.
+
+    Args:
+        path: the ``.npz``.
+        what: what the file is, for the message of a missing one (``"motion file"``).
+
+    Returns:
+        ``{name: array}`` in the file's order.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a zip archive, a member that is not a NumPy array, object (pickled) arrays, or
+            a damaged file.
+    """
+    import zipfile
+    import zlib
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} not found: {str(path)!r}")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{str(path)!r} is not an .npz file (not a zip archive)")
+    damaged = (zipfile.BadZipFile, zlib.error, EOFError, OSError)
+    objects = []
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for member in archive.namelist():
+                if member.endswith("/"):
+                    continue
+                with archive.open(member) as handle:
+                    dtype = _stored_dtype(handle)
+                if dtype is None:
+                    raise ValueError(f"{str(path)!r} is not an .npz file: its member {member!r} is not a NumPy array")
+                if dtype.hasobject:
+                    objects.append(member.removesuffix(".npy"))
+    except damaged as err:
+        raise ValueError(f"{str(path)!r} is a damaged .npz file ({err})") from None
+    if objects:
+        raise _object_arrays(path, objects)
+    try:  # every header is a plain array's: what fails now is the data (a truncated or corrupted file)
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except (ValueError, *damaged) as err:
+        raise ValueError(f"{str(path)!r} is a damaged .npz file ({err})") from None
+
+
+def load_npy(path: str | os.PathLike, *, what: str = "file", mmap: bool = False) -> np.ndarray:
+    """The array of an ``.npy`` file, read without unpickling anything, by :func:`load_npz`'s rules.
+
+    Args:
+        path: the ``.npy``.
+        what: what the file is, for the message of a missing one (``"vertex sequence"``).
+        mmap: map the file read-only instead of reading it (a long sequence is then read a window at a
+            time as it is used).
+
+    Returns:
+        The array.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a NumPy array file, an object (pickled) array, or a damaged file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} not found: {str(path)!r}")
+    try:
+        with open(path, "rb") as handle:
+            dtype = _stored_dtype(handle)
+    except OSError as err:
+        raise ValueError(f"cannot read {str(path)!r} ({err})") from None
+    if dtype is None:
+        raise ValueError(f"{str(path)!r} is not a NumPy .npy file")
+    if dtype.hasobject:
+        raise _object_arrays(path)
+    try:
+        return np.load(path, allow_pickle=False, mmap_mode="r" if mmap else None)
+    except (ValueError, EOFError, OSError) as err:
+        raise ValueError(f"{str(path)!r} is a damaged .npy file ({err})") from None

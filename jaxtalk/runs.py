@@ -21,7 +21,7 @@ import importlib
 import json
 import types
 import typing
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +31,8 @@ __all__ = [
     "RUN_FILE",
     "CONFIG_FILE",
     "ModelSpec",
+    "Streamer",
+    "SPEC_PATHS",
     "RunInfo",
     "RunRecord",
     "LoadedRun",
@@ -49,7 +51,6 @@ __all__ = [
 
 RUN_FILE = "run.json"
 CONFIG_FILE = "config.json"
-_PRESETS = ("paper", "small", "tiny")
 
 
 def _resolve(path: str) -> Any:
@@ -59,61 +60,68 @@ def _resolve(path: str) -> Any:
 
 
 @dataclasses.dataclass(frozen=True)
+class Streamer:
+    """A model's streaming engine: ``init_stream(config, key, ...)`` makes the carried state,
+    ``stream_step(params, config, state, ..., sample_steps=...)`` advances it by one chunk (a TokTalk
+    chunk, a TIMAR turn), ``stream(params, config, ..., key, sample_steps=...)`` runs a whole input
+    through the steps as a live stream would."""
+
+    init_stream: Callable[..., Any]
+    stream_step: Callable[..., Any]
+    stream: Callable[..., Any]
+
+
+@dataclasses.dataclass(frozen=True)
 class ModelSpec:
-    """What the run format, the CLI and the experiments need to know about one model.
+    """The interface of one model: what the run format, the commands and the experiments call.
+
+    Each model package builds its own in its ``spec`` module (``jaxtalk.models.<model>.spec``);
+    :data:`REGISTRY` points at those.
 
     Attributes:
         name: the model's name in ``run.json`` and on the command line.
-        config: ``"module:Class"`` of its frozen config dataclass (with ``paper``/``small``/``tiny``
-            presets as classmethods).
-        recipe: ``"module:function"`` of its recipe's ``train``.
-        defaults: ``"module:attribute"`` of the recipe's default :class:`~jaxtalk.train.recipes.TrainSettings`.
-        preset_defaults: ``"module:attribute"`` of a ``{preset: TrainSettings}`` table for recipes whose
-            settings depend on the config preset (TIMAR's ``paper``), or None.
+        config_class: its frozen config dataclass.
+        presets: the config presets (classmethods of ``config_class``: ``paper``, ``small``, ...).
+        init_params: ``(config, key) -> params``.
+        make_loss_fn: ``(config) -> (params, batch, key) -> (loss, metrics)`` for the training loop (STM
+            binds its meshes: ``(config, meshes)``).
+        train: the recipe's ``train(config, data, optim, *, steps, key, ..., run_dir=None)``.
+        defaults: the recipe's default :class:`~jaxtalk.train.recipes.TrainSettings`.
+        preset_defaults: ``{preset: TrainSettings}`` for presets whose settings differ (TIMAR's ``paper``).
+        sample: ``sample(params, config, ..., key, *, sample_steps=..., ...)``, or None for the
+            deterministic models (STM, the DualTalk baseline).
+        guided: ``sample`` (and the streamer) take ``cfg_scale``, the guidance weight w of
+            :func:`jaxtalk.samplers.flow.guided_apply` (0 = no guidance), and ``guidance=False``.
+        streamer: the streaming engine, or None.
+        live: makes a live model from a loaded run (``live(run, style=..., cfg_scale=...,
+            sample_steps=...)``: ``open(key)`` streams, ``push(audio)`` returns frames), for models that
+            animate speech as it arrives (``jaxtalk stream`` and ``jaxtalk serve``); None for the others.
         data_fields: ``(config field, manifest key)`` pairs: input widths that follow the prepared data
             unless set explicitly, and that evaluation data must match.
         windows: how the recipe cuts windows when their length is not a setting (None: the
             ``window_frames`` setting applies).
         style_asset: the run keeps a default style clip (a training clip) for sampling.
-        legacy_fields: values of config fields added after runs were first written, as those runs
-            were trained.
-        live: ``"module:function"`` that makes a live model from a loaded run (``live(run, style=...,
-            cfg_scale=..., sample_steps=...)``: ``open(key)`` streams, ``push(audio)`` returns frames), for
-            models that animate speech as it arrives (``jaxtalk stream`` and ``jaxtalk serve``); None for
-            the others.
     """
 
     name: str
-    config: str
-    recipe: str
-    defaults: str
-    preset_defaults: str | None = None
+    config_class: type
+    presets: tuple[str, ...]
+    init_params: Callable[..., Any]
+    make_loss_fn: Callable[..., Any]
+    train: Callable[..., Any]
+    defaults: Any
+    preset_defaults: dict[str, Any] = dataclasses.field(default_factory=dict)
+    sample: Callable[..., Any] | None = None
+    guided: bool = False
+    streamer: Streamer | None = None
+    live: Callable[..., Any] | None = None
     data_fields: tuple[tuple[str, str], ...] = ()
     windows: str | None = None
     style_asset: bool = False
-    legacy_fields: tuple[tuple[str, Any], ...] = ()
-    live: str | None = None
-
-    def config_class(self) -> type:
-        """The config dataclass (imports the model)."""
-        return _resolve(self.config)
-
-    def presets(self) -> tuple[str, ...]:
-        """The presets (``paper``, ``small``, ``tiny``) the config class defines."""
-        cls = self.config_class()
-        return tuple(p for p in _PRESETS if callable(getattr(cls, p, None)))
-
-    def train_fn(self) -> Callable[..., Any]:
-        """The recipe's ``train(config, data, optim, *, steps, key, ..., run_dir=None)``."""
-        return _resolve(self.recipe)
 
     def settings(self, preset: str = "small") -> Any:
         """The recipe's default :class:`~jaxtalk.train.recipes.TrainSettings` for a config preset."""
-        if self.preset_defaults is not None:
-            table = _resolve(self.preset_defaults)
-            if preset in table:
-                return table[preset]
-        return _resolve(self.defaults)
+        return self.preset_defaults.get(preset, self.defaults)
 
     @property
     def reads_speech(self) -> bool:
@@ -122,34 +130,37 @@ class ModelSpec:
         say so. TokTalk reads audio tokens and STM landmarks instead."""
         return any(key in ("speech_dim", "turn_speech_dim") for _, key in self.data_fields)
 
-    def live_fn(self) -> Callable[..., Any] | None:
-        """The live-model factory (see ``live``), or None when the model does not animate live speech."""
-        return None if self.live is None else _resolve(self.live)
 
-
-_TURN_SPEECH = (("speech_dim", "turn_speech_dim"),)
-REGISTRY: dict[str, ModelSpec] = {
-    spec.name: spec
-    for spec in (
-        ModelSpec("toktalk", "jaxtalk.models.toktalk.config:TokTalkConfig", "jaxtalk.models.toktalk.recipe:train",
-                  "jaxtalk.models.toktalk.recipe:DEFAULTS",
-                  data_fields=(("speech_dim", "token_dim"), ("token_rate", "token_rate")), style_asset=True,
-                  # TokTalk runs recorded before noise_frames existed were trained on white noise.
-                  legacy_fields=(("noise_frames", 0.0),), live="jaxtalk.models.toktalk.live:live_model"),
-        ModelSpec("ats", "jaxtalk.models.freetalk.config:ATSConfig", "jaxtalk.models.freetalk.recipe:train_ats",
-                  "jaxtalk.models.freetalk.recipe:DEFAULTS", "jaxtalk.models.freetalk.recipe:ATS_PRESET_DEFAULTS",
-                  data_fields=(("speech_dim", "speech_dim"),)),
-        ModelSpec("stm", "jaxtalk.models.freetalk.config:STMConfig", "jaxtalk.models.freetalk.recipe:train_stm",
-                  "jaxtalk.models.freetalk.recipe:DEFAULTS", "jaxtalk.models.freetalk.recipe:STM_PRESET_DEFAULTS"),
-        ModelSpec("timar", "jaxtalk.models.timar.config:TimarConfig", "jaxtalk.models.timar.recipe:train",
-                  "jaxtalk.models.timar.recipe:DEFAULTS", "jaxtalk.models.timar.recipe:PRESET_DEFAULTS",
-                  data_fields=_TURN_SPEECH, windows="whole turns (max_turns)"),
-        ModelSpec("dualtalk", "jaxtalk.models.dualtalk.config:DualTalkConfig", "jaxtalk.models.dualtalk.recipe:train",
-                  "jaxtalk.models.dualtalk.recipe:DEFAULTS", "jaxtalk.models.dualtalk.recipe:PRESET_DEFAULTS",
-                  data_fields=_TURN_SPEECH, windows="whole turns (max_turns)"),
-    )
+# Where each model's spec lives. This module sits below the models (it may not import them), so the
+# specs are imported on first use; ``jaxtalk --help`` stays instant. tests/test_layers.py checks that
+# these name ``spec`` modules of the models layer.
+SPEC_PATHS: dict[str, str] = {
+    "toktalk": "jaxtalk.models.toktalk.spec:SPEC",
+    "ats": "jaxtalk.models.freetalk.spec:ATS",
+    "stm": "jaxtalk.models.freetalk.spec:STM",
+    "timar": "jaxtalk.models.timar.spec:SPEC",
+    "dualtalk": "jaxtalk.models.dualtalk.spec:SPEC",
 }
-MODELS = tuple(REGISTRY)
+
+
+class _Registry(Mapping[str, ModelSpec]):
+    """The models by name, each spec imported when it is first asked for."""
+
+    def __getitem__(self, model: str) -> ModelSpec:
+        spec = _resolve(SPEC_PATHS[model])
+        if not isinstance(spec, ModelSpec) or spec.name != model:
+            raise TypeError(f"{SPEC_PATHS[model]} is not the ModelSpec of {model!r}")
+        return spec
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(SPEC_PATHS)
+
+    def __len__(self) -> int:
+        return len(SPEC_PATHS)
+
+
+REGISTRY: Mapping[str, ModelSpec] = _Registry()
+MODELS = tuple(SPEC_PATHS)
 
 
 def model_spec(model: str) -> ModelSpec:
@@ -173,6 +184,40 @@ RENAMED_FIELDS = {
 }
 
 
+# The run record's format. 2: every model's cfg_scale is one guidance weight w (0 = no guidance); TIMAR's
+# records of format 1 hold the paper's omega = 1 + w.
+RUN_FORMAT = 2
+
+
+def _migrated(raw: dict[str, Any]) -> dict[str, Any]:
+    """A run record as today's jaxtalk reads it: renamed config fields under their current names, fields
+    added since with the values older runs were trained with, and, from format 1, TIMAR's guidance omega as
+    the weight ``omega - 1`` (in ``config`` and the ``--set`` items)."""
+    raw = _renamed(raw.get("model", ""), raw)
+    model, config = raw.get("model"), dict(raw.get("config", {}))
+    # Fields added after runs were first written take the value those runs were trained with.
+    if model == "toktalk":
+        config.setdefault("noise_frames", 0.0)  # trained on white noise before noise_frames existed
+    if model == "ats" and "num_emotions" in config:
+        # ATS runs recorded before the vocabulary was a setting have the EmoVOCA table (12 rows).
+        if config.pop("num_emotions") != 12:
+            raise ValueError("this ATS run's emotion table has no vocabulary on record; train it again")
+    raw = {**raw, "config": config}
+    if raw.get("format", 1) < 2 and model == "timar":
+        config = dict(raw.get("config", {}))
+        if "cfg_scale" in config:
+            config["cfg_scale"] = float(config["cfg_scale"]) - 1.0
+        items = []
+        for item in raw.get("items", []):
+            key, sep, value = item.partition("=")
+            try:
+                items.append(f"{key}={float(value) - 1.0:g}" if sep and key.strip() == "cfg_scale" else item)
+            except ValueError:
+                items.append(item)
+        raw = {**raw, "config": config, "items": items}
+    return {**raw, "format": RUN_FORMAT}
+
+
 def _renamed(model: str, raw: dict[str, Any]) -> dict[str, Any]:
     """A run record's dict with renamed config fields (in ``config`` and the ``--set`` items) under
     their current names."""
@@ -193,12 +238,12 @@ def config_class(model: str) -> type:
     Raises:
         ValueError: unknown model name.
     """
-    return model_spec(model).config_class()
+    return model_spec(model).config_class
 
 
 def preset_names(model: str) -> tuple[str, ...]:
     """The presets (``paper``, ``small``, ``tiny``) that ``model``'s config class defines."""
-    return model_spec(model).presets()
+    return model_spec(model).presets
 
 
 _TRUE = {"true", "1", "yes", "on"}
@@ -262,9 +307,9 @@ def build_config(model: str, preset: str, items: Sequence[str] = ()) -> Any:
         ValueError: unknown model or preset, bad overrides, or values the config rejects.
     """
     spec = model_spec(model)
-    cls = spec.config_class()
-    if preset not in spec.presets():
-        raise ValueError(f"{model} has no preset {preset!r}; expected one of {', '.join(spec.presets())}")
+    cls = spec.config_class
+    if preset not in spec.presets:
+        raise ValueError(f"{model} has no preset {preset!r}; expected one of {', '.join(spec.presets)}")
     return getattr(cls, preset)(**parse_overrides(cls, items))
 
 
@@ -290,6 +335,7 @@ class RunRecord:
             (source and feature settings).
         seed: training seed.
         extra: what the recipe fitted on the training split (normalisers, meshes, window sizes).
+        format: the record's format (:data:`RUN_FORMAT`); an older record is brought up to it on loading.
     """
 
     model: str
@@ -301,6 +347,7 @@ class RunRecord:
     data: dict[str, Any]
     seed: int
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
+    format: int = RUN_FORMAT
 
     def save(self, run_dir: str | Path) -> Path:
         """Write ``run_dir/run.json`` (atomically) and return its path."""
@@ -321,22 +368,13 @@ class RunRecord:
             raise FileNotFoundError(f"{run_dir} is not a training run (no {RUN_FILE}; make one with `jaxtalk train`)")
         try:
             raw = json.loads(path.read_text())
-            return cls(**_renamed(raw.get("model", ""), raw))
+            return cls(**_migrated(raw))
         except (json.JSONDecodeError, TypeError) as err:
             raise ValueError(f"{path} is not a run record of this jaxtalk version ({err}); train it again") from None
 
     def model_config(self) -> Any:
-        """The model config instance.
-
-        Fields a run recorded before they existed take the value the run was trained with, not
-        today's default (a TokTalk run without ``noise_frames`` was trained on white noise).
-        """
-        fields = {**dict(model_spec(self.model).legacy_fields), **self.config}
-        if self.model == "ats" and "num_emotions" in fields:
-            # ATS runs recorded before the vocabulary was a setting have the EmoVOCA table (12 rows).
-            if fields.pop("num_emotions") != 12:
-                raise ValueError("this ATS run's emotion table has no vocabulary on record; train it again")
-        return config_class(self.model)(**fields)
+        """The model config instance."""
+        return config_class(self.model)(**self.config)
 
     def optim_config(self) -> Any:
         """The :class:`jaxtalk.train.OptimConfig` instance."""
@@ -409,8 +447,8 @@ class RunInfo:
 def _preset_of(model: str, config: Any) -> str | None:
     """The preset whose config equals ``config`` (a run built in Python names one when it can)."""
     spec = model_spec(model)
-    cls = spec.config_class()
-    return next((p for p in spec.presets() if getattr(cls, p)() == config), None)
+    cls = spec.config_class
+    return next((p for p in spec.presets if getattr(cls, p)() == config), None)
 
 
 def write_run(run_dir: str | Path, model: str, config: Any, data: Any, optim: Any, *, seed: int,
@@ -500,7 +538,7 @@ class LoadedRun:
         Raises:
             FileNotFoundError: a run without one (not TokTalk).
         """
-        from jaxtalk.data.formats import load_npy
+        from jaxtalk.files import load_npy
 
         path = self.run_dir / STYLE_FILE
         if not path.is_file():

@@ -49,10 +49,11 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 else:
     _XLA_CACHE = None
 
-import jax
-import pytest
+# These imports come after the environment set above: jax reads the flags when imported.
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
-from helpers import jax_flag, xla_options  # after the environment above: helpers imports jax
+from helpers import jax_flag, xla_options  # noqa: E402  # after the environment above: helpers imports jax
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 

@@ -165,9 +165,9 @@ def _samplers(model, monkeypatch):
         state = tt.init_stream(config, key, batch=1)
         chunk = jnp.asarray(rng.normal(size=(1, tt.tokens_per_chunk(config), config.speech_dim)), jnp.float32)
         return [
-            ("sampler", *_capture_call(monkeypatch, "jaxtalk.models.toktalk.sample", "_sample",
+            ("sampler", *_capture_call(monkeypatch, "jaxtalk.models.toktalk.sampling", "_sample",
                                        lambda: tt.sample(params, config, tokens, style, key, sample_steps=2))),
-            ("stream step", *_capture_call(monkeypatch, "jaxtalk.models.toktalk.stream", "_stream_step",
+            ("stream step", *_capture_call(monkeypatch, "jaxtalk.models.toktalk.streaming", "_stream_step",
                                            lambda: tt.stream_step(params, config, state, chunk, style))),
         ]
     if model == "ats":
@@ -195,15 +195,15 @@ def _samplers(model, monkeypatch):
     us, um, as_ = _turn_streams(config, 2)
     if model == "timar":
         from jaxtalk.models.timar import init_params, sample
-        from jaxtalk.models.timar.stream import init_stream, stream_step
+        from jaxtalk.models.timar.streaming import init_stream, stream_step
 
         params = init_params(config, key)
         state = init_stream(config, key, context=1)
         f = config.frames_per_turn
         return [
-            ("sampler", *_capture_call(monkeypatch, "jaxtalk.models.timar.sample", "_sample",
+            ("sampler", *_capture_call(monkeypatch, "jaxtalk.models.timar.sampling", "_sample",
                                        lambda: sample(params, config, us, um, as_, key))),
-            ("stream step", *_capture_call(monkeypatch, "jaxtalk.models.timar.stream", "_step",
+            ("stream step", *_capture_call(monkeypatch, "jaxtalk.models.timar.streaming", "_step",
                                            lambda: stream_step(params, config, state, us[:, :f], um[:, :f], as_[:, :f]))),
         ]
     from jaxtalk.models.dualtalk.model import init_params

@@ -128,7 +128,8 @@ def test_bench_rows_use_the_better_of_the_peaks_measured_at_start_and_end(monkey
     monkeypatch.setattr(benchmarking, "measure_matmul_peak", lambda *a, **k: next(peaks))
     monkeypatch.setattr(benchmarking, "measure_memory_bandwidth", lambda *a, **k: next(bandwidths))
     monkeypatch.setattr(bench, "run_train_benchmarks",
-                        lambda models, presets, **kw: bench.BenchTable("train", bench.with_peak([{"gflop_s": 8.0}], kw["peak_gflop_s"])))
+                        lambda models, presets, **kw: bench.BenchTable(
+                            "train", bench.with_peak([{"gflop_s": 8.0}], kw["peak_gflop_s"])))
     monkeypatch.setattr("jaxtalk.data.loader.open_data", lambda *a, **k: None)
     out = tmp_path / "b.json"
     result = runner.invoke(app, ["bench", "--train", "--model", "ats", "--no-sampling", "--out", str(out)])

@@ -1,4 +1,4 @@
-"""What an adversarial new user met (issue 32), driven through ``jaxtalk``: resuming on other data, a
+"""What an adversarial new user met, driven through ``jaxtalk``: resuming on other data, a
 viewer port in use, a dataset whose every clip is rejected, advice naming no real option, options
 checked only after the expensive work, options that did nothing, misleading messages.
 

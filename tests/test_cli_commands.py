@@ -172,7 +172,7 @@ def test_sample_user_errors(run, tmp_path):
     _user_error(["sample", str(tmp_path), str(tmp_path / "wide.npy")], "is not a training run")
 
 
-def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise():
+def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise(tmp_path):
     import dataclasses
 
     from jaxtalk.runs import RunRecord
@@ -182,8 +182,31 @@ def test_a_toktalk_run_recorded_before_noise_frames_existed_keeps_white_noise():
     old = {k: v for k, v in config.items() if k != "noise_frames"}
     record = RunRecord(model="toktalk", preset="tiny", items=[], config=old, train={}, optim={}, data={}, seed=0,
                        extra={})
-    assert record.model_config().noise_frames == 0.0
-    assert RunRecord(**{**dataclasses.asdict(record), "config": config}).model_config().noise_frames == 2.0
+    record.save(tmp_path / "old")
+    assert RunRecord.load(tmp_path / "old").model_config().noise_frames == 0.0
+    RunRecord(**{**dataclasses.asdict(record), "config": config}).save(tmp_path / "new")
+    assert RunRecord.load(tmp_path / "new").model_config().noise_frames == 2.0
+
+
+def test_a_timar_run_of_format_one_reads_its_guidance_omega_as_todays_weight(tmp_path):
+    import dataclasses
+    import json
+
+    from jaxtalk.models.timar import TimarConfig
+    from jaxtalk.runs import RUN_FORMAT, RunRecord
+
+    # Format 1 stored the paper's omega (u + omega (c - u)); today's cfg_scale is w = omega - 1.
+    config = {**dataclasses.asdict(TimarConfig.small()), "cfg_scale": 2.5}
+    raw = dict(model="timar", preset="small", items=["cfg_scale=2.5", "width=64"], config=config, train={},
+               optim={}, data={}, seed=0, extra={})
+    (tmp_path / "run.json").write_text(json.dumps(raw))
+    record = RunRecord.load(tmp_path)
+    assert record.format == RUN_FORMAT == 2
+    assert record.model_config().cfg_scale == 1.5 and record.items == ["cfg_scale=1.5", "width=64"]
+    # A record of today's format is read as written, and saving keeps the format.
+    record.save(tmp_path)
+    assert RunRecord.load(tmp_path).model_config().cfg_scale == 1.5
+    assert json.loads((tmp_path / "run.json").read_text())["format"] == 2
 
 
 @pytest.mark.slow

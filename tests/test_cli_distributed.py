@@ -1,4 +1,4 @@
-"""``jaxtalk train toktalk --distributed`` with two processes on this machine (issue 15).
+"""``jaxtalk train toktalk --distributed`` with two processes on this machine.
 
 Two ``python -m jaxtalk train`` processes, each with 2 forced CPU devices, join one JAX run over
 loopback (gloo collectives) and train TokTalk (tiny) for 3 steps on prepared SynthTalk tiny with 2

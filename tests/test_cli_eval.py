@@ -2,8 +2,9 @@
 
 Tiny TokTalk, TIMAR and ATS runs are trained through the CLI for two steps on SynthTalk tiny, once per
 session (``trained_toktalk``, ``trained_timar``, ``trained_ats`` in conftest); STM, whose training renders
-several meshes (minutes), is evaluated from its initial parameters saved as a step-0 checkpoint. Scores of two-step models mean nothing, so the
-checks are on the wiring: the tables' shape, finite numbers, the mean-pose rows recomputed by hand from
+several meshes (minutes), is evaluated from its initial parameters saved as a step-0 checkpoint. Scores of
+two-step models mean nothing, so the checks are on the wiring: the tables' shape, finite numbers, the
+mean-pose rows recomputed by hand from
 the data, and the oracle beating the mean pose on SynthTalk. The real DualTalk demo clips (no oracle,
 audio-only partners) run through prepare, train and eval when ``../shared`` is present.
 """
@@ -106,7 +107,7 @@ def test_toktalk_eval_table_and_mean_pose_by_hand(runs, prepared_tiny, tmp_path)
 def test_toktalk_eval_rows_per_step_count_streamed_and_offline(runs, tmp_path):
     from jaxtalk.runs import load_run
 
-    _ok(["eval", runs["toktalk"], "--max-clips", "1", "--sample-steps", "1,2", "--offline", "--best",
+    _ok(["eval", runs["toktalk"], "--max-clips", "1", "--sample-steps", "1", "--sample-steps", "2", "--offline", "--best",
          "--json", tmp_path / "r.json"])
     rows = _rows(_report(tmp_path / "r.json")["tables"][0])
     names = ["toktalk (streamed, 1 step)", "toktalk (streamed, 2 steps)", "toktalk (offline, 1 step)",
@@ -115,7 +116,8 @@ def test_toktalk_eval_rows_per_step_count_streamed_and_offline(runs, tmp_path):
     # The step count reaches the sampler, and offline (full attention) is another computation.
     assert len({rows[n]["LVE_mm2"] for n in names}) == 4
     assert load_run(runs["toktalk"], best=True).step <= load_run(runs["toktalk"]).step
-    _user_error(["eval", runs["toktalk"], "--sample-steps", "1,x"], "comma-separated integers")
+    _user_error(["eval", runs["toktalk"], "--sample-steps", "x"], "must be a whole number of steps")
+    _user_error(["eval", runs["toktalk"], "--sample-steps", "1,10"], "repeat it: --sample-steps 1 --sample-steps 10")
 
 
 def _fake_flame(folder: Path, num_verts: int = 120) -> Path:
@@ -458,7 +460,7 @@ def test_toktalk_real_voice_table_by_hand(runs, tmp_path):
     assert table["title"].endswith(f"; the style clip rests at {style_rest:.3f} rad")
 
     # --max-clips takes the first recordings; --sample-steps gives one table per step count.
-    _ok(["eval", runs["toktalk"], "--real-voice", folder, "--max-clips", "1", "--sample-steps", "1,2",
+    _ok(["eval", runs["toktalk"], "--real-voice", folder, "--max-clips", "1", "--sample-steps", "1", "--sample-steps", "2",
          "--json", tmp_path / "s.json"])
     tables = _report(tmp_path / "s.json")["tables"]
     assert [t["title"].split(":")[0] for t in tables] == ["TokTalk on real voices (voices, 1 step)",

@@ -86,7 +86,7 @@ def test_sample_onto_an_obj_kit_keeps_its_vertices(ats_run, stm_run, files):
 
 @pytest.mark.slow
 def test_sample_animates_mediapipes_canonical_face_in_centimetres(ats_run, stm_run, files):
-    """The issue's command on MediaPipe's canonical face (468 vertices, cm, a real face mask): it
+    """A new user's command on MediaPipe's canonical face (468 vertices, cm, a real face mask): it
     aligns (through MediaPipe's own face, at about the template's size) and animates in centimetres."""
     from jaxtalk.geometry.canonical import MEDIAPIPE_FACE_FILE, load_mesh
 

@@ -45,7 +45,7 @@ def run(trained_toktalk):
 
 @pytest.fixture
 def talk(tmp_path):
-    """A folder holding only the user's ``talk.wav`` (44.1 kHz stereo float, as the issue's user had)."""
+    """A folder holding only the user's ``talk.wav`` (44.1 kHz stereo float, as a user's recording often is)."""
     rate = 44_100
     t = np.arange(3 * rate) / rate
     wav = np.stack([0.3 * np.sin(2 * np.pi * 180 * t), 0.2 * np.sin(2 * np.pi * 240 * t)], axis=1)
@@ -90,7 +90,7 @@ def test_an_explicit_out_replaces_its_file_and_a_folder_or_a_path_under_a_file_i
 
 @pytest.mark.slow
 def test_export_writes_its_audio_beside_the_glb_without_touching_the_recording(run, talk):
-    # The issue's session: sample -> talk.npz, export -> talk.glb; talk.wav stays the user's.
+    # A user's session: sample -> talk.npz, export -> talk.glb; talk.wav stays the user's.
     _ok(["sample", run, talk / "talk.wav", "--out", talk / "talk.npz"])
     before = _hashes(talk)
     output = _ok(["export", talk / "talk.npz", "--out", talk / "talk.glb"])

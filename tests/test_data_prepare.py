@@ -256,7 +256,8 @@ def test_clip_that_turns_bad_leaves_the_manifest(six_clips, tmp_path):
     result = _quiet(six_clips, out, FAST)
     assert [Path(r["file"]).name for r in _report(out)] == ["c3.npz"]
     assert "c3" not in [c["name"] for c in _manifest(out)["clips"]]
-    assert result.clips == 5 and "c3" not in PreparedData(out).manifest["splits"]["train"] + PreparedData(out).manifest["splits"]["val"]
+    assert result.clips == 5 and "c3" not in (PreparedData(out).manifest["splits"]["train"]
+                                              + PreparedData(out).manifest["splits"]["val"])
 
 
 def test_added_clip_is_prepared_alone(six_clips, tmp_path):

@@ -154,7 +154,8 @@ def test_vocaset_layout_lists_subjects_and_reads_60fps_vertices_with_template(vo
     assert [e.name for e in src.entries] == ["FaceTalk_A_TA_sentence01", "FaceTalk_A_TA_sentence02", "FaceTalk_B_TA_sentence01"]
     assert [e.speaker for e in src.entries] == ["FaceTalk_A_TA", "FaceTalk_A_TA", "FaceTalk_B_TA"]
     assert all(e.split is None and e.partner is None and not e.requires_partner for e in src.entries)
-    assert [p.name for p in src.entries[0].files] == ["FaceTalk_A_TA_sentence01.npy", "FaceTalk_A_TA_sentence01.wav", "templates.npz"]
+    assert [p.name for p in src.entries[0].files] == ["FaceTalk_A_TA_sentence01.npy", "FaceTalk_A_TA_sentence01.wav",
+                                                      "templates.npz"]
     raw = src.entries[2].read()
     assert raw.fps == 60.0 and raw.params is None
     np.testing.assert_array_equal(raw.vertices, verts["FaceTalk_B_TA_sentence01"].reshape(90, 7, 3))

@@ -66,7 +66,8 @@ def test_long_time_diffusion_tends_to_mass_weighted_mean(mesh_ops):
     mean = (ops.mass[:, None] * np.asarray(x)).sum(0) / ops.mass.sum()
     np.testing.assert_allclose(out, np.broadcast_to(mean, out.shape), atol=1e-4)
     # Intermediate times interpolate: the deviation from the mean shrinks monotonically.
-    dev = [float(jnp.abs(dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.full(3, t)) - mean[None, :]).max()) for t in (0.01, 0.1, 1.0)]
+    dev = [float(jnp.abs(dn.spectral_diffusion(x, d.mass, d.evals, d.evecs, jnp.full(3, t)) - mean[None, :]).max())
+           for t in (0.01, 0.1, 1.0)]
     assert dev[0] > dev[1] > dev[2]
 
 

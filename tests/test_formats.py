@@ -120,7 +120,7 @@ def test_missing_and_corrupt_files(tmp_path):
 
 
 def test_every_bad_numpy_file_is_one_message_naming_it_with_no_advice_to_unpickle(tmp_path):
-    from jaxtalk.data.formats import load_npy, load_npz
+    from jaxtalk.files import load_npy, load_npz
 
     for name, words in bad_numpy_files(tmp_path).items():
         load = load_npz if name.endswith(".npz") else load_npy

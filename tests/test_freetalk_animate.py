@@ -57,7 +57,8 @@ def _pose(vertices: np.ndarray, seed: int, scale: float) -> tuple[np.ndarray, np
 def _speech(seconds: float, seed: int = 0) -> np.ndarray:
     t = np.arange(int(16000 * seconds)) / 16000
     rng = np.random.default_rng(seed)
-    return (0.3 * np.sin(2 * np.pi * 180 * t) * (1 + np.sin(2 * np.pi * 3 * t)) + 0.01 * rng.normal(size=t.size)).astype(np.float32)
+    return (0.3 * np.sin(2 * np.pi * 180 * t) * (1 + np.sin(2 * np.pi * 3 * t))
+            + 0.01 * rng.normal(size=t.size)).astype(np.float32)
 
 
 # -------------------------------------------------------------------------------------- units, pose
@@ -413,3 +414,9 @@ def test_an_ats_run_recorded_before_the_vocabulary_setting_loads_as_emovoca():
     assert record.model_config().emotions == EMOTIONS
     with pytest.raises(ValueError, match="no vocabulary on record"):
         dataclasses.replace(record, config={**old, "num_emotions": 8}).model_config()
+
+
+def test_fitted_models_open_from_a_loaded_run_and_say_so_when_given_a_path():
+    for cls in (FittedATS, FittedSTM):
+        with pytest.raises(ValueError, match=r"from_run takes a loaded run: from_run\(jaxtalk.runs.load_run\('runs/x'\)\)"):
+            cls.from_run("runs/x")

@@ -102,7 +102,8 @@ def test_held_out_mesh_validation_equals_a_hand_computation(stm_config, prepared
 
     first = [i for i in data.split("val") if data.clips[i]["frames"] >= 6][0]
     landmarks, vertices = fm.motion(without_head_pose(np.asarray(data.record(first, ("motion",))["motion"], np.float32)[:6]))
-    pred = np.asarray(stm.stm_decode(params, stm_config, stm.stm_mesh_features(params, stm_config, prepared), landmarks, prepared))
+    pred = np.asarray(stm.stm_decode(params, stm_config, stm.stm_mesh_features(params, stm_config, prepared), landmarks,
+                                     prepared))
     assert scores["LVE_mm2"] == pytest.approx(float(lve(pred, vertices, fm.region("lips"))) * 1e6, rel=1e-4)
     assert scores["MVE_mm"] == pytest.approx(float(mve(pred, vertices)) * 1e3, rel=1e-4)
     assert scores["jitter_mm"] == pytest.approx(float(jitter(pred)) * 1e3, rel=1e-4)

@@ -105,7 +105,8 @@ def test_the_alignment_does_not_depend_on_the_pose(template):
     placed = []
     for seed in (21, 22, 23):
         (vertices,) = fs.posed(seed, shape.vertices)
-        placed.append(canonicalize(vertices * 1000, shape.faces, tv, tf, template_landmarks=landmarks).to_template(vertices * 1000))
+        placed.append(canonicalize(vertices * 1000, shape.faces, tv, tf, template_landmarks=landmarks)
+                      .to_template(vertices * 1000))
     for other in placed[1:]:
         assert np.linalg.norm(other - placed[0], axis=1).max() < 5e-4
 

@@ -1,28 +1,46 @@
-"""Imports run only downwards (ARCHITECTURE.md, Layers).
+"""Imports run only downwards (docs/architecture.md, Layers), through ranked layers:
 
-Foundations (types, masks, nn, samplers, audio, face, geometry, metrics, render, export, data, train,
-fit, runs, ...) never import the models or the applications (commands, cli, demo, serve, bench); no
-model package imports another model package or an application. What two models share moves down a
-layer. The checker walks the AST of every module, imports inside functions included and relative
-imports resolved, so a lazy import cannot hide a dependency.
+0. core: ``types``, ``layout``, ``checks``, ``files``, ``masks``, ``benchmarking``;
+1. building blocks: ``nn``, ``samplers``, ``audio``, ``face``, ``geometry``, ``metrics``, ``render``, ``viewer``;
+2. on those: ``export``, ``fit``;
+3. ``data``;
+4. ``runs`` and ``train`` (one rank: ``train`` writes runs, ``runs`` restores their checkpoints);
+5. ``models``: no model package imports another; what two models share moves down a layer;
+6. applications: ``commands``, ``cli``, ``demo``, ``serve``, ``bench``.
+
+A module imports only from its own rank or below; packages of one rank import each other without a
+circle, except the one pair named in :data:`KNOWN_CIRCLES`. The checker walks the AST of every module,
+imports inside functions included and relative imports resolved, so a lazy import cannot hide a
+dependency. The registry's spec paths (imported by name, so invisible to the AST) are checked to name
+``spec`` modules of the models layer.
 """
 
 from __future__ import annotations
 
 import ast
+import itertools
 from pathlib import Path
 
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "jaxtalk"
 
-FOUNDATIONS = frozenset({
-    "types", "layout", "files", "runs", "masks", "nn", "samplers", "audio", "face", "geometry", "metrics",
-    "render", "export", "data", "train", "fit", "viewer", "benchmarking", "checks",
-})
-APPLICATIONS = frozenset({"commands", "cli", "demo", "serve", "bench"})
+RANKS: dict[str, int] = {
+    **dict.fromkeys(("types", "layout", "checks", "files", "masks", "benchmarking"), 0),
+    **dict.fromkeys(("nn", "samplers", "audio", "face", "geometry", "metrics", "render", "viewer"), 1),
+    **dict.fromkeys(("export", "fit"), 2),
+    "data": 3,
+    **dict.fromkeys(("runs", "train"), 4),
+    "models": 5,
+    **dict.fromkeys(("commands", "cli", "demo", "serve", "bench"), 6),
+}
+FOUNDATIONS = frozenset(k for k, r in RANKS.items() if r < RANKS["models"])
+APPLICATIONS = frozenset(k for k, r in RANKS.items() if r > RANKS["models"])
 # The package's own entry points sit above every layer.
 TOP = frozenset({"__init__", "__main__"})
+# Circles between packages of one rank that are still to be cut: recipes write a run record
+# (train -> runs) and loading a run restores its checkpoint (runs -> train).
+KNOWN_CIRCLES = frozenset({frozenset({"runs", "train"})})
 
 
 def _module_name(path: Path, root: Path) -> str:
@@ -52,16 +70,40 @@ def _imports(path: Path, module: str) -> list[tuple[str, ...]]:
 def _forbidden(importer: str, target: str) -> bool:
     """Whether module ``importer`` may not import ``target`` (both dotted, under ``jaxtalk``)."""
     src, dst = importer.split("."), target.split(".")
-    if dst[0] != "jaxtalk" or len(src) < 2 or len(dst) < 2:
+    if dst[0] != "jaxtalk" or len(src) < 2 or len(dst) < 2 or src[1] in TOP or dst[1] not in RANKS:
         return False
-    if src[1] in FOUNDATIONS:
-        return dst[1] in APPLICATIONS | {"models"}
-    if src[1] == "models" and len(src) > 2:
+    if src[1] == "models" and len(src) > 2 and dst[1] == "models" and len(dst) > 2 and dst[2] != src[2]:
         # ``jaxtalk.models`` alone is the (empty) namespace package: ``from jaxtalk.models import x``
         # is judged by ``x``.
-        other_model = dst[1] == "models" and len(dst) > 2 and dst[2] != src[2]
-        return other_model or dst[1] in APPLICATIONS
-    return False
+        return True
+    return src[1] in RANKS and RANKS[dst[1]] > RANKS[src[1]]
+
+
+def package_graph(root: Path) -> dict[str, set[str]]:
+    """Top-level package -> the other top-level packages it imports (anywhere in its modules)."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted(root.rglob("*.py")):
+        top = path.relative_to(root).parts[0].removesuffix(".py")
+        for candidates in _imports(path, _module_name(path, root)):
+            parts = candidates[0].split(".")
+            if parts[0] == "jaxtalk" and len(parts) > 1 and parts[1] != top and parts[1] in RANKS:
+                graph.setdefault(top, set()).add(parts[1])
+    return graph
+
+
+def circles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
+    """The pairs of packages that reach each other (through any path)."""
+    reach = {node: set(edges) for node, edges in graph.items()}
+    changed = True
+    while changed:
+        changed = False
+        for node, seen in reach.items():
+            more = set().union(*(reach.get(n, set()) for n in seen)) - seen
+            if more:
+                seen |= more
+                changed = True
+    return {frozenset((a, b)) for a, b in itertools.combinations(sorted(reach), 2)
+            if b in reach[a] and a in reach.get(b, set())}
 
 
 def layer_violations(root: Path) -> list[str]:
@@ -73,7 +115,7 @@ def layer_violations(root: Path) -> list[str]:
         module = _module_name(path, root)
         rel = path.relative_to(root.parent).as_posix()
         top = path.relative_to(root).parts[0].removesuffix(".py")
-        if top not in FOUNDATIONS | APPLICATIONS | TOP | {"models"}:
+        if top not in set(RANKS) | TOP:
             found.append(f"{rel} -> unclassified")
         for candidates in _imports(path, module):
             # ``from jaxtalk.models.x import Name``: the module is reported, not the name imported from it;
@@ -86,6 +128,26 @@ def layer_violations(root: Path) -> list[str]:
 
 def test_jaxtalk_imports_run_only_downwards():
     assert layer_violations(PACKAGE) == []
+
+
+def test_no_two_packages_import_each_other_beyond_the_known_circle():
+    assert circles(package_graph(PACKAGE)) <= KNOWN_CIRCLES
+
+
+def test_circle_finder_sees_a_circle_through_a_third_package():
+    assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == {
+        frozenset("ab"), frozenset("ac"), frozenset("bc")}
+    assert circles({"a": {"b"}, "b": {"c"}}) == set()
+
+
+def test_registry_spec_paths_name_spec_modules_of_the_models_layer():
+    from jaxtalk.runs import SPEC_PATHS
+
+    for model, path in SPEC_PATHS.items():
+        module, _, attr = path.partition(":")
+        parts = module.split(".")
+        assert parts[:2] == ["jaxtalk", "models"] and parts[-1] == "spec" and attr, (model, path)
+        assert (PACKAGE.parent / Path(*parts)).with_suffix(".py").is_file(), path
 
 
 def _plant(root: Path, files: dict[str, str]) -> Path:
@@ -102,7 +164,7 @@ def test_checker_reports_exactly_the_planted_upward_and_sideways_imports(tmp_pat
         "types.py": "import numpy\n",
         "data/__init__.py": "",
         # upward, hidden inside a function: still found
-        "data/features.py": "def f():\n    from jaxtalk.models.toktalk.sample import sample\n    return sample\n",
+        "data/features.py": "def f():\n    from jaxtalk.models.toktalk.sampling import sample\n    return sample\n",
         "data/ok.py": "from jaxtalk.types import Float\nfrom . import features\n",
         "train/__init__.py": "import jaxtalk.commands.training\n",  # a foundation importing an application
         "models/__init__.py": "",
@@ -114,7 +176,7 @@ def test_checker_reports_exactly_the_planted_upward_and_sideways_imports(tmp_pat
         "scratch.py": "",
     })
     assert layer_violations(package) == [
-        "jaxtalk/data/features.py -> jaxtalk.models.toktalk.sample",
+        "jaxtalk/data/features.py -> jaxtalk.models.toktalk.sampling",
         "jaxtalk/models/timar/loss.py -> jaxtalk.models.toktalk",
         "jaxtalk/models/toktalk/loss.py -> jaxtalk.cli",
         "jaxtalk/scratch.py -> unclassified",
@@ -133,6 +195,11 @@ def test_checker_reports_exactly_the_planted_upward_and_sideways_imports(tmp_pat
     ("jaxtalk.models.freetalk.fit", "jaxtalk.commands.runs", True),
     ("jaxtalk.commands.training", "jaxtalk.models.timar", False),
     ("jaxtalk.data.prepare", "numpy", False),
+    ("jaxtalk.audio.tokenizer", "jaxtalk.data.formats", True),
+    ("jaxtalk.geometry.mesh_io", "jaxtalk.export.playback", True),
+    ("jaxtalk.export.playback", "jaxtalk.geometry.mesh_io", False),
+    ("jaxtalk.data.formats", "jaxtalk.train.loop", True),
+    ("jaxtalk.files", "jaxtalk.types", False),
 ])
 def test_forbidden_rule_per_layer(importer, target, forbidden):
     assert _forbidden(importer, target) is forbidden

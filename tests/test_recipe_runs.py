@@ -42,7 +42,7 @@ def _config(model: str, data):
     spec = REGISTRY[model]
     preset, fields = SMALL[model]
     widths = {field: data.manifest[key] for field, key in spec.data_fields}
-    return getattr(spec.config_class(), preset)(**fields, **widths)
+    return getattr(spec.config_class, preset)(**fields, **widths)
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,7 @@ def runs(tmp_path_factory, prepared_tiny):
     root = tmp_path_factory.mktemp("recipe_runs")
     out = {}
     for model, spec in REGISTRY.items():
-        spec.train_fn()(_config(model, prepared_tiny), prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0,
+        spec.train(_config(model, prepared_tiny), prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0,
                         total_steps=2), steps=2, key=jax.random.key(0), batch_size=2, progress=False,
                         run_dir=root / model, **RECIPE_KW.get(model, {}))
         out[model] = root / model

@@ -140,8 +140,9 @@ def test_the_page_draws_the_models_frames_for_the_audio_it_captured_and_reports_
     chunks = report["chunks"]
     latency = np.asarray([c["latency_ms"] for c in chunks])
     compute = np.asarray([c["compute_ms"] for c in chunks])
-    summary = {"chunks": len(chunks), "latency_ms": {"median": float(np.median(latency)), "p90": float(np.percentile(latency, 90)),
-               "max": float(latency.max())}, "server_compute_ms": {"median": float(np.median(compute)),
+    summary = {"chunks": len(chunks), "latency_ms": {"median": float(np.median(latency)),
+               "p90": float(np.percentile(latency, 90)), "max": float(latency.max())},
+               "server_compute_ms": {"median": float(np.median(compute)),
                "p90": float(np.percentile(compute, 90))}, "chunk_ms": 1e3 * live.chunk_samples / 16000,
                "send_ms": 40, "wall_s": report["wall"], "status": report["status"]}
     (tmp_path / "latency.json").write_text(json.dumps({**summary, "per_chunk": chunks}, indent=1))

@@ -85,7 +85,8 @@ def test_ten_minutes_of_audio_through_one_connection_keep_the_servers_memory_fla
     slope_kb_per_min = np.polyfit(audio_s[after] / 60, rss[after] / 1024, 1)[0]
     report = {"audio_s": AUDIO_S, "wall_s": round(wall, 1), "messages": replies, "frames": frames,
               "compute_ms_median": float(np.median(compute)), "rss_mb_at_1min": round(float(rss[base]) / 2**20, 1),
-              "rss_growth_mb_after_1min": round(float(growth_mb), 2), "rss_slope_kb_per_audio_min": round(float(slope_kb_per_min), 1),
+              "rss_growth_mb_after_1min": round(float(growth_mb), 2),
+              "rss_slope_kb_per_audio_min": round(float(slope_kb_per_min), 1),
               "python_blocks_at_1min": int(blocks[base]), "python_block_growth_after_1min": int(block_growth),
               "python_block_growth_last_5min": int(late_block_growth),
               "samples": [[float(a), int(r), int(b)] for a, r, b in zip(audio_s, rss, blocks, strict=True)]}

@@ -15,7 +15,7 @@ from helpers import perturbed
 
 from jaxtalk.data.features import AudioFeatures
 from jaxtalk.models.timar import TimarConfig, init_params
-from jaxtalk.models.timar.stream import stream
+from jaxtalk.models.timar.streaming import stream
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
 

@@ -92,7 +92,7 @@ def test_a_wrong_layout_is_caught(parity):
 def test_reference_preset_and_defaults_unchanged():
     ref = TimarConfig.reference()
     assert (ref.width, ref.num_layers, ref.num_heads, ref.head_blocks, ref.head_width) == (1024, 32, 16, 3, 1024)
-    assert ref.sample_steps == 5 and ref.sampler == "ddpm" and ref.cfg_scale == 1.0
+    assert ref.sample_steps == 5 and ref.sampler == "ddpm" and ref.cfg_scale == 0.0
     paper = TimarConfig.paper()
     assert paper.num_layers == 16 and not paper.input_projection and paper.guidance_drop == "window"
     assert "32 blocks" in TimarConfig.paper.__doc__
@@ -183,7 +183,7 @@ def test_stats_of_the_wrong_width_are_refused(tmp_path):
 
 
 def test_converted_run_opens_and_streams_like_the_reference(tmp_path, parity):
-    from jaxtalk.models.timar.stream import init_stream, stream_step
+    from jaxtalk.models.timar.streaming import init_stream, stream_step
     from jaxtalk.runs import load_run
 
     args, state, outs = parity.load_reference(FIXTURES / FIXTURE_NAMES[0])
@@ -199,7 +199,7 @@ def test_converted_run_opens_and_streams_like_the_reference(tmp_path, parity):
     state_s = init_stream(run.config, jax.random.key(0), batch=1, context=2)
     speech = outs["sample_speech"][0]
     _, y = stream_step(run.params, run.config, state_s, speech[0][None], outs["sample_user_motion"][0][None],
-                       speech[1][None], cfg_scale=2.0, sample_steps=5, initial_noise=outs["sample_x_T"][0][None],
+                       speech[1][None], cfg_scale=1.0, sample_steps=5, initial_noise=outs["sample_x_T"][0][None],
                        step_noise=outs["sample_step_noise"][0][:, None])
     np.testing.assert_allclose(np.asarray(y[0]), outs["sample"][0], rtol=0, atol=1e-4 * max(1, np.abs(outs["sample"][0]).max()))
     # a second conversion into the same folder needs --overwrite, and leaves the first intact
@@ -209,7 +209,7 @@ def test_converted_run_opens_and_streams_like_the_reference(tmp_path, parity):
 
 
 def test_explicit_noises_are_checked():
-    from jaxtalk.models.timar.sample import sample_frames
+    from jaxtalk.models.timar.sampling import sample_frames
 
     config = TimarConfig.small(width=32, num_heads=4, head_width=32)
     from jaxtalk.models.timar.model import init_params
@@ -217,17 +217,17 @@ def test_explicit_noises_are_checked():
     params = init_params(config, jax.random.key(0))
     z = jnp.zeros((1, 25, 32))
     with pytest.raises(ValueError, match="initial_noise must have shape"):
-        sample_frames(params, config, z, None, jax.random.key(1), cfg_scale=1.0, sample_steps=2, sampler="ddpm",
+        sample_frames(params, config, z, None, jax.random.key(1), cfg_scale=0.0, sample_steps=2, sampler="ddpm",
                       initial_noise=jnp.zeros((1, 24, 56)))
     with pytest.raises(ValueError, match="only used by the 'ddpm' sampler"):
-        sample_frames(params, config, z, None, jax.random.key(1), cfg_scale=1.0, sample_steps=2, sampler="ddim",
+        sample_frames(params, config, z, None, jax.random.key(1), cfg_scale=0.0, sample_steps=2, sampler="ddim",
                       step_noise=jnp.zeros((2, 1, 25, 56)))
     # same noises, same sample; the key is then irrelevant
     x_t = jax.random.normal(jax.random.key(2), (1, 25, 56))
     steps = jax.random.normal(jax.random.key(3), (2, 1, 25, 56))
-    a = sample_frames(params, config, z + 1, None, jax.random.key(1), cfg_scale=1.0, sample_steps=2, sampler="ddpm",
+    a = sample_frames(params, config, z + 1, None, jax.random.key(1), cfg_scale=0.0, sample_steps=2, sampler="ddpm",
                       initial_noise=x_t, step_noise=steps)
-    b = sample_frames(params, config, z + 1, None, jax.random.key(9), cfg_scale=1.0, sample_steps=2, sampler="ddpm",
+    b = sample_frames(params, config, z + 1, None, jax.random.key(9), cfg_scale=0.0, sample_steps=2, sampler="ddpm",
                       initial_noise=x_t, step_noise=steps)
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
@@ -249,7 +249,7 @@ def test_cli_without_torch_is_one_line_and_writes_nothing(tmp_path):
                            "--features", f"wav2vec2:{w2v}"], capture_output=True, text=True, cwd=ROOT,
                           env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 2, proc.stderr
-    lines = [l for l in proc.stderr.splitlines() if l.strip()]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and TORCH_HINT in lines[0], proc.stderr
     assert not out.exists() and not list(tmp_path.glob(".run.*"))
 
@@ -305,8 +305,8 @@ def test_current_turn_guidance_drop_is_the_same_offline_and_streamed():
     # whole-window conditions and the turn-by-turn stream (which keeps the conditional rows' past turns
     # in the unconditional rows' window and key/value cache) must agree, and differ from "window".
     from jaxtalk.models.timar.model import init_params
-    from jaxtalk.models.timar.sample import conditions
-    from jaxtalk.models.timar.stream import init_stream, stream_condition
+    from jaxtalk.models.timar.sampling import conditions
+    from jaxtalk.models.timar.streaming import init_stream, stream_condition
 
     config = TimarConfig.reference(width=32, num_layers=2, num_heads=4, speech_dim=8, token_width=24, head_width=32,
                                    max_turns=3, dropout=0.0)

@@ -186,7 +186,8 @@ def test_monologues_get_a_silent_still_user_and_whole_turns():
     still = (55 * 1.0 + 30 * 2.0 + 20 * 3.0) / 105
     for c in convs:
         np.testing.assert_allclose(c.user_motion, still, rtol=1e-6)
-        np.testing.assert_array_equal(c.user_speech, turn_speech_features(np.zeros(c.num_frames * 640, np.float32), c.num_frames // 25))
+        np.testing.assert_array_equal(c.user_speech,
+                                      turn_speech_features(np.zeros(c.num_frames * 640, np.float32), c.num_frames // 25))
     np.testing.assert_array_equal(convs[0].agent_speech, turn_speech_features(audio[0], 2))
     np.testing.assert_array_equal(convs[1].agent_oracle, motion[1][:25] * 2.0)
     with pytest.raises(ValueError, match="no monologue clips"):

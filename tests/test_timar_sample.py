@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 
 import jax
 import jax.numpy as jnp
@@ -12,16 +11,15 @@ import pytest
 from jaxtalk.models.timar import TimarConfig, init_params, sample
 from jaxtalk.models.timar.head import apply_head, init_head
 from jaxtalk.data.turns import to_turns
-from jaxtalk.models.timar.sample import respaced_schedule
-from jaxtalk.models.timar.sample import conditions as _conditions_eager
-from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
+from jaxtalk.models.timar.sampling import respaced_schedule
+from jaxtalk.models.timar.sampling import conditions as _conditions_eager
+from jaxtalk.models.timar.sampling import sample_frames as _sample_frames_eager
+
+# The package re-exports the function ``sample``; the module is needed for its jit cache.
+import jaxtalk.models.timar.sampling as sample_mod
 
 conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
 sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler", "precompute"))
-
-
-# The package re-exports the function ``sample``; the module is needed for its jit cache.
-sample_mod = importlib.import_module("jaxtalk.models.timar.sample")
 
 CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)
 B, N, F = 2, 2, 5
@@ -50,17 +48,17 @@ def _streams(seed=0, n=N):
 
 
 @pytest.mark.slow
-def test_guidance_scale_one_is_conditional_and_zero_is_unconditional(params):
+def test_guidance_weight_zero_is_conditional_and_minus_one_is_unconditional(params):
     us, um, as_ = _streams()
     key = jax.random.key(3)
     cond_only = np.asarray(sample(params, CFG, us, um, as_, key, guidance=False))
-    np.testing.assert_allclose(np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=1.0)), cond_only, atol=1e-5)
-    # omega = 0: the sample ignores the user entirely.
+    np.testing.assert_allclose(np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=0.0)), cond_only, atol=1e-5)
+    # w = -1 (the paper's omega = 0): the sample ignores the user entirely.
     us2, um2 = us + 1.0, um * 2.0
-    u0 = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=0.0))
-    u1 = np.asarray(sample(params, CFG, us2, um2, as_, key, cfg_scale=0.0))
+    u0 = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=-1.0))
+    u1 = np.asarray(sample(params, CFG, us2, um2, as_, key, cfg_scale=-1.0))
     np.testing.assert_allclose(u0, u1, atol=1e-5)
-    assert np.abs(np.asarray(sample(params, CFG, us2, um2, as_, key, cfg_scale=1.0)) - cond_only).max() > 1e-3
+    assert np.abs(np.asarray(sample(params, CFG, us2, um2, as_, key, cfg_scale=0.0)) - cond_only).max() > 1e-3
 
 
 def test_cfg_sweep_is_a_vmap_and_never_recompiles(params):
@@ -81,11 +79,11 @@ def test_cfg_sweep_is_a_vmap_and_never_recompiles(params):
 @pytest.mark.slow
 def test_guided_sample_equals_eq9_applied_to_head_outputs_with_one_step(params):
     # With one respaced step (t = 0: x0 estimate returned directly) the sample is exactly
-    # out_u + omega (out_c - out_u) of the x0 predictions at the initial noise.
+    # out_u + omega (out_c - out_u) of the x0 predictions at the initial noise, omega = 1 + cfg_scale.
     us, um, as_ = _streams()
     key = jax.random.key(5)
     omega = 1.7
-    got = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=omega, sample_steps=1))
+    got = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=omega - 1, sample_steps=1))
     zc, zu = conditions(params, CFG, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     k_noise, _ = jax.random.split(key)
     noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
@@ -121,7 +119,7 @@ def test_sampler_equals_a_python_loop_ddim_reference(params, learn_sigma):
         eps = (x - np.sqrt(abar) * x0) / np.sqrt(1 - abar)
         x = np.sqrt(abar_prev) * x0 + np.sqrt(1 - abar_prev) * eps
     assert np.abs(x).max() > 0.1
-    got = {pc: np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega, sample_steps=steps, precompute=pc))
+    got = {pc: np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega - 1, sample_steps=steps, precompute=pc))
            for pc in (True, False)}
     # float32 sampler vs the float64 reference: a few float32 ulps of the O(1) values.
     for pc in (True, False):
@@ -155,10 +153,10 @@ def test_paper_default_ddpm_reads_the_learned_variance_and_scales_each_steps_noi
         mean = sched.posterior_coef_x0[i] * x0 + sched.posterior_coef_xt[i] * x
         z = np.asarray(jax.random.normal(step_keys[j], x.shape, jnp.float32), np.float64)
         x = mean + (i > 0) * tau * np.exp(0.5 * log_var) * z
-    got = np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega, sample_steps=steps, temperature=tau))
+    got = np.asarray(sample_frames(p, cfg, zc, zu, key, cfg_scale=omega - 1, sample_steps=steps, temperature=tau))
     np.testing.assert_allclose(got, x, atol=5e-5, rtol=1e-5)
     # The temperature acts: 0 leaves only x_T's randomness, and a cooler chain differs from a warmer one.
-    cold = [np.asarray(sample_frames(p, cfg, zc, zu, k, cfg_scale=omega, sample_steps=steps, temperature=0.0))
+    cold = [np.asarray(sample_frames(p, cfg, zc, zu, k, cfg_scale=omega - 1, sample_steps=steps, temperature=0.0))
             for k in (key, jax.random.key(10))]
     assert np.abs(cold[0] - got).max() > 1e-3 and np.abs(cold[0] - cold[1]).max() > 1e-3
 
@@ -170,9 +168,9 @@ def test_ddpm_and_step_counts_and_mlp_head(params):
     assert x.shape == (B, N * F, 56) and np.all(np.isfinite(np.asarray(x)))
     mlp = TimarConfig.small(**{**CFG.__dict__, "head": "mlp"})
     pm = init_params(mlp, jax.random.key(0))
-    y = sample(pm, mlp, us, um, as_, jax.random.key(1), cfg_scale=1.0)
+    y = sample(pm, mlp, us, um, as_, jax.random.key(1), cfg_scale=0.0)
     zc, _ = conditions(pm, mlp, *(to_turns(jnp.asarray(a), F) for a in (us, um, as_)), guidance=False)
-    ref = sample_frames(pm, mlp, zc, None, jax.random.key(0), cfg_scale=1.0, sample_steps=1)
+    ref = sample_frames(pm, mlp, zc, None, jax.random.key(0), cfg_scale=0.0, sample_steps=1)
     np.testing.assert_allclose(np.asarray(y), np.asarray(ref).reshape(B, N * F, 56), atol=1e-5)
 
 
@@ -203,9 +201,9 @@ def test_ddim_temperature_scales_the_initial_noise(params):
     zc, zu = conditions(params, CFG, *(to_turns(jnp.asarray(x), F) for x in (us, um, as_)))
     k1, k2 = jax.random.key(1), jax.random.key(2)
     run = lambda k, tau, steps=4: np.asarray(  # noqa: E731
-        sample_frames(params, CFG, zc, zu, k, cfg_scale=1.5, sample_steps=steps, temperature=tau))
+        sample_frames(params, CFG, zc, zu, k, cfg_scale=0.5, sample_steps=steps, temperature=tau))
     # 1 is the plain sampler; 0 is deterministic (DDIM, eta = 0: the initial noise is the only randomness).
-    np.testing.assert_array_equal(run(k1, 1.0), np.asarray(sample_frames(params, CFG, zc, zu, k1, cfg_scale=1.5, sample_steps=4)))
+    np.testing.assert_array_equal(run(k1, 1.0), np.asarray(sample_frames(params, CFG, zc, zu, k1, cfg_scale=0.5, sample_steps=4)))
     np.testing.assert_array_equal(run(k1, 0.0), run(k2, 0.0))
     assert np.abs(run(k1, 1.0) - run(k2, 1.0)).max() > 1e-3
     # One step from x_T = 0 at t = 0 is the guided head output at x = 0 (sample(temperature=...) too).
@@ -213,7 +211,7 @@ def test_ddim_temperature_scales_the_initial_noise(params):
     zero = jnp.zeros(zc.shape[:-1] + (56,))
     oc, ou = apply_head(params["head"], CFG, zc, zero, t), apply_head(params["head"], CFG, zu, zero, t)
     np.testing.assert_allclose(run(k1, 0.0, steps=1), np.asarray(ou + 1.5 * (oc - ou)), atol=1e-5)
-    got = sample(params, CFG, us, um, as_, k2, cfg_scale=1.5, sample_steps=1, temperature=0.0)
+    got = sample(params, CFG, us, um, as_, k2, cfg_scale=0.5, sample_steps=1, temperature=0.0)
     np.testing.assert_allclose(np.asarray(got), np.asarray(ou + 1.5 * (oc - ou)).reshape(B, N * F, 56), atol=1e-5)
     with pytest.raises(ValueError, match="temperature"):
         sample(params, CFG, us, um, as_, k1, temperature=-1.0)
@@ -231,7 +229,7 @@ def test_mean_sampler_is_the_guided_head_output_at_the_last_timestep(params):
     noise = jax.random.normal(k_noise, zc.shape[:-1] + (56,))
     t = jnp.full(zc.shape[:-1], CFG.num_timesteps - 1.0)
     oc, ou = apply_head(params["head"], CFG, zc, noise, t), apply_head(params["head"], CFG, zu, noise, t)
-    got = sample_frames(params, CFG, zc, zu, key, cfg_scale=omega, sample_steps=5, sampler="mean")
+    got = sample_frames(params, CFG, zc, zu, key, cfg_scale=omega - 1, sample_steps=5, sampler="mean")
     np.testing.assert_allclose(np.asarray(got), np.asarray(ou + omega * (oc - ou)), atol=1e-5)
     cond = sample(params, CFG, us, um, as_, key, sampler="mean", guidance=False)
     np.testing.assert_allclose(np.asarray(cond), np.asarray(oc).reshape(B, N * F, 56), atol=1e-5)

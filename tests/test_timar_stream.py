@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from jaxtalk.models.timar import TimarConfig, init_params
-from jaxtalk.models.timar import stream as stream_mod
+import jaxtalk.models.timar.streaming as stream_mod
 from jaxtalk.data.turns import to_turns
-from jaxtalk.models.timar.sample import conditions as _conditions_eager
-from jaxtalk.models.timar.sample import sample_frames as _sample_frames_eager
-from jaxtalk.models.timar.stream import stream_condition, stream, init_stream, stream_step
+from jaxtalk.models.timar.sampling import conditions as _conditions_eager
+from jaxtalk.models.timar.sampling import sample_frames as _sample_frames_eager
+from jaxtalk.models.timar.streaming import stream_condition, stream, init_stream, stream_step
 
 conditions = jax.jit(_conditions_eager, static_argnums=1, static_argnames="guidance")
 sample_frames = jax.jit(_sample_frames_eager, static_argnums=1, static_argnames=("sample_steps", "sampler"))

@@ -20,7 +20,7 @@ LEVELS_DB = (-60, -40, -20)
 
 def _stream_noise(run, tokenizer, seconds: float = 6.0) -> dict[int, np.ndarray]:
     from jaxtalk.models import toktalk as tt
-    from jaxtalk.models.toktalk.sample import default_grid
+    from jaxtalk.models.toktalk.sampling import default_grid
 
     config = dataclasses.replace(run.config, sample_steps=1)
     style = tt.encode_style(run.params, config, np.asarray(run.default_style(), np.float32)[None, : 4 * config.style_frames])

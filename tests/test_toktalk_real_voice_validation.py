@@ -132,4 +132,5 @@ def test_real_voice_and_select_user_errors_are_one_line(trained, prepared_tiny, 
     # A run that selects by real_corr resumes with its recordings only.
     resumed = tmp_path / "resumed"
     shutil.copytree(trained["dir"], resumed)
-    cli_error(_train_args(prepared_tiny, resumed, steps=STEPS + 1), "selects its best checkpoint by real_corr", "resume it with --real-voice FOLDER")
+    cli_error(_train_args(prepared_tiny, resumed, steps=STEPS + 1), "selects its best checkpoint by real_corr",
+              "resume it with --real-voice FOLDER")

@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from jaxtalk.models import toktalk as tt
-import importlib
 
-sample_mod = importlib.import_module("jaxtalk.models.toktalk.sample")  # the package re-exports sample()
+import jaxtalk.models.toktalk.sampling as sample_mod
 from jaxtalk.samplers import cosine_grid, uniform_grid
 
 CFG = tt.TokTalkConfig.tiny()
@@ -143,7 +142,7 @@ def test_sample_bad_input_errors(params):
         tt.sample(params, CFG, tokens, style)
 
 
-# ------------------------------------------------------------------ sample_long (issue 32, item 1)
+# ------------------------------------------------------------------ sample_long
 
 
 def test_sample_long_is_bitwise_sample_when_the_input_fits_one_window(params):
@@ -156,8 +155,9 @@ def test_sample_long_is_bitwise_sample_when_the_input_fits_one_window(params):
 @pytest.mark.slow
 def test_sample_long_windows_equal_whole_sequence_sample_of_their_tokens_with_earlier_frames_known(params):
     # 25 tokens = 50 frames in 20-frame windows with 6 frames of context: windows start at frames 0, 14,
-    # 28 and 30 (the last moved back to end at frame 50, so it re-reads 18 known frames). Window k is exactly the whole-sequence sample of
-    # its own tokens with the frames generated before it as known frames and fold_in(key, k) noise.
+    # 28 and 30 (the last moved back to end at frame 50, so it re-reads 18 known frames). Window k is
+    # exactly the whole-sequence sample of its own tokens with the frames generated before it as known
+    # frames and fold_in(key, k) noise.
     rng = np.random.default_rng(7)
     tokens = rng.normal(size=(1, 25, CFG.speech_dim)).astype(np.float32)
     style = rng.normal(size=(1, CFG.style_vector_dim)).astype(np.float32)

@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from jaxtalk.models import toktalk as tt
-import importlib
 
-stream_mod = importlib.import_module("jaxtalk.models.toktalk.stream")  # the package re-exports stream()
-from jaxtalk.models.toktalk.sample import default_grid, generate_frames
+import jaxtalk.models.toktalk.streaming as stream_mod
+from jaxtalk.models.toktalk.sampling import default_grid, generate_frames
 
 CFG = tt.TokTalkConfig.tiny()  # chunk 4 frames (2 tokens), context 8, overlap 2
 B = 2

@@ -4,7 +4,6 @@ compiles once), the config's value by default, and bad values refused."""
 from __future__ import annotations
 
 import dataclasses
-import importlib
 
 import jax
 import numpy as np
@@ -13,7 +12,7 @@ import pytest
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.noise import prior_noise
 
-stream_mod = importlib.import_module("jaxtalk.models.toktalk.stream")  # the package re-exports stream()
+import jaxtalk.models.toktalk.streaming as stream_mod
 
 CONFIG = tt.TokTalkConfig.tiny(num_mid_blocks=0)
 

@@ -103,7 +103,7 @@ def test_streamed_small_model_beats_the_mean_pose_on_held_out_monologues(prepare
     from jaxtalk.face import builtin_face
     from jaxtalk.metrics import lve
     from jaxtalk.models.toktalk import recipe
-    from jaxtalk.models.toktalk.sample import default_grid
+    from jaxtalk.models.toktalk.sampling import default_grid
 
     data = prepared_tiny
     cfg = tt.TokTalkConfig.small()

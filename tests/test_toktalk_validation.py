@@ -11,7 +11,7 @@ import pytest
 from jaxtalk.face import builtin_face
 from jaxtalk.metrics import jitter, lve, mve
 from jaxtalk.models import toktalk as tt
-from jaxtalk.models.toktalk.sample import default_grid
+from jaxtalk.models.toktalk.sampling import default_grid
 from jaxtalk.models.toktalk.validation import SELECTION_METRIC, streamed_validation
 
 

@@ -361,7 +361,8 @@ def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, ke
     ckpt = tmp_path / "run"
     with pytest.raises(NonFiniteLossError, match=r"loss is nan at step 5.*last good checkpoint is step 3") as info:
         # log_every=10: the NaN is found when step 6's checkpoint flushes the metrics, before it is written.
-        train(loss_fn, {"w": jnp.ones(3)}, _Batches(batches), cfg, key=key, ckpt_dir=ckpt, save_every=3, progress=False, log_every=10)
+        train(loss_fn, {"w": jnp.ones(3)}, _Batches(batches), cfg, key=key, ckpt_dir=ckpt, save_every=3, progress=False,
+              log_every=10)
     assert info.value.step == 5 and info.value.last_checkpoint_step == 3
     assert sorted(p.name for p in ckpt.iterdir()) == ["3"]
 

@@ -74,8 +74,8 @@ def test_recipe_records_conversation_metrics_and_keeps_the_best_checkpoint_by_fd
     spec = REGISTRY[model]
     fields = SMALL if model == "timar" else {"width": 16, "num_layers": 1, "num_heads": 2, "lstm_layers": 1, "max_turns": 2}
     widths = {field: prepared_tiny.manifest[key] for field, key in spec.data_fields}
-    config = spec.config_class().small(**fields, **widths)
-    result = spec.train_fn()(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2), steps=2,
+    config = spec.config_class.small(**fields, **widths)
+    result = spec.train(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2), steps=2,
                              key=jax.random.key(0), batch_size=2, run_dir=tmp_path / "run", eval_every=1, val_clips=1,
                              progress=False)
     evals = [h for h in result.history if "eval" in h]

@@ -134,7 +134,7 @@ class TokenStream:
             FileNotFoundError: if ``path`` does not exist.
             ValueError: for a non-numeric, non-2-D, empty or NaN array, or a bad rate.
         """
-        from jaxtalk.data.formats import load_npy
+        from jaxtalk.files import load_npy
 
         path = Path(path)
         array = load_npy(path, what="embedding file")
@@ -571,7 +571,7 @@ class VQTokenizer:
             FileNotFoundError: if ``path`` does not exist.
             ValueError: if it is not a tokenizer file (lists missing keys) or its arrays disagree.
         """
-        from jaxtalk.data.formats import load_npz
+        from jaxtalk.files import load_npz
 
         path = Path(path)
         arrays = ("codebook", "feature_mean", "feature_scale", "embedding")
@@ -648,7 +648,9 @@ class TokenizerStream:
         """More samples needed before :meth:`push` emits the next group (0: it would now)."""
         return max(self._needed(self.tokens + self.group) - self.samples, 0)
 
-    def push(self, audio: Float[np.ndarray | Array, "..."]) -> tuple[Int[np.ndarray, " tokens"], Float[np.ndarray, "tokens width"]]:
+    def push(
+        self, audio: Float[np.ndarray | Array, "..."]
+    ) -> tuple[Int[np.ndarray, " tokens"], Float[np.ndarray, "tokens width"]]:
         """Add audio; return the ids and embeddings of every group it completes (possibly none).
 
         Raises:

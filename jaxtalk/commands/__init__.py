@@ -5,5 +5,6 @@
 * :mod:`~jaxtalk.commands.evaluation`: ``jaxtalk eval``.
 * :mod:`~jaxtalk.commands.rendering`: ``jaxtalk render``.
 
-The run folder and the model registry they share are the library's :mod:`jaxtalk.runs`. Every module imports JAX and the models lazily, so ``jaxtalk --help`` stays instant.
+The run folder and the model registry they share are the library's :mod:`jaxtalk.runs`. Every module
+imports JAX and the models lazily, so ``jaxtalk --help`` stays instant.
 """

@@ -72,7 +72,8 @@ def convert_timar_run(opts: ConvertOptions) -> ConvertReport:
         f"converted {opts.checkpoint} ({result.weights} weights, {result.num_params / 1e6:.1f} M parameters)",
         (f"  TIMAR {kind}: {c.num_layers} blocks x {c.width} wide, {c.num_heads} heads, "
          f"{c.attention.replace('_', '-')} attention, head {c.head_blocks} x {c.head_width}, speech {c.speech_dim}-d"),
-        f"  motion normaliser: {result.normalizer}; sampling: {c.sample_steps} ancestral steps, CFG {c.cfg_scale:g}",
+        f"  motion normaliser: {result.normalizer}; sampling: {c.sample_steps} ancestral steps, guidance weight {c.cfg_scale:g}"
+         f"{' (none)' if c.cfg_scale == 0 else ''}",
         f"written {result.run_dir}",
     )
     return ConvertReport(lines=lines, warnings=tuple(str(w.message) for w in caught))

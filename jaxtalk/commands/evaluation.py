@@ -16,7 +16,7 @@ Each model is scored the way it is used:
   the upper face less than the truth); MOD (mm, mouth-opening distance); jitter (mm per frame^2, mean
   vertex acceleration).
 * TIMAR: every conversation side of the split whose partner is prepared is streamed turn by turn
-  (:func:`jaxtalk.models.timar.stream.stream`, standardised with the run's normaliser; a
+  (:func:`jaxtalk.models.timar.streaming.stream`, standardised with the run's normaliser; a
   partner without tracked motion is the run's still pose, as in training), and scored with the
   DualTalk benchmark (:func:`jaxtalk.metrics.conversation_metrics`) per group (exp, jaw, pose): FD,
   P-FD, MSE, SID (k-means fit on the ground truth) and rPCC, in the published scaling
@@ -263,10 +263,11 @@ def _same_tokenizer(run: LoadedRun, data: Any) -> bool:
     """Whether the data's tokens come from the tokenizer the run was trained with (unknown: True)."""
     from jaxtalk.runs import TOKENIZER_FILE
 
-    ours, theirs = run.run_dir / TOKENIZER_FILE, (data.root / data.manifest["tokenizer"]) if data.manifest.get("tokenizer") else None
+    ours, theirs = (run.run_dir / TOKENIZER_FILE,
+                    (data.root / data.manifest["tokenizer"]) if data.manifest.get("tokenizer") else None)
     if not ours.is_file() or theirs is None or not theirs.is_file():
         return True
-    from jaxtalk.data.formats import load_npz
+    from jaxtalk.files import load_npz
 
     a, b = load_npz(ours), load_npz(theirs)
     return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
@@ -309,14 +310,15 @@ def _rows(per: dict[str, list[dict[str, float | None]]], frames: list[int], *, l
             for name, items in per.items() if items]
 
 
-def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+def _eval_toktalk(
+    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
+) -> tuple[int, list[EvalTable]]:
     import jax
 
     from jaxtalk.face import builtin_face
     from jaxtalk.metrics import jitter
     from jaxtalk.models import toktalk
     from jaxtalk.models.toktalk.model import frames_for_tokens
-    from jaxtalk.models.toktalk.sample import default_grid
 
     config = run.config
     clips = [i for i in data.split(split) if data.clips[i]["tokens"]]
@@ -362,13 +364,12 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
         gt = np.asarray(rec["motion"], np.float32)[:t]
         vg = np.asarray(face.vertices_seq(gt))
         for name, mode, steps in variants:
-            grid = default_grid(config, steps)
             if mode == "stream":
-                out = toktalk.stream(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid,
-                                     temperature=opts.temperature)
+                out = toktalk.stream(run.params, config, tokens, style_vec, jax.random.fold_in(key, n),
+                                     sample_steps=steps, temperature=opts.temperature)
             else:
-                out = toktalk.sample(run.params, config, tokens, style_vec, jax.random.fold_in(key, n), ts=grid,
-                                     temperature=opts.temperature)
+                out = toktalk.sample(run.params, config, tokens, style_vec, jax.random.fold_in(key, n),
+                                     sample_steps=steps, temperature=opts.temperature)
             pred = np.asarray(out, np.float32)[0][:t]
             scored = vertex_metrics(pred, gt, face, gt_vertices=vg, template=template)
             per[name].append(scored)
@@ -388,7 +389,9 @@ def _eval_toktalk(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo
 _GROUP_COLUMNS = ("FD", "P-FD", "MSE", "SID", "rPCC")
 
 
-def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+def _eval_timar(
+    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
+) -> tuple[int, list[EvalTable]]:
     import jax
 
     from jaxtalk.data.batching import fit_length
@@ -396,7 +399,7 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     from jaxtalk.models.timar.data import Normalizer
     from jaxtalk.data.conversation import side_streams
     from jaxtalk.models.timar.recipe import agent_sides
-    from jaxtalk.models.timar.stream import stream
+    from jaxtalk.models.timar.streaming import stream
 
     # The DualTalk baseline is scored on the same sides, normaliser and context, predicting each turn
     # from a window of its past turns and the whole current turn instead of streaming.
@@ -472,7 +475,9 @@ def _eval_timar(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: 
     return len(gts), tables
 
 
-def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+def _eval_ats(
+    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
+) -> tuple[int, list[EvalTable]]:
     import jax
 
     from jaxtalk.face import builtin_face
@@ -516,7 +521,8 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
         batch = items[b:b + per_call]
         batch = batch + [batch[-1]] * (per_call - len(batch))  # one compiled shape
         audio = np.stack([recs[n]["speech"][st:st + lengths[b]] for n, st in batch]).astype(np.float32)
-        emotion = np.concatenate([emotion_ids(data.clips[chosen[n]]["emotion"] or NEUTRAL, run.config.emotions) for n, _ in batch])
+        emotion = np.concatenate([emotion_ids(data.clips[chosen[n]]["emotion"] or NEUTRAL, run.config.emotions)
+                                  for n, _ in batch])
         intensity = np.asarray([data.clips[chosen[n]]["intensity"] if data.clips[chosen[n]]["intensity"] is not None
                                 else 1.0 for n, _ in batch], np.float32)
         out = sample_displacements(fitted, audio, emotion, intensity, jax.random.fold_in(key, b))
@@ -537,7 +543,9 @@ def _eval_ats(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Ca
                                    "built-in face (head pose removed); LVE over the mouth landmarks 48-67", rows)]
 
 
-def _eval_stm(run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
+def _eval_stm(
+    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
+) -> tuple[int, list[EvalTable]]:
     from jaxtalk.metrics import jitter, lve, mve
     from jaxtalk.models.freetalk import stm
     from jaxtalk.models.freetalk.data import face_mesh, without_head_pose

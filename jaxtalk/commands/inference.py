@@ -4,8 +4,9 @@ Inputs: an audio file (WAV/FLAC, any rate, mono or stereo) or, for TokTalk, a ``
 embeddings ``(tokens, speech_dim)`` at the model's token rate (e.g. your own audio-LLM tokens). Every
 default comes from the run folder, never from a regenerated corpus: TokTalk turns audio into tokens
 with the tokenizer its data was prepared with and takes its default style clip from the run; TIMAR
-turns audio into per-turn speech features with the same front end as ``prepare`` and animates the agent (the partner is silent and still unless
-``--partner`` names their audio). Outputs are written with :func:`jaxtalk.data.formats.save_npz`
+turns audio into per-turn speech features with the same front end as ``prepare`` and animates the
+agent (the partner is silent and still unless ``--partner`` names their audio). Outputs are written
+with :func:`jaxtalk.data.formats.save_npz`
 (``params (T, 56)``, ``fps``, and the audio), in raw FLAME units.
 """
 
@@ -200,7 +201,7 @@ def _toktalk_tokens(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.
         tokenizer = _toktalk_tokenizer(run)
         audio = load_audio(opts.input)
         return np.asarray(tokenizer.encode(audio).embeddings, np.float32), audio
-    from jaxtalk.data.formats import load_npy
+    from jaxtalk.files import load_npy
 
     tokens = load_npy(opts.input, what="token file")
     if tokens.ndim != 2 or tokens.shape[1] != config.speech_dim or tokens.shape[0] < 1:
@@ -280,7 +281,7 @@ def sample_run(opts: SampleOptions) -> SampleResult:
                                      sample_steps=opts.sample_steps, temperature=opts.temperature)[:, :frames]
     else:
         from jaxtalk.models.timar.data import Normalizer
-        from jaxtalk.models.timar.stream import stream
+        from jaxtalk.models.timar.streaming import stream
 
         from jaxtalk.audio import load_audio
 
@@ -343,7 +344,7 @@ def _stream_audio(run: LoadedRun, audio: np.ndarray, opts: SampleOptions,
         timer(n, time.perf_counter() - t0, chunk_s, max(n - len(timer.ms), 1))
         return np.asarray(np.concatenate(outs), np.float32), audio, chunk_s
     from jaxtalk.models.timar.data import Normalizer
-    from jaxtalk.models.timar.stream import init_stream, stream_step
+    from jaxtalk.models.timar.streaming import init_stream, stream_step
 
     streams, audio, turns = _timar_inputs(run, audio, opts)
     f = config.frames_per_turn
@@ -484,13 +485,13 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
         raise ValueError(f"--units must be one of {', '.join(UNITS)}, got {mesh_opts.units!r}")
     stm_files = [p for p in Path(mesh_opts.stm_run).iterdir() if p.is_file()] if Path(mesh_opts.stm_run).is_dir() else []
     out = _claim_output(opts, ".npy", "_vertices.npy", extra_inputs=[mesh_opts.mesh, mesh_opts.landmarks, *stm_files])
-    ats = FittedATS.from_run(opts.run_dir, best=opts.best)
+    ats = FittedATS.from_run(load_run(opts.run_dir, best=opts.best))
     emotions, levels = ats.config.emotions, ats.config.num_intensities
     if mesh_opts.emotion not in emotions:
         raise ValueError(f"--emotion {mesh_opts.emotion}: not an emotion of this run; it knows: {', '.join(emotions)}")
     if not (math.isfinite(mesh_opts.intensity) and 1 <= mesh_opts.intensity <= levels):
         raise ValueError(f"--intensity must lie in [1, {levels}] for this run, got {mesh_opts.intensity:g}")
-    stm = FittedSTM.from_run(mesh_opts.stm_run, best=opts.best)
+    stm = FittedSTM.from_run(load_run(mesh_opts.stm_run, best=opts.best))
     audio = load_audio(path)
     vertices, faces = load_mesh(mesh_opts.mesh)
     landmarks = None if mesh_opts.landmarks is None else read_landmarks(mesh_opts.landmarks, vertices)

@@ -90,7 +90,8 @@ def read_head_clip(path: str | Path) -> tuple[Float[np.ndarray, "frames 56"], Fl
     Raises:
         As :func:`read_params`.
     """
-    from jaxtalk.data.formats import load_npz, read_npz
+    from jaxtalk.data.formats import read_npz
+    from jaxtalk.files import load_npz
     from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
     path = _require(Path(path))
@@ -165,7 +166,7 @@ def load_motion(path: str | Path, *, faces: str | Path | None = None, flame: str
         return Motion(verts, np.asarray(face.faces), np.asarray(face.template, np.float32), audio)
     if suffix != ".npy":
         raise ValueError(f"{str(path)!r}: expected .npz parameters or .npy vertices, got {suffix or 'no suffix'!r}")
-    from jaxtalk.data.formats import load_npy
+    from jaxtalk.files import load_npy
 
     verts = load_npy(path, what="vertex sequence")
     if not np.issubdtype(verts.dtype, np.number):

@@ -192,7 +192,7 @@ def retarget_file(opts: RetargetOptions, *, echo: Callable[[str], None] = print)
 
 def _vertex_motion(path: Path, rig, opts: RetargetOptions, penalties, landmarks):
     """The vertex sequence and its retargeter: on ``--mesh``, the rig's own mesh, or a built-in face."""
-    from jaxtalk.data.formats import load_npy
+    from jaxtalk.files import load_npy
     from jaxtalk.export import Retargeter
     from jaxtalk.face import builtin_face
 

@@ -58,7 +58,7 @@ def live_model_of_run(opts: ServeCommandOptions) -> Any:
     from jaxtalk.runs import RunRecord, load_run, model_spec
 
     record = RunRecord.load(opts.run_dir)
-    factory = model_spec(record.model).live_fn()
+    factory = model_spec(record.model).live
     if factory is None:
         raise ValueError(f"{opts.run_dir} is a {record.model} run; jaxtalk serve animates live speech with a toktalk "
                          "run (TIMAR answers whole turns of a conversation: use jaxtalk stream)")

@@ -152,7 +152,7 @@ def recipe_for(model: str, preset: str = "small") -> tuple[Callable[..., Any], A
     """``(train function, default TrainSettings)`` of ``model``'s recipe for a config preset (from
     :data:`jaxtalk.runs.REGISTRY`)."""
     spec = model_spec(model)
-    return spec.train_fn(), spec.settings(preset)
+    return spec.train, spec.settings(preset)
 
 
 def split_overrides(model: str, items: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
@@ -319,8 +319,8 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
         settings = dataclasses.replace(settings, batch_size=int(existing.train["batch_size"]))
     if settings.window_frames is not None and spec.windows is not None:
         raise ValueError(f"window_frames is not a {opts.model} setting ({opts.model} windows are {spec.windows})")
-    echo(f"{'resuming' if done else 'training'} {opts.model} ({preset or 'custom config'}) from step {done} to {opts.steps} on {data}; "
-         f"checkpoints in {checkpoint_dir(out)}")
+    echo(f"{'resuming' if done else 'training'} {opts.model} ({preset or 'custom config'}) from step {done} to {opts.steps} "
+         f"on {data}; checkpoints in {checkpoint_dir(out)}")
     optim = settings.optim(opts.steps)
     echo(settings.describe(opts.steps))
     mesh = None

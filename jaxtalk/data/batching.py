@@ -214,10 +214,10 @@ class BatchIterator(Iterator[Batch]):
                 raise ValueError(f"example {i} has keys {sorted(ex)}, expected {sorted(keys)}")
             ls = {k: (ex[k].shape[0] if ex[k].ndim else None) for k in seq_keys}
             first = ls[seq_keys[0]]
-            for k, l in ls.items():
-                if l is None:
+            for k, length in ls.items():
+                if length is None:
                     raise ValueError(f"example {i}: sequence array {k!r} is a scalar (needs a time axis)")
-                if l != first:
+                if length != first:
                     raise ValueError(f"example {i}: sequence arrays disagree on length ({ls})")
                 if ex[k].shape[1:] != examples[0][k].shape[1:]:
                     raise ValueError(

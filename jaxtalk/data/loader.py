@@ -108,7 +108,8 @@ class PreparedData:
             )
         self.manifest = json.loads(path.read_text())
         if self.manifest.get("format") != FORMAT_VERSION:
-            raise ValueError(f"{path}: format {self.manifest.get('format')!r}, this jaxtalk reads {FORMAT_VERSION}; prepare again")
+            raise ValueError(f"{path}: format {self.manifest.get('format')!r}, this jaxtalk reads {FORMAT_VERSION}; "
+                             "prepare again")
         self.clips: list[dict[str, Any]] = self.manifest["clips"]
         self._by_name = {c["name"]: i for i, c in enumerate(self.clips)}
         missing = [s for s in self.manifest["shards"] if not (self.root / SHARDS / s).is_file()]
@@ -246,7 +247,8 @@ class PreparedData:
         stats = self.manifest["stats"]
         if stats is None:
             raise ValueError(f"{self.root}: the training split has no motion clips (no statistics)")
-        return {"mean": np.asarray(stats["motion_mean"], np.float32), "std": floor_std(np.asarray(stats["motion_std"], np.float64), floor)}
+        return {"mean": np.asarray(stats["motion_mean"], np.float32),
+                "std": floor_std(np.asarray(stats["motion_std"], np.float64), floor)}
 
     def tokenizer(self) -> Any:
         """The VQ tokenizer fitted by ``prepare`` (``--tokens vq``), or None."""

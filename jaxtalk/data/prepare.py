@@ -101,7 +101,8 @@ class PrepareSettings:
         if self.min_frames < 1:
             raise ValueError(f"min_frames must be >= 1, got {self.min_frames}")
         if not (0 <= self.val_fraction < 1 and 0 <= self.test_fraction < 1 and self.val_fraction + self.test_fraction < 1):
-            raise ValueError(f"val/test fractions must be in [0, 1) with a sum < 1, got {self.val_fraction}, {self.test_fraction}")
+            raise ValueError(f"val/test fractions must be in [0, 1) with a sum < 1, "
+                             f"got {self.val_fraction}, {self.test_fraction}")
         # Frozen: the checked, canonical spelling is set once here.
         object.__setattr__(self, "audio", parse_audio_features(self.audio).spec)
 
@@ -241,7 +242,8 @@ def clip_record(raw: RawClip, features: AudioFeatures, *, tokenizer: Any = None,
     out["speech"] = features.speech(audio, frames)
     turns = frames // TURN_FRAMES
     if turns:
-        out["turn_speech"] = features.turn_speech(np.pad(audio, (0, max(turns * TURN_FRAMES * SAMPLES_PER_FRAME - audio.size, 0))), turns)
+        out["turn_speech"] = features.turn_speech(
+            np.pad(audio, (0, max(turns * TURN_FRAMES * SAMPLES_PER_FRAME - audio.size, 0))), turns)
     if landmarks and "motion" in out:
         from jaxtalk.face import builtin_face
         from jaxtalk.face.motion import landmark_motion, without_head_pose
@@ -333,7 +335,8 @@ def _write_shard(shard_dir: Path, number: int, records: list[tuple[dict, tuple[l
             clips.append({**meta, **layout, "index": index})
             index += len(parts)
         writer.close()
-    atomic_write_text(shard_dir / f"{number:05d}.json", json.dumps({"settings": digest, "format": FORMAT_VERSION, "clips": clips}))
+    atomic_write_text(shard_dir / f"{number:05d}.json",
+                      json.dumps({"settings": digest, "format": FORMAT_VERSION, "clips": clips}))
     return name
 
 
@@ -361,7 +364,8 @@ def _fit_tokenizer(entries: Sequence[ClipEntry], splits: dict[str, str], setting
         total += usable.size / AUDIO_SAMPLE_RATE
     if not pieces:
         return None
-    tok = VQTokenizer.fit(pieces, rate=settings.vq_rate, num_codes=min(settings.vq_codes, len(pieces) * int(4 * settings.vq_rate)),
+    tok = VQTokenizer.fit(pieces, rate=settings.vq_rate,
+                          num_codes=min(settings.vq_codes, len(pieces) * int(4 * settings.vq_rate)),
                           width=settings.vq_width, seed=settings.split_seed)
     tok.save(path)
     atomic_write_text(tag, digest)
@@ -387,8 +391,9 @@ def claim_prepared_folder(out: Path, src: Source, *, overwrite: bool = False) ->
 
     ``out`` may not be the dataset folder itself (its ``tokenizer.npz`` or ``metadata`` could be
     replaced, and a later scan would read the shards). A folder that holds a preparation already
-    (a jaxtalk ``manifest.json``, or the ``shards/`` of a run killed before writing it) is continued; in any other folder an existing file under one
-    of the names ``prepare`` writes is a user's file, kept unless ``overwrite``.
+    (a jaxtalk ``manifest.json``, or the ``shards/`` of a run killed before writing it) is
+    continued; in any other folder an existing file under one of the names ``prepare`` writes is a
+    user's file, kept unless ``overwrite``.
 
     Raises:
         jaxtalk.files.OutputError: as above, naming the file and the option.

@@ -57,7 +57,7 @@ class Recording:
 
 def _tracked_jaw(path: Path, audio_frames: float) -> np.ndarray:
     """The jaw opening of a tracked-motion ``.npz``: DualTalk's ``pose[:, 3]`` or jaxtalk's ``params[:, 50]``."""
-    from jaxtalk.data.formats import load_npz
+    from jaxtalk.files import load_npz
     from jaxtalk.layout import JAW_OPEN_INDEX
     from jaxtalk.types import MOTION_FPS, PARAM_DIM
 

@@ -15,51 +15,10 @@ import numpy as np
 import pygltflib
 from scipy.spatial.transform import Rotation
 
+from jaxtalk.geometry.mesh_io import read_accessor
 from jaxtalk.types import Float, Int
 
-__all__ = ["GlbAnimation", "read_accessor"]
-
-_COMPONENT_DTYPES = {pygltflib.FLOAT: np.float32, pygltflib.UNSIGNED_BYTE: np.uint8,
-                     pygltflib.UNSIGNED_SHORT: np.uint16, pygltflib.UNSIGNED_INT: np.uint32,
-                     pygltflib.BYTE: np.int8, pygltflib.SHORT: np.int16}
-_WIDTHS = {pygltflib.SCALAR: 1, pygltflib.VEC2: 2, pygltflib.VEC3: 3, pygltflib.VEC4: 4, pygltflib.MAT4: 16}
-
-
-def _view_rows(blob: bytes, gltf: pygltflib.GLTF2, view_index: int, byte_offset: int, count: int,
-               dtype: np.dtype, width: int) -> np.ndarray:
-    view = gltf.bufferViews[view_index]
-    start = (view.byteOffset or 0) + (byte_offset or 0)
-    stride = view.byteStride or dtype.itemsize * width
-    raw = np.frombuffer(blob, np.uint8, count=stride * (count - 1) + dtype.itemsize * width, offset=start)
-    rows = np.lib.stride_tricks.as_strided(raw, (count, dtype.itemsize * width), (stride, 1))
-    return np.ascontiguousarray(rows).view(dtype).reshape(count, width)
-
-
-def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
-    """Accessor ``index`` of a glTF whose one buffer is ``blob``, as ``(count, width)`` (``(count,)`` for
-    scalars); a sparse accessor's substitutions applied (morph targets are often stored sparse).
-
-    Raises:
-        ValueError: a component type glTF does not allow.
-    """
-    acc = gltf.accessors[index]
-    if acc.componentType not in _COMPONENT_DTYPES:
-        raise ValueError(f"accessor {index} has an unknown component type {acc.componentType}")
-    dtype = np.dtype(_COMPONENT_DTYPES[acc.componentType])
-    width = _WIDTHS[acc.type]
-    if acc.bufferView is None:
-        out = np.zeros((acc.count, width), dtype)
-    else:
-        out = _view_rows(blob, gltf, acc.bufferView, acc.byteOffset, acc.count, dtype, width).copy()
-    sparse = acc.sparse
-    if sparse is not None and sparse.count:
-        idx = sparse.indices
-        rows = _view_rows(blob, gltf, idx.bufferView, idx.byteOffset, sparse.count,
-                          np.dtype(_COMPONENT_DTYPES[idx.componentType]), 1)[:, 0].astype(np.int64)
-        vals = sparse.values
-        out[rows] = _view_rows(blob, gltf, vals.bufferView, vals.byteOffset, sparse.count, dtype, width)
-    return out[:, 0] if width == 1 else out
-
+__all__ = ["GlbAnimation"]
 
 class GlbAnimation:
     """A ``.glb`` with one mesh and one animation, read back (``GlbAnimation(path)``).

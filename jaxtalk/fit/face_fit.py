@@ -28,8 +28,9 @@ Gauss-Newton) in one of three modes:
 
 What the data determine: the built-in face's 50 expression components are linearly independent on
 the vertices, but 68 landmarks see some of them only weakly (cheek puffs, nose wrinkles, residual
-modes move few landmark triangles), and a user's own model may be rank-deficient. Starting from zero, Levenberg-Marquardt only ever steps in the row space of the
-Jacobian, so the fit is the minimum-norm solution along the invisible directions; to recover
+modes move few landmark triangles), and a user's own model may be rank-deficient. Starting from zero,
+Levenberg-Marquardt only ever steps in the row space of the Jacobian, so the fit is the minimum-norm
+solution along the invisible directions; to recover
 *parameters* exactly, fit an identifiable subset (``FitConfig.active``, see
 :func:`identifiable_params`) or add a prior. Gauss-Newton has no damping: on a rank-deficient problem
 it stops with ``RESULTS.singular``, which is reported, not hidden.

@@ -47,7 +47,7 @@ mesh is one of them; the reference face has none, and they pull the fit onto the
    user's surface, and the user's surface over the reference's inner face back onto it) run to
    convergence, and the best of them is refined with the scale free (within a face's range).
 3. A fit whose residual or scale is implausible for a face is an error, never a silent far-off answer.
-   Measured: see ``_MAX_FIT_M`` and ``experiments/canonical_alignment.py``.
+   The limits and the fits they separate: ``_MAX_FIT_M`` and docs/design-decisions.md.
 
 :class:`Canonicalization` maps positions to the template frame and displacements back into the
 user's units and frame (a displacement rotates and scales but does not translate).
@@ -99,11 +99,8 @@ MEDIAPIPE_IBUG: dict[int, int] = {8: 152, 17: 70, 19: 105, 21: 107, 22: 336, 24:
 # A fitted similarity scale outside this range means the mesh is not a human face at real size.
 _SCALE_RANGE = (0.6, 1.6)
 # After alignment, the reference's inner face must fit the user's surface within this (metres; the
-# relief-weighted, capped mean distance of _fit_score, dominated by nose, eyes, mouth and chin).
-# Measured (experiments/canonical_alignment.py): faces 0.6-1.9 mm (MediaPipe's canonical face, FLAME's
-# template, menpo3d's head scan, masks cut from them, built-in heads, masks and noisy scans with
-# holes); a sphere, an ellipsoid, a box, a cylinder or a smooth half-ellipsoid mask of a face's size
-# 11.2-14.3 mm, a torus 6.1 mm.
+# relief-weighted, capped mean distance of _fit_score, dominated by nose, eyes, mouth and chin). It lies
+# between the fits of real faces and of face-sized shapes that are no face (docs/design-decisions.md).
 _MAX_FIT_M = 0.004
 # The inner face: an ellipse of these fractions of the face's half-width and of its half-height below
 # and above the centre of its bounding box (see _Face).

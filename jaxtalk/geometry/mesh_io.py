@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxtalk.types import Float, Int
 
-__all__ = ["MESH_SUFFIXES", "MeshFileNote", "GltfFile", "load_mesh", "read_obj", "read_gltf", "read_gltf_mesh",
+__all__ = ["MESH_SUFFIXES", "read_accessor", "MeshFileNote", "GltfFile", "load_mesh", "read_obj", "read_gltf", "read_gltf_mesh",
            "node_world_matrices"]
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
@@ -243,12 +243,54 @@ def _ext(obj: Any, name: str) -> dict | None:
     return found if isinstance(found, dict) else None
 
 
+# glTF's component types (its enum values: FLOAT, UNSIGNED_BYTE, UNSIGNED_SHORT, UNSIGNED_INT, BYTE,
+# SHORT) and accessor types; pygltflib is imported only where a file is opened.
+_COMPONENT_DTYPES = {5126: np.float32, 5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5120: np.int8, 5122: np.int16}
+_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+
+
+def _view_rows(blob: bytes, gltf: pygltflib.GLTF2, view_index: int, byte_offset: int, count: int,
+               dtype: np.dtype, width: int) -> np.ndarray:
+    view = gltf.bufferViews[view_index]
+    start = (view.byteOffset or 0) + (byte_offset or 0)
+    stride = view.byteStride or dtype.itemsize * width
+    raw = np.frombuffer(blob, np.uint8, count=stride * (count - 1) + dtype.itemsize * width, offset=start)
+    rows = np.lib.stride_tricks.as_strided(raw, (count, dtype.itemsize * width), (stride, 1))
+    return np.ascontiguousarray(rows).view(dtype).reshape(count, width)
+
+
+def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
+    """Accessor ``index`` of a glTF whose one buffer is ``blob``, as ``(count, width)`` (``(count,)`` for
+    scalars); a sparse accessor's substitutions applied (morph targets are often stored sparse).
+
+    Raises:
+        ValueError: a component type glTF does not allow.
+    """
+    acc = gltf.accessors[index]
+    if acc.componentType not in _COMPONENT_DTYPES:
+        raise ValueError(f"accessor {index} has an unknown component type {acc.componentType}")
+    dtype = np.dtype(_COMPONENT_DTYPES[acc.componentType])
+    width = _WIDTHS[acc.type]
+    if acc.bufferView is None:
+        out = np.zeros((acc.count, width), dtype)
+    else:
+        out = _view_rows(blob, gltf, acc.bufferView, acc.byteOffset, acc.count, dtype, width).copy()
+    sparse = acc.sparse
+    if sparse is not None and sparse.count:
+        idx = sparse.indices
+        rows = _view_rows(blob, gltf, idx.bufferView, idx.byteOffset, sparse.count,
+                          np.dtype(_COMPONENT_DTYPES[idx.componentType]), 1)[:, 0].astype(np.int64)
+        vals = sparse.values
+        out[rows] = _view_rows(blob, gltf, vals.bufferView, vals.byteOffset, sparse.count, dtype, width)
+    return out[:, 0] if width == 1 else out
+
+
 class GltfFile:
     """A glTF 2.0 file (``.gltf`` or ``.glb``) whose buffers are joined into one blob, compressed data decoded.
 
     After opening, every accessor reads as plain data from :attr:`blob`: meshopt-compressed buffer views
     are decoded into it, and a Draco-compressed primitive's ``POSITION`` and index accessors point at its
-    decoded data. :func:`jaxtalk.export.playback.read_accessor` reads them raw, :meth:`accessor` as numbers
+    decoded data. :func:`read_accessor` reads them raw, :meth:`accessor` as numbers
     (a normalized integer accessor as floats).
 
     Attributes:
@@ -405,8 +447,6 @@ class GltfFile:
         Raises:
             ValueError: an index or component type the file does not have.
         """
-        from jaxtalk.export.playback import read_accessor
-
         if not 0 <= index < len(self.gltf.accessors):
             raise ValueError(f"{self._where()}: accessor {index} does not exist ({len(self.gltf.accessors)} in the file)")
         try:

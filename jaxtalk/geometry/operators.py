@@ -282,8 +282,8 @@ def eigen_decomposition(
     The lumped mass is diagonal, so the problem is first made standard: with ``D = M^-1/2``,
     ``A = D L D`` has eigenvectors ``psi = M^1/2 phi`` and the same eigenvalues. ARPACK then runs its
     plain symmetric shift-invert mode on ``(A + s I)^-1`` instead of the generalised mode, which
-    saves a mass product and an M-inner product per Lanczos step (measured 0.58 -> 0.48 s at 6.7k
-    vertices, k = 128). ``A + s I`` is positive definite for any ``s > 0`` even though ``L`` is
+    saves a mass product and an M-inner product per Lanczos step (see docs/design-decisions.md).
+    ``A + s I`` is positive definite for any ``s > 0`` even though ``L`` is
     singular, so one Cholesky factorisation serves every iteration; the returned eigenvalues are
     exact (the shift is removed). ``s`` is relative to the spectrum's scale
     (``shift * max_i L_ii / m_i``) so it behaves the same for a face in metres and a unit sphere.
@@ -300,7 +300,7 @@ def eigen_decomposition(
         tol: ARPACK relative tolerance (0 = machine precision).
         blas_threads: BLAS threads during the solve (``None``: leave as is). ARPACK's work is
             BLAS-2 on tall, skinny blocks, which gains little from threads and slows down several
-            fold when the cores are shared (measured: 49 s vs 7 s at 6.7k vertices under load).
+            fold when the cores are shared (see docs/design-decisions.md).
 
     Returns:
         ``(evals (k,) float64 ascending >= 0, evecs (V, k) float64 M-orthonormal)``.

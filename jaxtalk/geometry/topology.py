@@ -281,7 +281,8 @@ def _boundary_loop(faces: np.ndarray) -> np.ndarray:
             break
         loop.append(v)
     if len(loop) != len(boundary):
-        raise ValueError(f"retriangulated variants need exactly one boundary loop, got {len(boundary)} boundary edges in several loops")
+        raise ValueError(f"retriangulated variants need exactly one boundary loop, "
+                         f"got {len(boundary)} boundary edges in several loops")
     return np.asarray(loop)
 
 

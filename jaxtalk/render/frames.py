@@ -200,7 +200,9 @@ def _font(size: int):
     return ImageFont.truetype(font_manager.findfont("DejaVu Sans"), size)
 
 
-def caption_strip(text: str, width: int, style: RenderStyle = RenderStyle(), *, height: int | None = None) -> UInt8[np.ndarray, "rows width 3"]:
+def caption_strip(
+    text: str, width: int, style: RenderStyle = RenderStyle(), *, height: int | None = None
+) -> UInt8[np.ndarray, "rows width 3"]:
     """A strip with centred caption text on the background colour, to stack above a panel.
 
     Args:

@@ -104,6 +104,11 @@ def guided_apply(
     ``cond``/``uncond`` leaf-wise along axis 0 (batch 2B), and the output is
     ``(1 + w) out_cond - w out_uncond``.
 
+    This is jaxtalk's one guidance convention, which every model's ``cfg_scale`` (and the CLI's
+    ``--cfg-scale``) takes: Ho and Salimans' guidance weight w, 0 = no guidance (the conditional
+    prediction), -1 = the unconditional one, > 0 guided. A paper that writes
+    ``u + omega (c - u)`` (MAR, TIMAR) has ``omega = 1 + w``.
+
     Args:
         apply_fn: the model.
         x: ``(B, ...)`` model input.

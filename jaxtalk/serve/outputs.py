@@ -25,7 +25,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["OUTPUTS", "PARAM_CHANNELS", "ArkitOutput", "MorphOutput", "Output", "OutputUnavailable", "ParamsOutput", "build_outputs"]
+__all__ = ["OUTPUTS", "PARAM_CHANNELS", "ArkitOutput", "MorphOutput", "Output", "OutputUnavailable", "ParamsOutput",
+           "build_outputs"]
 
 PARAM_CHANNELS: tuple[str, ...] = (tuple(f"exp_{k:02d}" for k in range(50))
                                    + tuple(f"{joint}_{axis}" for joint in ("jaw", "neck") for axis in "xyz"))

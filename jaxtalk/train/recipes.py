@@ -23,7 +23,8 @@ import numpy as np
 
 from jaxtalk.train.loop import TrainResult
 
-__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation", "fixed_batches", "spread", "host_copy", "evaluation", "merged_eval", "fit_recipe", "VAL_WINDOWS", "VAL_CLIPS"]
+__all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation",
+           "fixed_batches", "spread", "host_copy", "evaluation", "merged_eval", "fit_recipe", "VAL_WINDOWS", "VAL_CLIPS"]
 
 # Validation windows scored at each evaluation (a fixed, evenly spread subset of the split).
 VAL_WINDOWS = 64
@@ -49,7 +50,8 @@ class TrainSettings:
             and masked: ATS's ``paper`` preset).
         eval_every: validation period in steps (None: five evaluations per run).
         val_clips: held-out clips sampled and scored at each evaluation by a model whose validation
-            samples (TokTalk streamed, ATS with DDIM, TIMAR and DualTalk turn by turn, STM on held-out meshes); None: the model's default, 0: the validation loss only.
+            samples (TokTalk streamed, ATS with DDIM, TIMAR and DualTalk turn by turn, STM on
+            held-out meshes); None: the model's default, 0: the validation loss only.
     """
 
     lr: float = 1e-3

@@ -105,8 +105,9 @@ def train_on_turn_windows(
     sample_eval = None if predict is None else conversation_validation(
         data, recipe, "val", predict=predict, key=jax.random.fold_in(k_eval, 1), clips=val_clips)
     return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps,
-                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
-                      metadata={"model": model}, extra=extra, config=config, run_dir=run_dir, run_info=run_info, **loop_kwargs)
+                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir,
+                      mesh=mesh, eval_every=eval_every, metadata={"model": model}, extra=extra, config=config, run_dir=run_dir,
+                      run_info=run_info, **loop_kwargs)
 
 
 def conversation_validation(

@@ -38,7 +38,8 @@ def is_flat_dualtalk(root: Path) -> bool:
 
 def _read(npz: Path | None, wav: Path) -> RawClip:
     from jaxtalk.audio.io import load_audio
-    from jaxtalk.data.formats import dualtalk_to_params56, load_npz
+    from jaxtalk.data.formats import dualtalk_to_params56
+    from jaxtalk.files import load_npz
 
     params = None
     if npz is not None:

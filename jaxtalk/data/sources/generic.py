@@ -86,7 +86,8 @@ def _token_rate(root: Path) -> float | None:
 
 def _read(npz: Path, wav: Path, tokens: Path | None, token_rate: float | None) -> RawClip:
     from jaxtalk.audio.io import load_audio
-    from jaxtalk.data.formats import dualtalk_to_params56, load_npy, load_npz
+    from jaxtalk.data.formats import dualtalk_to_params56
+    from jaxtalk.files import load_npy, load_npz
 
     data = load_npz(npz, what="motion file")
     keys = set(data)

@@ -11,8 +11,9 @@ fall inside that window, and measures the held-out R^2 it reaches, per group:
   (``dyadic.shared_mood`` restricted to the window).
 
 Targets are the agent's motion minus its per-conversation mean (a resting pose is not what context
-explains), and the features are centred the same way (a within-conversation regression). The gain from 0 to 7 past turns bounds what TIMAR's history can add on this corpus: no
-model can gain what the data does not contain.
+explains), and the features are centred the same way (a within-conversation regression). The gain
+from 0 to 7 past turns bounds what TIMAR's history can add on this corpus: no model can gain what
+the data does not contain.
 """
 
 from __future__ import annotations

@@ -280,7 +280,8 @@ def _load_timings(path: Path) -> dict[SpeechRequest, _Timing]:
     out = {}
     for k in range(len(text)):
         req = SpeechRequest(str(text[k]), str(voice[k]), *(int(x) for x in params[k]))
-        out[req] = _Timing(tuple(str(names[k]).split(" ")) if str(names[k]) else (), starts[offsets[k]:offsets[k + 1]].copy(), float(ends[k]))
+        out[req] = _Timing(tuple(str(names[k]).split(" ")) if str(names[k]) else (),
+                           starts[offsets[k]:offsets[k + 1]].copy(), float(ends[k]))
     return out
 
 

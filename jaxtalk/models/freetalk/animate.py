@@ -6,8 +6,9 @@ in centimetres, a remeshed face):
 1. :func:`prepare_user_mesh` (once per mesh): check and clean the mesh (merge duplicate vertices,
    drop zero-area faces and isolated vertices: :func:`jaxtalk.geometry.mesh_checks.clean_mesh`), find
    its units and the similarity transform into the frame STM was trained in
-   (:func:`jaxtalk.geometry.canonical.align_to_face`, as the retargeter aligns a rig), then precompute STM's mesh operators (the robust
-   intrinsic Laplacian where the cotangent one is unsafe: non-manifold edges, duplicates, degenerate
+   (:func:`jaxtalk.geometry.canonical.align_to_face`, as the retargeter aligns a rig), then
+   precompute STM's mesh operators (the robust intrinsic Laplacian where the cotangent one is unsafe:
+   non-manifold edges, duplicates, degenerate
    faces) and its static per-vertex features.
 2. ATS samples the landmark displacements with DDIM from the audio features its run was trained on.
    Audio longer than the ATS training window is cut into windows that overlap by a quarter window,
@@ -93,7 +94,7 @@ def read_landmarks(path: str | os.PathLike[str], vertices: np.ndarray) -> Float[
     if not p.is_file():
         raise FileNotFoundError(f"landmark file not found: {str(p)!r}")
     if p.suffix.lower() == ".npy":
-        from jaxtalk.data.formats import load_npy
+        from jaxtalk.files import load_npy
 
         arr = load_npy(p, what="landmark file")
     else:
@@ -298,7 +299,9 @@ def animate(
     return displace(stm, mesh, track)
 
 
-def displace(stm: FittedSTM, mesh: UserMesh, landmark_disp: Float[np.ndarray, "frames 68 3"]) -> Float[np.ndarray, "frames verts 3"]:
+def displace(
+    stm: FittedSTM, mesh: UserMesh, landmark_disp: Float[np.ndarray, "frames 68 3"]
+) -> Float[np.ndarray, "frames verts 3"]:
     """STM on a prepared user mesh: template-frame landmark displacements (metres) -> the user's
     vertex positions ``(T, V, 3)`` in its units and frame.
 

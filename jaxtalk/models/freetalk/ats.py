@@ -90,8 +90,8 @@ class _AffectEmbedding(nn.Module):
     from all clips of an emotion whatever their intensity (a per-cell lookup would see a handful of
     clips per cell on a small corpus, and none at all for cells the corpus happens to lack). The
     embedding is affine in the intensity, so a traced float moves smoothly between the discrete
-    levels (clipped to ``[1, num_intensities]``) and reaches cells the corpus lacks; the transformer downstream stays free to respond
-    to it non-linearly.
+    levels (clipped to ``[1, num_intensities]``) and reaches cells the corpus lacks; the transformer
+    downstream stays free to respond to it non-linearly.
     """
 
     config: ATSConfig

@@ -6,7 +6,6 @@ each is trained), and :func:`sample_displacements` in metres from a fitted ATS.
 from __future__ import annotations
 
 import dataclasses
-import os
 from typing import Any
 
 import jax
@@ -22,18 +21,19 @@ __all__ = ["FittedATS", "FittedSTM", "sample_displacements"]
 PyTree = Any
 
 
-def _load_run(run_dir: str | os.PathLike[str], model: str, best: bool) -> Any:
-    """The newest (or best-validated) checkpoint of a ``model`` run.
+def _check_run(run: Any, model: str) -> Any:
+    """``run`` (a :class:`~jaxtalk.runs.LoadedRun`) when it is a ``model`` run.
 
     Raises:
-        FileNotFoundError: not a run, or no checkpoint.
-        ValueError: a run of another model.
+        ValueError: a path instead of a loaded run, or a run of another model.
     """
-    from jaxtalk.runs import load_run
+    from jaxtalk.runs import LoadedRun
 
-    run = load_run(run_dir, best=best)
+    if not isinstance(run, LoadedRun):
+        raise ValueError(f"from_run takes a loaded run: from_run(jaxtalk.runs.load_run({str(run)!r})), "
+                         f"got {type(run).__name__}")
     if run.record.model != model:
-        raise ValueError(f"{run_dir} is a {run.record.model} run, not an {model} run")
+        raise ValueError(f"{run.run_dir} is a {run.record.model} run, not an {model} run")
     return run
 
 
@@ -75,9 +75,14 @@ class FittedATS:
         return feats
 
     @classmethod
-    def from_run(cls, run_dir: str | os.PathLike[str], *, best: bool = False) -> FittedATS:
-        """A trained ATS from a run folder (``jaxtalk train ats``; see :func:`_load_run`)."""
-        run = _load_run(run_dir, "ats", best)
+    def from_run(cls, run: Any) -> FittedATS:
+        """A trained ATS from its loaded run (``jaxtalk.runs.load_run(dir)`` of ``jaxtalk train ats``), as
+        every model is opened from a run.
+
+        Raises:
+            ValueError: a path instead of a loaded run, or a run of another model.
+        """
+        run = _check_run(run, "ats")
         extra = run.record.extra
         stats = DisplacementStats(np.asarray(extra["stats"]["mean"], np.float32),
                                   np.asarray(extra["stats"]["std"], np.float32))
@@ -110,9 +115,13 @@ class FittedSTM:
         return face_reference(self.face())  # the built-in face always has its landmarks
 
     @classmethod
-    def from_run(cls, run_dir: str | os.PathLike[str], *, best: bool = False) -> FittedSTM:
-        """A trained STM from a run folder (``jaxtalk train stm``; see :func:`_load_run`)."""
-        run = _load_run(run_dir, "stm", best)
+    def from_run(cls, run: Any) -> FittedSTM:
+        """A trained STM from its loaded run (``jaxtalk.runs.load_run(dir)`` of ``jaxtalk train stm``).
+
+        Raises:
+            ValueError: a path instead of a loaded run, or a run of another model.
+        """
+        run = _check_run(run, "stm")
         return cls(run.config, jax.tree.map(jax.numpy.asarray, run.params), run.record.extra.get("resolution", "low"))
 
 

@@ -29,8 +29,8 @@ from jaxtalk.data.batching import window_starts
 from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["DEFAULTS", "ATS_PRESET_DEFAULTS", "STM_PRESET_DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT", "fit_displacement_stats", "train_ats",
-           "train_stm"]
+__all__ = ["DEFAULTS", "ATS_PRESET_DEFAULTS", "STM_PRESET_DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT",
+           "fit_displacement_stats", "train_ats", "train_stm"]
 
 # Three face identities on three mesh topologies (FreeTalk's seen meshes). Windows are padded to the
 # largest mesh, so the ~4x denser subdivided topology is not among them (it would make every window
@@ -177,7 +177,8 @@ def train_ats(
 
     sample_eval = sampled_validation(config, data, recipe, "val", key=jax.random.fold_in(k_eval, 1), clips=val_clips)
     return fit_recipe(recipe, data, ats.make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
-                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra,
+                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed,
+                      ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra,
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)
 
 
@@ -260,5 +261,6 @@ def train_stm(
     sample_eval = held_out_mesh_validation(config, data, held_out, "val", window=recipe.window, clips=val_clips,
                                            resolution=resolution)
     return fit_recipe(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
-                      eval_key=k_eval, sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
+                      eval_key=k_eval, sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size,
+                      seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)

@@ -360,18 +360,32 @@ class SparseToMesh(nn.Module):
         return self.decode_frame(self.mesh_features(vertices, normals, ops), disp, ops)
 
 
-def init_params(config: STMConfig, key: PRNGKeyArray, mesh: STMMesh) -> PyTree:
-    """Initial STM parameters (their shapes do not depend on the mesh, which only drives the trace).
+def init_params(config: STMConfig, key: PRNGKeyArray, mesh: STMMesh | None = None) -> PyTree:
+    """Initial STM parameters. Their shapes do not depend on the mesh, which only drives the trace: the
+    same key gives the same parameters whatever mesh traces them.
 
     Args:
         config: static configuration.
         key: PRNG key.
-        mesh: any prepared mesh (single, no leading axis).
+        mesh: a prepared mesh (single, no leading axis) to trace with; None: a sphere just large enough
+            for the config's eigenbasis.
 
     Returns:
         The ``{"params": ...}`` variables of :class:`SparseToMesh`.
     """
-    return _init(config, key, mesh)
+    return _init(config, key, _tracing_mesh(config) if mesh is None else mesh)
+
+
+@functools.lru_cache(maxsize=8)
+def _tracing_mesh(config: STMConfig) -> STMMesh:
+    """The smallest icosphere with more vertices than the eigenbasis has pairs, prepared for ``config``."""
+    import trimesh
+
+    level = 1
+    while 10 * 4**level + 2 <= config.num_eigenpairs + 1:
+        level += 1
+    sphere = trimesh.creation.icosphere(level, radius=0.1)
+    return prepare_mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces), config)
 
 
 @functools.partial(jax.jit, static_argnames="config")
@@ -426,8 +440,7 @@ def _decode(params, config: STMConfig, features, disp, ops):
     # Frame by frame (lax.map), not all frames at once: one frame's working set (the V x 68 x heads
     # attention logits, 6 MB at 5.9k vertices; the decoder's (V, C) features and one-ring gathers)
     # stays in cache, where 25 frames at once (the (V, T C) layout with its wide eigenbasis matmuls)
-    # stream hundreds of MB through memory per pass. Measured on 2 shared cores at 5.9k vertices:
-    # fusion ~5x and decoder ~3x faster per frame (experiments/bench_freetalk.py).
+    # stream hundreds of MB through memory per pass (the measurement: docs/design-decisions.md).
     return jax.lax.map(frame, disp) / config.displacement_scale
 
 

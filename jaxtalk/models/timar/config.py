@@ -5,7 +5,8 @@ Numbers from the paper (``shared/papers/timar.txt``, Sec. 4 and Appendix 7): sha
 ``d_m = 1024``, 1-s turns at 25 fps, 8 turns per training clip, mask ratio r = 0.7 (the public code
 draws it from a truncated normal on [0.7, 1.0], mean 1.0, std 0.25, as MAR does), ``p_cfg = 0.1``,
 1000 cosine diffusion steps, x0-prediction, 5 sampling steps in the evaluation. The CFG scale of the
-evaluation is not given in the text: jaxtalk's default (1.5) is a config field.
+evaluation is not given in the text: jaxtalk's default, omega = 1.5 (``cfg_scale = 0.5``: jaxtalk's
+guidance weight is omega - 1), is a config field.
 """
 
 from __future__ import annotations
@@ -76,8 +77,8 @@ class TimarConfig:
             frame's ONE encoder feature (MAR's public code: 4). The encoder only learns through the
             head's high-noise draws (at low noise the noisy frame alone gives x0 away), so more
             draws give it a less noisy gradient; they are cheap when the head is small next to the
-            encoder (the paper's sizes). Default 1: on a 64-wide CPU model 4 draws made a step 1.5x
-            slower and reached the same held-out loss at equal steps.
+            encoder (the paper's sizes). Default 1: at CPU sizes more draws cost time per step for no
+            lower held-out loss; see docs/design-decisions.md.
         mask_ratio_min: lower end of the truncated normal of the mask ratio (upper end 1); 1.0
             masks every agent frame (the ``small`` preset: training then matches inference).
         mask_ratio_std: its standard deviation (mean 1.0).
@@ -85,8 +86,8 @@ class TimarConfig:
         sample_steps: default respaced sampling steps.
         sampler: default sampler, one of :data:`SAMPLERS` (``paper``: ``"ddpm"`` as MAR samples,
             reading the learned variance; ``small``: ``"ddim"``).
-        cfg_scale: default guidance scale omega (paper's convention: 0 = unconditional,
-            1 = conditional, > 1 = guided).
+        cfg_scale: default guidance weight w of :func:`jaxtalk.samplers.flow.guided_apply` (0 = no
+            guidance, -1 = unconditional); the paper's omega is ``1 + w``, so its 1.5 is 0.5.
         dropout: dropout in the encoder (residual branches and attention).
         token_width: width of the token embeddings (speech projection, motion encoder, separators,
             mask-free tokens and the fake token) when ``input_projection`` is set; None = ``width``.
@@ -129,7 +130,7 @@ class TimarConfig:
     cfg_dropout: float = 0.1
     sample_steps: int = 5
     sampler: str = "ddim"
-    cfg_scale: float = 1.5
+    cfg_scale: float = 0.5
     dropout: float = 0.0
     token_width: int | None = None
     input_projection: bool = False
@@ -233,7 +234,8 @@ class TimarConfig:
         and normalised after the positional table, a Linear-ReLU-Linear-ReLU motion encoder, a
         K = 3 x 1024 head with a learned variance on the 1000-step cosine schedule, x0-prediction,
         5 ancestral sampling steps, and a CFG branch that drops the current turn's user tokens only.
-        The public evaluation samples with ``--cfg 1.0`` (no guidance) and temperature 1.
+        The public evaluation samples with ``--cfg 1.0`` (no guidance: ``cfg_scale = 0`` here) and
+        temperature 1.
 
         Args:
             **overrides: any field to change (the converter sets every size from the checkpoint).
@@ -244,7 +246,7 @@ class TimarConfig:
         base = dict(width=1024, num_layers=32, num_heads=16, speech_dim=1024, head_width=1024, head_blocks=3,
                     learn_sigma=True, diffusion_batch_mul=4, sampler="ddpm", decoder_layers=16, token_width=1024,
                     input_projection=True, norm_after_position=True, motion_encoder_final_relu=True,
-                    block_norm_epsilon=1e-6, guidance_drop="current_turn", cfg_scale=1.0, dropout=0.1,
+                    block_norm_epsilon=1e-6, guidance_drop="current_turn", cfg_scale=0.0, dropout=0.1,
                     schedule="cosine", sample_steps=5)
         return cls(**(base | overrides))
 
@@ -253,13 +255,12 @@ class TimarConfig:
         """A CPU-sized model (trains in minutes on 2 cores) on jaxtalk's 80-band log-mel features,
         trained with every agent frame masked.
 
-        How it differs from ``paper`` and why (each measured at CPU scale): 128 wide x 4 layers and a
-        128-wide head (minutes per run instead of GPU-days); every agent frame masked (below); one
-        diffusion draw per frame (4 made a step 1.5x slower for the same held-out loss at equal steps,
-        see ``diffusion_batch_mul``); a fixed variance and deterministic DDIM, the sampler that
-        needs no learned variance; and AdamW at 1e-3 at batch 16 with 20 warm-up steps, decaying to a
-        tenth (``PRESET_DEFAULTS["small"]``), for runs of a few thousand steps rather than the
-        paper's 400 epochs at 1e-4.
+        How it differs from ``paper`` and why (the measurements: docs/design-decisions.md): 128 wide x
+        4 layers and a 128-wide head (minutes per run instead of GPU-days); every agent frame masked
+        (below); one diffusion draw per frame (see ``diffusion_batch_mul``); a fixed variance and
+        deterministic DDIM, the sampler that needs no learned variance; and AdamW at 1e-3 at batch 16
+        with 20 warm-up steps, decaying to a tenth (``PRESET_DEFAULTS["small"]``), for runs of a few
+        thousand steps rather than the paper's 400 epochs at 1e-4.
 
         Args:
             **overrides: any field to change.

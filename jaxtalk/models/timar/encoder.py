@@ -20,7 +20,7 @@ The variant's parameters live in the same module (the ``"encoder"`` subtree, pre
 
 :meth:`~TimarEncoder.encode` and :meth:`~TimarEncoder.head_condition` take their tokens' first turn
 slot (``first_turn``, may be traced), so a streaming step can encode the current turn alone at its
-slot of the window, continuing the keys/values of the past turns (:mod:`~jaxtalk.models.timar.stream`);
+slot of the window, continuing the keys/values of the past turns (:mod:`~jaxtalk.models.timar.streaming`);
 the whole-window methods (:meth:`~TimarEncoder.fuse`, and the variant's ``encode_visible`` and
 ``decode``) place the window at slots ``0..N-1``.
 """

@@ -57,7 +57,7 @@ def train(
     """
     from jaxtalk.models.timar.loss import make_loss_fn
     from jaxtalk.models.timar.model import init_params
-    from jaxtalk.models.timar.stream import stream
+    from jaxtalk.models.timar.streaming import stream
 
     def predict(p: PyTree, streams: Any, key: PRNGKeyArray, context: int) -> Any:
         return stream(p, config, *streams, key, context=context)

@@ -3,8 +3,9 @@
 * :class:`TokTalkConfig` (``paper``, ``small``, ``tiny`` presets) and :func:`init_params`.
 * Model pieces: :class:`Decoder` (1-D U-Net transformer), :class:`StyleEncoder`, :class:`Adapter`.
 * Losses: :func:`loss` (stage 1) and :func:`adapter_loss` (stage 2).
-* Inference: :func:`sample` (offline), :func:`sample_long` (offline, any length in bounded memory), :func:`init_stream` / :func:`stream_step` / :func:`stream`
-  (streaming engine with an explicit carried state), :func:`encode_style`, :func:`adapt_tokens`.
+* Inference: :func:`sample` (offline), :func:`sample_long` (offline, any length in bounded memory),
+  :func:`init_stream` / :func:`stream_step` / :func:`stream` (streaming engine with an explicit carried
+  state), :func:`encode_style`, :func:`adapt_tokens`.
 * Training: :mod:`jaxtalk.models.toktalk.recipe` (:func:`~jaxtalk.models.toktalk.recipe.train`, stage 1, and
   :func:`~jaxtalk.models.toktalk.recipe.train_adapter`, stage 2, on a prepared dataset with the shared loop).
 """
@@ -26,8 +27,8 @@ from jaxtalk.models.toktalk.model import (
     to_flow_space,
     velocity,
 )
-from jaxtalk.models.toktalk.sample import sample, sample_long
-from jaxtalk.models.toktalk.stream import (
+from jaxtalk.models.toktalk.sampling import sample, sample_long
+from jaxtalk.models.toktalk.streaming import (
     AdapterState,
     StreamState,
     init_stream,

@@ -9,7 +9,7 @@ with the base model frozen.
 With ``config.causal`` (the streaming model) the convolution is causal and each attention query sees
 only itself and the ``adapter_context - 1`` tokens before it, so token ``i``'s output depends on the
 inputs ``i - receptive_field(config) .. i`` alone and the streaming adapter
-(:mod:`jaxtalk.models.toktalk.stream`) reproduces the offline one from a fixed-size buffer of past
+(:mod:`jaxtalk.models.toktalk.streaming`) reproduces the offline one from a fixed-size buffer of past
 inputs. Positions are absolute (``positions``), so a stream's positions continue across chunks; stage-2
 training places its windows at random starts up to ``adapter_max_position`` so those positions are trained.
 """

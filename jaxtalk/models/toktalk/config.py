@@ -52,21 +52,17 @@ class TokTalkConfig:
         style_dim: width of the style encoder's latent (MSMD: 256).
         style_anchor: append the reference clip's mean pose (standardised) to the style vector and run
             the flow in coordinates centred on it, so the decoder generates motion RELATIVE to the
-            speaker's resting pose seen in the reference clip. On SynthTalk most of a clip's motion
-            variance is a per-speaker resting expression plus a per-clip emotion offset; another clip's
-            mean alone halves the mean-pose LVE on held-out speakers (small test, 186 -> 86 mm^2)
-            while the learned encoder latent did not transfer it to unseen speakers. The style vector
-            is then ``style_dim + param_dim`` wide (:attr:`style_vector_dim`).
+            speaker's resting pose seen in the reference clip. The style vector is then
+            ``style_dim + param_dim`` wide (:attr:`style_vector_dim`). Default on: a speaker's resting
+            pose is most of a clip's motion; see docs/design-decisions.md.
         anchor_input: with ``style_anchor``, also show the anchor pose to the decoder as part of the style
             condition (True), or only centre the flow on it (False: the decoder sees the style latent
-            alone). A decoder that reads the anchor as an input can fit an arbitrary function of the
-            training speakers' anchors that extrapolates badly to new ones; the ``small`` preset
-            turns it off (see ``style_source``).
+            alone). The ``small`` preset turns it off: a decoder that reads the training speakers'
+            anchors extrapolates badly to new ones (see ``style_source``).
         latent_input: show the style encoder's latent to the decoder (True), or not (False: the decoder
             sees no style at all unless ``anchor_input``; with ``style_anchor`` the anchor still centres
-            the flow). 24 training speakers' latents are few enough to memorise, and a decoder that
-            keys the rest pose on them misplaces it for speakers it never saw; the ``small`` preset
-            turns it off (see ``style_source``).
+            the flow). The ``small`` preset turns it off: a decoder can memorise few training speakers'
+            latents and misplace the rest pose of speakers it never saw (see ``style_source``).
         style_source: where a training example's reference clip comes from: ``"target"``, a crop of
             the target clip itself (the paper's objective), or ``"other_clip"``, a crop of ANOTHER clip
             of the same speaker (a departure: the style vector cannot copy the target, so training
@@ -74,15 +70,11 @@ class TokTalkConfig:
             another clip the target's offset from the anchor is the difference of two clips' emotion
             offsets, which a decoder can only learn per training speaker (from the voice); with the
             target's own crop it is the window's motion about the clip's mean, the same for every
-            speaker. On SynthTalk ``small`` (24 training speakers; 6,000 steps, validation every 500
-            on all 20 val clips, temperature 0.5; mean pose 251.1 mm^2) "target" with neither the
-            anchor nor the latent as decoder inputs stayed under the mean pose at every evaluation in
-            2 seeds of 2 (LVE 126-196 at 1 Euler step, 143-185 at 10), where the earlier default
-            (other clip, latent and anchor as inputs) passed it from ~3,000 steps (248.8 / 307.9 at
-            3,000, seed 0). So the ``small`` preset trains on the target's crop and shows the decoder
-            neither; the anchor pose still centres the flow, so a new speaker's rest pose comes
-            from its reference clip. The ``paper`` preset is the paper's (target crop, learned latent,
-            no anchor).
+            speaker. The ``small`` preset trains on the target's crop and shows the decoder neither the
+            anchor nor the latent; the anchor pose still centres the flow, so a new speaker's rest pose
+            comes from its reference clip. The ``paper`` preset is the paper's (target crop, learned
+            latent, no anchor). Why ``small`` does so: it stays under the mean pose on held-out
+            speakers however long it trains; see docs/design-decisions.md.
         style_hidden: style encoder width (MSMD: 512).
         style_heads: style encoder attention heads (8).
         style_frames: length of the reference clip used in training (frames).
@@ -100,20 +92,17 @@ class TokTalkConfig:
         chunk_frames: streaming chunk (even: one stride-2 down/up pair halves it).
         overlap_frames: frames of previous output re-used as known frames for the next chunk (the
             paper's overlap inpainting; 5 from its notes). With the causal decoder the left context
-            is regenerated from the same noise anyway, and feeding emitted frames back drifts: on
-            SynthTalk full (3,000 steps, 8 test clips) ``overlap_frames=0`` streamed at LVE 69 vs 122
-            (1 step) and 139 vs 157 (10 steps), with slightly lower chunk-boundary jitter.
+            is regenerated from the same noise anyway, and feeding emitted frames back drifts, so 0
+            streams with a lower error; see docs/design-decisions.md.
         context_frames: bounded left context of the streaming window (a multiple of chunk_frames).
         sample_steps: Euler steps at inference.
         cfg_scale: default classifier-free guidance weight w (traced at sampling time).
         temperature: default scale of the starting noise at inference (traced at sampling time; 1: the
             trained prior). Below 1 the sampler starts nearer the flow's mean and trades diversity for
             accuracy, as flow-matching TTS samplers do (Matcha-TTS samples at 0.667); 0 integrates the
-            flow from the mean of the prior. On SynthTalk small (3,000 steps, 2 recipes x 2 seeds, the
-            checkpoint of the lowest streamed validation LVE, all 20 test clips; mean pose 181.5 mm^2)
-            10 Euler steps at 0.5 beat the mean pose in 4 runs of 4 (LVE 111-129) and at 1 in 1 of 4
-            (176-216); one step is the same at either (91-117). So the ``small`` preset samples at
-            0.5, the ``paper`` preset at the paper's 1 (``tiny``, for unit tests, at 1); ``--temperature`` of ``sample``,
+            flow from the mean of the prior. The ``small`` preset samples at 0.5 (its 10-step samples
+            beat the mean pose there, not at 1; see docs/design-decisions.md), the ``paper`` preset at
+            the paper's 1 (``tiny``, for unit tests, at 1); ``--temperature`` of ``sample``,
             ``stream``, ``serve`` and ``eval`` overrides it.
         sigma_min: minimum noise of the CFM path.
         cfg_dropout: probability of dropping audio, style and known frames together (CFG training).
@@ -125,13 +114,12 @@ class TokTalkConfig:
             :func:`jaxtalk.models.toktalk.model.velocity`); False = the raw decoder output, as in CosyVoice.
         noise_frames: temporal correlation of the flow's starting noise, as the standard deviation in
             frames of a Gaussian smoothing of white noise (rescaled to unit variance per frame); 0 =
-            white noise (the paper's). See :mod:`jaxtalk.models.toktalk.noise`. Default 2 frames:
-            on SynthTalk small (1,200 steps, 8 test clips) it cut the streamed 10-step jitter from
-            19.1 to 3.2 mm/frame^2 (data: 0.72) and LVE from 209 to 169 mm^2 (1 step: 116 -> 73).
+            white noise (the paper's). See :mod:`jaxtalk.models.toktalk.noise`. Default 2 frames: the
+            noise the decoder leaves becomes smooth motion instead of jitter; see docs/design-decisions.md.
         time_sampling: training flow times: "cosine" (``t = 1 - cos(u pi / 2)``, ``u ~ U(0, 1)``:
             more weight near the noise end, where the conditional mean is learned; CosyVoice's
-            ``t_scheduler: cosine``) or "uniform" (``t ~ U(0, 1)``). On SynthTalk small (600 steps)
-            cosine cut the one-step mouth error from 0.091 to 0.067 (mean pose 0.106).
+            ``t_scheduler: cosine``) or "uniform" (``t ~ U(0, 1)``). Default cosine: a lower one-step
+            mouth error; see docs/design-decisions.md.
     """
 
     param_dim: int = PARAM_DIM
@@ -229,8 +217,8 @@ class TokTalkConfig:
         (``style_source="target"``) and no anchor pose (``style_anchor=False``).
 
         The other presets keep jaxtalk's departures on (time-correlated noise, another clip's style,
-        the anchor pose; each documented on its field with what it measured): pass them here as
-        overrides to train the paper-size model with them.
+        the anchor pose; each documented on its field, its measurement in docs/design-decisions.md):
+        pass them here as overrides to train the paper-size model with them.
         """
         return dataclasses.replace(cls(noise_frames=0.0, style_anchor=False, style_source="target"), **overrides)
 
@@ -238,10 +226,10 @@ class TokTalkConfig:
     def small(cls, **overrides: object) -> TokTalkConfig:
         """Learns SynthTalk in minutes on 2 CPU cores and streams in real time there; trains on the
         target clip's own crop as the style and shows the decoder neither the anchor nor the style
-        latent (held-out speakers stayed under the mean pose through 6,000 steps in 2 seeds; see
-        ``style_source``); samples at temperature 0.5 (see ``temperature``)."""
+        latent (so held-out speakers stay under the mean pose as it trains; see ``style_source``);
+        samples at temperature 0.5 (see ``temperature``)."""
         # Width 64 is enough once the decoder is preconditioned (``precondition``): the skip carries
-        # the near-identity noise part of the velocity that a 64-wide U-Net alone learned ~20x slower.
+        # the near-identity noise part of the velocity that a 64-wide U-Net alone learns far more slowly.
         base = cls(
             width=64,
             num_mid_blocks=2,

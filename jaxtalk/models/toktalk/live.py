@@ -2,7 +2,7 @@
 
 :class:`LiveModel` holds what every stream of one run shares: parameters, config, the run's tokenizer,
 the style vector, the time grid and the guidance weight. :meth:`LiveModel.open` starts one stream
-(:class:`LiveStream`) with its own carried :class:`~jaxtalk.models.toktalk.stream.StreamState`:
+(:class:`LiveStream`) with its own carried :class:`~jaxtalk.models.toktalk.streaming.StreamState`:
 :meth:`LiveStream.push` takes audio of any length and returns the frames it completes, a chunk of
 ``chunk_frames`` as soon as the audio its tokens read has arrived (the chunk's end plus the tokenizer's
 look-ahead, :attr:`LiveModel.lookahead_samples`); :meth:`LiveStream.finish` ends the utterance.
@@ -25,7 +25,7 @@ import numpy as np
 from jaxtalk.checks import check_temperature
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
-from jaxtalk.models.toktalk.stream import init_stream, stream_step, tokens_per_chunk
+from jaxtalk.models.toktalk.streaming import init_stream, stream_step, tokens_per_chunk
 from jaxtalk.samplers import cosine_grid
 from jaxtalk.types import AUDIO_SAMPLE_RATE, Float, PRNGKeyArray
 

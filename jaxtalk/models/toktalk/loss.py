@@ -211,7 +211,8 @@ def adapter_loss(
 
     The alignment term is the mean squared error over real tokens and channels (a token is real when
     the frame it starts on is). The window is placed at :func:`adapter_positions` (a random start), so
-    the adapter is trained at the positions a stream counts from the start of the utterance. Freeze everything but ``params["adapter"]`` in the train loop.
+    the adapter is trained at the positions a stream counts from the start of the utterance. Freeze
+    everything but ``params["adapter"]`` in the train loop.
 
     Args:
         params: ``{"decoder", "style", "adapter"}``.

@@ -2,11 +2,10 @@
 
 Flow matching transports ANY source distribution to the data; the paper's is white Gaussian noise. A
 decoder that does not fully remove the noise passes what it leaves straight into the samples, and
-white noise left over is all high frequency: on SynthTalk the ``small`` model's denoised estimate at
-mid flow times carried 3-6x the data's acceleration energy and its 10-step samples 13x the data's jitter.
-With ``noise_frames = s > 0`` the noise is white noise smoothed over time by a Gaussian kernel of
-standard deviation ``s`` frames and rescaled to unit variance per frame, so every frame is still
-``N(0, 1)`` (the preconditioning's assumption) but neighbouring frames are correlated
+white noise left over is all high frequency, so it shows as jitter in the samples (the measurement:
+docs/design-decisions.md). With ``noise_frames = s > 0`` the noise is white noise smoothed over time by
+a Gaussian kernel of standard deviation ``s`` frames and rescaled to unit variance per frame, so every
+frame is still ``N(0, 1)`` (the preconditioning's assumption) but neighbouring frames are correlated
 (``corr(lag) = exp(-lag^2 / (4 s^2))``) and leftover noise is smooth motion rather than jitter.
 
 Offline noise is drawn with ``3 s`` extra frames of white noise on each side, so it is stationary up to

@@ -1,13 +1,12 @@
 """Validation that samples TokTalk as its users do: streamed, on fixed held-out clips, scored in vertices.
 
-The flow-matching loss on validation windows did not track what users measure: on SynthTalk ``small``
-the validation loss fell at every evaluation of a 3,000-step run while the streamed lip error of the
-held-out clips rose above the mean pose's. :func:`streamed_validation` gives the training loop what
-``jaxtalk eval`` reports, for the run to select its best checkpoint by: each evaluation streams a fixed,
-evenly spread set of clips of the split chunk by chunk (:func:`~jaxtalk.models.toktalk.stream.stream`)
-at each of the run's sampler step counts, with the same keys every time, and scores them on the built-in
-face (:func:`~jaxtalk.face.builtin_face`) like ``jaxtalk eval``: LVE (mm^2, lips), MVE (mm) and jitter
-(mm/frame^2), frame-weighted over the clips.
+The flow-matching loss on validation windows does not track what users measure: it can keep falling
+while the streamed lip error of held-out clips rises (docs/design-decisions.md).
+:func:`streamed_validation` gives the training loop what ``jaxtalk eval`` reports, for the run to select
+its best checkpoint by: each evaluation streams a fixed, evenly spread set of clips of the split chunk
+by chunk (:func:`~jaxtalk.models.toktalk.streaming.stream`) at each of the run's sampler step counts,
+with the same keys every time, and scores them on the built-in face (:func:`~jaxtalk.face.builtin_face`)
+like ``jaxtalk eval``: LVE (mm^2, lips), MVE (mm) and jitter (mm/frame^2), frame-weighted over the clips.
 
 :func:`real_voice_validation` adds what SynthTalk cannot show: how the mouth follows real speech. Each
 evaluation streams the first :data:`REAL_VOICE_RECORDINGS` recordings of a ``--real-voice`` folder
@@ -38,8 +37,8 @@ from jaxtalk.metrics.speech_sync import style_rest_jaw
 from jaxtalk.models.toktalk.config import TokTalkConfig
 from jaxtalk.models.toktalk.live import frames_for_audio
 from jaxtalk.models.toktalk.model import encode_style, frames_for_tokens
-from jaxtalk.models.toktalk.sample import default_grid
-from jaxtalk.models.toktalk.stream import stream
+from jaxtalk.models.toktalk.sampling import default_grid
+from jaxtalk.models.toktalk.streaming import stream
 from jaxtalk.train.loop import EvalFn
 from jaxtalk.train.recipes import VAL_CLIPS, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
@@ -182,7 +181,7 @@ def real_voice_validation(
     """An ``eval_fn`` for the training loop that streams real recordings and measures the predicted jaw.
 
     The first :data:`REAL_VOICE_RECORDINGS` recordings are tokenized once with ``tokenizer`` and, at every
-    evaluation, streamed chunk by chunk (:func:`~jaxtalk.models.toktalk.stream.stream`, what ``jaxtalk
+    evaluation, streamed chunk by chunk (:func:`~jaxtalk.models.toktalk.streaming.stream`, what ``jaxtalk
     stream`` computes through the live path) at :data:`REAL_VOICE_STEPS` sampler step with the key of
     seed 0, each cut to its audio's frames (:func:`~jaxtalk.models.toktalk.live.frames_for_audio`).
 

@@ -38,7 +38,7 @@ from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.data.turns import check_streams
 from jaxtalk.checks import check_temperature
-from jaxtalk.models.timar.sample import MAR_TEMPERATURE, resolve_sampler, sample_frames
+from jaxtalk.models.timar.sampling import MAR_TEMPERATURE, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.masks import mask_to_bias
 from jaxtalk.nn.precision import compute_in
@@ -316,16 +316,16 @@ def stream_step(
         state: current :class:`StreamState`.
         user_speech, agent_speech: ``(B, F, speech_dim)`` this turn's speech features.
         user_motion: ``(B, F, 56)`` this turn's user motion.
-        cfg_scale: ``()`` omega (traced; default ``config.cfg_scale``).
+        cfg_scale: ``()`` guidance weight w, 0 = none (traced; default ``config.cfg_scale``).
         sample_steps: respaced diffusion steps (static; default ``config.sample_steps``).
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"``; None: the config's (see
-            :func:`~jaxtalk.models.timar.sample.sample_frames`).
+            :func:`~jaxtalk.models.timar.sampling.sample_frames`).
         eta: DDIM stochasticity (traced).
-        temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sample.sample_frames`;
-            None: MAR's default, :data:`~jaxtalk.models.timar.sample.MAR_TEMPERATURE`).
+        temperature: MAR's sampling temperature (traced; see :func:`~jaxtalk.models.timar.sampling.sample_frames`;
+            None: MAR's default, :data:`~jaxtalk.models.timar.sampling.MAR_TEMPERATURE`).
         guidance: must match the state.
         initial_noise, step_noise: explicit standard normal draws instead of the turn's key (see
-            :func:`~jaxtalk.models.timar.sample.sample_frames`; for reproducing another
+            :func:`~jaxtalk.models.timar.sampling.sample_frames`; for reproducing another
             implementation's random stream).
 
     Returns:
@@ -344,7 +344,8 @@ def stream_step(
         raise ValueError(f"cfg_scale must be a scalar, got shape {cfg.shape}")
     return _step(
         params, config, state, jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
-        jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32), check_temperature(temperature, default=MAR_TEMPERATURE),
+        jnp.asarray(agent_speech, jnp.float32), cfg, jnp.asarray(eta, jnp.float32),
+        check_temperature(temperature, default=MAR_TEMPERATURE),
         sample_steps, sampler,
         bool(guidance), _mode(config, state),
         None if initial_noise is None else jnp.asarray(initial_noise, jnp.float32),
@@ -394,8 +395,8 @@ def stream(
     for i in range(turns):  # host loop: one turn arrives at a time in a stream
         sl = slice(i * f, (i + 1) * f)
         state, x = stream_step(
-            params, config, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl], cfg_scale=cfg_scale, sample_steps=sample_steps, sampler=sampler,
-            temperature=temperature, guidance=guidance,
+            params, config, state, user_speech[:, sl], user_motion[:, sl], agent_speech[:, sl], cfg_scale=cfg_scale,
+            sample_steps=sample_steps, sampler=sampler, temperature=temperature, guidance=guidance,
         )
         out.append(x)
     return jnp.concatenate(out, axis=1)

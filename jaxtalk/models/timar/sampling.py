@@ -172,7 +172,8 @@ def sample_frames(
         z_cond: ``(B, *F, width)`` head conditions.
         z_uncond: unconditional conditions of the same shape, or None (no guidance).
         key: PRNG key (initial noise and, for DDPM / eta > 0, the step noise).
-        cfg_scale: ``()`` omega (traced); ignored without ``z_uncond``.
+        cfg_scale: ``()`` the guidance weight w of :func:`jaxtalk.samplers.flow.guided_apply` (traced; the
+            paper's omega is ``1 + w``); ignored without ``z_uncond``.
         sample_steps: respaced steps (static).
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"`` (static; None: ``config.sampler``). ``"ddpm"``
             takes MAR's ancestral steps over the respaced schedule, with the learned variance when
@@ -207,11 +208,11 @@ def sample_frames(
             than ``"ddpm"``.
     """
     sampler = resolve_sampler(config, sampler)
-    omega = jnp.asarray(cfg_scale, jnp.float32)
+    w = jnp.asarray(cfg_scale, jnp.float32)
     tau = jnp.asarray(temperature, jnp.float32)
     hp = params["head"]
     if config.head == "mlp":
-        return _guided(lambda z: apply_head(hp, config, z), z_cond, z_uncond, omega)
+        return _guided(lambda z: apply_head(hp, config, z), z_cond, z_uncond, w)
     k_noise, k_steps = jax.random.split(key)
     shape = z_cond.shape[:-1] + (config.param_dim,)
     if initial_noise is None:
@@ -229,7 +230,7 @@ def sample_frames(
     if sampler != "ddpm":
         noise = noise * tau
     if sampler == "mean":
-        return _guided(lambda z: _head_at_last_timestep(config, hp, z, noise), z_cond, z_uncond, omega)
+        return _guided(lambda z: _head_at_last_timestep(config, hp, z, noise), z_cond, z_uncond, w)
     schedule = respaced_schedule(config.schedule, config.num_timesteps, sample_steps)
     # Hoisted out of the step loop: the head's projection of the condition (both CFG branches).
     cz = head_condition(hp, config, z_cond)
@@ -247,7 +248,7 @@ def sample_frames(
         model = jax.tree_util.Partial(_head_fn(config), hp)
     kwargs = dict(
         uncond=None if cz_u is None else {"cz": cz_u},
-        cfg_scale=omega - 1.0,
+        cfg_scale=w,
         prediction="x0",
         variance="learned_range" if config.learn_sigma else "fixed_small",
     )
@@ -268,13 +269,14 @@ def resolve_sampler(config: TimarConfig, sampler: str | None) -> str:
     return sampler
 
 
-def _guided(fn: Any, z_cond: Array, z_uncond: Array | None, omega: Array) -> Array:
-    """``fn(z_cond)``, or with guidance ``u + omega (c - u)`` (Eq. 9) for ``u = fn(z_uncond)``."""
+def _guided(fn: Any, z_cond: Array, z_uncond: Array | None, w: Array) -> Array:
+    """``fn(z_cond)``, or with guidance ``c + w (c - u)`` (the paper's Eq. 9 with omega = 1 + w) for
+    ``u = fn(z_uncond)``."""
     out = fn(z_cond)
     if z_uncond is None:
         return out
     out_u = fn(z_uncond)
-    return out_u + omega * (out - out_u)
+    return (1 + w) * out - w * out_u
 
 
 def _head_at_last_timestep(config: TimarConfig, head_params: Any, z: Array, noise: Array) -> Array:
@@ -319,7 +321,7 @@ def sample(
         user_speech, agent_speech: ``(B, N F, speech_dim)`` per-frame speech features.
         user_motion: ``(B, N F, 56)`` the user's (normalised) head motion.
         key: PRNG key.
-        cfg_scale: ``()`` guidance omega (traced; default ``config.cfg_scale``).
+        cfg_scale: ``()`` guidance weight w, 0 = none (traced; default ``config.cfg_scale``).
         sample_steps: respaced diffusion steps (static; default ``config.sample_steps``).
         sampler: ``"ddpm"``, ``"ddim"`` or ``"mean"`` (the guided posterior mean); None: the
             config's (see :func:`sample_frames`).

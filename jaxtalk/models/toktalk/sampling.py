@@ -100,6 +100,7 @@ def sample(
     chunked: bool | Bool[Array, ""] = False,
     noise: Any = None,
     remat: bool = False,
+    guidance: bool = True,
 ) -> Float[Array, "batch frames param"]:
     """Generates motion for whole token sequences (offline, one Euler/CFG pass over all frames).
 
@@ -111,7 +112,8 @@ def sample(
         key: PRNG key for the starting noise (required unless ``noise`` is given).
         num_frames: expected number of frames (checked against the token count and rate).
         sample_steps: Euler steps (default ``config.sample_steps``; static).
-        ts: explicit ``(N + 1,)`` time grid (traced values); default: the cosine grid.
+        ts: an explicit ``(N + 1,)`` time grid instead (traced values); default: the cosine grid of
+            ``sample_steps`` steps.
         cfg_scale: guidance weight w (traced; default ``config.cfg_scale``).
         temperature: scale of the starting noise, drawn or given (traced; default ``config.temperature``).
         known: ``(B, T, param_dim)`` frames to inpaint, with ``known_mask`` ``(B, T)`` bool.
@@ -120,6 +122,8 @@ def sample(
         chunked: use the block-causal chunk attention (as in streaming) instead of full attention.
         noise: ``(B, T, param_dim)`` explicit starting noise (else drawn from ``key``).
         remat: checkpoint each Euler step (memory O(1) in N when differentiating).
+        guidance: run the unconditional branch (static; False: the conditional model alone, half the
+            work, ``cfg_scale`` ignored; equal to ``cfg_scale=0``).
 
     Returns:
         ``(B, T, param_dim)`` motion; padded frames are zero.
@@ -174,6 +178,7 @@ def sample(
         jnp.asarray(chunked, bool),
         config,
         bool(remat),
+        bool(guidance),
     )
 
 
@@ -249,12 +254,12 @@ def sample_long(
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("config", "remat"))
+@functools.partial(jax.jit, static_argnames=("config", "remat", "guidance"))
 def _sample(params, tokens, style_vec, noise, temperature, ts, cfg_scale, known, known_mask, mask, chunked, config,
-            remat):
+            remat, guidance):
     return generate_frames(
         params, config, tokens, style_vec, temperature * noise, ts, cfg_scale,
-        known=known, known_mask=known_mask, mask=mask, chunked=chunked, remat=remat,
+        known=known, known_mask=known_mask, mask=mask, chunked=chunked, remat=remat, guidance=guidance,
     )
 
 
@@ -272,6 +277,7 @@ def generate_frames(
     mask: Bool[Array, "batch frames"] | None = None,
     chunked: Bool[Array, ""] | None = None,
     remat: bool = False,
+    guidance: bool = True,
 ) -> Float[Array, "batch frames param"]:
     """The traced core of :func:`sample` and of the streaming engine (no validation).
 
@@ -287,6 +293,7 @@ def generate_frames(
         mask: ``(B, T)`` real frames (None: all).
         chunked: ``()`` chunk attention flag (None: full attention).
         remat: checkpoint each Euler step.
+        guidance: run the unconditional branch (static; False: ``cfg_scale`` ignored).
 
     Returns:
         ``(B, T, param_dim)`` in raw parameter units, zero on padded frames.
@@ -313,7 +320,7 @@ def generate_frames(
         noise,
         cond,
         ts,
-        uncond=cond.unconditional(),
+        uncond=cond.unconditional() if guidance else None,
         cfg_scale=cfg_scale,
         known=known if has_known else None,
         known_mask=cond.known_mask[..., None] if has_known else None,

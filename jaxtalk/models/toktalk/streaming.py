@@ -44,7 +44,7 @@ from jaxtalk.models.toktalk.model import (
     source_to_base_rate,
 )
 from jaxtalk.models.toktalk.noise import frame_noise
-from jaxtalk.models.toktalk.sample import default_grid, generate_frames, resolve_style
+from jaxtalk.models.toktalk.sampling import default_grid, generate_frames, resolve_style
 from jaxtalk.types import Array, Bool, Float, Int, PRNGKeyArray
 
 __all__ = [
@@ -213,6 +213,7 @@ def stream_step(
     style: Any,
     *,
     cfg_scale: Float[Array, ""] | float | None = None,
+    sample_steps: int | None = None,
     ts: Any = None,
     src_rate: float | int | None = None,
     temperature: Float[Array, ""] | float | None = None,
@@ -228,8 +229,9 @@ def stream_step(
             tokens at ``src_rate`` (adapted on the way in).
         style: ``(B, style_vector_dim)`` style vector or a ``(B, S, param_dim)`` reference clip (encoding a
             clip every chunk costs time: pass the vector).
-        cfg_scale: guidance weight (traced; default ``config.cfg_scale``).
-        ts: time grid (traced values; its length sets the step count; default the cosine grid).
+        cfg_scale: guidance weight w, 0 = none (traced; default ``config.cfg_scale``).
+        sample_steps: Euler steps on the cosine grid (default ``config.sample_steps``; static).
+        ts: an explicit time grid instead (traced values; its length sets the step count).
         src_rate: the source tokens' rate in Hz (required with a source-token state, static).
         temperature: scale of the starting noise (traced; default ``config.temperature``).
 
@@ -263,7 +265,7 @@ def stream_step(
         )
     check_tokens(chunk_tokens, width=width, rate=rate, fps=config.fps, num_frames=config.chunk_frames, name=name)
     style_vec = resolve_style(params, config, style, batch)
-    ts = jnp.asarray(default_grid(config) if ts is None else ts, state.motion.dtype)
+    ts = jnp.asarray(default_grid(config, sample_steps) if ts is None else ts, state.motion.dtype)
     check_finite(ts, "ts")
     w = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, state.motion.dtype)
     tau = check_temperature(temperature, state.motion.dtype, default=config.temperature)
@@ -319,6 +321,7 @@ def stream(
     key: PRNGKeyArray,
     *,
     cfg_scale: Float[Array, ""] | float | None = None,
+    sample_steps: int | None = None,
     ts: Any = None,
     src_rate: float | int | None = None,
     temperature: Float[Array, ""] | float | None = None,
@@ -333,7 +336,7 @@ def stream(
             source-space tokens, adapted chunk by chunk by the streaming adaptation layer.
         style: style vector or reference clip (encoded once).
         key: PRNG key of the starting noise (:func:`stream_noise`).
-        cfg_scale, ts, temperature: see :func:`stream_step`.
+        cfg_scale, sample_steps, ts, temperature: see :func:`stream_step`.
         src_rate: the rate of source-space ``tokens`` (None: base-space tokens).
 
     Returns:
@@ -373,6 +376,7 @@ def stream(
     outs = []
     for i in range(num_chunks):  # one host call per chunk, exactly as chunks would arrive live
         state, out = stream_step(params, config, state, tokens[:, i * ct : (i + 1) * ct], style_vec,
-                                 cfg_scale=cfg_scale, ts=ts, src_rate=src_rate, temperature=temperature)
+                                 cfg_scale=cfg_scale, sample_steps=sample_steps, ts=ts, src_rate=src_rate,
+                                 temperature=temperature)
         outs.append(out)
     return jnp.concatenate(outs, axis=1)[:, :frames]

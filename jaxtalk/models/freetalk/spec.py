@@ -1,0 +1,36 @@
+"""FreeTalk's two models as the run format, the commands and the experiments see them
+(:class:`jaxtalk.runs.ModelSpec`): ATS (audio -> landmark displacements, sampled by DDIM) and STM
+(landmark displacements -> any mesh, deterministic)."""
+
+from __future__ import annotations
+
+from jaxtalk.models.freetalk import ats, stm
+from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
+from jaxtalk.models.freetalk.recipe import ATS_PRESET_DEFAULTS, DEFAULTS, STM_PRESET_DEFAULTS, train_ats, train_stm
+from jaxtalk.runs import ModelSpec
+
+__all__ = ["ATS", "STM"]
+
+ATS = ModelSpec(
+    name="ats",
+    config_class=ATSConfig,
+    presets=("paper", "small"),
+    init_params=ats.init_params,
+    make_loss_fn=ats.make_loss_fn,
+    train=train_ats,
+    defaults=DEFAULTS,
+    preset_defaults=dict(ATS_PRESET_DEFAULTS),
+    sample=ats.sample,
+    data_fields=(("speech_dim", "speech_dim"),),
+)
+
+STM = ModelSpec(
+    name="stm",
+    config_class=STMConfig,
+    presets=("paper", "small"),
+    init_params=stm.init_params,
+    make_loss_fn=stm.make_loss_fn,
+    train=train_stm,
+    defaults=DEFAULTS,
+    preset_defaults=dict(STM_PRESET_DEFAULTS),
+)

@@ -1,0 +1,30 @@
+"""TokTalk's interface as the run format, the commands and the experiments see it (:class:`jaxtalk.runs.ModelSpec`)."""
+
+from __future__ import annotations
+
+from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.models.toktalk.live import live_model
+from jaxtalk.models.toktalk.loss import make_loss_fn
+from jaxtalk.models.toktalk.model import init_params
+from jaxtalk.models.toktalk.recipe import DEFAULTS, train
+from jaxtalk.models.toktalk.sampling import sample
+from jaxtalk.models.toktalk.streaming import init_stream, stream, stream_step
+from jaxtalk.runs import ModelSpec, Streamer
+
+__all__ = ["SPEC"]
+
+SPEC = ModelSpec(
+    name="toktalk",
+    config_class=TokTalkConfig,
+    presets=("paper", "small", "tiny"),
+    init_params=init_params,
+    make_loss_fn=make_loss_fn,
+    train=train,
+    defaults=DEFAULTS,
+    sample=sample,
+    guided=True,
+    streamer=Streamer(init_stream, stream_step, stream),
+    live=live_model,
+    data_fields=(("speech_dim", "token_dim"), ("token_rate", "token_rate")),
+    style_asset=True,
+)
