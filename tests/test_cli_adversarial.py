@@ -167,7 +167,7 @@ def test_mesh_units_error_uses_the_cli_spelling_only():
 
     with pytest.raises(ValueError) as err:
         detect_units(np.random.default_rng(0).normal(size=(50, 3)) * 1e4)
-    assert "--units m, cm, mm or um" in str(err.value) and "units='" not in str(err.value)
+    assert "--units m, dm, cm, mm or um" in str(err.value) and "units='" not in str(err.value)
 
 
 # ------------------------------------------------------------------ item 7: options checked first
@@ -226,7 +226,7 @@ def test_toktalk_at_temperature_zero_writes_the_same_motion_for_every_seed(tokta
     (["--emotion", "furious"], "--emotion furious: not an emotion of this run; it knows: neutral,"),
     (["--intensity", "0"], "--intensity must lie in [1, 3] for this run, got 0"),
     (["--sample-steps", "0"], "--sample-steps must be >= 1, got 0"),
-    (["--units", "inch"], "--units must be one of m, cm, mm, um, got 'inch'"),
+    (["--units", "inch"], "--units must be one of m, dm, cm, mm, um, got 'inch'"),
 ])
 def test_freetalk_options_are_refused_before_the_mesh_is_aligned(ats_run, stm_run, speech, tmp_path, monkeypatch,
                                                                  option, message):

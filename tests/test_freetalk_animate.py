@@ -401,7 +401,7 @@ def test_a_real_face_scan_in_millimetres_animates_in_its_own_frame(models):
         assert guided.canonical.method == "landmarks" and err[48:].mean() < 0.01  # mouth within 1 cm
 
 
-def test_an_ats_run_recorded_before_the_vocabulary_setting_loads_as_emovoca():
+def test_an_ats_run_recorded_before_the_vocabulary_setting_loads_as_emovoca(tmp_path):
     import dataclasses
 
     from jaxtalk.runs import RunRecord
@@ -411,9 +411,11 @@ def test_an_ats_run_recorded_before_the_vocabulary_setting_loads_as_emovoca():
     old.pop("emotions")
     record = RunRecord(model="ats", preset="small", items=[], config={**old, "num_emotions": 12}, train={}, optim={},
                        data={}, seed=0)
-    assert record.model_config().emotions == EMOTIONS
+    record.save(tmp_path / "emovoca")
+    assert RunRecord.load(tmp_path / "emovoca").model_config().emotions == EMOTIONS
+    dataclasses.replace(record, config={**old, "num_emotions": 8}).save(tmp_path / "eight")
     with pytest.raises(ValueError, match="no vocabulary on record"):
-        dataclasses.replace(record, config={**old, "num_emotions": 8}).model_config()
+        RunRecord.load(tmp_path / "eight")
 
 
 def test_fitted_models_open_from_a_loaded_run_and_say_so_when_given_a_path():

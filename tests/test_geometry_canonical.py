@@ -268,5 +268,5 @@ def test_a_head_in_decimetres_is_found_to_be_in_decimetres():
     for unit, metres in UNITS.items():
         assert detect_units(head / metres) == unit
     assert detect_units(head * 10) == "dm"
-    with pytest.raises(ValueError, match="--units m, dm, cm, mm, um"):
+    with pytest.raises(ValueError, match="--units m, dm, cm, mm or um"):
         detect_units(head * 2)

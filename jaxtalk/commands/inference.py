@@ -485,12 +485,14 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
         raise ValueError(f"--units must be one of {', '.join(UNITS)}, got {mesh_opts.units!r}")
     stm_files = [p for p in Path(mesh_opts.stm_run).iterdir() if p.is_file()] if Path(mesh_opts.stm_run).is_dir() else []
     out = _claim_output(opts, ".npy", "_vertices.npy", extra_inputs=[mesh_opts.mesh, mesh_opts.landmarks, *stm_files])
-    ats = FittedATS.from_run(load_run(opts.run_dir, best=opts.best))
-    emotions, levels = ats.config.emotions, ats.config.num_intensities
+    # The emotion and intensity against the run's record, before any parameters are loaded.
+    ats_config = RunRecord.load(opts.run_dir).model_config()
+    emotions, levels = ats_config.emotions, ats_config.num_intensities
     if mesh_opts.emotion not in emotions:
         raise ValueError(f"--emotion {mesh_opts.emotion}: not an emotion of this run; it knows: {', '.join(emotions)}")
     if not (math.isfinite(mesh_opts.intensity) and 1 <= mesh_opts.intensity <= levels):
         raise ValueError(f"--intensity must lie in [1, {levels}] for this run, got {mesh_opts.intensity:g}")
+    ats = FittedATS.from_run(load_run(opts.run_dir, best=opts.best))
     stm = FittedSTM.from_run(load_run(mesh_opts.stm_run, best=opts.best))
     audio = load_audio(path)
     vertices, faces = load_mesh(mesh_opts.mesh)

@@ -249,7 +249,7 @@ def detect_units(vertices: Float[np.ndarray, "verts 3"]) -> str:
     raise ValueError(
         f"the mesh's largest side is {extent:.4g} units, which is not the size of a face or a head "
         f"({lo * 100:.0f}-{hi * 100:.0f} cm) in any unit ({sizes}); give its units "
-        f"(--units {', '.join(UNITS)}) if it really is a face"
+        f"(--units {', '.join(list(UNITS)[:-1])} or {list(UNITS)[-1]}) if it really is a face"
     )
 
 
