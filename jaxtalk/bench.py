@@ -725,10 +725,10 @@ def recipe_setup(model: str, preset: str, data: Any, overrides: Sequence[str] = 
     Raises:
         ValueError: an unknown model or preset, or bad overrides.
     """
-    from jaxtalk.commands.training import recipe_for, split_overrides
-    from jaxtalk.runs import build_config, config_class, model_spec, parse_overrides
+    from jaxtalk.runs import build_config, config_class, model_spec, parse_overrides, split_overrides
 
-    train_fn, defaults = recipe_for(model, preset)
+    spec = model_spec(model)
+    train_fn, defaults = spec.train, spec.settings(preset)
     model_items, train_kw = split_overrides(model, overrides)
     explicit = parse_overrides(config_class(model), model_items)
     m = data.manifest

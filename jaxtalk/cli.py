@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import sys
-import time
 import warnings
 from pathlib import Path
 from collections.abc import Callable
@@ -101,48 +100,10 @@ def data(
     overwrite: _OVERWRITE = False,
 ) -> None:
     """Generate (or load from cache) the built-in SynthTalk corpus and print a summary."""
-    from jaxtalk.data import synthtalk
-    from jaxtalk.files import Output, claim_outputs
+    from jaxtalk.commands.corpus import CorpusOptions, make_corpus
 
-    if metadata is not None:
-        claim_outputs([Output(metadata, named=True)])
-    start = time.perf_counter()
-    corpus = synthtalk.generate(size=size, seed=seed, cache_dir=cache_dir)
-    if out is not None:
-        from jaxtalk.data.sources import generic_export_names
-
-        # Every file name of the export is the command's own choice inside the named folder.
-        claim_outputs([Output(out / name) for name in generic_export_names(corpus)], overwrite=overwrite)
-    if tokens:
-        for stream in synthtalk.TOKEN_STREAMS:
-            corpus.tokenizer(stream)
-    elapsed = time.perf_counter() - start
-    rows = []
-    for split in synthtalk.SPLITS:
-        idx = corpus.split(split)
-        rows.append(
-            {
-                "split": split,
-                "clips": len(idx),
-                "speakers": len({corpus.clips[i].speaker for i in idx}),
-                "minutes": round(sum(corpus.clips[i].seconds for i in idx) / 60.0, 2),
-                "conversational": sum(corpus.clips[i].is_conversation for i in idx),
-            }
-        )
-    from jaxtalk.benchmarking import format_table
-
-    typer.echo(format_table(rows, title=f"SynthTalk {size} (seed {seed}) in {cache_dir}"))
-    typer.echo(f"ready in {elapsed:.1f} s")
-    if metadata is not None:
-        from jaxtalk.files import atomic_write_json
-
-        atomic_write_json(metadata, corpus.metadata())
-        typer.echo(f"metadata written to {metadata}")
-    if out is not None:
-        from jaxtalk.data.sources import export_generic
-
-        export_generic(corpus, out, progress=True)
-        typer.echo(f"{len(corpus.clips)} clips written to {out} (generic layout)")
+    make_corpus(CorpusOptions(size=size, seed=seed, cache_dir=cache_dir, tokens=tokens, metadata=metadata, out=out,
+                              overwrite=overwrite), echo=typer.echo)
 
 
 @app.command()
@@ -490,68 +451,12 @@ def bench(
 ) -> None:
     """Speed tables of all three models in one run, with the matmul peak and the achieved fraction; --train
     adds each model's training step."""
-    from jaxtalk.bench import (BENCH_MODELS, SAMPLER_OF, TRAIN_MODELS, BenchTable, run_benchmarks, run_train_benchmarks,
-                               with_peak)
-    from jaxtalk.benchmarking import machine_info, measure_matmul_peak, measure_memory_bandwidth, write_json
-    from jaxtalk.files import Output, claim_outputs
+    from jaxtalk.commands.benchmarking import BenchOptions, run_bench
 
-    if profile is not None and not train:
-        raise ValueError("--profile traces the train steps: add --train")
-    names = list(models or ())
-    if train:
-        wanted = [m for n in names for m in (("ats", "stm") if n == "freetalk" else (n,))] or list(TRAIN_MODELS)
-        unknown = [m for m in wanted if m not in TRAIN_MODELS]
-        if unknown:
-            raise ValueError(f"unknown benchmark model(s) {unknown}; expected some of {', '.join((*TRAIN_MODELS, 'freetalk'))}")
-        train_models = list(dict.fromkeys(wanted))
-        sample_models = list(dict.fromkeys(SAMPLER_OF[m] for m in train_models if m in SAMPLER_OF)) if sampling else []
-        presets = list(dict.fromkeys(preset or (["small", "paper"] if paper else ["small"])))
-        bad = [p for p in presets if p not in ("small", "paper")]
-        if bad:
-            raise ValueError(f"--preset {bad[0]}: expected small or paper")
-        paper = paper or "paper" in presets
-    else:
-        if preset or set_:
-            raise ValueError("--preset and --set choose what --train trains: add --train")
-        sample_models = list(dict.fromkeys({"ats": "freetalk", "stm": "freetalk"}.get(n, n) for n in names)) or list(BENCH_MODELS)
-        train_models, presets = [], []
-    (out,) = claim_outputs([Output(out or Path("experiments/results/bench_all.json"), named=out is not None)],
-                           overwrite=overwrite)
-    if sample_models:
-        peak, bandwidth, tables = run_benchmarks(tuple(sample_models), paper=paper, repeats=repeats, echo=typer.echo)
-    else:
-        typer.echo("measuring the float32 matmul peak and the memory bandwidth")
-        peak, bandwidth, tables = measure_matmul_peak() / 1e9, measure_memory_bandwidth() / 1e9, []
-    if train_models:
-        from jaxtalk.data.loader import open_data
-
-        prepared = open_data(data, cache_dir=cache_dir, progress=False)
-        overrides = {m: tuple(set_ or ()) for m in train_models}
-        tables.insert(0, run_train_benchmarks(train_models, presets, data=prepared, peak_gflop_s=peak,
-                                              overrides=overrides, repeats=repeats, loop_steps=loop_steps,
-                                              paper_batch=paper_batch, profile_dir=profile, echo=typer.echo))
-    # The peak again at the end, and the better of the two for every row: on a shared machine one
-    # measurement can land in a slow spell, which would put rows above 1.0 of "peak"
-    # (docs/design-decisions.md).
-    typer.echo("measuring the float32 matmul peak and the memory bandwidth again")
-    peaks = [peak, measure_matmul_peak() / 1e9]
-    bandwidths = [bandwidth, measure_memory_bandwidth() / 1e9]
-    peak, bandwidth = max(peaks), max(bandwidths)
-    tables = [BenchTable(t.title, with_peak(t.rows, peak, bandwidth)) for t in tables]
-    info = machine_info()
-    typer.echo(f"machine: {info['cpu_model']} ({info['cpu_cores']} cores, {info['backend']}, {info['device_kind']}), "
-               f"load {info['load_avg_1m']}; float32 matmul peak {peak:.1f} GFLOP/s (start {peaks[0]:.1f}, end {peaks[1]:.1f}), "
-               f"memory bandwidth {bandwidth:.1f} GB/s (start {bandwidths[0]:.1f}, end {bandwidths[1]:.1f})")
-    for table in tables:
-        _echo_table(table.rows, table.title)
-    payload: dict[str, Any] = {"matmul_peak_gflop_s": peak, "matmul_peaks_gflop_s": peaks,
-                               "memory_bandwidth_gb_s": bandwidth, "memory_bandwidths_gb_s": bandwidths,
-                               "tables": [{"title": t.title, "rows": t.rows} for t in tables]}
-    if train_models:
-        payload["train"] = {"data": data, "presets": presets, "models": train_models, "set": list(set_ or ()),
-                            "paper_batch": paper_batch}
-    write_json(out, payload)
-    typer.echo(f"written to {out}")
+    opts = BenchOptions(models=tuple(models or ()), paper=paper, repeats=repeats, train=train, presets=tuple(preset or ()),
+                        sampling=sampling, data=data, cache_dir=cache_dir, overrides=tuple(set_ or ()),
+                        loop_steps=loop_steps, paper_batch=paper_batch, profile=profile, out=out, overwrite=overwrite)
+    run_bench(opts, echo=typer.echo)
 
 
 @app.command()

@@ -40,6 +40,7 @@ __all__ = [
     "config_class",
     "preset_names",
     "parse_overrides",
+    "split_overrides",
     "build_config",
     "checkpoint_dir",
     "load_run",
@@ -298,6 +299,29 @@ def parse_overrides(cls: type, items: Sequence[str]) -> dict[str, Any]:
             raise ValueError(f"--set {key}: {cls.__name__} has no field {key!r}; fields: {', '.join(fields)}")
         out[key] = _parse_value(key, value, hints[key])
     return out
+
+
+def split_overrides(model: str, items: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
+    """``--set`` items split into model-config items and parsed training settings.
+
+    Raises:
+        ValueError: a key that is neither a config field nor a training setting (both lists named).
+    """
+    from jaxtalk.train.recipes import TrainSettings
+
+    train_fields = {f.name for f in dataclasses.fields(TrainSettings)}
+    config_fields = {f.name for f in dataclasses.fields(config_class(model))}
+    model_items, train_items = [], []
+    for item in items:
+        key = item.split("=", 1)[0].strip()
+        if key in train_fields and key not in config_fields:
+            train_items.append(item)
+        elif key in config_fields or "=" not in item:
+            model_items.append(item)
+        else:
+            raise ValueError(f"--set {key}: neither a {config_class(model).__name__} field nor a training setting; "
+                             f"config fields: {', '.join(sorted(config_fields))}; training: {', '.join(sorted(train_fields))}")
+    return model_items, parse_overrides(TrainSettings, train_items)
 
 
 def build_config(model: str, preset: str, items: Sequence[str] = ()) -> Any:

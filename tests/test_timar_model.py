@@ -188,11 +188,11 @@ def test_config_presets_training_settings_and_errors():
     assert TimarConfig.small().width < paper.width
     # The paper's (and MAR's) training and sampling: r ~ TN[0.7, 1], 4 draws per frame, learned variance, DDPM.
     assert (paper.mask_ratio_min, paper.diffusion_batch_mul, paper.learn_sigma, paper.sampler) == (0.7, 4, True, "ddpm")
-    from jaxtalk.commands.training import recipe_for
+    from jaxtalk.runs import model_spec
 
-    _, settings = recipe_for("timar", "paper")
+    settings = model_spec("timar").settings("paper")
     assert (settings.lr, settings.batch_size, settings.warmup_steps, settings.final_lr_ratio) == (1e-4, 32, 100, 1.0)
-    _, small = recipe_for("timar", "small")
+    small = model_spec("timar").settings("small")
     assert (small.lr, small.batch_size, TimarConfig.small().sampler) == (1e-3, 16, "ddim")
     for bad in ({"width": 30, "num_heads": 4}, {"head": "x"}, {"attention": "causal"}, {"mask_ratio_min": 1.5},
                 {"cfg_dropout": 1.0}, {"num_layers": 0}, {"sample_steps": 2000}, {"param_dim": 50}, {"sampler": "euler"}):

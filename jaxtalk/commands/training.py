@@ -49,6 +49,7 @@ from jaxtalk.runs import (
     model_spec,
     parse_overrides,
     preset_names,
+    split_overrides,
 )
 from jaxtalk.train.observers import StopRequest
 
@@ -57,7 +58,7 @@ DEFAULT_DATA = "synthtalk:tiny"
 PROFILE_DIR = "profile"
 # What the loop says when a resumed run's schedule is stretched to the new --steps (intended).
 
-__all__ = ["DEFAULT_DATA", "PROFILE_DIR", "TrainOptions", "TrainSummary", "train_run", "recipe_for", "split_overrides"]
+__all__ = ["DEFAULT_DATA", "PROFILE_DIR", "TrainOptions", "TrainSummary", "train_run"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,36 +147,6 @@ class TrainSummary:
     examples: int
     wall_s: float
     interrupted: bool = False
-
-
-def recipe_for(model: str, preset: str = "small") -> tuple[Callable[..., Any], Any]:
-    """``(train function, default TrainSettings)`` of ``model``'s recipe for a config preset (from
-    :data:`jaxtalk.runs.REGISTRY`)."""
-    spec = model_spec(model)
-    return spec.train, spec.settings(preset)
-
-
-def split_overrides(model: str, items: Sequence[str]) -> tuple[list[str], dict[str, Any]]:
-    """``--set`` items split into model-config items and parsed training settings.
-
-    Raises:
-        ValueError: a key that is neither a config field nor a training setting (both lists named).
-    """
-    from jaxtalk.train.recipes import TrainSettings
-
-    train_fields = {f.name for f in dataclasses.fields(TrainSettings)}
-    config_fields = {f.name for f in dataclasses.fields(config_class(model))}
-    model_items, train_items = [], []
-    for item in items:
-        key = item.split("=", 1)[0].strip()
-        if key in train_fields and key not in config_fields:
-            train_items.append(item)
-        elif key in config_fields or "=" not in item:
-            model_items.append(item)
-        else:
-            raise ValueError(f"--set {key}: neither a {config_class(model).__name__} field nor a training setting; "
-                             f"config fields: {', '.join(sorted(config_fields))}; training: {', '.join(sorted(train_fields))}")
-    return model_items, parse_overrides(TrainSettings, train_items)
 
 
 def _data_fields(model: str, data: Any, explicit: dict[str, Any]) -> list[str]:
@@ -290,7 +261,8 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
         opts = dataclasses.replace(opts, data=DEFAULT_DATA)
     # A run made from Python with a config that equals no preset resumes with None (its config is on record).
     preset = existing.preset if existing is not None else opts.preset or "small"
-    train_fn, defaults = recipe_for(opts.model, preset or "small")
+    spec = model_spec(opts.model)
+    train_fn, defaults = spec.train, spec.settings(preset or "small")
     model_items, train_kw = split_overrides(opts.model, opts.overrides)
     if existing is None and opts.init is None:
         # A bad --set value is refused before the data is opened (preparing synthtalk:small takes minutes);
@@ -305,7 +277,7 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
     init = _init_run(opts, existing, model_items, done)
     if init is not None and opts.preset is None:  # the starting run's preset sets the training defaults
         preset = init.record.preset
-        train_fn, defaults = recipe_for(opts.model, preset or "small")
+        train_fn, defaults = model_spec(opts.model).train, model_spec(opts.model).settings(preset or "small")
     if existing is not None:
         config = existing.model_config()
     elif init is not None:
