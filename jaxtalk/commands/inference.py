@@ -486,7 +486,10 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     stm_files = [p for p in Path(mesh_opts.stm_run).iterdir() if p.is_file()] if Path(mesh_opts.stm_run).is_dir() else []
     out = _claim_output(opts, ".npy", "_vertices.npy", extra_inputs=[mesh_opts.mesh, mesh_opts.landmarks, *stm_files])
     # The emotion and intensity against the run's record, before any parameters are loaded.
-    ats_config = RunRecord.load(opts.run_dir).model_config()
+    ats_record = RunRecord.load(opts.run_dir)
+    if ats_record.model != "ats":
+        raise ValueError(f"{opts.run_dir} is a {ats_record.model} run, not an ats run")
+    ats_config = ats_record.model_config()
     emotions, levels = ats_config.emotions, ats_config.num_intensities
     if mesh_opts.emotion not in emotions:
         raise ValueError(f"--emotion {mesh_opts.emotion}: not an emotion of this run; it knows: {', '.join(emotions)}")
