@@ -31,6 +31,7 @@ def test_every_registry_entry_is_its_models_spec_from_the_models_own_spec_module
     for preset in spec.presets:
         assert isinstance(getattr(spec.config_class, preset)(), spec.config_class)
     assert spec.settings("paper") is not None and spec.settings("small") is not None
+    assert spec.evaluate is not None and _positional(spec.evaluate)[:5] == ["run", "data", "split", "opts", "echo"]
 
 
 @pytest.mark.parametrize("model", MODELS)
