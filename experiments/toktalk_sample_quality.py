@@ -26,7 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtalk.benchmarking import machine_info, print_table, write_json
-from jaxtalk.commands.evaluation import open_eval_data, vertex_metrics
+from jaxtalk.commands.evaluation import open_eval_data
+from jaxtalk.metrics.evaluation import vertex_metrics
 from jaxtalk.runs import RunRecord, load_run
 from jaxtalk.face import builtin_face
 from jaxtalk.metrics import jitter

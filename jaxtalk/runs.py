@@ -94,6 +94,8 @@ class ModelSpec:
         guided: ``sample`` (and the streamer) take ``cfg_scale``, the guidance weight w of
             :func:`jaxtalk.samplers.flow.guided_apply` (0 = no guidance), and ``guidance=False``.
         streamer: the streaming engine, or None.
+        evaluate: the model's evaluation protocol (``jaxtalk eval``): ``evaluate(run, data, split, settings,
+            echo) -> (items scored, tables)`` (:data:`jaxtalk.metrics.evaluation.EvalProtocol`).
         live: makes a live model from a loaded run (``live(run, style=..., cfg_scale=...,
             sample_steps=...)``: ``open(key)`` streams, ``push(audio)`` returns frames), for models that
             animate speech as it arrives (``jaxtalk stream`` and ``jaxtalk serve``); None for the others.
@@ -115,6 +117,7 @@ class ModelSpec:
     sample: Callable[..., Any] | None = None
     guided: bool = False
     streamer: Streamer | None = None
+    evaluate: Callable[..., Any] | None = None
     live: Callable[..., Any] | None = None
     data_fields: tuple[tuple[str, str], ...] = ()
     windows: str | None = None

@@ -5,6 +5,9 @@ The data is the run's own prepared folder unless ``--data`` names another one (o
 TokTalk, the audio front end and its width for TIMAR and ATS), else a ``ValueError`` says which.
 Each model is scored the way it is used:
 
+Each model's protocol lives in its package (``jaxtalk.models.<model>.evaluation``, named by its
+:attr:`~jaxtalk.runs.ModelSpec.evaluate`):
+
 * TokTalk: every clip of the split with motion and tokens (up to ``--max-clips``) is streamed chunk
   by chunk (the live engine, :func:`jaxtalk.models.toktalk.stream`) in the speaking style of another
   clip of the same speaker in the split (the run's default style when the speaker has none), and posed
@@ -56,7 +59,7 @@ their frames (FDD: the plain mean over clips, as ``fdd_batch``).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,17 +67,10 @@ import numpy as np
 
 from jaxtalk.checks import check_temperature
 from jaxtalk.data.recordings import MAX_LAG, Recording, read_recordings
-from jaxtalk.metrics.landmarks import MOUTH_LANDMARKS, landmark_metrics
+from jaxtalk.metrics.evaluation import EvalSettings, EvalTable
 from jaxtalk.runs import LoadedRun, RunRecord, checkpoint_dir, load_run, model_spec, run_features
 
-__all__ = ["EvalOptions", "EvalTable", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data",
-           "vertex_metrics", "landmark_metrics", "MOUTH_LANDMARKS", "REST_SECONDS"]
-
-# Fixed batch of ATS windows per sampler call (one compiled program for every clip).
-_ATS_BATCH = 8
-# Frames per STM decoder call (STM decodes frame by frame, so chunks of a fixed size compile once).
-_STM_CHUNK = 50
-
+__all__ = ["EvalOptions", "EvalReport", "evaluate_run", "open_eval_data", "check_eval_data", "REST_SECONDS"]
 
 @dataclasses.dataclass(frozen=True)
 class EvalOptions:
@@ -114,14 +110,6 @@ class EvalOptions:
 
 
 @dataclasses.dataclass
-class EvalTable:
-    """One printed table: a title and its rows (dicts with the same keys; None prints as ``-``)."""
-
-    title: str
-    rows: list[dict[str, Any]]
-
-
-@dataclasses.dataclass
 class EvalReport:
     """What :func:`evaluate_run` measured.
 
@@ -145,63 +133,6 @@ class EvalReport:
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
-
-
-# ------------------------------------------------------------------------------------------- metrics
-
-
-def vertex_metrics(pred: np.ndarray, gt: np.ndarray, face: Any, *, gt_vertices: np.ndarray | None = None,
-                   template: np.ndarray | None = None) -> dict[str, float | None]:
-    """TokTalk's columns for one ``(T, 56)`` track posed on ``face`` (see the module docstring).
-
-    Args:
-        pred: ``(T, 56)`` prediction.
-        gt: ``(T, 56)`` ground truth.
-        face: the face model; a metric whose region (``lips``; ``upper_face``; ``mouth_upper`` and
-            ``mouth_lower``) it lacks is None.
-        gt_vertices: ``face.vertices_seq(gt)`` when already computed.
-        template: the neutral face ``(V, 3)`` (default: ``face`` at zero parameters).
-
-    Returns:
-        ``{"MSE", "LVE_mm2", "MVE_mm", "FDD_mm2", "MOD_mm", "jitter_mm"}``.
-
-    Raises:
-        ValueError: shapes differ.
-    """
-    from jaxtalk.metrics import fdd, jitter, lve, mod, mve
-
-    if pred.shape != gt.shape:
-        raise ValueError(f"prediction {pred.shape} and ground truth {gt.shape} differ in shape")
-    regions = face.regions
-    vp = np.asarray(face.vertices_seq(pred))
-    vg = np.asarray(face.vertices_seq(gt)) if gt_vertices is None else gt_vertices
-    if template is None:
-        template = np.asarray(face.vertices(np.zeros(pred.shape[1], np.float32)))
-    has_mouth = "mouth_upper" in regions and "mouth_lower" in regions
-    return {
-        "MSE": float(np.mean((pred - gt) ** 2)),
-        "LVE_mm2": float(lve(vp, vg, regions["lips"])) * 1e6 if "lips" in regions else None,
-        "MVE_mm": float(mve(vp, vg)) * 1e3,
-        "FDD_mm2": float(fdd(vp, vg, template, regions["upper_face"])) * 1e6 if "upper_face" in regions else None,
-        "MOD_mm": float(mod(vp, vg, regions["mouth_upper"], regions["mouth_lower"])) * 1e3 if has_mouth else None,
-        "jitter_mm": float(jitter(vp)) * 1e3,
-    }
-
-
-def _average(per_item: Sequence[dict[str, float | None]], frames: Sequence[int],
-             plain: tuple[str, ...] = ("FDD_mm2",)) -> dict[str, float | None]:
-    """Frame-weighted means of per-clip metrics (keys in ``plain``: unweighted); None stays None."""
-    weights = np.asarray(frames, np.float64)
-    out: dict[str, float | None] = {}
-    for key in per_item[0]:
-        values = [m[key] for m in per_item]
-        if any(v is None for v in values):
-            out[key] = None
-        elif key in plain:
-            out[key] = float(np.mean(values))
-        else:
-            out[key] = float(np.sum(weights * np.asarray(values)) / weights.sum())
-    return out
 
 
 # ---------------------------------------------------------------------------------------------- data
@@ -257,330 +188,6 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
                              f"--features {features.get('audio')}")
-
-
-def _same_tokenizer(run: LoadedRun, data: Any) -> bool:
-    """Whether the data's tokens come from the tokenizer the run was trained with (unknown: True)."""
-    from jaxtalk.runs import TOKENIZER_FILE
-
-    ours, theirs = (run.run_dir / TOKENIZER_FILE,
-                    (data.root / data.manifest["tokenizer"]) if data.manifest.get("tokenizer") else None)
-    if not ours.is_file() or theirs is None or not theirs.is_file():
-        return True
-    from jaxtalk.files import load_npz
-
-    a, b = load_npz(ours), load_npz(theirs)
-    return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
-
-
-def _flame_face(path: Path) -> tuple[Any, list[str]]:
-    """FLAME posed for the metrics, with regions from ``FLAME_masks.pkl`` beside it; notes to print."""
-    import pickle
-
-    from jaxtalk.face import load_flame
-    from jaxtalk.face.flame import _NoChumpyUnpickler
-
-    masks_path = Path(path).with_name("FLAME_masks.pkl")
-    regions: dict[str, np.ndarray] = {}
-    if masks_path.is_file():
-        with open(masks_path, "rb") as fh:
-            try:
-                masks = _NoChumpyUnpickler(fh, encoding="latin1").load()
-            except (pickle.UnpicklingError, EOFError) as err:
-                raise ValueError(f"{masks_path} is not a readable FLAME mask pickle: {err}") from None
-        if "lips" in masks:
-            regions["lips"] = np.asarray(masks["lips"])
-        upper = [np.asarray(masks[k]).reshape(-1) for k in ("forehead", "eye_region") if k in masks]
-        if upper:
-            regions["upper_face"] = np.unique(np.concatenate(upper))
-    face = load_flame(path, regions=regions)
-    notes = ["FLAME has no mouth-opening vertex pairs: MOD left out"]
-    if not regions:
-        notes.append(f"no FLAME_masks.pkl beside {path}: LVE and FDD (lip and upper-face regions) left out")
-    return face, notes
-
-
-# -------------------------------------------------------------------------------------------- models
-
-
-def _rows(per: dict[str, list[dict[str, float | None]]], frames: list[int], *, lead: dict[str, Any] | None = None,
-          count: str = "clips") -> list[dict[str, Any]]:
-    """One row per method with items: ``lead`` columns, method, item count, frames, the averages."""
-    return [{**(lead or {}), "method": name, count: len(items), "frames": int(sum(frames)), **_average(items, frames)}
-            for name, items in per.items() if items]
-
-
-def _eval_toktalk(
-    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
-) -> tuple[int, list[EvalTable]]:
-    import jax
-
-    from jaxtalk.face import builtin_face
-    from jaxtalk.metrics import jitter
-    from jaxtalk.models import toktalk
-    from jaxtalk.models.toktalk.model import frames_for_tokens
-
-    config = run.config
-    clips = [i for i in data.split(split) if data.clips[i]["tokens"]]
-    if not clips:
-        raise ValueError(f"split {split!r} of {data.root} has no clip with motion and tokens")
-    chosen = clips[: opts.max_clips]
-    by_speaker: dict[str, list[int]] = {}
-    for i in data.split(split):
-        by_speaker.setdefault(data.clips[i]["speaker"], []).append(i)
-    if not _same_tokenizer(run, data):
-        echo(f"warning: {data.root}'s tokens come from another tokenizer than the run's; the model reads them as "
-             "its own token space")
-    face, notes = _flame_face(opts.flame) if opts.flame is not None else (builtin_face(0), [])
-    for note in notes:
-        echo(f"note: {note}")
-    template = np.asarray(face.vertices(np.zeros(56, np.float32)))
-    s = 4 * config.style_frames
-    default_style = np.asarray(run.default_style(), np.float32)[:s]
-    norm = run.params.get("norm", {}) if isinstance(run.params, dict) else {}
-    mean_pose = np.asarray(norm["mean"] if "mean" in norm else data.motion_stats()["mean"], np.float32)
-    key = jax.random.key(opts.seed)
-    echo(f"streaming {len(chosen)} {split} clips of {data.root} with TokTalk (step {run.step})")
-    step_counts = tuple(opts.sample_steps) or (config.sample_steps,)
-    if any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in step_counts):
-        raise ValueError(f"sample steps must be positive integers, got {step_counts}")
-    plural = lambda n: f"{n} step{'s' * (n > 1)}"  # noqa: E731
-    variants = [(f"toktalk (streamed, {plural(n)})", "stream", n) for n in step_counts]
-    if opts.offline:
-        variants += [(f"toktalk (offline, {plural(n)})", "offline", n) for n in step_counts]
-    per: dict[str, list[dict[str, float | None]]] = {name: [] for name, _, _ in variants}
-    per.update({"mean pose": [], "oracle": [], "ground truth": []})
-    frames = []
-    for n, i in enumerate(chosen):
-        rec = data.record(i, ("motion", "tokens", "oracle"))
-        others = [j for j in by_speaker[data.clips[i]["speaker"]] if j != i]
-        style = default_style
-        if others:
-            ref = np.asarray(data.record(others[0], ("motion",))["motion"], np.float32)[:s]
-            style = ref if ref.shape[0] >= config.style_min_frames else default_style
-        tokens = np.asarray(rec["tokens"], np.float32)[None]
-        style_vec = toktalk.encode_style(run.params, config, style[None])
-        t = min(frames_for_tokens(tokens.shape[1], config.token_rate, config.fps), rec["motion"].shape[0])
-        gt = np.asarray(rec["motion"], np.float32)[:t]
-        vg = np.asarray(face.vertices_seq(gt))
-        for name, mode, steps in variants:
-            if mode == "stream":
-                out = toktalk.stream(run.params, config, tokens, style_vec, jax.random.fold_in(key, n),
-                                     sample_steps=steps, temperature=opts.temperature)
-            else:
-                out = toktalk.sample(run.params, config, tokens, style_vec, jax.random.fold_in(key, n),
-                                     sample_steps=steps, temperature=opts.temperature)
-            pred = np.asarray(out, np.float32)[0][:t]
-            scored = vertex_metrics(pred, gt, face, gt_vertices=vg, template=template)
-            per[name].append(scored)
-        per["mean pose"].append(vertex_metrics(np.broadcast_to(mean_pose, gt.shape).copy(), gt, face, gt_vertices=vg,
-                                               template=template))
-        if "oracle" in rec:
-            oracle = np.asarray(rec["oracle"], np.float32)[:t]
-            per["oracle"].append(vertex_metrics(oracle, gt, face, gt_vertices=vg, template=template))
-        per["ground truth"].append({**{k: None for k in scored}, "jitter_mm": float(jitter(vg)) * 1e3})
-        frames.append(t)
-    if len(per["oracle"]) < len(frames):
-        per["oracle"] = []  # the oracle row only when every clip has one
-    on = "FLAME" if opts.flame is not None else "the built-in face"
-    return len(chosen), [EvalTable(f"TokTalk on {split} ({data.root.name}), vertices on {on}", _rows(per, frames))]
-
-
-_GROUP_COLUMNS = ("FD", "P-FD", "MSE", "SID", "rPCC")
-
-
-def _eval_timar(
-    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
-) -> tuple[int, list[EvalTable]]:
-    import jax
-
-    from jaxtalk.data.batching import fit_length
-    from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
-    from jaxtalk.models.timar.data import Normalizer
-    from jaxtalk.data.conversation import side_streams
-    from jaxtalk.models.timar.recipe import agent_sides
-    from jaxtalk.models.timar.streaming import stream
-
-    # The DualTalk baseline is scored on the same sides, normaliser and context, predicting each turn
-    # from a window of its past turns and the whole current turn instead of streaming.
-    baseline = run.record.model == "dualtalk"
-    title = "DualTalk baseline" if baseline else "TIMAR"
-    config, extra = run.config, run.record.extra
-    sides = agent_sides(data, split)
-    if not sides:
-        raise ValueError(f"split {split!r} of {data.root} has no conversation side (a clip with motion whose "
-                         "partner's clip is prepared)")
-    norm = Normalizer.from_dict(extra["normalizer"])
-    still = np.asarray(extra.get("still", norm.motion_mean), np.float32)
-    context = max(extra.get("num_turns", config.max_turns) - 1, 0)
-    f = config.frames_per_turn
-    key = jax.random.key(opts.seed)
-    chosen = sides[: opts.max_clips]
-    echo(f"{'predicting' if baseline else 'streaming'} {len(chosen)} {split} conversation sides of {data.root} "
-         f"with {title} (step {run.step})")
-    preds, gts, partners, oracles, still_partners, padded_frames = [], [], [], [], 0, 0
-    for n, (i, j) in enumerate(chosen):
-        # Scored over the agent's whole side (as far as the partner's motion goes); the model predicts
-        # whole turns, and the frames after the last whole one repeat its last prediction (the paper's
-        # protocol, TIMAR Sec. 4.4).
-        side = side_streams(data, i, j, norm, still, f)
-        if side is None:
-            continue
-        still_partners += side.still_partner
-        padded_frames += side.padded_frames
-        if baseline:
-            from jaxtalk.models.dualtalk import predict_turns
-
-            out = predict_turns(run.params, config, *side.streams, context=context)
-        else:
-            out = stream(run.params, config, *side.streams, jax.random.fold_in(key, n), context=context,
-                         temperature=opts.temperature)
-        total = side.truth.shape[0]
-        preds.append(fit_length(norm.unmotion(np.asarray(out)[0]), total))
-        gts.append(side.truth)
-        partners.append(side.partner)
-        oracles.append(side.oracle)
-    if not preds:
-        raise ValueError(f"split {split!r} of {data.root} has no conversation side of a whole {f}-frame turn")
-    if padded_frames:
-        echo(f"note: {padded_frames} frames after the sides' last whole {f}-frame turns repeat the last prediction "
-             "(TIMAR's protocol)")
-    if still_partners:
-        echo(f"note: {still_partners} of {len(preds)} partners have no tracked motion; P-FD and rPCC use the run's "
-             "still pose for them (as training did)")
-    with_sid = min(g.shape[0] for g in gts) >= max(SID_CLUSTERS.values())
-    if not with_sid:
-        echo(f"note: a side is shorter than {max(SID_CLUSTERS.values())} frames: SID left out")
-    label = "dualtalk (turn windows)" if baseline else "timar (streamed)"
-    methods = {label: preds, "mean pose": [np.broadcast_to(norm.motion_mean, g.shape).astype(np.float32)
-                                                        for g in gts]}
-    if all(o is not None for o in oracles):
-        methods["oracle"] = oracles
-    scores = {name: conversation_metrics(list(p), gts, partners, scaled=True,
-                                         sid_convention="fit_gt" if with_sid else None)
-              for name, p in methods.items()}
-    frames = int(sum(g.shape[0] for g in gts))
-    tables = []
-    for group in CONVERSATION_GROUPS:
-        rows = []
-        for name, m in scores.items():
-            row: dict[str, Any] = {"method": name, "sides": len(gts), "frames": frames}
-            for col in _GROUP_COLUMNS:
-                row[col] = m.get(f"SID_fit_gt_{group}") if col == "SID" else m[f"{col}_{group}"]
-            rows.append(row)
-        scaling = ", ".join(f"{col} x{PUBLISHED_SCALE[f'{col}_{group}']:g}" for col in _GROUP_COLUMNS
-                            if f"{col}_{group}" in PUBLISHED_SCALE)
-        tables.append(EvalTable(f"{title} on {split} ({data.root.name}), {group}"
-                                f"{' (' + scaling + ')' if scaling else ''}", rows))
-    return len(gts), tables
-
-
-def _eval_ats(
-    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
-) -> tuple[int, list[EvalTable]]:
-    import jax
-
-    from jaxtalk.face import builtin_face
-    from jaxtalk.data.batching import window_starts
-    from jaxtalk.face.motion import landmark_motion, without_head_pose
-    from jaxtalk.models.freetalk.data import DisplacementStats
-    from jaxtalk.models.freetalk.emotions import NEUTRAL, emotion_ids
-    from jaxtalk.models.freetalk.fit import FittedATS, sample_displacements
-
-    extra = run.record.extra
-    stats = DisplacementStats(mean=np.asarray(extra["stats"]["mean"], np.float32),
-                              std=np.asarray(extra["stats"]["std"], np.float32))
-    # A run trained on whole clips (window 0) is scored on whole clips, sampled one at a time (each up to
-    # max_frames long: a longer clip in max_frames pieces); a windowed run on windows of its length.
-    whole = int(extra["window"]) == 0
-    window = run.config.max_frames if whole else int(extra["window"])
-    clips = [i for i in data.split(split) if whole or data.clips[i]["frames"] >= window]
-    if not clips:
-        raise ValueError(f"split {split!r} of {data.root} has no clip of at least {window} frames (the run's window)")
-    chosen = clips[: opts.max_clips]
-    fitted = FittedATS(run.config, run.params, stats, [])
-    face = builtin_face(0)
-    recs, items = [], []  # items: (record index, start)
-    for n, i in enumerate(chosen):
-        rec = data.record(i, ("landmarks", "speech", "oracle"))
-        if "landmarks" not in rec:
-            raise ValueError(f"{data.root} has no landmark displacements (prepared without --landmarks)")
-        if "oracle" in rec:
-            rec["oracle_landmarks"] = landmark_motion(face, without_head_pose(rec.pop("oracle")))
-        recs.append(rec)
-        frames = rec["landmarks"].shape[0]
-        items += ([(n, st) for st in range(0, frames, window)] if whole
-                  else [(n, st) for st in window_starts(frames, window, window, pad_short=False)])
-    lengths = [min(window, recs[n]["landmarks"].shape[0] - st, recs[n]["speech"].shape[0] - st) for n, st in items]
-    echo(f"sampling {len(items)} {'whole clips (at most ' if whole else 'windows of '}{window} frames"
-         f"{')' if whole else ''} from {len(chosen)} {split} clips of {data.root} with ATS (step {run.step})")
-    key = jax.random.key(opts.seed)
-    preds = []
-    per_call = 1 if whole else _ATS_BATCH  # whole clips differ in length: one call each
-    for b in range(0, len(items), per_call):
-        batch = items[b:b + per_call]
-        batch = batch + [batch[-1]] * (per_call - len(batch))  # one compiled shape
-        audio = np.stack([recs[n]["speech"][st:st + lengths[b]] for n, st in batch]).astype(np.float32)
-        emotion = np.concatenate([emotion_ids(data.clips[chosen[n]]["emotion"] or NEUTRAL, run.config.emotions)
-                                  for n, _ in batch])
-        intensity = np.asarray([data.clips[chosen[n]]["intensity"] if data.clips[chosen[n]]["intensity"] is not None
-                                else 1.0 for n, _ in batch], np.float32)
-        out = sample_displacements(fitted, audio, emotion, intensity, jax.random.fold_in(key, b))
-        preds += list(np.asarray(out, np.float32)[: min(per_call, len(items) - b)])
-    per: dict[str, list[dict[str, float | None]]] = {"ats (sampled)": [], "mean pose": [], "neutral": [], "oracle": [],
-                                                     "ground truth": []}
-    with_oracle = all("oracle_landmarks" in r for r in recs)
-    for (n, st), pred, length in zip(items, preds, lengths):
-        gt = recs[n]["landmarks"][st:st + length].astype(np.float32)
-        per["ats (sampled)"].append(landmark_metrics(pred, gt))
-        per["mean pose"].append(landmark_metrics(np.broadcast_to(stats.mean, gt.shape).copy(), gt))
-        per["neutral"].append(landmark_metrics(np.zeros_like(gt), gt))
-        if with_oracle:
-            per["oracle"].append(landmark_metrics(recs[n]["oracle_landmarks"][st:st + length], gt))
-        per["ground truth"].append({"LVE_mm2": None, "LE_mm": None, "jitter_mm": landmark_metrics(gt, gt)["jitter_mm"]})
-    rows = _rows(per, lengths, count="windows")
-    return len(chosen), [EvalTable(f"ATS on {split} ({data.root.name}, {len(chosen)} clips), 68 landmarks on the "
-                                   "built-in face (head pose removed); LVE over the mouth landmarks 48-67", rows)]
-
-
-def _eval_stm(
-    run: LoadedRun, data: Any, split: str, opts: EvalOptions, echo: Callable[[str], None]
-) -> tuple[int, list[EvalTable]]:
-    from jaxtalk.metrics import jitter, lve, mve
-    from jaxtalk.models.freetalk import stm
-    from jaxtalk.models.freetalk.data import face_mesh, without_head_pose
-
-    config, extra = run.config, run.record.extra
-    clips = data.split(split)
-    if not clips:
-        raise ValueError(f"split {split!r} of {data.root} has no clip with motion")
-    chosen = clips[: opts.max_clips]
-    motions = [without_head_pose(np.asarray(data.record(i, ("motion",))["motion"], np.float32)) for i in chosen]
-    frames = [m.shape[0] for m in motions]
-    echo(f"mapping the true landmarks of {len(chosen)} {split} clips of {data.root} onto "
-         f"{len(extra['meshes'])} meshes with STM (step {run.step})")
-    rows = []
-    for identity, kind in extra["meshes"]:
-        fm = face_mesh(int(identity), kind, resolution=extra.get("resolution", "low"))
-        mesh = stm.prepare_mesh(fm.vertices, fm.faces, config)
-        features = stm.stm_mesh_features(run.params, config, mesh)
-        lips = fm.region("lips")
-        per: dict[str, list[dict[str, float | None]]] = {"stm": [], "neutral": [], "ground truth": []}
-        for motion in motions:
-            lms, verts = fm.motion(motion)
-            t = lms.shape[0]
-            pad = -t % _STM_CHUNK
-            padded = np.concatenate([lms, np.zeros((pad, *lms.shape[1:]), np.float32)])
-            pred = np.concatenate([np.asarray(stm.stm_decode(run.params, config, features,
-                                                             padded[c:c + _STM_CHUNK], mesh))
-                                   for c in range(0, t + pad, _STM_CHUNK)])[:t]
-            for name, x in (("stm", pred), ("neutral", np.zeros_like(verts))):
-                per[name].append({"MVE_mm": float(mve(x, verts)) * 1e3, "LVE_mm2": float(lve(x, verts, lips)) * 1e6,
-                                  "jitter_mm": float(jitter(x)) * 1e3})
-            per["ground truth"].append({"MVE_mm": None, "LVE_mm2": None, "jitter_mm": float(jitter(verts)) * 1e3})
-        rows += _rows(per, frames, lead={"mesh": f"{fm.name} ({fm.vertices.shape[0]} v)"})
-    return len(chosen), [EvalTable(f"STM on {split} ({data.root.name}): the true landmarks mapped to each training "
-                                   "mesh (head pose removed)", rows)]
 
 
 # ------------------------------------------------------------------------------------- real voices
@@ -641,10 +248,6 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
     return len(recordings), tables
 
 
-_EVALUATORS = {"toktalk": _eval_toktalk, "timar": _eval_timar, "dualtalk": _eval_timar, "ats": _eval_ats,
-               "stm": _eval_stm}
-
-
 def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> EvalReport:
     """Score a trained run on a split of prepared data (see the module docstring).
 
@@ -664,8 +267,9 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
             prepared data, a bad folder or recording (:func:`jaxtalk.data.recordings.read_recordings`).
     """
     record = RunRecord.load(opts.run_dir)
-    if record.model not in _EVALUATORS:
-        raise ValueError(f"{opts.run_dir} is a {record.model!r} run; eval covers {', '.join(_EVALUATORS)}")
+    protocol = model_spec(record.model).evaluate
+    if protocol is None:
+        raise ValueError(f"{opts.run_dir} is a {record.model!r} run, which has no evaluation protocol")
     if opts.max_clips < 1:
         raise ValueError(f"--max-clips must be >= 1, got {opts.max_clips}")
     if opts.real_voice is not None:
@@ -707,6 +311,8 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
         return EvalReport(model=record.model, run_dir=str(opts.run_dir), step=run.step, data=str(opts.real_voice),
                           split=None, items=items, tables=tables)
     check_eval_data(record, run.features(), data)
-    items, tables = _EVALUATORS[record.model](run, data, split, opts, echo)
+    settings = EvalSettings(max_clips=opts.max_clips, seed=opts.seed, flame=opts.flame,
+                            sample_steps=tuple(opts.sample_steps), offline=opts.offline, temperature=opts.temperature)
+    items, tables = protocol(run, data, split, settings, echo)
     return EvalReport(model=record.model, run_dir=str(opts.run_dir), step=run.step, data=str(data.root),
                       split=split, items=items, tables=tables)

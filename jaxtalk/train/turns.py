@@ -17,15 +17,17 @@ import jax
 import numpy as np
 
 from jaxtalk.data.batching import fit_length
-from jaxtalk.data.conversation import TimarWindows, agent_sides, make_windows, side_streams
+from jaxtalk.data.conversation import Normalizer, TimarWindows, agent_sides, make_windows, side_streams
 from jaxtalk.data.loader import PreparedData
+from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
+from jaxtalk.metrics.evaluation import EvalSettings, EvalTable
 from jaxtalk.runs import RunInfo
 from jaxtalk.train.optim import OptimConfig
 from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["TURN_DEFAULTS", "TURN_PRESET_DEFAULTS", "train_on_turn_windows", "conversation_validation",
-           "SELECTION_METRIC"]
+           "SELECTION_METRIC", "evaluate_sides", "SidePredictor"]
 
 PyTree = Any
 # ``predict(params, (user_speech, user_motion, agent_speech), key, context) -> (1, F, 56)``: a turn
@@ -92,8 +94,6 @@ def train_on_turn_windows(
     """
     recipe = make_windows(config, data)
     if normalizer is not None:
-        from jaxtalk.data.conversation import Normalizer
-
         given = normalizer if isinstance(normalizer, Normalizer) else Normalizer.from_dict(normalizer)
         recipe = dataclasses.replace(recipe, normalizer=given)
     k_init, k_train, k_eval = jax.random.split(key, 3)
@@ -163,3 +163,90 @@ def conversation_validation(
         return scores
 
     return eval_fn
+
+# ------------------------------------------------------------------------------------------ evaluation
+_GROUP_COLUMNS = ("FD", "P-FD", "MSE", "SID", "rPCC")
+# ``predict(streams, key, context)`` of a turn model for one conversation side (see :func:`evaluate_sides`).
+SidePredictor = Callable[[tuple[Any, Any, Any], PRNGKeyArray, int], Any]
+
+
+def evaluate_sides(run: Any, data: PreparedData, split: str, opts: EvalSettings, echo: Callable[[str], None], *,
+                   predict: SidePredictor, title: str, label: str, verb: str) -> tuple[int, list[EvalTable]]:
+    """A turn model on a split of prepared data: every conversation side whose partner is prepared (up to
+    ``max_clips``), predicted by ``predict`` with the run's normaliser and context, and scored with the
+    DualTalk benchmark (:func:`jaxtalk.metrics.conversation_metrics`) per group (exp, jaw, pose): FD, P-FD,
+    MSE, SID (k-means fit on the ground truth; 40 frames per side, else left out) and rPCC, in the
+    published scaling, beside the mean pose and the oracle (where every side has one).
+
+    Args:
+        run: the loaded run (TIMAR or the DualTalk baseline).
+        data, split: the prepared data and its split.
+        opts: the settings.
+        echo: where progress lines and notes go.
+        predict: ``predict(streams, key, context)``: the side's standardised ``(user_speech, user_motion,
+            agent_speech)`` streams ``(1, T, .)`` -> ``(1, T', 56)`` standardised agent motion.
+        title: the model's name in the tables; label: its row; verb: what it does to a side (progress).
+
+    Raises:
+        ValueError: a split without a conversation side of a whole turn.
+    """
+    config, extra = run.config, run.record.extra
+    sides = agent_sides(data, split)
+    if not sides:
+        raise ValueError(f"split {split!r} of {data.root} has no conversation side (a clip with motion whose "
+                         "partner's clip is prepared)")
+    norm = Normalizer.from_dict(extra["normalizer"])
+    still = np.asarray(extra.get("still", norm.motion_mean), np.float32)
+    context = max(extra.get("num_turns", config.max_turns) - 1, 0)
+    f = config.frames_per_turn
+    key = jax.random.key(opts.seed)
+    chosen = sides[: opts.max_clips]
+    echo(f"{verb} {len(chosen)} {split} conversation sides of {data.root} with {title} (step {run.step})")
+    preds, gts, partners, oracles, still_partners, padded_frames = [], [], [], [], 0, 0
+    for n, (i, j) in enumerate(chosen):
+        # Scored over the agent's whole side (as far as the partner's motion goes); the model predicts
+        # whole turns, and the frames after the last whole one repeat its last prediction (the paper's
+        # protocol, TIMAR Sec. 4.4).
+        side = side_streams(data, i, j, norm, still, f)
+        if side is None:
+            continue
+        still_partners += side.still_partner
+        padded_frames += side.padded_frames
+        out = predict(side.streams, jax.random.fold_in(key, n), context)
+        total = side.truth.shape[0]
+        preds.append(fit_length(norm.unmotion(np.asarray(out)[0]), total))
+        gts.append(side.truth)
+        partners.append(side.partner)
+        oracles.append(side.oracle)
+    if not preds:
+        raise ValueError(f"split {split!r} of {data.root} has no conversation side of a whole {f}-frame turn")
+    if padded_frames:
+        echo(f"note: {padded_frames} frames after the sides' last whole {f}-frame turns repeat the last prediction "
+             "(TIMAR's protocol)")
+    if still_partners:
+        echo(f"note: {still_partners} of {len(preds)} partners have no tracked motion; P-FD and rPCC use the run's "
+             "still pose for them (as training did)")
+    with_sid = min(g.shape[0] for g in gts) >= max(SID_CLUSTERS.values())
+    if not with_sid:
+        echo(f"note: a side is shorter than {max(SID_CLUSTERS.values())} frames: SID left out")
+    methods = {label: preds, "mean pose": [np.broadcast_to(norm.motion_mean, g.shape).astype(np.float32)
+                                                        for g in gts]}
+    if all(o is not None for o in oracles):
+        methods["oracle"] = oracles
+    scores = {name: conversation_metrics(list(p), gts, partners, scaled=True,
+                                         sid_convention="fit_gt" if with_sid else None)
+              for name, p in methods.items()}
+    frames = int(sum(g.shape[0] for g in gts))
+    tables = []
+    for group in CONVERSATION_GROUPS:
+        rows = []
+        for name, m in scores.items():
+            row: dict[str, Any] = {"method": name, "sides": len(gts), "frames": frames}
+            for col in _GROUP_COLUMNS:
+                row[col] = m.get(f"SID_fit_gt_{group}") if col == "SID" else m[f"{col}_{group}"]
+            rows.append(row)
+        scaling = ", ".join(f"{col} x{PUBLISHED_SCALE[f'{col}_{group}']:g}" for col in _GROUP_COLUMNS
+                            if f"{col}_{group}" in PUBLISHED_SCALE)
+        tables.append(EvalTable(f"{title} on {split} ({data.root.name}), {group}"
+                                f"{' (' + scaling + ')' if scaling else ''}", rows))
+    return len(gts), tables

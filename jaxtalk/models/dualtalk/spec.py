@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from jaxtalk.models.dualtalk.config import DualTalkConfig
+from jaxtalk.models.dualtalk.evaluation import evaluate
 from jaxtalk.models.dualtalk.loss import make_loss_fn
 from jaxtalk.models.dualtalk.model import init_params
 from jaxtalk.models.dualtalk.recipe import DEFAULTS, PRESET_DEFAULTS, train
@@ -20,6 +21,7 @@ SPEC = ModelSpec(
     train=train,
     defaults=DEFAULTS,
     preset_defaults=dict(PRESET_DEFAULTS),
+    evaluate=evaluate,
     data_fields=(("speech_dim", "turn_speech_dim"),),
     windows="whole turns (max_turns)",
 )

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from jaxtalk.models.freetalk import ats, stm
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
+from jaxtalk.models.freetalk.evaluation import evaluate_ats, evaluate_stm
 from jaxtalk.models.freetalk.recipe import ATS_PRESET_DEFAULTS, DEFAULTS, STM_PRESET_DEFAULTS, train_ats, train_stm
 from jaxtalk.runs import ModelSpec
 
@@ -21,6 +22,7 @@ ATS = ModelSpec(
     defaults=DEFAULTS,
     preset_defaults=dict(ATS_PRESET_DEFAULTS),
     sample=ats.sample,
+    evaluate=evaluate_ats,
     data_fields=(("speech_dim", "speech_dim"),),
 )
 
@@ -33,4 +35,5 @@ STM = ModelSpec(
     train=train_stm,
     defaults=DEFAULTS,
     preset_defaults=dict(STM_PRESET_DEFAULTS),
+    evaluate=evaluate_stm,
 )

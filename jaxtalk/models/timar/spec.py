@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from jaxtalk.models.timar.config import TimarConfig
+from jaxtalk.models.timar.evaluation import evaluate
 from jaxtalk.models.timar.loss import make_loss_fn
 from jaxtalk.models.timar.model import init_params
 from jaxtalk.models.timar.recipe import DEFAULTS, PRESET_DEFAULTS, train
@@ -24,6 +25,7 @@ SPEC = ModelSpec(
     sample=sample,
     guided=True,
     streamer=Streamer(init_stream, stream_step, stream),
+    evaluate=evaluate,
     data_fields=(("speech_dim", "turn_speech_dim"),),
     windows="whole turns (max_turns)",
 )

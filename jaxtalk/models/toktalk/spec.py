@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from jaxtalk.models.toktalk.config import TokTalkConfig
+from jaxtalk.models.toktalk.evaluation import evaluate
 from jaxtalk.models.toktalk.live import live_model
 from jaxtalk.models.toktalk.loss import make_loss_fn
 from jaxtalk.models.toktalk.model import init_params
@@ -24,6 +25,7 @@ SPEC = ModelSpec(
     sample=sample,
     guided=True,
     streamer=Streamer(init_stream, stream_step, stream),
+    evaluate=evaluate,
     live=live_model,
     data_fields=(("speech_dim", "token_dim"), ("token_rate", "token_rate")),
     style_asset=True,
