@@ -31,6 +31,7 @@ from jaxtalk.export import Retargeter, arkit_rig
 from jaxtalk.export.solver import Penalties
 from jaxtalk.face import builtin_face
 from jaxtalk.layout import JAW_OPEN_INDEX
+from jaxtalk.metrics.speech_sync import lagged_correlation
 
 MAX_LAG = 5
 MOVING_STD = 0.02
@@ -38,13 +39,8 @@ MOVING_STD = 0.02
 
 def best_lag(smoothed: np.ndarray, reference: np.ndarray) -> int:
     """The shift of ``smoothed`` (frames; positive = later) that best correlates it with ``reference``."""
-    n = len(reference)
-    corr = []
-    for lag in range(-MAX_LAG, MAX_LAG + 1):
-        a = smoothed[max(lag, 0): n + min(lag, 0)]
-        b = reference[max(-lag, 0): n - max(lag, 0)]
-        corr.append(np.corrcoef(a, b)[0, 1])
-    return int(np.argmax(corr)) - MAX_LAG
+    lags, r = lagged_correlation(smoothed, reference, MAX_LAG)
+    return int(lags[np.nanargmax(r)])
 
 
 def main() -> None:

@@ -34,8 +34,6 @@ RANKS: dict[str, int] = {
     "models": 5,
     **dict.fromkeys(("commands", "cli", "demo", "serve", "bench"), 6),
 }
-FOUNDATIONS = frozenset(k for k, r in RANKS.items() if r < RANKS["models"])
-APPLICATIONS = frozenset(k for k, r in RANKS.items() if r > RANKS["models"])
 # The package's own entry points sit above every layer.
 TOP = frozenset({"__init__", "__main__"})
 # Circles between packages of one rank that are still to be cut: recipes write a run record
