@@ -23,14 +23,14 @@ import time
 import jax
 import jax.numpy as jnp
 
-from jaxtalk.data.turns import to_turns
+from jaxtalk.models.turns.streams import to_turns
 from jaxtalk.layout import NECK_SLICE
 from jaxtalk.models.timar.data import Normalizer
 from jaxtalk.models.timar.encoder import init_encoder
 from jaxtalk.models.timar.loss import STREAMS
 from jaxtalk.models.timar.model import encode_window
 from jaxtalk.train.recipes import TrainSettings
-from jaxtalk.train.turns import train_on_turn_windows
+from jaxtalk.models.turns.training import train_on_turn_windows
 
 from timar_common import EFFECTS, load_model, open_prepared, save_model  # noqa: E402
 

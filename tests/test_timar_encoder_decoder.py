@@ -14,7 +14,7 @@ from helpers import timar_streams
 
 from jaxtalk.models.timar import TimarConfig, encode_window, init_params, loss, sample
 from jaxtalk.models.timar.encoder import TimarEncoder
-from jaxtalk.data.turns import to_turns
+from jaxtalk.models.turns.streams import to_turns
 from jaxtalk.models.timar.sampling import conditions
 from jaxtalk.models.timar.streaming import stream_condition, stream, init_stream
 from jaxtalk.models.timar.tokens import agent_token_mask, turn_layout

@@ -10,7 +10,7 @@ from helpers import perturbed, timar_streams
 from scipy import stats
 
 from jaxtalk.models.timar import TimarConfig, init_params, loss
-from jaxtalk.data.turns import to_turns
+from jaxtalk.models.turns.streams import to_turns
 from jaxtalk.models.timar.loss import grouped_mse, masked_loss, random_agent_mask, sample_mask_ratio
 
 

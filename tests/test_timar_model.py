@@ -18,7 +18,7 @@ from jaxtalk.models.timar.head import (
     init_head,
     time_embedding,
 )
-from jaxtalk.data.turns import to_turns
+from jaxtalk.models.turns.streams import to_turns
 
 
 CFG = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=32, speech_dim=8, max_turns=4, frames_per_turn=5)

@@ -10,7 +10,7 @@ import pytest
 
 from jaxtalk.models.timar import TimarConfig, init_params, sample
 from jaxtalk.models.timar.head import apply_head, init_head
-from jaxtalk.data.turns import to_turns
+from jaxtalk.models.turns.streams import to_turns
 from jaxtalk.models.timar.sampling import respaced_schedule
 from jaxtalk.models.timar.sampling import conditions as _conditions_eager
 from jaxtalk.models.timar.sampling import sample_frames as _sample_frames_eager

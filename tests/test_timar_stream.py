@@ -9,7 +9,7 @@ import pytest
 
 from jaxtalk.models.timar import TimarConfig, init_params
 import jaxtalk.models.timar.streaming as stream_mod
-from jaxtalk.data.turns import to_turns
+from jaxtalk.models.turns.streams import to_turns
 from jaxtalk.models.timar.sampling import conditions as _conditions_eager
 from jaxtalk.models.timar.sampling import sample_frames as _sample_frames_eager
 from jaxtalk.models.timar.streaming import stream_condition, stream, init_stream, stream_step

@@ -9,10 +9,10 @@ import jax
 import numpy as np
 import pytest
 
-from jaxtalk.data.conversation import agent_sides, make_windows
+from jaxtalk.models.turns.windows import agent_sides, make_windows
 from jaxtalk.models.timar import TimarConfig
 from jaxtalk.train.recipes import spread
-from jaxtalk.train.turns import SELECTION_METRIC, conversation_validation
+from jaxtalk.models.turns.training import SELECTION_METRIC, conversation_validation
 
 SMALL = {"width": 32, "num_layers": 1, "num_heads": 2, "head_width": 32, "head_blocks": 1, "max_turns": 2,
          "sample_steps": 2}

@@ -1,6 +1,6 @@
 """The DualTalk baseline's evaluation protocol (``jaxtalk eval`` on a ``dualtalk`` run;
 :attr:`jaxtalk.runs.ModelSpec.evaluate`): the same sides, normaliser, context and tables as TIMAR's
-(:func:`jaxtalk.train.turns.evaluate_sides`), each turn predicted from the window of its past turns and
+(:func:`jaxtalk.models.turns.training.evaluate_sides`), each turn predicted from the window of its past turns and
 the whole current turn."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 
 from jaxtalk.metrics.evaluation import EvalSettings, EvalTable
 from jaxtalk.models.dualtalk.predict import predict_turns
-from jaxtalk.train.turns import evaluate_sides
+from jaxtalk.models.turns.training import evaluate_sides
 
 __all__ = ["evaluate"]
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import jax.numpy as jnp
 
-from jaxtalk.data.turns import check_streams
+from jaxtalk.models.turns.streams import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.metrics.params import grouped_mse
 from jaxtalk.models.dualtalk.model import apply
@@ -67,7 +67,7 @@ def loss(
         ``(loss, metrics)`` as :func:`regression_loss`.
 
     Raises:
-        ValueError: missing streams or bad shapes (see :func:`~jaxtalk.data.turns.check_streams`).
+        ValueError: missing streams or bad shapes (see :func:`~jaxtalk.models.turns.streams.check_streams`).
     """
     missing = [name for name in STREAMS if name not in batch]
     if missing:

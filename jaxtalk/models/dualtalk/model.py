@@ -27,7 +27,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from jaxtalk.data.turns import check_streams
+from jaxtalk.models.turns.streams import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.nn import MLP, DecoderBlock, MultiHeadAttention, TransformerBlock
 from jaxtalk.nn.embeddings import sinusoidal_embedding

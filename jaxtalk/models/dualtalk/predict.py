@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.data.turns import check_streams
+from jaxtalk.models.turns.streams import check_streams
 from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.models.dualtalk.model import DualTalkNet, check_inputs
 from jaxtalk.nn.precision import compute_in

@@ -3,7 +3,7 @@
 TIMAR's Table 1 retrains DualTalk "under the same training configuration as TIMAR", so the windows
 (``num_turns`` whole turns of both sides' per-turn speech and motion, every turn step of every training
 conversation), the normaliser fitted on the training agents, the still pose of motionless partners and
-the optimiser settings are all TIMAR's (:mod:`jaxtalk.data.conversation`, :mod:`jaxtalk.train.turns`,
+the optimiser settings are all TIMAR's (:mod:`jaxtalk.models.turns.windows`, :mod:`jaxtalk.models.turns.training`,
 shared a layer below both models): both models see identical data.
 """
 
@@ -18,7 +18,7 @@ from jaxtalk.models.dualtalk.config import DualTalkConfig
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings
-from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
+from jaxtalk.models.turns.training import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "PRESET_DEFAULTS", "train"]
@@ -52,7 +52,7 @@ def train(
     """Train the DualTalk baseline on ``data``'s training conversations (arguments as every recipe's
     ``train``). Each evaluation also predicts ``val_clips`` val conversation sides turn by turn (as
     ``jaxtalk eval``) and the best checkpoint is the one of the lowest FD
-    (:func:`~jaxtalk.train.turns.conversation_validation`).
+    (:func:`~jaxtalk.models.turns.training.conversation_validation`).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the normaliser, the window's

@@ -19,7 +19,7 @@ import numpy as np
 from jaxtalk.audio.speech import TURN_SPEECH_DIM as SPEECH_DIM
 from jaxtalk.audio.speech import turn_speech_features
 # Shared with the DualTalk baseline (a lower layer), re-exported here as part of TIMAR's data API.
-from jaxtalk.data.conversation import Normalizer
+from jaxtalk.models.turns.windows import Normalizer
 from jaxtalk.data.standardize import fit_standardizer
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, PARAM_DIM
 

@@ -1,6 +1,6 @@
 """TIMAR's evaluation protocol (``jaxtalk eval`` on a TIMAR run; :attr:`jaxtalk.runs.ModelSpec.evaluate`):
 every conversation side streamed turn by turn, as users run it, and scored as every turn model is
-(:func:`jaxtalk.train.turns.evaluate_sides`)."""
+(:func:`jaxtalk.models.turns.training.evaluate_sides`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Any
 
 from jaxtalk.metrics.evaluation import EvalSettings, EvalTable
 from jaxtalk.models.timar.streaming import stream
-from jaxtalk.train.turns import evaluate_sides
+from jaxtalk.models.turns.training import evaluate_sides
 
 __all__ = ["evaluate"]
 

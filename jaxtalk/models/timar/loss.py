@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtalk.data.turns import check_streams, to_turns
+from jaxtalk.models.turns.streams import check_streams, to_turns
 from jaxtalk.metrics.params import grouped_mse  # shared with the DualTalk baseline; part of this API
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.head import apply_head

@@ -1,7 +1,7 @@
 """TIMAR's recipe: conversation windows of a prepared dataset, and the one way the model is trained.
 
-The windows (:mod:`jaxtalk.data.conversation`), the training settings and the training itself
-(:mod:`jaxtalk.train.turns`) are shared with the DualTalk baseline, which TIMAR's Table 1 retrains on
+The windows (:mod:`jaxtalk.models.turns.windows`), the training settings and the training itself
+(:mod:`jaxtalk.models.turns.training`) are shared with the DualTalk baseline, which TIMAR's Table 1 retrains on
 TIMAR's data; this module re-exports the window pieces as part of TIMAR's recipe.
 """
 
@@ -10,16 +10,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from jaxtalk.data.conversation import TimarWindows, agent_sides, fit_data_normalizer, make_windows, window_turns
+from jaxtalk.models.turns.windows import TurnWindows, agent_sides, fit_data_normalizer, make_windows, window_turns
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.runs import RunInfo
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings
-from jaxtalk.train.turns import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
+from jaxtalk.models.turns.training import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["DEFAULTS", "PRESET_DEFAULTS", "TimarWindows", "agent_sides", "fit_data_normalizer", "window_turns", "make_windows",
+__all__ = ["DEFAULTS", "PRESET_DEFAULTS", "TurnWindows", "agent_sides", "fit_data_normalizer", "window_turns", "make_windows",
            "train"]
 
 PyTree = Any
@@ -49,7 +49,7 @@ def train(
 ) -> RecipeResult:
     """Train TIMAR on ``data``'s training conversations (arguments as every recipe's ``train``). Each
     evaluation also streams ``val_clips`` val conversation sides turn by turn (as ``jaxtalk eval``)
-    and the best checkpoint is the one of the lowest FD (:func:`~jaxtalk.train.turns.conversation_validation`).
+    and the best checkpoint is the one of the lowest FD (:func:`~jaxtalk.models.turns.training.conversation_validation`).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the normaliser, the window's

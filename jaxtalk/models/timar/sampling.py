@@ -32,7 +32,7 @@ from jaxtalk.models.timar.head import (
     time_embedding,
 )
 from jaxtalk.checks import check_temperature
-from jaxtalk.data.turns import check_streams, from_turns, to_turns
+from jaxtalk.models.turns.streams import check_streams, from_turns, to_turns
 from jaxtalk.models.timar.model import encode_window
 from jaxtalk.samplers import make_schedule, respace, sample_ddim, sample_ddpm
 from jaxtalk.samplers.schedules import RespacedSchedule

@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
-from jaxtalk.data.turns import check_streams
+from jaxtalk.models.turns.streams import check_streams
 from jaxtalk.checks import check_temperature
 from jaxtalk.models.timar.sampling import MAR_TEMPERATURE, resolve_sampler, sample_frames
 from jaxtalk.models.timar.tokens import turn_layout

@@ -1,7 +1,7 @@
 """Validation of conversation input streams and their split into turns.
 
 TIMAR and the DualTalk baseline take the same streams (both sides' speech and motion), so both check
-them here, a layer below the models.
+them here, in their family package.
 
 Every stream is per frame at 25 fps and batched: ``(B, T, D)`` with ``T = N * F`` (N whole turns of F
 frames). The checks run on the host on concrete arrays (they are skipped inside someone else's

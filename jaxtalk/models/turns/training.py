@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from jaxtalk.data.batching import fit_length
-from jaxtalk.data.conversation import Normalizer, TimarWindows, agent_sides, make_windows, side_streams
+from jaxtalk.models.turns.windows import Normalizer, TurnWindows, agent_sides, make_windows, side_streams
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
 from jaxtalk.metrics.evaluation import EvalSettings, EvalTable
@@ -83,7 +83,7 @@ def train_on_turn_windows(
         config: the model's config (a :class:`TurnConfig`).
         init_params: ``(config, key) -> params`` (used when ``params`` is None).
         make_loss_fn: ``config -> loss_fn`` for :func:`~jaxtalk.train.recipes.fit_recipe`.
-        normalizer: the standardisation to train with (a :class:`~jaxtalk.data.conversation.Normalizer`
+        normalizer: the standardisation to train with (a :class:`~jaxtalk.models.turns.windows.Normalizer`
             or its ``to_dict()``): a fine-tuned run keeps its starting run's; None: fitted on ``data``.
         predict: how the model predicts a conversation side as users run it (TIMAR: streamed turn by
             turn; the baseline: turn windows); each evaluation then predicts ``val_clips`` val sides
@@ -112,7 +112,7 @@ def train_on_turn_windows(
 
 def conversation_validation(
     data: PreparedData,
-    windows: TimarWindows,
+    windows: TurnWindows,
     split: str = "val",
     *,
     predict: Predict,

@@ -7,8 +7,8 @@ with a :class:`Normalizer` fitted on the training agents. A partner without trac
 audio-only sides) contributes its speech and the training mean pose as its motion: a constant that
 carries no information about the agent.
 
-TIMAR's Table 1 retrains DualTalk on TIMAR's data, so both models read their windows from here, a
-layer below the models, instead of one model importing the other.
+TIMAR's Table 1 retrains DualTalk on TIMAR's data, so both models read their windows from here, their
+family package, instead of one model importing the other.
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ import numpy as np
 
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.data.standardize import fit_standardizer, standardize, unstandardize
-from jaxtalk.data.turns import TurnConfig
+from jaxtalk.models.turns.streams import TurnConfig
 from jaxtalk.types import Float
 
-__all__ = ["Normalizer", "TimarWindows", "ConversationSide", "agent_sides", "side_streams", "fit_data_normalizer",
+__all__ = ["Normalizer", "TurnWindows", "ConversationSide", "agent_sides", "side_streams", "fit_data_normalizer",
            "window_turns", "make_windows"]
 
 
@@ -159,7 +159,7 @@ def window_turns(config: TurnConfig, data: PreparedData) -> int:
 
 
 @dataclasses.dataclass(frozen=True)
-class TimarWindows:
+class TurnWindows:
     """TIMAR's window recipe (see the module docstring), also the DualTalk baseline's: both models train
     and validate on the same windows.
 
@@ -197,11 +197,11 @@ class TimarWindows:
                 "agent_speech": n.speech(agent["turn_speech"][sl]), "agent_motion": n.motion(agent["motion"][sl])}
 
 
-def make_windows(config: TurnConfig, data: PreparedData) -> TimarWindows:
+def make_windows(config: TurnConfig, data: PreparedData) -> TurnWindows:
     """The recipe with its normaliser fitted on ``data``'s training split."""
     if data.manifest["turn_speech_dim"] != config.speech_dim:
         raise ValueError(f"{data.root} has {data.manifest['turn_speech_dim']}-d speech features but the model "
                          f"expects speech_dim={config.speech_dim} (--set speech_dim=...)")
     normalizer = fit_data_normalizer(data)
     still = tuple(float(v) for v in data.motion_stats()["mean"])
-    return TimarWindows(config, window_turns(config, data), normalizer, still)
+    return TurnWindows(config, window_turns(config, data), normalizer, still)
