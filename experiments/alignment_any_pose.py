@@ -31,12 +31,11 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))  # the shapes the tests use
 sys.path.insert(0, str(HERE))
 import canonical_alignment  # noqa: E402  (the alignment table's faces)
-import face_shapes as fs  # noqa: E402
 
 from jaxtalk.geometry import canonical as cn  # noqa: E402
+from jaxtalk.testing import faces as fs  # noqa: E402
 
 UNIT_CYCLE = ("mm", "cm", "m")
 

@@ -2,10 +2,10 @@
 units found, the reference face used, the fitted scale, the residual and how far the mesh's nose tip,
 mouth corners and eye corners land from the template's (mm).
 
-Shapes (``tests/face_shapes.py``): MediaPipe's canonical face, a built-in head with skull, neck and
+Shapes (``jaxtalk/testing/faces.py``): MediaPipe's canonical face, a built-in head with skull, neck and
 ears, a BFM-style mask cut from it, the head as a noisy scan with holes, and, where they are on disk,
 menpo3d's head scan (``bash experiments/fetch_real_scan.sh``), FLAME's template (the user's own file,
-see ``tests/face_shapes.py``) and masks cut from both. Each in a random pose. Then shapes that are no
+see ``jaxtalk/testing/faces.py``) and masks cut from both. Each in a random pose. Then shapes that are no
 face, whose best fit must stay above the limit (``_MAX_FIT_M``).
 
 Also the floor of the semantic error: the similarity fitted to the seven semantic points themselves
@@ -17,16 +17,12 @@ Usage: python experiments/canonical_alignment.py [--units mm cm m] [--seed 0]
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the shapes the tests use
-import face_shapes as fs
-
 from jaxtalk.geometry import canonical as cn
+from jaxtalk.testing import faces as fs
 
 
 def _shapes() -> list[fs.Shape]:

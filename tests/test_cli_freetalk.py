@@ -70,7 +70,7 @@ def test_sample_animates_a_mesh_file_in_its_own_units_and_renders_it(ats_run, st
 def test_sample_onto_an_obj_kit_keeps_its_vertices(ats_run, stm_run, files):
     """An OBJ as face kits ship it (materials, groups, a UV and a normal per corner, quads): the animation
     has the file's ``v`` records, in count and order, and renders with the file as --faces."""
-    from face_shapes import write_face_kit_obj
+    from jaxtalk.testing.faces import write_face_kit_obj
 
     kit = files["root"] / "kit.obj"
     write_face_kit_obj(kit, files["vertices"], files["faces"])

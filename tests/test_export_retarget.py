@@ -361,7 +361,7 @@ def mediapipe_rig() -> Rig:
     """MediaPipe's canonical face (a real face, centimetres in its file, metres here) as a 52-shape ARKit rig:
     each of its vertices takes the built-in rig's shapes at the built-in face's closest vertex, once the two
     faces are put together by their semantic points."""
-    import face_shapes as fs
+    from jaxtalk.testing import faces as fs
     from scipy.spatial import cKDTree
 
     from jaxtalk.geometry.canonical import umeyama

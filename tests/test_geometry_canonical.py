@@ -1,6 +1,6 @@
 """Landmark-free alignment of the face meshes people bring (``jaxtalk.geometry.canonical``).
 
-Each shape of ``face_shapes`` (MediaPipe's canonical face, a whole built-in head with skull, neck and
+Each shape of ``jaxtalk.testing.faces`` (MediaPipe's canonical face, a whole built-in head with skull, neck and
 ears in the way of FLAME's template, a BFM-style mask cut from it, the head as a noisy scan with
 holes), in millimetres, centimetres and metres and in a random pose, must align: the right units, a
 scale near 1, and its nose tip, mouth corners and eye corners where the template has them. Shapes that
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import functools
 
-import face_shapes as fs
+from jaxtalk.testing import faces as fs
 import numpy as np
 import pytest
 
@@ -186,7 +186,7 @@ def test_a_real_head_scan_and_flames_template_align_when_present(loader, unit, t
     mean 4.8 and 4.4 mm, scale 0.89 and 0.97 (their seven-point Umeyama fits: 0.90 and 0.97)."""
     shape = getattr(fs, loader)()
     if shape is None:
-        pytest.skip(f"{loader}: not on disk (see tests/face_shapes.py)")
+        pytest.skip(f"{loader}: not on disk (see jaxtalk/testing/faces.py)")
     canon, error_mm = _align(shape, unit, 40 + ["mm", "cm", "m"].index(unit), template)
     assert canon.units == unit and canon.reference == "mediapipe" and 0.85 < canon.fitted_scale < 1.05
     assert error_mm.max() < 13.0 and error_mm.mean() < 7.0, dict(zip(fs.SEMANTIC, error_mm.round(1)))

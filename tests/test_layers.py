@@ -7,7 +7,11 @@
 4. ``runs`` and ``train`` (one rank: ``train`` writes runs, ``runs`` restores their checkpoints);
 5. ``models``: no model package imports another; what two models share moves down a layer, or into a
    family package of the models layer (:data:`FAMILIES`) that the models import and that imports no model;
-6. applications: ``commands``, ``cli``, ``demo``, ``serve``, ``bench``.
+6. applications: ``commands``, ``cli``, ``demo``, ``serve``, ``bench``, and ``testing`` (the tools the
+   test suite and the experiments share).
+
+The experiments (``experiments/*.py``) use the package as a user would: they import ``jaxtalk`` and
+each other, never the test suite.
 
 A module imports only from its own rank or below; packages of one rank import each other without a
 circle, except the one pair named in :data:`KNOWN_CIRCLES`. The checker walks the AST of every module,
@@ -20,6 +24,7 @@ from __future__ import annotations
 
 import ast
 import itertools
+import re
 from pathlib import Path
 
 import pytest
@@ -33,7 +38,7 @@ RANKS: dict[str, int] = {
     "data": 3,
     **dict.fromkeys(("runs", "train"), 4),
     "models": 5,
-    **dict.fromkeys(("commands", "cli", "demo", "serve", "bench"), 6),
+    **dict.fromkeys(("commands", "cli", "demo", "serve", "bench", "testing"), 6),
 }
 # Packages of the models layer that hold what a family of models shares (TIMAR and the DualTalk
 # baseline's turn windows, training and protocol): models may import them; they import no model.
@@ -135,6 +140,20 @@ def test_jaxtalk_imports_run_only_downwards():
 
 def test_no_two_packages_import_each_other_beyond_the_known_circle():
     assert circles(package_graph(PACKAGE)) <= KNOWN_CIRCLES
+
+
+def test_experiments_import_the_package_not_the_test_suite():
+    experiments = PACKAGE.parent / "experiments"
+    test_modules = {path.stem for path in (PACKAGE.parent / "tests").glob("*.py")}
+    found = []
+    for path in sorted(experiments.glob("*.py")):
+        text = path.read_text()
+        imported = {c[0].split(".")[0] for c in _imports(path, path.stem)}
+        found += [f"{path.name} -> tests.{name}" for name in sorted(imported & test_modules) if name != "conftest"
+                  and not (experiments / f"{name}.py").exists()]
+        if re.search(r"sys\.path\.(insert|append)\(.*tests", text):
+            found.append(f"{path.name} -> the tests folder on sys.path")
+    assert found == []
 
 
 def test_circle_finder_sees_a_circle_through_a_third_package():

@@ -15,7 +15,7 @@ import numpy as np
 import pygltflib
 import pytest
 
-from face_shapes import write_face_kit_obj
+from jaxtalk.testing.faces import write_face_kit_obj
 from test_export_browser import node_tools  # noqa: F401  (a fixture: tests/js's npm tools, gltfpack among them)
 from jaxtalk.geometry.canonical import load_mesh
 from jaxtalk.geometry.mesh_io import MeshFileNote, read_obj

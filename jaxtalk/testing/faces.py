@@ -1,5 +1,5 @@
 """Face meshes of the kinds people bring, with known semantic points, for the alignment tests
-(``from face_shapes import ...``; ``experiments/canonical_alignment.py`` prints the same table).
+and ``experiments/canonical_alignment.py``.
 
 Every builder returns a :class:`Shape`: vertices in metres in the built-in face's frame (+y up, +z out
 of the face), triangles, and a few semantic points with the indices of the 68 iBUG landmarks they are
@@ -21,19 +21,22 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-REAL_SCAN = ROOT / ".cache" / "assets" / "james.obj"
+# Where the fetch scripts (``experiments/fetch_*.sh``) put public face files: ``.cache/assets`` of the
+# folder the suite or an experiment runs from (the repository root), or ``$JAXTALK_ASSETS``.
+ASSETS = Path(os.environ.get("JAXTALK_ASSETS", Path.cwd() / ".cache" / "assets"))
+REAL_SCAN = ASSETS / "james.obj"
 # FLAME's template is not redistributable: a user who has it (e.g. DECA's data/head_template.obj and
 # its landmark_embedding as .npz with full_faces / full_bary) puts it here.
-FLAME_TEMPLATE = ROOT / ".cache" / "assets" / "flame_head_template.obj"
-FLAME_LANDMARKS = ROOT / ".cache" / "assets" / "flame_landmarks.npz"
+FLAME_TEMPLATE = ASSETS / "flame_head_template.obj"
+FLAME_LANDMARKS = ASSETS / "flame_landmarks.npz"
 # The ICT Face Model's neutral head (``experiments/fetch_ict_face_kit.sh``) and its 68 Multi-PIE landmarks,
 # as its README lists them (0-based vertex indices).
-ICT_FACE_KIT = ROOT / ".cache" / "assets" / "ict_face_kit.obj"
+ICT_FACE_KIT = ASSETS / "ict_face_kit.obj"
 ICT_LANDMARKS = (1225, 1888, 1052, 367, 1719, 1722, 2199, 1447, 966, 3661, 4390, 3927, 3924, 2608, 3272, 4088, 3443,
                  268, 493, 1914, 2044, 1401, 3615, 4240, 4114, 2734, 2509, 978, 4527, 4942, 4857, 1140, 2075, 1147,
                  4269, 3360, 1507, 1542, 1537, 1528, 1518, 1511, 3742, 3751, 3756, 3721, 3725, 3732, 5708, 5695, 2081,
