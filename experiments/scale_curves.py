@@ -160,8 +160,14 @@ def verdict(points: list[dict], floor: float) -> dict:
     text += f"; from the smallest to the largest scale the gap {trend}"
     if len(by[top]) < 2:
         text += f" (one seed at the largest scale: noise taken as {noise:.3g})"
+    # The same rule at each scale, and how many single evaluations (a seed at a scale) fall on each side.
+    at_scale = ["holds" if mean[s] > 2 * noise and (by[s] > 0).all() else "reversed" if mean[s] < -2 * noise
+                else "within twice the noise" for s in scales]
+    gaps = np.concatenate([by[s] for s in scales])
     return {"verdict": text, "scales": scales, "mean_gap": [mean[s] for s in scales],
-            "seed_spread": [spread[s] for s in scales], "seeds": [len(by[s]) for s in scales], "noise": noise}
+            "seed_spread": [spread[s] for s in scales], "seeds": [len(by[s]) for s in scales], "noise": noise,
+            "verdict_at_scale": at_scale, "evaluations": int(gaps.size),
+            "evaluations_for_claim": int((gaps > 0).sum()), "evaluations_against_claim": int((gaps < 0).sum())}
 
 
 def main() -> None:
