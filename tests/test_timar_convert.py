@@ -152,6 +152,21 @@ def test_mlp_head_and_unknown_heads_are_refused(enc_state):
         infer_config(state, {**args, "encoder_num_heads": None, "model": "timar_tiny"})
 
 
+def test_heads_and_layernorm_epsilon_are_read_from_the_args_or_refused(enc_state):
+    args, state = enc_state
+    with pytest.raises(ValueError, match="norm_eps"):
+        infer_config(state, {k: v for k, v in args.items() if k != "norm_eps"})
+    assert infer_config(state, {**args, "norm_eps": 1e-5}).block_norm_epsilon == 1e-5
+    # A factory's name must describe the tensors: the fixture is 32 wide, timar_large 1024.
+    with pytest.raises(ValueError, match="timar_large.*width 1024"):
+        infer_config(state, {**args, "model": "timar_large", "encoder_num_heads": None})
+    for name, value in (("mask_history_agent", True), ("num_iter", 4), ("l2r_order", True)):
+        with pytest.raises(ValueError, match=f"args.{name}"):
+            infer_config(state, {**args, name: value})
+    assert infer_config(state, {**args, "cfg": 1.0}).cfg_scale == 0.0
+    assert infer_config(state, {**args, "cfg": 2.5}).cfg_scale == 1.5
+
+
 # ---------------------------------------------------------------- statistics file
 
 

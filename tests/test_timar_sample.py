@@ -233,3 +233,19 @@ def test_mean_sampler_is_the_guided_head_output_at_the_last_timestep(params):
     np.testing.assert_allclose(np.asarray(got), np.asarray(ou + omega * (oc - ou)), atol=1e-5)
     cond = sample(params, CFG, us, um, as_, key, sampler="mean", guidance=False)
     np.testing.assert_allclose(np.asarray(cond), np.asarray(oc).reshape(B, N * F, 56), atol=1e-5)
+
+
+def test_a_concrete_zero_weight_skips_the_unconditional_branch_with_the_same_sample(params, monkeypatch):
+    us, um, as_ = _streams()
+    key = jax.random.key(5)
+    # A traced weight of 0 runs both branches and mixes them as c + 0 (c - u).
+    both = np.asarray(jax.vmap(lambda s: sample(params, CFG, us, um, as_, key, cfg_scale=s))(jnp.zeros(1))[0])
+    compiled, seen = sample_mod._sample, []
+    monkeypatch.setattr(sample_mod, "_sample", lambda *a: seen.append(a[-1]) or compiled(*a))
+    skipped = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=0.0))
+    guided = np.asarray(sample(params, CFG, us, um, as_, key, cfg_scale=0.5))
+    assert seen == [False, True]  # the last argument of the compiled sampler: guidance
+    np.testing.assert_allclose(skipped, both, atol=1e-6)
+    assert np.abs(guided - skipped).max() > 1e-3
+    assert sample_mod.without_guidance(0.0) and sample_mod.without_guidance(jnp.zeros(()))
+    assert not sample_mod.without_guidance(0.5) and not sample_mod.without_guidance(jnp.asarray(-1.0))

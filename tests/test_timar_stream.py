@@ -169,3 +169,16 @@ def test_stream_and_stream_step_leave_every_caller_argument_usable(params):
         assert not leaf.is_deleted()
     assert not key.is_deleted()
     jax.random.fold_in(key, 1)  # the caller samples offline with the same key afterwards
+
+
+def test_a_stream_at_weight_zero_skips_the_unconditional_rows_with_the_same_turns(params):
+    s = _streams(3)
+    key = jax.random.key(2)
+    skipped = np.asarray(stream(params, CFG, *s, key, context=1, cfg_scale=0.0))
+    state = init_stream(CFG, key, batch=B, context=1, guidance=True)
+    both = []
+    for i in range(3):
+        sl = slice(i * CFG.frames_per_turn, (i + 1) * CFG.frames_per_turn)
+        state, x = stream_step(params, CFG, state, s[0][:, sl], s[1][:, sl], s[2][:, sl], cfg_scale=0.0)
+        both.append(np.asarray(x))
+    np.testing.assert_allclose(skipped, np.concatenate(both, axis=1), atol=1e-6)

@@ -51,6 +51,7 @@ from jaxtalk.types import PARAM_DIM
 __all__ = [
     "TORCH_HINT",
     "HEADS_BY_MODEL",
+    "REFERENCE_MODELS",
     "ReferenceCheckpoint",
     "ConversionResult",
     "read_checkpoint",
@@ -62,8 +63,19 @@ __all__ = [
 ]
 
 TORCH_HINT = 'pip install "jaxtalk[torch]"'
-# Attention heads of the public code's model factories (the state dict does not record them).
-HEADS_BY_MODEL = {"timar_base": 12, "timar_large": 16, "timar_huge": 16}
+# The public code's model factories (``model/timar.py``): width, encoder and decoder depth, attention
+# heads and the LayerNorm epsilon of their blocks. The state dict records the sizes, not the heads or
+# the epsilon, so a checkpoint's ``args.model`` must name one of these (or, for a model built by hand,
+# ``args`` must state ``encoder_num_heads`` and ``norm_eps``).
+REFERENCE_MODELS: dict[str, tuple[int, int, int, int, float]] = {
+    "timar_base": (768, 12, 12, 12, 1e-6),
+    "timar_large": (1024, 16, 16, 16, 1e-6),
+    "timar_huge": (1280, 20, 20, 16, 1e-6),
+}
+HEADS_BY_MODEL = {name: spec[3] for name, spec in REFERENCE_MODELS.items()}
+# Training arguments of the public code that change what the model computes and that jaxtalk does not
+# implement, with the value that jaxtalk's TIMAR equals: a checkpoint stating another is refused.
+UNSUPPORTED_ARGS: dict[str, Any] = {"mask_history_agent": False, "num_iter": 1, "l2r_order": False}
 # The public evaluation (TUTORIAL.md): one MAR iteration of 5 respaced diffusion steps, no guidance.
 PUBLISHED_SAMPLE_STEPS = 5
 
@@ -201,8 +213,10 @@ def infer_config(state: dict[str, np.ndarray], args: dict[str, Any]) -> TimarCon
 
     Args:
         state: the state dict (NumPy).
-        args: the checkpoint's training arguments; used: ``model`` (attention heads, or
-            ``encoder_num_heads``), ``use_causal_attn``, ``motion_fps`` x ``chunk_second``,
+        args: the checkpoint's training arguments; used: ``model`` (the factory's attention heads and
+            LayerNorm epsilon, its sizes checked against the tensors; or ``encoder_num_heads`` and
+            ``norm_eps`` for a model built by hand), ``cfg`` (the default guidance), ``use_causal_attn``,
+            ``motion_fps`` x ``chunk_second``,
             ``noise_schedule``, ``epsilon_pred``, ``clip_denoised``, and the training settings
             ``cond_drop_prob``, ``mask_ratio_min``, ``diffusion_batch_mul``, ``proj_dropout``.
 
@@ -211,7 +225,8 @@ def infer_config(state: dict[str, np.ndarray], args: dict[str, Any]) -> TimarCon
 
     Raises:
         ValueError: a missing key, an unsupported variant (MLP head, epsilon prediction, the FLAME
-            clamp of ``--clip_denoised``), or sizes that disagree (the message names the key).
+            clamp of ``--clip_denoised``, :data:`UNSUPPORTED_ARGS`), args that do not say the heads or
+            the epsilon, or sizes that disagree (the message names the key).
     """
     if any(k.startswith("mlp_head.") for k in state):
         raise ValueError("the state dict has 'mlp_head.*' (a --use_mseloss model): jaxtalk converts the "
@@ -240,10 +255,10 @@ def infer_config(state: dict[str, np.ndarray], args: dict[str, Any]) -> TimarCon
         if dec_width != width:
             raise ValueError(f"decoder_embed.weight maps width {width} to {dec_width}: jaxtalk's encoder-decoder "
                              "variant keeps one width")
-    heads = args.get("encoder_num_heads") or HEADS_BY_MODEL.get(str(args.get("model")))
-    if not heads:
-        raise ValueError(f"args.model={args.get('model')!r}: unknown number of attention heads (expected one of "
-                         f"{', '.join(HEADS_BY_MODEL)})")
+    for name, value in UNSUPPORTED_ARGS.items():
+        if name in args and args[name] is not None and args[name] != value:
+            raise ValueError(f"args.{name}={args[name]!r}: jaxtalk's TIMAR implements {name}={value!r} only")
+    heads, norm_eps = _heads_and_epsilon(args, width, depth, decoder_depth, encoder_only)
     hidden = _need(state, "encoder_blocks.0.mlp.fc1.weight").shape[0]
     fps = int(args.get("motion_fps", 25)) * int(args.get("chunk_second", 1))
     positions = _need(state, "encoder_pos_embed_learned").shape[1]
@@ -266,8 +281,36 @@ def infer_config(state: dict[str, np.ndarray], args: dict[str, Any]) -> TimarCon
         schedule=str(args.get("noise_schedule", "cosine")),
         cfg_dropout=float(args.get("cond_drop_prob", 0.1)), mask_ratio_min=float(args.get("mask_ratio_min", 0.7)),
         diffusion_batch_mul=int(args.get("diffusion_batch_mul", 4)), dropout=float(args.get("proj_dropout", 0.1)),
-        sample_steps=PUBLISHED_SAMPLE_STEPS,
+        sample_steps=PUBLISHED_SAMPLE_STEPS, block_norm_epsilon=norm_eps,
+        # The public code's --cfg is omega of (1 - omega) u + omega c; jaxtalk's weight is w = omega - 1.
+        cfg_scale=float(args.get("cfg", 1.0)) - 1.0,
     )
+
+
+def _heads_and_epsilon(args: dict[str, Any], width: int, depth: int, decoder_depth: int,
+                       encoder_only: bool) -> tuple[int, float]:
+    """The attention heads and block LayerNorm epsilon a checkpoint's ``args`` state: from the factory
+    ``args.model`` names (whose sizes must be the tensors'), or stated outright for a model built by
+    hand. Refused when neither says."""
+    model = args.get("model")
+    if model in REFERENCE_MODELS:
+        f_width, f_enc, f_dec, heads, norm_eps = REFERENCE_MODELS[model]
+        # The encoder-only variant stacks encoder_depth + decoder_depth blocks as its encoder.
+        expected = (f_width, f_enc + f_dec, 0) if encoder_only else (f_width, f_enc, f_dec)
+        if (width, depth, decoder_depth) != expected:
+            raise ValueError(f"args.model={model!r} builds width {expected[0]} with {expected[1]} encoder and "
+                             f"{expected[2]} decoder blocks, but the state dict has width {width} with {depth} and "
+                             f"{decoder_depth}: the args do not describe these weights")
+        if args.get("encoder_num_heads") not in (None, heads):
+            raise ValueError(f"args.encoder_num_heads={args['encoder_num_heads']} disagrees with {model!r} ({heads})")
+        return heads, norm_eps
+    heads, norm_eps = args.get("encoder_num_heads"), args.get("norm_eps")
+    if not heads or not norm_eps:
+        missing = " and ".join(n for n, v in (("encoder_num_heads", heads), ("norm_eps", norm_eps)) if not v)
+        raise ValueError(f"args.model={model!r} is not one of the public code's models "
+                         f"({', '.join(REFERENCE_MODELS)}) and the args do not state its {missing}: "
+                         "unknown number of attention heads or LayerNorm epsilon")
+    return int(heads), float(norm_eps)
 
 
 class _Reader:

@@ -21,6 +21,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxtalk.models.timar.config import SAMPLERS, TimarConfig
 from jaxtalk.models.timar.head import (
@@ -39,6 +40,7 @@ from jaxtalk.samplers.schedules import RespacedSchedule
 from jaxtalk.types import Array, Float, PRNGKeyArray, Shaped, StreamLike
 
 __all__ = [
+    "without_guidance",
     "SAMPLERS",
     "MODULATION_TABLE_BYTES",
     "MAR_TEMPERATURE",
@@ -328,7 +330,8 @@ def sample(
         eta: DDIM stochasticity (traced).
         temperature: MAR's sampling temperature (traced; see :func:`sample_frames`; None: MAR's
             default, :data:`MAR_TEMPERATURE`).
-        guidance: run the unconditional branch (False: conditional only, ``cfg_scale`` ignored).
+        guidance: run the unconditional branch (False: conditional only, ``cfg_scale`` ignored). A
+            concrete ``cfg_scale`` of 0 skips it too (:func:`without_guidance`).
 
     Returns:
         ``(B, N F, 56)`` sampled agent motion (in the training normalisation).
@@ -349,12 +352,22 @@ def sample(
     cfg = jnp.asarray(config.cfg_scale if cfg_scale is None else cfg_scale, jnp.float32)
     if cfg.ndim:
         raise ValueError(f"cfg_scale must be a scalar (vmap over it for a sweep), got shape {cfg.shape}")
+    guidance = guidance and not without_guidance(cfg)
     return _sample(
         params, config,
         jnp.asarray(user_speech, jnp.float32), jnp.asarray(user_motion, jnp.float32),
         jnp.asarray(agent_speech, jnp.float32), key, cfg, jnp.asarray(eta, jnp.float32),
         check_temperature(temperature, default=MAR_TEMPERATURE), sample_steps, sampler, bool(guidance),
     )
+
+
+def without_guidance(cfg_scale: Any) -> bool:
+    """Whether a guidance weight is a concrete 0 (the paper's omega = 1, the published evaluation's
+    default): ``c + 0 (c - u)`` is ``c``, so the unconditional branch, half the encoder's batch and
+    half the head's, can be skipped. A traced weight (a sweep under ``jit`` or ``vmap``) keeps it."""
+    if isinstance(cfg_scale, jax.core.Tracer):
+        return False
+    return bool(np.all(np.asarray(cfg_scale) == 0))
 
 
 @functools.partial(jax.jit, static_argnames=("config",))

@@ -38,7 +38,7 @@ from jaxtalk.models.timar.config import TimarConfig
 from jaxtalk.models.timar.encoder import TimarEncoder
 from jaxtalk.models.turns.streams import check_streams
 from jaxtalk.checks import check_temperature
-from jaxtalk.models.timar.sampling import MAR_TEMPERATURE, resolve_sampler, sample_frames
+from jaxtalk.models.timar.sampling import MAR_TEMPERATURE, resolve_sampler, sample_frames, without_guidance
 from jaxtalk.models.timar.tokens import turn_layout
 from jaxtalk.masks import mask_to_bias
 from jaxtalk.nn.precision import compute_in
@@ -390,6 +390,9 @@ def stream(
     """
     turns = check_streams(config, {"user_speech": user_speech, "user_motion": user_motion, "agent_speech": agent_speech})
     f = config.frames_per_turn
+    # A concrete weight of 0 needs no unconditional rows (as in sample); stream_step cannot decide
+    # that itself, since its state was made with or without them.
+    guidance = guidance and not without_guidance(config.cfg_scale if cfg_scale is None else cfg_scale)
     state = init_stream(config, key, batch=int(np.shape(user_speech)[0]), context=context, guidance=guidance)
     out = []
     for i in range(turns):  # host loop: one turn arrives at a time in a stream
