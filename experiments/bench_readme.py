@@ -5,7 +5,9 @@
 
 Prints Markdown per file: the machine and the limits the run measured, then one table per benchmark
 table of the run (every row, the columns that matter to a reader), so every table docs/performance.md
-quotes names its run.
+quotes names its run. The machine line and each table cite the file they come from
+(``<!-- from: FILE -->``, checked by ``tests/test_docs_numbers.py``), named as given on the command line:
+run it from the repository's root.
 """
 
 from __future__ import annotations
@@ -44,9 +46,11 @@ def markdown_table(rows: list[dict[str, Any]], columns: tuple[tuple[str, str], .
     return "\n".join(lines)
 
 
-def performance_section(payload: dict[str, Any], titles: tuple[str, ...] = ()) -> str:
+def performance_section(payload: dict[str, Any], titles: tuple[str, ...] = (), source: str | None = None) -> str:
     """The Markdown of a bench JSON: machine line, then every table (only those whose title starts
-    with one of ``titles`` when given)."""
+    with one of ``titles`` when given). With ``source`` (the JSON file's path from the repository's
+    root) the machine line ends with, and each table follows, a citation of that file."""
+    cite = f"<!-- from: {source} -->" if source else ""
     m = payload["machine_info"]
     recorded = payload.get("recorded", {})
     head = (f"Measured by `{recorded.get('command', 'jaxtalk bench')}` on {recorded.get('date_utc', '?')}: "
@@ -54,13 +58,13 @@ def performance_section(payload: dict[str, Any], titles: tuple[str, ...] = ()) -
             f"jax {m['jax']}, 1-minute load average {m['load_avg_1m']}; float32 matmul peak measured in the same "
             f"run: {payload['matmul_peak_gflop_s']:.0f} GFLOP/s"
             + (f", memory bandwidth {payload['memory_bandwidth_gb_s']:.1f} GB/s."
-               if payload.get("memory_bandwidth_gb_s") else "."))
+               if payload.get("memory_bandwidth_gb_s") else ".") + cite)
     parts = [head]
     for table in payload["tables"]:
         if titles and not table["title"].startswith(titles):
             continue
         columns = TRAIN_COLUMNS if table["title"].startswith("Training") else SAMPLE_COLUMNS
-        parts += [f"**{table['title']}**", markdown_table(table["rows"], columns)]
+        parts += [f"**{table['title']}**", (cite + "\n" if cite else "") + markdown_table(table["rows"], columns)]
     return "\n\n".join(parts) + "\n"
 
 
@@ -70,7 +74,8 @@ def main() -> None:
     parser.add_argument("--titles", nargs="*", default=(), help="only the tables whose titles start with these")
     args = parser.parse_args()
     titles = tuple(args.titles)
-    print("\n".join(performance_section(json.loads(path.read_text()), titles) for path in args.json), end="")
+    print("\n".join(performance_section(json.loads(path.read_text()), titles, source=path.as_posix())
+                    for path in args.json), end="")
 
 
 if __name__ == "__main__":

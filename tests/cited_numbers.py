@@ -12,11 +12,13 @@ A page cites its source with an HTML comment (invisible once rendered):
 * A comment alone on its line cites the block that follows it (the lines up to the next blank line):
   every number of the block is a value of the file, except a table's header row and its first column
   (the labels of the rows). ``<!-- from: FILE; columns 4-5 -->`` checks only those columns (1-based) of
-  the table, where other columns hold settings rather than results.
+  the table, where other columns hold settings rather than results; ``columns 3, 5-6`` skips column 4
+  (a column derived from the others, which no file holds).
 
 Several files may be named, separated by commas; a folder names every result file under it. A printed
 number (``282k`` and ``225M`` read as thousands and millions) matches a value ``v`` when ``v``,
-``100 v`` (a percentage) or ``1000 v`` (milli-units) rounds to it. Numbers inside code spans, fenced
+``100 v`` (a percentage), ``1000 v`` (a file in base units, the page in milli-units: seconds printed as
+ms) or ``v / 1000`` (a file in milli-units, the page in base units: ms printed as seconds) rounds to it. Numbers inside code spans, fenced
 blocks, link targets and words (``wav2vec2``, ``v1``) are not figures and are not checked.
 """
 
@@ -30,7 +32,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 MARKER = re.compile(r"<!--\s*from:\s*(?P<files>[^#;>]+?)\s*(?:#(?P<key>[^;>]*?))?\s*"
-                    r"(?:;\s*columns\s+(?P<first>\d+)(?:-(?P<last>\d+))?\s*)?-->")
+                    r"(?:;\s*columns\s+(?P<columns>\d+(?:-\d+)?(?:\s*,\s*\d+(?:-\d+)?)*)\s*)?-->")
 NUMBER = re.compile(r"(?<![\w.^])(?P<int>\d{1,3}(?:,\d{3})+(?!\d)|\d+)(?P<frac>\.\d+)?(?:e(?P<exp>[-+\u2212]?\d+))?"
                     r"(?P<suffix>[kM](?!\w))?(?![\w.]\w)")
 # A minus sign: a hyphen or U+2212 right before the digits, not after a word or number (``53-98`` is a range).
@@ -39,8 +41,8 @@ FENCE = re.compile(r"^(```|~~~).*?^\1[^\n]*$", flags=re.S | re.M)
 INLINE_CODE = re.compile(r"`[^`\n]*`")
 LINK_TARGET = re.compile(r"\]\([^)]*\)")
 RESULT_SUFFIXES = (".json", ".jsonl", ".csv", ".txt", ".md")
-# The scales a value may be printed at: as is, as a percentage, in milli-units.
-SCALES = (1.0, 100.0, 1000.0)
+# The scales a value may be printed at: as is, as a percentage, in milli-units, from milli-units.
+SCALES = (1.0, 100.0, 1000.0, 0.001)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +134,18 @@ def _table_cells(line: str) -> list[str]:
     return [c for c in line.strip().strip("|").split("|")]
 
 
+def _columns(spec: str | None) -> list[tuple[int, int]]:
+    """The 1-based, inclusive column ranges of a ``columns`` spec (``4``, ``4-5``, ``3, 5-6``); all but the
+    first column (the row labels) when there is none."""
+    if spec is None:
+        return [(2, 10**6)]
+    ranges = []
+    for part in spec.split(","):
+        first, _, last = part.strip().partition("-")
+        ranges.append((int(first), int(last or first)))
+    return ranges
+
+
 def check_page(page: Path, root: Path) -> list[str]:
     """The citations of ``page`` that do not hold, one line each (empty when all hold)."""
     problems: list[str] = []
@@ -172,9 +186,9 @@ def check_page(page: Path, root: Path) -> list[str]:
                         block.append(following)
                     if block and block[0].lstrip().startswith("|"):
                         rows = [r for r in block[1:] if not re.fullmatch(r"\s*\|?[\s:|-]+\|?\s*", r)]
-                        first = int(marker.group("first") or 2)
-                        last = int(marker.group("last") or marker.group("first") or 10**6)
-                        cited = [" ".join(_table_cells(r)[first - 1:last]) for r in rows]
+                        ranges = _columns(marker.group("columns"))
+                        cited = [" ".join(c for first, last in ranges for c in _table_cells(r)[first - 1:last])
+                                 for r in rows]
                     else:
                         cited = block
                 else:
