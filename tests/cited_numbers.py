@@ -17,9 +17,10 @@ A page cites its source with an HTML comment (invisible once rendered):
 
 Several files may be named, separated by commas; a folder names every result file under it. A printed
 number (``282k`` and ``225M`` read as thousands and millions) matches a value ``v`` when ``v``,
-``100 v`` (a percentage), ``1000 v`` (a file in base units, the page in milli-units: seconds printed as
-ms) or ``v / 1000`` (a file in milli-units, the page in base units: ms printed as seconds) rounds to it. Numbers inside code spans, fenced
-blocks, link targets and words (``wav2vec2``, ``v1``) are not figures and are not checked.
+``100 v`` (a percentage), ``1000 v`` (a file in base units, the page in milli-units: seconds printed
+as ms) or ``v / 1000`` (a file in milli-units, the page in base units: ms printed as seconds) rounds to
+it. Numbers inside code spans, fenced blocks, link targets and words (``wav2vec2``, ``v1``) are not
+figures and are not checked.
 """
 
 from __future__ import annotations
