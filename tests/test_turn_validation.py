@@ -83,3 +83,34 @@ def test_recipe_records_conversation_metrics_and_keeps_the_best_checkpoint_by_fd
     record = read_best(tmp_path / "run" / "checkpoint")
     assert record["metric"] == SELECTION_METRIC
     assert record["value"] == pytest.approx(min(h["eval"][SELECTION_METRIC] for h in evals))
+
+
+def test_public_scoring_cuts_to_the_whole_seconds_predicted_and_jaxtalk_scoring_repeats_the_tail():
+    from jaxtalk.data.batching import fit_length
+    from jaxtalk.metrics import conversation_metrics
+    from jaxtalk.metrics.evaluation import EvalSettings
+    from jaxtalk.models.turns.training import _scored_tables
+    from jaxtalk.models.turns.windows import Normalizer
+
+    rng = np.random.default_rng(0)
+    pred = rng.normal(size=(50, 56)).astype(np.float32)  # two whole 25-frame turns
+    truth = rng.normal(size=(62, 56)).astype(np.float32)  # the side runs 12 frames past them
+    partner = rng.normal(size=(62, 56)).astype(np.float32)
+    norm = Normalizer(np.zeros(8, np.float32), np.ones(8, np.float32), np.zeros(56, np.float32), np.ones(56, np.float32))
+    notes = []
+
+    def fd_exp(scoring):
+        (table, *_) = _scored_tables(scoring, "model", [pred], [truth], [partner], [None], norm, notes.append,
+                                     "t", named=True)
+        assert scoring in table.title
+        return table.rows[0]["FD"], table.rows[0]["frames"]
+
+    public, public_frames = fd_exp("public")
+    ours, our_frames = fd_exp("jaxtalk")
+    cut = conversation_metrics([pred], [truth[:50]], [partner[:50]], scaled=True, sid_convention="fit_gt")
+    padded = conversation_metrics([fit_length(pred, 62)], [truth], [partner], scaled=True, sid_convention="fit_gt")
+    assert (public, public_frames) == (pytest.approx(cut["FD_exp"]), 50)
+    assert (ours, our_frames) == (pytest.approx(padded["FD_exp"]), 62)
+    assert abs(public - ours) > 1e-3
+    with pytest.raises(ValueError, match="scoring must name"):
+        EvalSettings(scoring=("calc_metric",))

@@ -19,7 +19,15 @@ from typing import Any
 import numpy as np
 
 __all__ = ["EvalSettings", "EvalTable", "EvalProtocol", "vertex_metrics", "average_metrics", "method_rows",
-           "flame_face"]
+           "flame_face", "SCORINGS"]
+
+
+# How a turn model's conversation sides are scored (:attr:`EvalSettings.scoring`), with the words the
+# tables' titles use for each.
+SCORINGS: dict[str, str] = {
+    "jaxtalk": "whole sides, the tail after the last whole turn repeating it",
+    "public": "as the public calc_metric.py: whole seconds, cut to the shortest",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,6 +42,11 @@ class EvalSettings:
         offline: TokTalk: also sample each clip offline in one pass (full attention), per step count.
         temperature: scale of the sampler's noise (TokTalk: the starting noise, None: the config's;
             TIMAR: MAR's temperature, None: 1).
+        scoring: TIMAR and the DualTalk baseline: how each conversation side is scored, one set of
+            tables per entry of :data:`SCORINGS`: ``"jaxtalk"`` scores the agent's whole side (the
+            frames after the last whole turn repeat its prediction); ``"public"`` as the public TIMAR
+            code's ``calc_metric.py``: the prediction's whole seconds only, prediction, truth and
+            partner cut to the shortest.
     """
 
     max_clips: int = 8
@@ -42,6 +55,12 @@ class EvalSettings:
     sample_steps: tuple[int, ...] = ()
     offline: bool = False
     temperature: float | None = None
+    scoring: tuple[str, ...] = ("jaxtalk",)
+
+    def __post_init__(self) -> None:
+        unknown = [s for s in self.scoring if s not in SCORINGS]
+        if unknown or not self.scoring:
+            raise ValueError(f"scoring must name one or more of {', '.join(SCORINGS)}, got {self.scoring!r}")
 
 
 @dataclasses.dataclass

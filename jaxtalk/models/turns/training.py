@@ -20,7 +20,7 @@ from jaxtalk.data.batching import fit_length
 from jaxtalk.models.turns.windows import Normalizer, TurnWindows, agent_sides, make_windows, side_streams
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
-from jaxtalk.metrics.evaluation import EvalSettings, EvalTable
+from jaxtalk.metrics.evaluation import SCORINGS, EvalSettings, EvalTable
 from jaxtalk.runs import RunInfo
 from jaxtalk.train.optim import OptimConfig
 from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, host_copy, spread
@@ -213,30 +213,52 @@ def evaluate_sides(run: Any, data: PreparedData, split: str, opts: EvalSettings,
         still_partners += side.still_partner
         padded_frames += side.padded_frames
         out = predict(side.streams, jax.random.fold_in(key, n), context)
-        total = side.truth.shape[0]
-        preds.append(fit_length(norm.unmotion(np.asarray(out)[0]), total))
+        preds.append(norm.unmotion(np.asarray(out)[0]))  # the whole turns predicted
         gts.append(side.truth)
         partners.append(side.partner)
         oracles.append(side.oracle)
     if not preds:
         raise ValueError(f"split {split!r} of {data.root} has no conversation side of a whole {f}-frame turn")
-    if padded_frames:
+    if padded_frames and "jaxtalk" in opts.scoring:
         echo(f"note: {padded_frames} frames after the sides' last whole {f}-frame turns repeat the last prediction "
              "(TIMAR's protocol)")
     if still_partners:
         echo(f"note: {still_partners} of {len(preds)} partners have no tracked motion; P-FD and rPCC use the run's "
              "still pose for them (as training did)")
-    with_sid = min(g.shape[0] for g in gts) >= max(SID_CLUSTERS.values())
+    tables = []
+    for scoring in opts.scoring:
+        tables += _scored_tables(scoring, label, preds, gts, partners, oracles, norm, echo,
+                                 f"{title} on {split} ({data.root.name})", named=len(opts.scoring) > 1)
+    return len(gts), tables
+
+
+def _scored_tables(scoring: str, label: str, preds: list[np.ndarray], gts: list[np.ndarray],
+                   partners: list[np.ndarray], oracles: list[Any], norm: Normalizer, echo: Callable[[str], None],
+                   title: str, *, named: bool) -> list[EvalTable]:
+    """The tables of one :data:`~jaxtalk.metrics.evaluation.SCORINGS` entry: ``jaxtalk`` scores each
+    agent's whole side (the prediction's tail repeats its last whole turn); ``public`` cuts prediction,
+    truth and partner to the shortest, as the public ``calc_metric.py`` does with predictions of whole
+    seconds."""
+    public = scoring == "public"
+    if public:
+        scored = [min(p.shape[0], g.shape[0], q.shape[0]) for p, g, q in zip(preds, gts, partners)]
+        fitted = list(preds)
+    else:
+        scored = [g.shape[0] for g in gts]
+        fitted = [fit_length(p, g.shape[0]) for p, g in zip(preds, gts)]
+    with_sid = min(scored) >= max(SID_CLUSTERS.values())
     if not with_sid:
         echo(f"note: a side is shorter than {max(SID_CLUSTERS.values())} frames: SID left out")
-    methods = {label: preds, "mean pose": [np.broadcast_to(norm.motion_mean, g.shape).astype(np.float32)
-                                                        for g in gts]}
+    methods = {label: fitted, "mean pose": [np.broadcast_to(norm.motion_mean, g.shape).astype(np.float32)
+                                             for g in gts]}
     if all(o is not None for o in oracles):
         methods["oracle"] = oracles
-    scores = {name: conversation_metrics(list(p), gts, partners, scaled=True,
+    if public:  # every method on the frames the prediction covers
+        methods = {name: [m[:n] for m, n in zip(arrays, scored)] for name, arrays in methods.items()}
+    scores = {name: conversation_metrics(list(p), gts, partners, scaled=True, truncate=public,
                                          sid_convention="fit_gt" if with_sid else None)
               for name, p in methods.items()}
-    frames = int(sum(g.shape[0] for g in gts))
+    frames = int(sum(scored))
     tables = []
     for group in CONVERSATION_GROUPS:
         rows = []
@@ -247,6 +269,6 @@ def evaluate_sides(run: Any, data: PreparedData, split: str, opts: EvalSettings,
             rows.append(row)
         scaling = ", ".join(f"{col} x{PUBLISHED_SCALE[f'{col}_{group}']:g}" for col in _GROUP_COLUMNS
                             if f"{col}_{group}" in PUBLISHED_SCALE)
-        tables.append(EvalTable(f"{title} on {split} ({data.root.name}), {group}"
-                                f"{' (' + scaling + ')' if scaling else ''}", rows))
-    return len(gts), tables
+        how = f" [{scoring} scoring: {SCORINGS[scoring]}]" if named or public else ""
+        tables.append(EvalTable(f"{title}, {group}{' (' + scaling + ')' if scaling else ''}{how}", rows))
+    return tables
