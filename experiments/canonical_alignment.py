@@ -11,13 +11,17 @@ face, whose best fit must stay above the limit (``_MAX_FIT_M``).
 Also the floor of the semantic error: the similarity fitted to the seven semantic points themselves
 (the faces differ there, so no alignment of the whole face gets below it).
 
-Usage: python experiments/canonical_alignment.py [--units mm cm m] [--seed 0]
+Prints both tables and writes them to ``--out`` (default
+``experiments/results/alignment/canonical.json``).
+
+Usage: python experiments/canonical_alignment.py [--units mm cm m] [--seed 0] [--out PATH]
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -56,7 +60,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--units", nargs="+", default=["mm", "cm", "m"], choices=list(cn.UNITS))
     parser.add_argument("--seed", type=int, default=0, help="seed of the random poses")
+    parser.add_argument("--out", type=Path, default=Path("experiments/results/alignment/canonical.json"))
     args = parser.parse_args()
+    from jaxtalk.benchmarking import write_json
     from jaxtalk.face import builtin_face
     from jaxtalk.models.freetalk.data import neutral_landmarks
 
@@ -65,6 +71,7 @@ def main() -> None:
     print("| shape | vertices | units | aligned | units found | reference | scale | residual (mm) | max / mean error (mm) "
           "| floor max / mean (mm) | seconds |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
+    faces, no_faces = [], []
     for k, shape in enumerate(_shapes()):
         s, rot, t = cn.umeyama(shape.points, points, scale=True)
         floor = np.linalg.norm(s * shape.points @ rot.T + t - points, axis=1) * 1000
@@ -75,12 +82,19 @@ def main() -> None:
                 c = cn.canonicalize(vertices / cn.UNITS[unit], shape.faces, tv, tf, template_landmarks=landmarks)
             except ValueError as err:
                 print(f"| {shape.name} | {len(shape.vertices)} | {unit} | no: {err} | | | | | | | |")
+                faces.append({"shape": shape.name, "vertices": len(shape.vertices), "units": unit, "aligned": False,
+                              "error": str(err)})
                 continue
             seconds = time.perf_counter() - t0
             error = np.linalg.norm(c.to_template(semantic / cn.UNITS[unit]) - points, axis=1) * 1000
             print(f"| {shape.name} | {len(shape.vertices)} | {unit} | yes | {c.units} | {c.reference} | {c.fitted_scale:.3f} "
                   f"| {c.residual * 1000:.1f} | {error.max():.1f} / {error.mean():.1f} | {floor.max():.1f} / {floor.mean():.1f} "
                   f"| {seconds:.1f} |", flush=True)
+            faces.append({"shape": shape.name, "vertices": len(shape.vertices), "units": unit, "aligned": True,
+                          "units_found": c.units, "reference": c.reference, "scale": float(c.fitted_scale),
+                          "residual_mm": float(c.residual * 1000), "max_error_mm": float(error.max()),
+                          "mean_error_mm": float(error.mean()), "floor_max_mm": float(floor.max()),
+                          "floor_mean_mm": float(floor.mean()), "seconds": seconds})
     print("\n| no face | best fit (mm; limit %.0f) | refused |" % (cn._MAX_FIT_M * 1000))
     print("|---|---|---|")
     references = [cn._face(tv, tf), cn._face(*cn.reference_face())]
@@ -93,6 +107,10 @@ def main() -> None:
         except ValueError as err:
             refused = "yes: " + str(err).split(":")[0]
         print(f"| {name} | {min(fits) * 1000:.1f} | {refused} |", flush=True)
+        no_faces.append({"shape": name, "best_fit_mm": min(fits) * 1000, "refused": refused != "no",
+                         "message": refused})
+    write_json(args.out, {"seed": args.seed, "limit_mm": cn._MAX_FIT_M * 1000, "faces": faces, "no_faces": no_faces})
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
