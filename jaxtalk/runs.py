@@ -104,6 +104,9 @@ class ModelSpec:
         windows: how the recipe cuts windows when their length is not a setting (None: the
             ``window_frames`` setting applies).
         style_asset: the run keeps a default style clip (a training clip) for sampling.
+        family: the system the model is one part of, where one name stands for several models (``freetalk``:
+            ATS and STM, which ``jaxtalk bench --model freetalk`` times together); None for a model that
+            stands alone.
     """
 
     name: str
@@ -122,6 +125,7 @@ class ModelSpec:
     data_fields: tuple[tuple[str, str], ...] = ()
     windows: str | None = None
     style_asset: bool = False
+    family: str | None = None
 
     def settings(self, preset: str = "small") -> Any:
         """The recipe's default :class:`~jaxtalk.train.recipes.TrainSettings` for a config preset."""

@@ -24,6 +24,7 @@ ATS = ModelSpec(
     sample=ats.sample,
     evaluate=evaluate_ats,
     data_fields=(("speech_dim", "speech_dim"),),
+    family="freetalk",
 )
 
 STM = ModelSpec(
@@ -36,4 +37,5 @@ STM = ModelSpec(
     defaults=DEFAULTS,
     preset_defaults=dict(STM_PRESET_DEFAULTS),
     evaluate=evaluate_stm,
+    family="freetalk",
 )
