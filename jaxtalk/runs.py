@@ -107,6 +107,16 @@ class ModelSpec:
         family: the system the model is one part of, where one name stands for several models (``freetalk``:
             ATS and STM, which ``jaxtalk bench --model freetalk`` times together); None for a model that
             stands alone.
+        reads: what the model reads, in words, for messages (``audio tokens (...)``, ``landmarks``,
+            ``speech features``).
+        voice_validation: for a model whose training validation can also stream real recordings
+            (``jaxtalk train --real-voice FOLDER``, and ``--select`` of the metric its best checkpoint is
+            chosen by): ``(folder, recordings, select, echo)``, called before anything is opened with the
+            recordings read (None: no ``--real-voice``), checks ``select`` and says what each evaluation will
+            stream; its ``train`` then takes ``real_voice=`` and ``select=``. None: the model takes neither
+            option.
+        fine_tune_refusal: why ``jaxtalk train --init RUN`` cannot fine-tune the model (what its recipe fits
+            on the new data that the starting weights were not trained with), or None when it can.
     """
 
     name: str
@@ -126,6 +136,9 @@ class ModelSpec:
     windows: str | None = None
     style_asset: bool = False
     family: str | None = None
+    reads: str = "speech features"
+    voice_validation: Callable[..., Any] | None = None
+    fine_tune_refusal: str | None = None
 
     def settings(self, preset: str = "small") -> Any:
         """The recipe's default :class:`~jaxtalk.train.recipes.TrainSettings` for a config preset."""

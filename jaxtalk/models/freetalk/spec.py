@@ -25,6 +25,8 @@ ATS = ModelSpec(
     evaluate=evaluate_ats,
     data_fields=(("speech_dim", "speech_dim"),),
     family="freetalk",
+    fine_tune_refusal="its recipe standardises the displacements with statistics of the new data, which the "
+                      "starting weights were not trained with",
 )
 
 STM = ModelSpec(
@@ -38,4 +40,5 @@ STM = ModelSpec(
     preset_defaults=dict(STM_PRESET_DEFAULTS),
     evaluate=evaluate_stm,
     family="freetalk",
+    reads="landmarks",
 )

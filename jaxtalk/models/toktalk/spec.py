@@ -10,6 +10,7 @@ from jaxtalk.models.toktalk.model import init_params
 from jaxtalk.models.toktalk.recipe import DEFAULTS, train
 from jaxtalk.models.toktalk.sampling import sample
 from jaxtalk.models.toktalk.streaming import init_stream, stream, stream_step
+from jaxtalk.models.toktalk.validation import plan_voice_validation
 from jaxtalk.runs import ModelSpec, Streamer
 
 __all__ = ["SPEC"]
@@ -29,4 +30,6 @@ SPEC = ModelSpec(
     live=live_model,
     data_fields=(("speech_dim", "token_dim"), ("token_rate", "token_rate")),
     style_asset=True,
+    reads="audio tokens (the clips' own, or a VQ tokenizer's of the log-mel)",
+    voice_validation=plan_voice_validation,
 )
