@@ -81,6 +81,7 @@ class ModelSpec:
 
     Attributes:
         name: the model's name in ``run.json`` and on the command line.
+        title: its name in prose: messages and table titles (``TokTalk``, ``TIMAR``).
         config_class: its frozen config dataclass.
         presets: the config presets (classmethods of ``config_class``: ``paper``, ``small``, ...).
         init_params: ``(config, key) -> params``.
@@ -96,6 +97,10 @@ class ModelSpec:
         streamer: the streaming engine, or None.
         evaluate: the model's evaluation protocol (``jaxtalk eval``): ``evaluate(run, data, split, settings,
             echo) -> (items scored, tables)`` (:data:`jaxtalk.metrics.evaluation.EvalProtocol`).
+        eval_options: the ``jaxtalk eval`` options that mean something for the model beyond ``--max-clips``
+            and ``--seed`` (TokTalk's ``--flame``, ``--sample-steps``, ``--offline``; ``--temperature`` of
+            the models with sampler noise): ``--flame`` and ``--temperature`` are refused for the others, as
+            ``--sample-steps`` is with ``--real-voice``.
         live: makes a live model from a loaded run (``live(run, style=..., cfg_scale=...,
             sample_steps=...)``: ``open(key)`` streams, ``push(audio)`` returns frames), for models that
             animate speech as it arrives (``jaxtalk stream`` and ``jaxtalk serve``); None for the others.
@@ -120,6 +125,7 @@ class ModelSpec:
     """
 
     name: str
+    title: str
     config_class: type
     presets: tuple[str, ...]
     init_params: Callable[..., Any]
@@ -131,6 +137,7 @@ class ModelSpec:
     guided: bool = False
     streamer: Streamer | None = None
     evaluate: Callable[..., Any] | None = None
+    eval_options: tuple[str, ...] = ()
     live: Callable[..., Any] | None = None
     data_fields: tuple[tuple[str, str], ...] = ()
     windows: str | None = None

@@ -175,19 +175,29 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
     where = f"{data.root} (prepared from {m['source']['spec']})"
     if m.get("stats") is None:
         raise ValueError(f"{where} has no training split with motion; prepare it from data with 56-d motion")
-    if record.model == "toktalk":
+    spec = model_spec(record.model)
+    wanted = {key: cfg[field] for field, key in spec.data_fields}
+    if "token_dim" in wanted:  # a model that reads audio tokens: their width and rate
+        width, rate = wanted["token_dim"], wanted["token_rate"]
         if not m.get("token_dim"):
-            raise ValueError(f"{where} has no token stream, the TokTalk run needs tokens of width {cfg['speech_dim']}")
-        if m["token_dim"] != cfg["speech_dim"] or float(m["token_rate"]) != float(cfg["token_rate"]):
+            raise ValueError(f"{where} has no token stream, the {spec.title} run needs tokens of width {width}")
+        if m["token_dim"] != width or float(m["token_rate"]) != float(rate):
             raise ValueError(f"{where} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz, the run was "
-                             f"trained on width {cfg['speech_dim']} at {cfg['token_rate']:g} Hz")
+                             f"trained on width {width} at {rate:g} Hz")
         return
-    for field, key in model_spec(record.model).data_fields:  # the speech feature width of TIMAR, DualTalk, ATS
-        width = cfg[field]
+    for key, width in wanted.items():  # a model that reads speech features: their front end and width
         if m["settings"]["audio"] != features.get("audio") or m.get(key) != width:
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
                              f"--features {features.get('audio')}")
+
+
+def _owners(option: str) -> str:
+    """The models whose evaluation reads ``option`` (:attr:`~jaxtalk.runs.ModelSpec.eval_options`), possessive
+    (``TokTalk's and TIMAR's``)."""
+    from jaxtalk.runs import REGISTRY
+
+    return " and ".join(f"{spec.title}'s" for spec in REGISTRY.values() if option in spec.eval_options)
 
 
 # ------------------------------------------------------------------------------------- real voices
@@ -267,7 +277,8 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
             prepared data, a bad folder or recording (:func:`jaxtalk.data.recordings.read_recordings`).
     """
     record = RunRecord.load(opts.run_dir)
-    protocol = model_spec(record.model).evaluate
+    spec = model_spec(record.model)
+    protocol = spec.evaluate
     if protocol is None:
         raise ValueError(f"{opts.run_dir} is a {record.model!r} run, which has no evaluation protocol")
     if opts.max_clips < 1:
@@ -282,16 +293,16 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
         if given:
             raise ValueError(f"{', '.join(given)}: not with --real-voice, which measures the recordings of "
                              f"{opts.real_voice}, not prepared data")
-        if opts.sample_steps and record.model != "toktalk":
+        if opts.sample_steps and "--sample-steps" not in spec.eval_options:
             raise ValueError("--sample-steps gives TokTalk one table per step count; a timar run streams with its own")
     if opts.flame is not None:
-        if record.model != "toktalk":
+        if "--flame" not in spec.eval_options:
             raise ValueError(f"--flame poses TokTalk's parameters on FLAME; {opts.run_dir} is a {record.model} run")
         if not Path(opts.flame).is_file():
             raise FileNotFoundError(f"FLAME model file not found: {str(opts.flame)!r}")
     if opts.temperature is not None:
-        if record.model not in ("toktalk", "timar"):
-            raise ValueError(f"--temperature scales TokTalk's and TIMAR's sampler noise; {opts.run_dir} is a "
+        if "--temperature" not in spec.eval_options:
+            raise ValueError(f"--temperature scales {_owners('--temperature')} sampler noise; {opts.run_dir} is a "
                              f"{record.model} run")
         check_temperature(opts.temperature, name="--temperature")
     from jaxtalk.train import latest_checkpoint_step

@@ -14,6 +14,7 @@ __all__ = ["SPEC"]
 
 SPEC = ModelSpec(
     name="dualtalk",
+    title="DualTalk baseline",
     config_class=DualTalkConfig,
     presets=("paper", "small"),
     init_params=init_params,

@@ -14,6 +14,7 @@ __all__ = ["ATS", "STM"]
 
 ATS = ModelSpec(
     name="ats",
+    title="FreeTalk ATS",
     config_class=ATSConfig,
     presets=("paper", "small"),
     init_params=ats.init_params,
@@ -31,6 +32,7 @@ ATS = ModelSpec(
 
 STM = ModelSpec(
     name="stm",
+    title="FreeTalk STM",
     config_class=STMConfig,
     presets=("paper", "small"),
     init_params=stm.init_params,

@@ -15,6 +15,7 @@ __all__ = ["SPEC"]
 
 SPEC = ModelSpec(
     name="timar",
+    title="TIMAR",
     config_class=TimarConfig,
     presets=("paper", "small", "reference"),
     init_params=init_params,
@@ -26,6 +27,7 @@ SPEC = ModelSpec(
     guided=True,
     streamer=Streamer(init_stream, stream_step, stream),
     evaluate=evaluate,
+    eval_options=("--temperature",),
     data_fields=(("speech_dim", "turn_speech_dim"),),
     windows="whole turns (max_turns)",
 )

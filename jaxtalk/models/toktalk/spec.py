@@ -17,6 +17,7 @@ __all__ = ["SPEC"]
 
 SPEC = ModelSpec(
     name="toktalk",
+    title="TokTalk",
     config_class=TokTalkConfig,
     presets=("paper", "small", "tiny"),
     init_params=init_params,
@@ -27,6 +28,7 @@ SPEC = ModelSpec(
     guided=True,
     streamer=Streamer(init_stream, stream_step, stream),
     evaluate=evaluate,
+    eval_options=("--flame", "--sample-steps", "--offline", "--temperature"),
     live=live_model,
     data_fields=(("speech_dim", "token_dim"), ("token_rate", "token_rate")),
     style_asset=True,
