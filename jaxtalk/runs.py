@@ -32,6 +32,8 @@ __all__ = [
     "CONFIG_FILE",
     "ModelSpec",
     "Streamer",
+    "SpeechAnimator",
+    "SpeechConditions",
     "SPEC_PATHS",
     "RunInfo",
     "RunRecord",
@@ -73,6 +75,66 @@ class Streamer:
 
 
 @dataclasses.dataclass(frozen=True)
+class SpeechConditions:
+    """What ``jaxtalk sample`` and ``jaxtalk stream`` hand a :class:`SpeechAnimator` besides the speech, read
+    from their options (None: the model's own default). A model reads those of its
+    :attr:`SpeechAnimator.options`; the commands refuse the others.
+
+    Attributes:
+        style: ``(S, 56)`` reference motion (``--style``); None: the run's default style clip.
+        style_file: the file ``style`` was read from, named in messages.
+        partner: the partner's 16-kHz speech (``--partner``); None: a silent partner.
+        cfg_scale: guidance weight.
+        sample_steps: sampler steps.
+        temperature: scale of the sampler's noise.
+        seed: noise seed.
+    """
+
+    style: Any = None
+    style_file: str | None = None
+    partner: Any = None
+    cfg_scale: float | None = None
+    sample_steps: int | None = None
+    temperature: float | None = None
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class SpeechAnimator:
+    """How ``jaxtalk sample`` and ``jaxtalk stream`` animate speech with a loaded run of a model, and
+    ``jaxtalk eval --real-voice`` streams recordings through it; each model builds its own from its
+    ``inference`` module, and the commands only open the files, call it and print.
+
+    Attributes:
+        options: the options of ``sample`` and ``stream`` the model reads besides ``--sample-steps`` and
+            ``--seed`` (of ``--style``, ``--partner``, ``--cfg-scale``, ``--temperature``); another one given
+            is refused rather than ignored.
+        other_inputs: ``(suffix, what such a file holds)`` for each kind of input file the model takes
+            besides audio (TokTalk: ``.npy`` token embeddings).
+        read: ``(run, path) -> speech``: an input file as the model takes it (an audio file's 16-kHz
+            waveform, one-dimensional; TokTalk's ``.npy``: ``(tokens, width)`` embeddings), refused before
+            it is read when the run cannot animate it, and after when it is too short to animate.
+        sample: ``(run, speech, conditions) -> (params (T, 56), the audio animated or None)``: offline.
+        stream: ``(run, speech, conditions, on_chunk, echo) -> (params (T, 56), the audio animated or None,
+            seconds per chunk)``: chunk by chunk (a TIMAR turn) as a live stream would, calling
+            ``on_chunk(chunks, seconds, chunk_s, count=1)`` with each chunk's wall time (``count``: the last
+            chunks at once) and ``echo`` with notes.
+        step_frames: ``(config) -> frames`` the model animates at a time at the least: a stream animates
+            whole steps of its audio (a TIMAR turn; TokTalk: 1).
+        rest_note: ``(run) -> words`` on where the run's jaw should rest in silence, added to the
+            real-voice tables' titles (TokTalk: its style clip's rest), or None.
+    """
+
+    options: tuple[str, ...]
+    read: Callable[..., Any]
+    sample: Callable[..., Any]
+    stream: Callable[..., Any]
+    step_frames: Callable[[Any], int]
+    other_inputs: tuple[tuple[str, str], ...] = ()
+    rest_note: Callable[[Any], str] | None = None
+
+
+@dataclasses.dataclass(frozen=True)
 class ModelSpec:
     """The interface of one model: what the run format, the commands and the experiments call.
 
@@ -101,6 +163,13 @@ class ModelSpec:
             and ``--seed`` (TokTalk's ``--flame``, ``--sample-steps``, ``--offline``; ``--temperature`` of
             the models with sampler noise): ``--flame`` and ``--temperature`` are refused for the others, as
             ``--sample-steps`` is with ``--real-voice``.
+        animator: how ``jaxtalk sample`` and ``jaxtalk stream`` animate speech with the model's runs (and
+            ``jaxtalk eval --real-voice`` streams recordings through them), or None for a model whose runs
+            they refuse.
+        sample_refusal: for a model without an ``animator``: what ``sample`` and ``stream`` say when given
+            one of its runs, and how its runs are used instead (``{run}``: the run folder).
+        animates_user_meshes: ``jaxtalk sample RUN AUDIO --stm RUN_STM --mesh FILE`` takes the model's runs:
+            its output drives a user's mesh through an STM run (ATS).
         live: makes a live model from a loaded run (``live(run, style=..., cfg_scale=...,
             sample_steps=...)``: ``open(key)`` streams, ``push(audio)`` returns frames), for models that
             animate speech as it arrives (``jaxtalk stream`` and ``jaxtalk serve``); None for the others.
@@ -138,6 +207,9 @@ class ModelSpec:
     streamer: Streamer | None = None
     evaluate: Callable[..., Any] | None = None
     eval_options: tuple[str, ...] = ()
+    animator: SpeechAnimator | None = None
+    sample_refusal: str | None = None
+    animates_user_meshes: bool = False
     live: Callable[..., Any] | None = None
     data_fields: tuple[tuple[str, str], ...] = ()
     windows: str | None = None

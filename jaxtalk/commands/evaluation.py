@@ -192,40 +192,31 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
                              f"--features {features.get('audio')}")
 
 
-def _owners(option: str) -> str:
-    """The models whose evaluation reads ``option`` (:attr:`~jaxtalk.runs.ModelSpec.eval_options`), possessive
-    (``TokTalk's and TIMAR's``)."""
+def _models_where(has: Callable[[Any], bool], *, words: Callable[[Any], str] = lambda spec: spec.name) -> str:
+    """The models whose spec ``has`` something, in ``words`` (``toktalk and timar``)."""
     from jaxtalk.runs import REGISTRY
 
-    return " and ".join(f"{spec.title}'s" for spec in REGISTRY.values() if option in spec.eval_options)
+    return " and ".join(words(spec) for spec in REGISTRY.values() if has(spec))
 
 
 # ------------------------------------------------------------------------------------- real voices
 
 # Seconds of digital silence streamed for the rest jaw (a TIMAR run: whole turns, at least this long).
 REST_SECONDS = 3.0
-_REAL_VOICE_MODELS = ("toktalk", "timar")
-
-
-def _turn_frames(record: RunRecord) -> int:
-    """Frames a run animates at a time at the least: a TIMAR turn, else one frame."""
-    return int(record.config["frames_per_turn"]) if record.model == "timar" else 1
 
 
 def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOptions,
                       echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
     from jaxtalk.commands.inference import SampleOptions, stream_audio
     from jaxtalk.data.recordings import mean_row, recording_sync, sync_row
-    from jaxtalk.layout import JAW_OPEN_INDEX
-    from jaxtalk.metrics.speech_sync import style_rest_jaw
     from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
-    model, turn = run.record.model, _turn_frames(run.record)
+    spec = model_spec(run.record.model)
+    title, turn = spec.title, spec.animator.step_frames(run.config)
     if len(recordings) > opts.max_clips:
         echo(f"note: the first {opts.max_clips} of {len(recordings)} recordings (--max-clips)")
         recordings = recordings[: opts.max_clips]
     tracked = sum(r.tracked_jaw is not None for r in recordings)
-    title = "TokTalk" if model == "toktalk" else "TIMAR"
     echo(f"streaming {len(recordings)} recordings of {opts.real_voice} ({tracked} with tracked motion) with "
          f"{title} (step {run.step})")
     rest_frames = -(-int(REST_SECONDS * MOTION_FPS) // turn) * turn
@@ -233,10 +224,7 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
     silent = Recording(f"digital silence ({silence.shape[0] / AUDIO_SAMPLE_RATE:g} s)", Path(opts.real_voice),
                        silence, None, None)
     quiet = lambda line: None  # noqa: E731  (per-chunk times: `jaxtalk stream` prints them)
-    style_note = ""
-    if model == "toktalk":  # streamed in the run's default style: where its mouth rests is the target in silence
-        style_rest = style_rest_jaw(np.asarray(run.default_style())[:, JAW_OPEN_INDEX])
-        style_note = f"; the style clip rests at {style_rest:.3f} rad"
+    rest_note = "" if spec.animator.rest_note is None else f"; {spec.animator.rest_note(run)}"
 
     variants = [(n, f", {n} step{'s' * (n > 1)}") for n in opts.sample_steps] or [(None, "")]
     tables = []
@@ -254,7 +242,7 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
         rest_row = sync_row(silent.name, None, recording_sync(silent, rest))
         tables.append(EvalTable(f"{title} on real voices ({Path(opts.real_voice).name}{label}): predicted jaw "
                                 "opening (rad) vs the tracked jaw and the loudness; lags in frames, positive = late"
-                                + style_note, [*rows, mean_row(rows), rest_row]))
+                                + rest_note, [*rows, mean_row(rows), rest_row]))
     return len(recordings), tables
 
 
@@ -284,17 +272,19 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
     if opts.max_clips < 1:
         raise ValueError(f"--max-clips must be >= 1, got {opts.max_clips}")
     if opts.real_voice is not None:
-        if record.model not in _REAL_VOICE_MODELS:
+        if spec.animator is None:
             article = "an" if record.model[0] in "aeiou" else "a"
-            raise ValueError(f"--real-voice streams recordings through toktalk and timar runs (their output has a "
-                             f"jaw); {opts.run_dir} is {article} {record.model} run")
+            raise ValueError(f"--real-voice streams recordings through {_models_where(lambda s: s.animator)} runs "
+                             f"(their output has a jaw); {opts.run_dir} is {article} {record.model} run")
         given = [flag for flag, value in (("--data", opts.data), ("--split", opts.split), ("--flame", opts.flame),
                                           ("--offline", opts.offline or None)) if value is not None]
         if given:
             raise ValueError(f"{', '.join(given)}: not with --real-voice, which measures the recordings of "
                              f"{opts.real_voice}, not prepared data")
         if opts.sample_steps and "--sample-steps" not in spec.eval_options:
-            raise ValueError("--sample-steps gives TokTalk one table per step count; a timar run streams with its own")
+            owners = _models_where(lambda s: "--sample-steps" in s.eval_options, words=lambda s: s.title)
+            raise ValueError(f"--sample-steps gives {owners} one table per step count; a {record.model} run streams "
+                             "with its own")
     if opts.flame is not None:
         if "--flame" not in spec.eval_options:
             raise ValueError(f"--flame poses TokTalk's parameters on FLAME; {opts.run_dir} is a {record.model} run")
@@ -302,8 +292,8 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
             raise FileNotFoundError(f"FLAME model file not found: {str(opts.flame)!r}")
     if opts.temperature is not None:
         if "--temperature" not in spec.eval_options:
-            raise ValueError(f"--temperature scales {_owners('--temperature')} sampler noise; {opts.run_dir} is a "
-                             f"{record.model} run")
+            owners = _models_where(lambda s: "--temperature" in s.eval_options, words=lambda s: f"{s.title}'s")
+            raise ValueError(f"--temperature scales {owners} sampler noise; {opts.run_dir} is a {record.model} run")
         check_temperature(opts.temperature, name="--temperature")
     from jaxtalk.train import latest_checkpoint_step
 
@@ -312,7 +302,8 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
         data = open_eval_data(record, opts.data, opts.cache_dir, run_features(opts.run_dir).get("audio"))
         data.split(split)  # an unknown split: ValueError naming the known ones
     else:  # a bad folder or file is refused before the run is loaded
-        recordings = read_recordings(opts.real_voice, min_frames=max(MAX_LAG + 3, _turn_frames(record)), echo=echo)
+        step = spec.animator.step_frames(record.model_config())
+        recordings = read_recordings(opts.real_voice, min_frames=max(MAX_LAG + 3, step), echo=echo)
     if latest_checkpoint_step(checkpoint_dir(opts.run_dir)) is None:
         raise FileNotFoundError(f"{opts.run_dir} is not trained yet (no checkpoint in {checkpoint_dir(opts.run_dir)}); "
                                 "train it with `jaxtalk train`")
