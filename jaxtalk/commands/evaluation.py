@@ -274,8 +274,9 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
     if opts.real_voice is not None:
         if spec.animator is None:
             article = "an" if record.model[0] in "aeiou" else "a"
-            raise ValueError(f"--real-voice streams recordings through {_models_where(lambda s: s.animator)} runs "
-                             f"(their output has a jaw); {opts.run_dir} is {article} {record.model} run")
+            animated = _models_where(lambda s: s.animator is not None)
+            raise ValueError(f"--real-voice streams recordings through {animated} runs (their output has a jaw); "
+                             f"{opts.run_dir} is {article} {record.model} run")
         given = [flag for flag, value in (("--data", opts.data), ("--split", opts.split), ("--flame", opts.flame),
                                           ("--offline", opts.offline or None)) if value is not None]
         if given:
