@@ -32,6 +32,8 @@ __all__ = [
     "CONFIG_FILE",
     "ModelSpec",
     "Streamer",
+    "SpeechAnimator",
+    "SpeechConditions",
     "SPEC_PATHS",
     "RunInfo",
     "RunRecord",
@@ -73,6 +75,66 @@ class Streamer:
 
 
 @dataclasses.dataclass(frozen=True)
+class SpeechConditions:
+    """What ``jaxtalk sample`` and ``jaxtalk stream`` hand a :class:`SpeechAnimator` besides the speech, read
+    from their options (None: the model's own default). A model reads those of its
+    :attr:`SpeechAnimator.options`; the commands refuse the others.
+
+    Attributes:
+        style: ``(S, 56)`` reference motion (``--style``); None: the run's default style clip.
+        style_file: the file ``style`` was read from, named in messages.
+        partner: the partner's 16-kHz speech (``--partner``); None: a silent partner.
+        cfg_scale: guidance weight.
+        sample_steps: sampler steps.
+        temperature: scale of the sampler's noise.
+        seed: noise seed.
+    """
+
+    style: Any = None
+    style_file: str | None = None
+    partner: Any = None
+    cfg_scale: float | None = None
+    sample_steps: int | None = None
+    temperature: float | None = None
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class SpeechAnimator:
+    """How ``jaxtalk sample`` and ``jaxtalk stream`` animate speech with a loaded run of a model, and
+    ``jaxtalk eval --real-voice`` streams recordings through it; each model builds its own from its
+    ``inference`` module, and the commands only open the files, call it and print.
+
+    Attributes:
+        options: the options of ``sample`` and ``stream`` the model reads besides ``--sample-steps`` and
+            ``--seed`` (of ``--style``, ``--partner``, ``--cfg-scale``, ``--temperature``); another one given
+            is refused rather than ignored.
+        other_inputs: ``(suffix, what such a file holds)`` for each kind of input file the model takes
+            besides audio (TokTalk: ``.npy`` token embeddings).
+        read: ``(run, path) -> speech``: an input file as the model takes it (an audio file's 16-kHz
+            waveform, one-dimensional; TokTalk's ``.npy``: ``(tokens, width)`` embeddings), refused before
+            it is read when the run cannot animate it, and after when it is too short to animate.
+        sample: ``(run, speech, conditions) -> (params (T, 56), the audio animated or None)``: offline.
+        stream: ``(run, speech, conditions, on_chunk, echo) -> (params (T, 56), the audio animated or None,
+            seconds per chunk)``: chunk by chunk (a TIMAR turn) as a live stream would, calling
+            ``on_chunk(chunks, seconds, chunk_s, count=1)`` with each chunk's wall time (``count``: the last
+            chunks at once) and ``echo`` with notes.
+        step_frames: ``(config) -> frames`` the model animates at a time at the least: a stream animates
+            whole steps of its audio (a TIMAR turn; TokTalk: 1).
+        rest_note: ``(run) -> words`` on where the run's jaw should rest in silence, added to the
+            real-voice tables' titles (TokTalk: its style clip's rest), or None.
+    """
+
+    options: tuple[str, ...]
+    read: Callable[..., Any]
+    sample: Callable[..., Any]
+    stream: Callable[..., Any]
+    step_frames: Callable[[Any], int]
+    other_inputs: tuple[tuple[str, str], ...] = ()
+    rest_note: Callable[[Any], str] | None = None
+
+
+@dataclasses.dataclass(frozen=True)
 class ModelSpec:
     """The interface of one model: what the run format, the commands and the experiments call.
 
@@ -81,6 +143,7 @@ class ModelSpec:
 
     Attributes:
         name: the model's name in ``run.json`` and on the command line.
+        title: its name in prose: messages and table titles (``TokTalk``, ``TIMAR``).
         config_class: its frozen config dataclass.
         presets: the config presets (classmethods of ``config_class``: ``paper``, ``small``, ...).
         init_params: ``(config, key) -> params``.
@@ -96,6 +159,17 @@ class ModelSpec:
         streamer: the streaming engine, or None.
         evaluate: the model's evaluation protocol (``jaxtalk eval``): ``evaluate(run, data, split, settings,
             echo) -> (items scored, tables)`` (:data:`jaxtalk.metrics.evaluation.EvalProtocol`).
+        eval_options: the ``jaxtalk eval`` options that mean something for the model beyond ``--max-clips``
+            and ``--seed`` (TokTalk's ``--flame``, ``--sample-steps``, ``--offline``; ``--temperature`` of
+            the models with sampler noise): ``--flame`` and ``--temperature`` are refused for the others, as
+            ``--sample-steps`` is with ``--real-voice``.
+        animator: how ``jaxtalk sample`` and ``jaxtalk stream`` animate speech with the model's runs (and
+            ``jaxtalk eval --real-voice`` streams recordings through them), or None for a model whose runs
+            they refuse.
+        sample_refusal: for a model without an ``animator``: what ``sample`` and ``stream`` say when given
+            one of its runs, and how its runs are used instead (``{run}``: the run folder).
+        animates_user_meshes: ``jaxtalk sample RUN AUDIO --stm RUN_STM --mesh FILE`` takes the model's runs:
+            its output drives a user's mesh through an STM run (ATS).
         live: makes a live model from a loaded run (``live(run, style=..., cfg_scale=...,
             sample_steps=...)``: ``open(key)`` streams, ``push(audio)`` returns frames), for models that
             animate speech as it arrives (``jaxtalk stream`` and ``jaxtalk serve``); None for the others.
@@ -104,9 +178,23 @@ class ModelSpec:
         windows: how the recipe cuts windows when their length is not a setting (None: the
             ``window_frames`` setting applies).
         style_asset: the run keeps a default style clip (a training clip) for sampling.
+        family: the system the model is one part of, where one name stands for several models (``freetalk``:
+            ATS and STM, which ``jaxtalk bench --model freetalk`` times together); None for a model that
+            stands alone.
+        reads: what the model reads, in words, for messages (``audio tokens (...)``, ``landmarks``,
+            ``speech features``).
+        voice_validation: for a model whose training validation can also stream real recordings
+            (``jaxtalk train --real-voice FOLDER``, and ``--select`` of the metric its best checkpoint is
+            chosen by): ``(folder, recordings, select, echo)``, called before anything is opened with the
+            recordings read (None: no ``--real-voice``), checks ``select`` and says what each evaluation will
+            stream; its ``train`` then takes ``real_voice=`` and ``select=``. None: the model takes neither
+            option.
+        fine_tune_refusal: why ``jaxtalk train --init RUN`` cannot fine-tune the model (what its recipe fits
+            on the new data that the starting weights were not trained with), or None when it can.
     """
 
     name: str
+    title: str
     config_class: type
     presets: tuple[str, ...]
     init_params: Callable[..., Any]
@@ -118,10 +206,18 @@ class ModelSpec:
     guided: bool = False
     streamer: Streamer | None = None
     evaluate: Callable[..., Any] | None = None
+    eval_options: tuple[str, ...] = ()
+    animator: SpeechAnimator | None = None
+    sample_refusal: str | None = None
+    animates_user_meshes: bool = False
     live: Callable[..., Any] | None = None
     data_fields: tuple[tuple[str, str], ...] = ()
     windows: str | None = None
     style_asset: bool = False
+    family: str | None = None
+    reads: str = "speech features"
+    voice_validation: Callable[..., Any] | None = None
+    fine_tune_refusal: str | None = None
 
     def settings(self, preset: str = "small") -> Any:
         """The recipe's default :class:`~jaxtalk.train.recipes.TrainSettings` for a config preset."""

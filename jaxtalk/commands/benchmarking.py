@@ -5,7 +5,7 @@ every row, written as one JSON file."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +51,19 @@ class BenchOptions:
     overwrite: bool = False
 
 
+def _families(models: Sequence[str]) -> dict[str, tuple[str, ...]]:
+    """``{family: its models}`` among ``models`` (:attr:`jaxtalk.runs.ModelSpec.family`: ``freetalk``: ATS and STM),
+    the names that stand for several models on the command line."""
+    from jaxtalk.runs import model_spec
+
+    families: dict[str, tuple[str, ...]] = {}
+    for model in models:
+        family = model_spec(model).family
+        if family is not None:
+            families[family] = (*families.get(family, ()), model)
+    return families
+
+
 def run_bench(opts: BenchOptions, *, echo: Callable[[str], None] = print) -> list[Any]:
     """Run the benchmarks, print each table and write the JSON.
 
@@ -70,10 +83,11 @@ def run_bench(opts: BenchOptions, *, echo: Callable[[str], None] = print) -> lis
         raise ValueError("--profile traces the train steps: add --train")
     names = list(opts.models)
     if opts.train:
-        wanted = [m for n in names for m in (("ats", "stm") if n == "freetalk" else (n,))] or list(TRAIN_MODELS)
+        families = _families(TRAIN_MODELS)
+        wanted = [m for n in names for m in families.get(n, (n,))] or list(TRAIN_MODELS)
         unknown = [m for m in wanted if m not in TRAIN_MODELS]
         if unknown:
-            raise ValueError(f"unknown benchmark model(s) {unknown}; expected some of {', '.join((*TRAIN_MODELS, 'freetalk'))}")
+            raise ValueError(f"unknown benchmark model(s) {unknown}; expected some of {', '.join((*TRAIN_MODELS, *families))}")
         train_models = list(dict.fromkeys(wanted))
         sample_models = list(dict.fromkeys(SAMPLER_OF[m] for m in train_models if m in SAMPLER_OF)) if opts.sampling else []
         presets = list(dict.fromkeys(opts.presets or (["small", "paper"] if opts.paper else ["small"])))
@@ -85,7 +99,8 @@ def run_bench(opts: BenchOptions, *, echo: Callable[[str], None] = print) -> lis
         paper = opts.paper
         if opts.presets or opts.overrides:
             raise ValueError("--preset and --set choose what --train trains: add --train")
-        sample_models = list(dict.fromkeys({"ats": "freetalk", "stm": "freetalk"}.get(n, n) for n in names)) or list(BENCH_MODELS)
+        family_of = {m: family for family, members in _families(TRAIN_MODELS).items() for m in members}
+        sample_models = list(dict.fromkeys(family_of.get(n, n) for n in names)) or list(BENCH_MODELS)
         train_models, presets = [], []
     (out,) = claim_outputs([Output(opts.out or Path("experiments/results/bench_all.json"), named=opts.out is not None)],
                            overwrite=opts.overwrite)

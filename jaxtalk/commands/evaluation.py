@@ -175,47 +175,48 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
     where = f"{data.root} (prepared from {m['source']['spec']})"
     if m.get("stats") is None:
         raise ValueError(f"{where} has no training split with motion; prepare it from data with 56-d motion")
-    if record.model == "toktalk":
+    spec = model_spec(record.model)
+    wanted = {key: cfg[field] for field, key in spec.data_fields}
+    if "token_dim" in wanted:  # a model that reads audio tokens: their width and rate
+        width, rate = wanted["token_dim"], wanted["token_rate"]
         if not m.get("token_dim"):
-            raise ValueError(f"{where} has no token stream, the TokTalk run needs tokens of width {cfg['speech_dim']}")
-        if m["token_dim"] != cfg["speech_dim"] or float(m["token_rate"]) != float(cfg["token_rate"]):
+            raise ValueError(f"{where} has no token stream, the {spec.title} run needs tokens of width {width}")
+        if m["token_dim"] != width or float(m["token_rate"]) != float(rate):
             raise ValueError(f"{where} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz, the run was "
-                             f"trained on width {cfg['speech_dim']} at {cfg['token_rate']:g} Hz")
+                             f"trained on width {width} at {rate:g} Hz")
         return
-    for field, key in model_spec(record.model).data_fields:  # the speech feature width of TIMAR, DualTalk, ATS
-        width = cfg[field]
+    for key, width in wanted.items():  # a model that reads speech features: their front end and width
         if m["settings"]["audio"] != features.get("audio") or m.get(key) != width:
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
                              f"--features {features.get('audio')}")
 
 
+def _models_where(has: Callable[[Any], bool], *, words: Callable[[Any], str] = lambda spec: spec.name) -> str:
+    """The models whose spec ``has`` something, in ``words`` (``toktalk and timar``)."""
+    from jaxtalk.runs import REGISTRY
+
+    return " and ".join(words(spec) for spec in REGISTRY.values() if has(spec))
+
+
 # ------------------------------------------------------------------------------------- real voices
 
 # Seconds of digital silence streamed for the rest jaw (a TIMAR run: whole turns, at least this long).
 REST_SECONDS = 3.0
-_REAL_VOICE_MODELS = ("toktalk", "timar")
-
-
-def _turn_frames(record: RunRecord) -> int:
-    """Frames a run animates at a time at the least: a TIMAR turn, else one frame."""
-    return int(record.config["frames_per_turn"]) if record.model == "timar" else 1
 
 
 def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOptions,
                       echo: Callable[[str], None]) -> tuple[int, list[EvalTable]]:
     from jaxtalk.commands.inference import SampleOptions, stream_audio
     from jaxtalk.data.recordings import mean_row, recording_sync, sync_row
-    from jaxtalk.layout import JAW_OPEN_INDEX
-    from jaxtalk.metrics.speech_sync import style_rest_jaw
     from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
-    model, turn = run.record.model, _turn_frames(run.record)
+    spec = model_spec(run.record.model)
+    title, turn = spec.title, spec.animator.step_frames(run.config)
     if len(recordings) > opts.max_clips:
         echo(f"note: the first {opts.max_clips} of {len(recordings)} recordings (--max-clips)")
         recordings = recordings[: opts.max_clips]
     tracked = sum(r.tracked_jaw is not None for r in recordings)
-    title = "TokTalk" if model == "toktalk" else "TIMAR"
     echo(f"streaming {len(recordings)} recordings of {opts.real_voice} ({tracked} with tracked motion) with "
          f"{title} (step {run.step})")
     rest_frames = -(-int(REST_SECONDS * MOTION_FPS) // turn) * turn
@@ -223,10 +224,7 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
     silent = Recording(f"digital silence ({silence.shape[0] / AUDIO_SAMPLE_RATE:g} s)", Path(opts.real_voice),
                        silence, None, None)
     quiet = lambda line: None  # noqa: E731  (per-chunk times: `jaxtalk stream` prints them)
-    style_note = ""
-    if model == "toktalk":  # streamed in the run's default style: where its mouth rests is the target in silence
-        style_rest = style_rest_jaw(np.asarray(run.default_style())[:, JAW_OPEN_INDEX])
-        style_note = f"; the style clip rests at {style_rest:.3f} rad"
+    rest_note = "" if spec.animator.rest_note is None else f"; {spec.animator.rest_note(run)}"
 
     variants = [(n, f", {n} step{'s' * (n > 1)}") for n in opts.sample_steps] or [(None, "")]
     tables = []
@@ -244,7 +242,7 @@ def _eval_real_voices(run: LoadedRun, recordings: list[Recording], opts: EvalOpt
         rest_row = sync_row(silent.name, None, recording_sync(silent, rest))
         tables.append(EvalTable(f"{title} on real voices ({Path(opts.real_voice).name}{label}): predicted jaw "
                                 "opening (rad) vs the tracked jaw and the loudness; lags in frames, positive = late"
-                                + style_note, [*rows, mean_row(rows), rest_row]))
+                                + rest_note, [*rows, mean_row(rows), rest_row]))
     return len(recordings), tables
 
 
@@ -267,32 +265,36 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
             prepared data, a bad folder or recording (:func:`jaxtalk.data.recordings.read_recordings`).
     """
     record = RunRecord.load(opts.run_dir)
-    protocol = model_spec(record.model).evaluate
+    spec = model_spec(record.model)
+    protocol = spec.evaluate
     if protocol is None:
         raise ValueError(f"{opts.run_dir} is a {record.model!r} run, which has no evaluation protocol")
     if opts.max_clips < 1:
         raise ValueError(f"--max-clips must be >= 1, got {opts.max_clips}")
     if opts.real_voice is not None:
-        if record.model not in _REAL_VOICE_MODELS:
+        if spec.animator is None:
             article = "an" if record.model[0] in "aeiou" else "a"
-            raise ValueError(f"--real-voice streams recordings through toktalk and timar runs (their output has a "
-                             f"jaw); {opts.run_dir} is {article} {record.model} run")
+            animated = _models_where(lambda s: s.animator is not None)
+            raise ValueError(f"--real-voice streams recordings through {animated} runs (their output has a jaw); "
+                             f"{opts.run_dir} is {article} {record.model} run")
         given = [flag for flag, value in (("--data", opts.data), ("--split", opts.split), ("--flame", opts.flame),
                                           ("--offline", opts.offline or None)) if value is not None]
         if given:
             raise ValueError(f"{', '.join(given)}: not with --real-voice, which measures the recordings of "
                              f"{opts.real_voice}, not prepared data")
-        if opts.sample_steps and record.model != "toktalk":
-            raise ValueError("--sample-steps gives TokTalk one table per step count; a timar run streams with its own")
+        if opts.sample_steps and "--sample-steps" not in spec.eval_options:
+            owners = _models_where(lambda s: "--sample-steps" in s.eval_options, words=lambda s: s.title)
+            raise ValueError(f"--sample-steps gives {owners} one table per step count; a {record.model} run streams "
+                             "with its own")
     if opts.flame is not None:
-        if record.model != "toktalk":
+        if "--flame" not in spec.eval_options:
             raise ValueError(f"--flame poses TokTalk's parameters on FLAME; {opts.run_dir} is a {record.model} run")
         if not Path(opts.flame).is_file():
             raise FileNotFoundError(f"FLAME model file not found: {str(opts.flame)!r}")
     if opts.temperature is not None:
-        if record.model not in ("toktalk", "timar"):
-            raise ValueError(f"--temperature scales TokTalk's and TIMAR's sampler noise; {opts.run_dir} is a "
-                             f"{record.model} run")
+        if "--temperature" not in spec.eval_options:
+            owners = _models_where(lambda s: "--temperature" in s.eval_options, words=lambda s: f"{s.title}'s")
+            raise ValueError(f"--temperature scales {owners} sampler noise; {opts.run_dir} is a {record.model} run")
         check_temperature(opts.temperature, name="--temperature")
     from jaxtalk.train import latest_checkpoint_step
 
@@ -301,7 +303,8 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
         data = open_eval_data(record, opts.data, opts.cache_dir, run_features(opts.run_dir).get("audio"))
         data.split(split)  # an unknown split: ValueError naming the known ones
     else:  # a bad folder or file is refused before the run is loaded
-        recordings = read_recordings(opts.real_voice, min_frames=max(MAX_LAG + 3, _turn_frames(record)), echo=echo)
+        step = spec.animator.step_frames(record.model_config())
+        recordings = read_recordings(opts.real_voice, min_frames=max(MAX_LAG + 3, step), echo=echo)
     if latest_checkpoint_step(checkpoint_dir(opts.run_dir)) is None:
         raise FileNotFoundError(f"{opts.run_dir} is not trained yet (no checkpoint in {checkpoint_dir(opts.run_dir)}); "
                                 "train it with `jaxtalk train`")

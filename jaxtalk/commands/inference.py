@@ -25,12 +25,10 @@ from jaxtyping import Float
 
 from jaxtalk.audio.io import AUDIO_SUFFIXES
 from jaxtalk.checks import check_temperature
-from jaxtalk.runs import LoadedRun, RunRecord, load_run
+from jaxtalk.runs import LoadedRun, RunRecord, SpeechAnimator, SpeechConditions, load_run, model_spec
 
 __all__ = ["SampleOptions", "SampleResult", "MeshOptions", "sample_run", "stream_run", "stream_audio", "animate_run",
            "check_sampling_options"]
-
-_SPEECH_MODELS = ("toktalk", "timar")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,17 +85,15 @@ class SampleResult:
     chunk_s: float | None
 
 
-def _check_input(opts: SampleOptions, model: str) -> str:
+def _check_input(opts: SampleOptions, model: str, other_inputs: Sequence[tuple[str, str]] = ()) -> None:
+    """The input exists and is audio or another kind the model takes (``(suffix, what it holds)``)."""
     path = Path(opts.input)
     if not path.is_file():
         raise FileNotFoundError(f"input file not found: {str(path)!r}")
     suffix = path.suffix.lower()
-    if suffix in AUDIO_SUFFIXES:
-        return "audio"
-    if suffix == ".npy" and model == "toktalk":
-        return "tokens"
-    kinds = "an audio file (" + ", ".join(AUDIO_SUFFIXES) + ")" + (" or a .npy of token embeddings"
-                                                                   if model == "toktalk" else "")
+    if suffix in AUDIO_SUFFIXES or suffix in dict(other_inputs):
+        return
+    kinds = "an audio file (" + ", ".join(AUDIO_SUFFIXES) + ")" + "".join(f" or {what}" for _, what in other_inputs)
     raise ValueError(f"{str(path)!r}: expected {kinds} for {'an' if model[0] in 'aeiou' else 'a'} {model} run")
 
 
@@ -114,18 +110,14 @@ def _claim_output(opts: SampleOptions, suffix: str, default_suffix: str, *, extr
     return out
 
 
-# The options of ``jaxtalk sample``/``stream`` each model takes (``--out``, ``--seed``, ``--best`` and
-# ``--sample-steps`` apply to all); any other one given is refused rather than ignored.
-_MODEL_OPTIONS = {
-    "toktalk": ("TokTalk", ("--style", "--cfg-scale", "--temperature")),
-    "timar": ("TIMAR", ("--partner", "--cfg-scale", "--temperature")),
-    "ats": ("FreeTalk", ("--stm", "--mesh", "--emotion", "--intensity", "--units", "--landmarks")),
-}
+# The options of ``jaxtalk sample RUN_ATS AUDIO --stm RUN_STM --mesh FILE``; a speech animator's are its own
+# (:attr:`jaxtalk.runs.SpeechAnimator.options`). ``--out``, ``--seed``, ``--best`` and ``--sample-steps`` apply to
+# all; any other one given is refused rather than ignored.
+_MESH_OPTIONS = ("--stm", "--mesh", "--emotion", "--intensity", "--units", "--landmarks")
 
 
-def _check_options(opts: SampleOptions, model: str) -> None:
-    """Every option before any work: values in range, none that ``model`` does not take."""
-    name, own = _MODEL_OPTIONS[model]
+def _check_options(opts: SampleOptions, name: str, own: Sequence[str]) -> None:
+    """Every option before any work: values in range, none but ``own`` (those of a ``name`` run)."""
     given = [flag for flag, value in (("--style", opts.style), ("--partner", opts.partner),
                                       ("--cfg-scale", opts.cfg_scale), ("--temperature", opts.temperature))
              if value is not None]
@@ -151,96 +143,36 @@ def check_sampling_options(cfg_scale: float | None, sample_steps: int | None, te
         check_temperature(temperature, name="--temperature")
 
 
-def _load(opts: SampleOptions) -> tuple[LoadedRun, str]:
+def _load(opts: SampleOptions) -> tuple[LoadedRun, SpeechAnimator, Any]:
+    """The run, its model's animator, and the input as the model takes it (every option and the output
+    checked first). A run of a model without an animator is refused with its spec's words."""
     record = RunRecord.load(opts.run_dir)
-    if record.model == "ats":
-        raise ValueError(f"{opts.run_dir} is a FreeTalk ATS run: sample it onto a mesh with --stm RUN_STM --mesh FILE "
-                         "(and --emotion, --intensity); stream is for toktalk and timar runs")
-    if record.model == "dualtalk":
-        raise ValueError(f"{opts.run_dir} is a DualTalk baseline run: an offline model scored with `jaxtalk eval "
-                         f"{opts.run_dir}`; sample/stream animate speech with toktalk or timar runs")
-    if record.model not in _SPEECH_MODELS:
-        raise ValueError(
-            f"{opts.run_dir} is a {record.model} run; sample/stream animate speech with toktalk, timar or (with "
-            "--stm and --mesh) ats runs; an stm run goes after an ats run: jaxtalk sample RUN_ATS AUDIO --stm RUN_STM"
-        )
-    _check_options(opts, record.model)
-    kind = _check_input(opts, record.model)
+    spec = model_spec(record.model)
+    animator = spec.animator
+    if animator is None:
+        refusal = spec.sample_refusal or "{run} is a " + record.model + " run, which sample and stream do not animate"
+        raise ValueError(refusal.format(run=opts.run_dir))
+    _check_options(opts, spec.title, animator.options)
+    _check_input(opts, record.model, animator.other_inputs)
     _claim_output(opts, ".npz", "_params.npz")
-    return load_run(opts.run_dir, best=opts.best), kind
+    run = load_run(opts.run_dir, best=opts.best)
+    return run, animator, animator.read(run, opts.input)
 
 
-def _toktalk_tokenizer(run: LoadedRun) -> Any:
-    tokenizer = run.tokenizer()
-    if tokenizer is None:
-        config = run.config
-        raise ValueError(f"{run.run_dir} was trained on the data's own token files and has no tokenizer for "
-                         f"audio: pass a .npy of token embeddings ({config.speech_dim} wide at {config.token_rate:g} Hz)")
-    return tokenizer
-
-
-def _toktalk_style(run: LoadedRun, opts: SampleOptions) -> np.ndarray:
-    """The reference motion ``(S, 56)``: ``--style``, else the training clip saved with the run."""
+def _conditions(opts: SampleOptions) -> SpeechConditions:
+    """The conditions the options give, their files read (``--style``, ``--partner``)."""
+    style = partner = None
     if opts.style is not None:
         from jaxtalk.commands.rendering import read_params
 
         style = read_params(opts.style)
-    else:
-        style = np.asarray(run.default_style(), np.float32)
-    if style.shape[0] < run.config.style_min_frames:
-        raise ValueError(f"style clip {opts.style} has {style.shape[0]} frames, fewer than {run.config.style_min_frames}")
-    return style
-
-
-def _toktalk_tokens(run: LoadedRun, opts: SampleOptions, kind: str) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(tokens (Tt, D), audio or None)``: the audio's tokens from the run's tokenizer, or a ``.npy``'s."""
-    from jaxtalk.audio import load_audio
-
-    config = run.config
-    if kind == "audio":
-        tokenizer = _toktalk_tokenizer(run)
-        audio = load_audio(opts.input)
-        return np.asarray(tokenizer.encode(audio).embeddings, np.float32), audio
-    from jaxtalk.files import load_npy
-
-    tokens = load_npy(opts.input, what="token file")
-    if tokens.ndim != 2 or tokens.shape[1] != config.speech_dim or tokens.shape[0] < 1:
-        raise ValueError(f"{str(opts.input)!r}: token embeddings must have shape (tokens, {config.speech_dim}) "
-                         f"at {config.token_rate:g} Hz, got {tokens.shape}")
-    if not np.all(np.isfinite(tokens)):
-        raise ValueError(f"{str(opts.input)!r}: token embeddings contain NaN or inf")
-    return tokens.astype(np.float32), None
-
-
-def _timar_inputs(run: LoadedRun, audio: np.ndarray, opts: SampleOptions) -> tuple[dict[str, np.ndarray], np.ndarray, int]:
-    """Normalised ``(1, T, .)`` streams for ``stream`` from the agent's 16-kHz ``audio``, that audio cut
-    to whole turns, and the turns."""
-    from jaxtalk.audio import load_audio
-    from jaxtalk.data.features import parse_audio_features
-    from jaxtalk.models.timar.data import Normalizer
-    from jaxtalk.types import AUDIO_SAMPLE_RATE, PARAM_DIM
-
-    config = run.config
-    norm = Normalizer.from_dict(run.record.extra["normalizer"])
-    spt = AUDIO_SAMPLE_RATE * config.frames_per_turn // 25
-    turns = audio.shape[0] // spt
-    if turns < 1:
-        raise ValueError(f"{str(opts.input)!r} is {audio.shape[0] / AUDIO_SAMPLE_RATE:.2f} s long; TIMAR needs at "
-                         f"least one {spt / AUDIO_SAMPLE_RATE:g}-s turn")
     if opts.partner is not None:
+        from jaxtalk.audio import load_audio
+
         partner = load_audio(opts.partner, allow_silence=True)
-        partner = np.pad(partner, (0, max(turns * spt - partner.shape[0], 0)))
-    else:
-        partner = np.zeros(turns * spt, np.float32)
-    frames = turns * config.frames_per_turn
-    features = parse_audio_features(run.features()["audio"])
-    streams = {
-        "user_speech": norm.speech(features.turn_speech(partner, turns)),
-        "agent_speech": norm.speech(features.turn_speech(audio, turns)),
-        # A still partner at the training mean pose is zero in the normalised space.
-        "user_motion": np.zeros((frames, PARAM_DIM), np.float32),
-    }
-    return {k: v[None] for k, v in streams.items()}, audio[: turns * spt], turns
+    return SpeechConditions(style=style, style_file=None if opts.style is None else str(opts.style), partner=partner,
+                            cfg_scale=opts.cfg_scale, sample_steps=opts.sample_steps, temperature=opts.temperature,
+                            seed=opts.seed)
 
 
 def _write(opts: SampleOptions, params: np.ndarray, audio: np.ndarray | None) -> Path:
@@ -265,33 +197,8 @@ def sample_run(opts: SampleOptions) -> SampleResult:
         FileNotFoundError: missing run, checkpoint, input, style or partner file.
         ValueError: a run of another model, an input of the wrong kind/shape, a too-short audio.
     """
-    import jax
-
-    run, kind = _load(opts)
-    key = jax.random.key(opts.seed)
-    if run.record.model == "toktalk":
-        from jaxtalk.models import toktalk
-        from jaxtalk.models.toktalk.live import frames_for_audio
-
-        tokens, audio = _toktalk_tokens(run, opts, kind)
-        style = _toktalk_style(run, opts)[None, : 4 * run.config.style_frames]
-        frames = frames_for_audio(run.config, tokens.shape[0], None if audio is None else audio.shape[0])
-        # Window by window past a minute: the decoder's attention is O(frames^2) in memory.
-        motion = toktalk.sample_long(run.params, run.config, tokens[None], style, key, cfg_scale=opts.cfg_scale,
-                                     sample_steps=opts.sample_steps, temperature=opts.temperature)[:, :frames]
-    else:
-        from jaxtalk.models.timar.data import Normalizer
-        from jaxtalk.models.timar.streaming import stream
-
-        from jaxtalk.audio import load_audio
-
-        streams, audio, turns = _timar_inputs(run, load_audio(opts.input), opts)
-        context = max(run.record.extra.get("num_turns", run.config.max_turns) - 1, 0)
-        motion = stream(run.params, run.config, streams["user_speech"], streams["user_motion"],
-                                     streams["agent_speech"], key, context=context, cfg_scale=opts.cfg_scale,
-                                     sample_steps=opts.sample_steps, temperature=opts.temperature)
-        motion = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(motion)
-    params = np.asarray(motion, np.float32)[0]
+    run, animator, speech = _load(opts)
+    params, audio = animator.sample(run, speech, _conditions(opts))
     return SampleResult(path=_write(opts, params, audio), params=params, chunk_ms=[], chunk_s=None)
 
 
@@ -307,60 +214,6 @@ class _ChunkTimer:
         note = " (incl. compile)" if i == 0 else f" (real-time factor {dt / chunks / chunk_s:.3f})"
         which = f"chunk {i + 1:3d}" if chunks == 1 else f"chunks {i + 1}-{i + chunks}"
         self.echo(f"{which}/{n}: {1e3 * dt / chunks:8.1f} ms for {chunk_s:.2f} s{note}")
-
-
-def _stream_audio(run: LoadedRun, audio: np.ndarray, opts: SampleOptions,
-                  timer: _ChunkTimer) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(params (T, 56), the audio animated, chunk seconds)``: 16-kHz ``audio`` streamed through a
-    loaded TokTalk or TIMAR run (see :func:`stream_audio`)."""
-    import jax
-
-    key = jax.random.key(opts.seed)
-    config = run.config
-    outs = []
-    if run.record.model == "toktalk":
-        from jaxtalk.models.toktalk import tokens_per_chunk
-        from jaxtalk.models.toktalk.live import LiveModel
-
-        # The live path `jaxtalk serve` runs: the input goes in piece by piece, each piece what completes
-        # the next chunk (up to the chunk's end plus the tokenizer's look-ahead), as it would live.
-        _toktalk_tokenizer(run)
-        live = LiveModel.from_run(run, style=_toktalk_style(run, opts), cfg_scale=opts.cfg_scale,
-                                  sample_steps=opts.sample_steps, temperature=opts.temperature)
-        chunk_s, ct = live.chunk_frames / live.fps, tokens_per_chunk(config)
-        stream = live.open(key)
-        timer.echo(f"note: each chunk also waits for {1e3 * live.lookahead_samples / live.sample_rate:.1f} ms of "
-                   "audio past its end (the tokenizer's centred STFT): a live chunk's latency is that plus the times "
-                   "below")
-        n = -(-max(math.ceil(audio.shape[0] * config.token_rate / live.sample_rate), 1) // ct)
-        pos = 0
-        while pos + stream.samples_needed <= audio.shape[0]:  # each piece completes one chunk
-            t0, need = time.perf_counter(), stream.samples_needed
-            outs.append(stream.push(audio[pos:pos + need]))
-            timer(n, time.perf_counter() - t0, chunk_s)
-            pos += need
-        t0 = time.perf_counter()  # the rest of the audio, then the utterance's end: the last chunk(s)
-        outs.append(np.concatenate([stream.push(audio[pos:]), stream.finish()]))
-        timer(n, time.perf_counter() - t0, chunk_s, max(n - len(timer.ms), 1))
-        return np.asarray(np.concatenate(outs), np.float32), audio, chunk_s
-    from jaxtalk.models.timar.data import Normalizer
-    from jaxtalk.models.timar.streaming import init_stream, stream_step
-
-    streams, audio, turns = _timar_inputs(run, audio, opts)
-    f = config.frames_per_turn
-    context = max(run.record.extra.get("num_turns", config.max_turns) - 1, 0)
-    state = jax.device_put(init_stream(config, key, context=context), jax.local_devices()[0])
-    for i in range(turns):
-        sl = slice(i * f, (i + 1) * f)
-        t0 = time.perf_counter()
-        state, out = stream_step(run.params, config, state, streams["user_speech"][:, sl],
-                                 streams["user_motion"][:, sl], streams["agent_speech"][:, sl],
-                                 cfg_scale=opts.cfg_scale, sample_steps=opts.sample_steps,
-                                 temperature=opts.temperature)
-        outs.append(np.asarray(jax.block_until_ready(out))[0])
-        timer(turns, time.perf_counter() - t0, f / 25)
-    params = Normalizer.from_dict(run.record.extra["normalizer"]).unmotion(np.concatenate(outs))
-    return np.asarray(params, np.float32), audio, f / 25
 
 
 def stream_audio(run: LoadedRun, audio: Float[np.ndarray, " samples"], opts: SampleOptions, *,
@@ -382,13 +235,15 @@ def stream_audio(run: LoadedRun, audio: Float[np.ndarray, " samples"], opts: Sam
         ValueError: a run of another model, options it does not take, a TokTalk run without a
             tokenizer, audio shorter than one TIMAR turn.
     """
-    if run.record.model not in _SPEECH_MODELS:
+    spec = model_spec(run.record.model)
+    if spec.animator is None:
         raise ValueError(f"{run.run_dir} is a {run.record.model} run; stream_audio animates toktalk and timar runs")
-    _check_options(opts, run.record.model)
+    _check_options(opts, spec.title, spec.animator.options)
     audio = np.asarray(audio, np.float32)
     if audio.ndim != 1 or not np.all(np.isfinite(audio)):
         raise ValueError(f"audio must be a finite one-dimensional waveform, got shape {audio.shape}")
-    return _stream_audio(run, audio, opts, _ChunkTimer(echo))[0]
+    timer = _ChunkTimer(echo)
+    return spec.animator.stream(run, audio, _conditions(opts), timer, timer.echo)[0]
 
 
 def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> SampleResult:
@@ -401,34 +256,9 @@ def stream_run(opts: SampleOptions, *, echo: Callable[[str], None] = print) -> S
     Raises:
         See :func:`sample_run`.
     """
-    import jax
-
-    run, kind = _load(opts)
+    run, animator, speech = _load(opts)
     timer = _ChunkTimer(echo)
-    if kind == "audio":
-        from jaxtalk.audio import load_audio
-
-        if run.record.model == "toktalk":
-            _toktalk_tokenizer(run)  # a run without one is refused before the audio is read
-        params, audio, chunk_s = _stream_audio(run, load_audio(opts.input), opts, timer)
-    else:  # TokTalk token embeddings, chunk by chunk
-        from jaxtalk.models.toktalk import tokens_per_chunk
-        from jaxtalk.models.toktalk.live import LiveModel
-
-        config = run.config
-        live = LiveModel.from_run(run, style=_toktalk_style(run, opts), cfg_scale=opts.cfg_scale,
-                                  sample_steps=opts.sample_steps, temperature=opts.temperature)
-        chunk_s, ct = live.chunk_frames / live.fps, tokens_per_chunk(config)
-        stream = live.open(jax.random.key(opts.seed))
-        tokens, audio = _toktalk_tokens(run, opts, kind)
-        n = -(-tokens.shape[0] // ct)
-        outs = []
-        for i in range(n):
-            t0 = time.perf_counter()
-            out = stream.push_tokens(tokens[i * ct:(i + 1) * ct])
-            outs.append(np.concatenate([out, stream.finish()]) if i == n - 1 else out)
-            timer(n, time.perf_counter() - t0, chunk_s)
-        params = np.asarray(np.concatenate(outs), np.float32)
+    params, audio, chunk_s = animator.stream(run, speech, _conditions(opts), timer, timer.echo)
     times = timer.ms
     if len(times) > 1:
         steady = times[1:]
@@ -478,7 +308,7 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     from jaxtalk.models.freetalk.fit import FittedATS, FittedSTM
     from jaxtalk.files import atomic_save_npy
 
-    _check_options(opts, "ats")
+    _check_options(opts, "FreeTalk", _MESH_OPTIONS)
     path = Path(opts.input)
     _check_input(opts, "ats")
     if mesh_opts.units is not None and mesh_opts.units not in UNITS:
@@ -487,7 +317,7 @@ def animate_run(opts: SampleOptions, mesh_opts: MeshOptions, *, echo: Callable[[
     out = _claim_output(opts, ".npy", "_vertices.npy", extra_inputs=[mesh_opts.mesh, mesh_opts.landmarks, *stm_files])
     # The emotion and intensity against the run's record, before any parameters are loaded.
     ats_record = RunRecord.load(opts.run_dir)
-    if ats_record.model != "ats":
+    if not model_spec(ats_record.model).animates_user_meshes:
         raise ValueError(f"{opts.run_dir} is a {ats_record.model} run, not an ats run")
     ats_config = ats_record.model_config()
     emotions, levels = ats_config.emotions, ats_config.num_intensities

@@ -213,21 +213,14 @@ def _real_voices(opts: TrainOptions, echo: Callable[[str], None]) -> Any:
     if opts.real_voice is None and opts.select is None:
         return None
     given = " and ".join(f for f, v in (("--real-voice", opts.real_voice), ("--select", opts.select)) if v is not None)
-    if opts.model != "toktalk":
+    plan = model_spec(opts.model).voice_validation
+    if plan is None:
         raise ValueError(f"{given}: TokTalk settings (its validation streams real recordings); not for "
                          f"{opts.model}")
     from jaxtalk.data.recordings import read_recordings
-    from jaxtalk.models.toktalk.validation import REAL_VOICE_RECORDINGS, selection_mode
 
     recordings = None if opts.real_voice is None else read_recordings(opts.real_voice, echo=echo)
-    if opts.select is not None:
-        selection_mode(opts.select, recordings)
-    if recordings is not None:
-        chosen = recordings[:REAL_VOICE_RECORDINGS]
-        tracked = sum(r.tracked_jaw is not None for r in chosen)
-        first = f"the first {len(chosen)} of {len(recordings)}" if len(recordings) > len(chosen) else f"{len(chosen)}"
-        echo(f"real voices: each evaluation streams {first} recordings of {opts.real_voice} ({tracked} with tracked "
-             "motion) at 1 sampler step in the run's default style")
+    plan(opts.real_voice, recordings, opts.select, echo)
     return recordings
 
 
@@ -324,7 +317,7 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
                              f"({done + 1}..{opts.steps})")
         kw["observers"] = [TraceSteps(*opts.profile, out / PROFILE_DIR)]
     kw["observers"] = [*kw.get("observers", ()), stop]
-    if opts.model == "toktalk":  # None: no real voices, and a resumed run's own selection
+    if spec.voice_validation is not None:  # None: no real voices, and a resumed run's own selection
         kw.update(real_voice=recordings, select=opts.select)
     info = RunInfo(preset=preset, items=tuple(opts.overrides), data_spec=opts.data, settings=settings)
     with warnings.catch_warnings():
@@ -387,9 +380,9 @@ def _init_run(opts: TrainOptions, existing: Any, model_items: list[str], done: i
     if model_items:
         raise ValueError(f"--init takes {opts.init}'s model config; --set of model fields ({', '.join(model_items)}) "
                          "would not match its weights (training settings such as lr may be set)")
-    if opts.model == "ats":
-        raise ValueError("--init is not available for ats: its recipe standardises the displacements with statistics "
-                         "of the new data, which the starting weights were not trained with")
+    refusal = model_spec(opts.model).fine_tune_refusal
+    if refusal is not None:
+        raise ValueError(f"--init is not available for {opts.model}: {refusal}")
     run = load_run(opts.init)
     if run.record.model != opts.model:
         raise ValueError(f"--init {opts.init} is a {run.record.model} run, not {opts.model}")
@@ -421,9 +414,8 @@ def _check_features(model: str, features: str) -> None:
 
     if not model_spec(model).reads_speech:
         readers = ", ".join(name for name, spec in REGISTRY.items() if spec.reads_speech)
-        reads = {"toktalk": "audio tokens (the clips' own, or a VQ tokenizer's of the log-mel)",
-                 "stm": "landmarks"}.get(model, "no speech features")
-        raise ValueError(f"--features chooses the speech front end of {readers}; {model} reads {reads}: drop --features")
+        raise ValueError(f"--features chooses the speech front end of {readers}; {model} reads "
+                         f"{model_spec(model).reads}: drop --features")
     parse_audio_features(features)
 
 

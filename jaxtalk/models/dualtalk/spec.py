@@ -14,6 +14,7 @@ __all__ = ["SPEC"]
 
 SPEC = ModelSpec(
     name="dualtalk",
+    title="DualTalk baseline",
     config_class=DualTalkConfig,
     presets=("paper", "small"),
     init_params=init_params,
@@ -22,6 +23,8 @@ SPEC = ModelSpec(
     defaults=DEFAULTS,
     preset_defaults=dict(PRESET_DEFAULTS),
     evaluate=evaluate,
+    sample_refusal="{run} is a DualTalk baseline run: an offline model scored with `jaxtalk eval {run}`; sample/stream "
+                   "animate speech with toktalk or timar runs",
     data_fields=(("speech_dim", "turn_speech_dim"),),
     windows="whole turns (max_turns)",
 )

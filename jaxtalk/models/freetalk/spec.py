@@ -14,6 +14,7 @@ __all__ = ["ATS", "STM"]
 
 ATS = ModelSpec(
     name="ats",
+    title="FreeTalk ATS",
     config_class=ATSConfig,
     presets=("paper", "small"),
     init_params=ats.init_params,
@@ -23,11 +24,18 @@ ATS = ModelSpec(
     preset_defaults=dict(ATS_PRESET_DEFAULTS),
     sample=ats.sample,
     evaluate=evaluate_ats,
+    sample_refusal="{run} is a FreeTalk ATS run: sample it onto a mesh with --stm RUN_STM --mesh FILE (and --emotion, "
+                   "--intensity); stream is for toktalk and timar runs",
+    animates_user_meshes=True,
     data_fields=(("speech_dim", "speech_dim"),),
+    family="freetalk",
+    fine_tune_refusal="its recipe standardises the displacements with statistics of the new data, which the "
+                      "starting weights were not trained with",
 )
 
 STM = ModelSpec(
     name="stm",
+    title="FreeTalk STM",
     config_class=STMConfig,
     presets=("paper", "small"),
     init_params=stm.init_params,
@@ -36,4 +44,8 @@ STM = ModelSpec(
     defaults=DEFAULTS,
     preset_defaults=dict(STM_PRESET_DEFAULTS),
     evaluate=evaluate_stm,
+    sample_refusal="{run} is a stm run; sample/stream animate speech with toktalk, timar or (with --stm and --mesh) ats "
+                   "runs; an stm run goes after an ats run: jaxtalk sample RUN_ATS AUDIO --stm RUN_STM",
+    family="freetalk",
+    reads="landmarks",
 )

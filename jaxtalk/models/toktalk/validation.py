@@ -22,7 +22,7 @@ A run may select its best checkpoint by ``real_corr`` instead of the streamed li
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
@@ -43,7 +43,8 @@ from jaxtalk.train.loop import EvalFn
 from jaxtalk.train.recipes import VAL_CLIPS, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["streamed_validation", "real_voice_validation", "selection_mode", "SELECTION_METRIC", "SELECTABLE",
+__all__ = ["streamed_validation", "real_voice_validation", "selection_mode", "plan_voice_validation",
+           "SELECTION_METRIC", "SELECTABLE",
            "REAL_VOICE_METRICS", "REAL_VOICE_TRACKED", "REAL_VOICE_RECORDINGS", "REAL_VOICE_STEPS"]
 
 # The metric a TokTalk run selects its best checkpoint by unless told otherwise: the streamed lip
@@ -170,6 +171,31 @@ def selection_mode(select: str, recordings: Sequence[Recording] | None) -> str:
                              f"recordings{where} streamed at each evaluation has any: put each one's tracked motion "
                              f"beside it as STEM.npz, or select {SELECTION_METRIC}")
     return SELECTABLE[select]
+
+
+def plan_voice_validation(folder: Any, recordings: Sequence[Recording] | None, select: str | None,
+                          echo: Callable[[str], None]) -> None:
+    """``jaxtalk train --real-voice FOLDER --select METRIC`` before anything is opened (TokTalk's
+    :attr:`jaxtalk.runs.ModelSpec.voice_validation`): ``select`` checked against the recordings
+    (:func:`selection_mode`), and what each evaluation will stream said.
+
+    Args:
+        folder: the ``--real-voice`` folder (None: not given).
+        recordings: its recordings, read (None: no ``--real-voice``).
+        select: the ``--select`` metric (None: not given).
+        echo: where the line goes.
+
+    Raises:
+        ValueError: see :func:`selection_mode`.
+    """
+    if select is not None:
+        selection_mode(select, recordings)
+    if recordings is not None:
+        chosen = recordings[:REAL_VOICE_RECORDINGS]
+        tracked = sum(r.tracked_jaw is not None for r in chosen)
+        first = f"the first {len(chosen)} of {len(recordings)}" if len(recordings) > len(chosen) else f"{len(chosen)}"
+        echo(f"real voices: each evaluation streams {first} recordings of {folder} ({tracked} with tracked "
+             f"motion) at {REAL_VOICE_STEPS} sampler step in the run's default style")
 
 
 def real_voice_validation(
