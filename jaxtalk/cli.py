@@ -237,7 +237,9 @@ def prepare(
                                                "synthtalk:SIZE[:SEED].")],
     out: Annotated[Path, typer.Option(help="Prepared dataset folder (shards + manifest.json + report.csv).")],
     features: Annotated[
-        str, typer.Option(help="Audio features: logmel, or hubert:PATH / wav2vec2:PATH (a local Hugging Face folder).")
+        str, typer.Option(help="Audio features: logmel, or hubert:PATH / wav2vec2:PATH (a local Hugging Face folder); "
+                               "wav2vec2+recording:PATH normalises each recording's waveform as a whole, as the "
+                               "public TIMAR loader does (offline evaluation).")
     ] = "logmel",
     tokens: Annotated[
         str, typer.Option(help="TokTalk token stream: auto, clip (the clips' .tokens.npy), vq (fitted on the "
@@ -354,6 +356,17 @@ def stream(run: _RUN, input_: _INPUT, out: _OUT = None, style: _STYLE = None, pa
     typer.echo(f"{_frames(result.params.shape[0])} written to {result.path}")
 
 
+def _scorings(text: str) -> tuple[str, ...]:
+    """``--scoring``: one of the evaluation's scorings, or ``both``."""
+    from jaxtalk.metrics.evaluation import SCORINGS
+
+    if text == "both":
+        return tuple(SCORINGS)
+    if text not in SCORINGS:
+        raise ValueError(f"--scoring must be {', '.join(SCORINGS)} or both, got {text!r}")
+    return (text,)
+
+
 @app.command(name="eval")
 @_user_errors
 def eval_(
@@ -381,6 +394,11 @@ def eval_(
     ] = None,
     offline: Annotated[bool, typer.Option(help="TokTalk: also sample whole clips offline (full attention).")] = False,
     temperature: _TEMPERATURE = None,
+    scoring: Annotated[
+        str, typer.Option(help="TIMAR, DualTalk baseline: how conversation sides are scored: jaxtalk (whole sides, "
+                               "the tail after the last whole turn repeating it), public (as the public TIMAR "
+                               "code's calc_metric.py: whole seconds, cut to the shortest) or both.")
+    ] = "jaxtalk",
     real_voice: Annotated[
         Path | None, typer.Option(help="TokTalk, TIMAR: instead of prepared data, a folder of real recordings (.wav, "
                                        ".flac; any rate), each optionally with its speaker's tracked motion beside it "
@@ -407,7 +425,8 @@ def eval_(
     steps = _step_counts(sample_steps or [])
     report = evaluate_run(EvalOptions(run_dir=run, data=data, split=split, max_clips=max_clips, seed=seed,
                                       flame=flame, cache_dir=cache_dir, best=best, sample_steps=steps,
-                                      offline=offline, temperature=temperature, real_voice=real_voice),
+                                      offline=offline, temperature=temperature, real_voice=real_voice,
+                                      scoring=_scorings(scoring)),
                            echo=typer.echo)
     for table in report.tables:
         _echo_table(table.rows, table.title)

@@ -306,6 +306,8 @@ def test_eval_user_errors_are_one_line(runs, prepared_tiny, tmp_path):
     _user_error(["eval", timar, "--flame", tmp_path / "model.pkl"], "--flame poses TokTalk's parameters")
     _user_error(["eval", tok, "--flame", tmp_path / "model.pkl"], "FLAME model file not found")
     _user_error(["eval", tok, "--data", tmp_path / "nowhere"], "is not a prepared dataset")
+    _user_error(["eval", timar, "--scoring", "calc_metric"], "--scoring must be jaxtalk, public or both")
+    _user_error(["eval", tok, "--scoring", "public"], "--scoring chooses how TIMAR and DualTalk baseline score")
 
     def empty_test(m):
         for c in m["clips"]:
@@ -325,6 +327,23 @@ def test_eval_user_errors_are_one_line(runs, prepared_tiny, tmp_path):
                 "has tokens of width 32 at 12.5 Hz, the run was trained on width 64 at 12.5 Hz")
     _user_error(["eval", timar, "--data", _copy_prepared(prepared_tiny, tmp_path / "hubert", hubert)],
                 "has 768-d 'hubert:/models/hubert' speech features, the run was trained on 80-d 'logmel'")
+
+
+def test_timar_eval_scores_both_ways_with_public_scoring_on_the_whole_seconds(runs, prepared_tiny, tmp_path):
+    from jaxtalk.models.timar.recipe import agent_sides
+
+    _ok(["eval", runs["timar"], "--max-clips", "2", "--scoring", "both", "--json", tmp_path / "r.json"])
+    report = _report(tmp_path / "r.json")
+    titles = [t["title"] for t in report["tables"]]
+    assert len(titles) == 6 and sum("[jaxtalk scoring" in s for s in titles) == sum("[public scoring" in s for s in titles) == 3
+    frames = {("public" if "[public" in t["title"] else "jaxtalk"): _rows(t)["timar (streamed)"]["frames"]
+              for t in report["tables"]}
+    def length(clip):
+        return prepared_tiny.record(clip, ("motion",))["motion"].shape[0]
+
+    totals = [min(length(i), length(j)) for i, j in agent_sides(prepared_tiny, "test")[:2]]
+    assert frames == {"jaxtalk": sum(totals), "public": sum(t // 25 * 25 for t in totals)}
+    assert frames["public"] < frames["jaxtalk"]
 
 
 # ---------------------------------------------------------------------------------------- real data

@@ -93,6 +93,8 @@ class EvalOptions:
         real_voice: TokTalk, TIMAR: a folder of real recordings (and tracked motion) to measure the
             predicted jaw on instead of prepared data (see the module docstring); TokTalk's
             ``sample_steps`` give one table each.
+        scoring: TIMAR and the DualTalk baseline: ``jaxtalk`` and/or ``public`` (as the public
+            ``calc_metric.py``), one set of tables each (:data:`jaxtalk.metrics.evaluation.SCORINGS`).
     """
 
     run_dir: Path
@@ -107,6 +109,7 @@ class EvalOptions:
     offline: bool = False
     temperature: float | None = None
     real_voice: Path | None = None
+    scoring: tuple[str, ...] = ("jaxtalk",)
 
 
 @dataclasses.dataclass
@@ -185,8 +188,12 @@ def check_eval_data(record: RunRecord, features: dict[str, Any], data: Any) -> N
             raise ValueError(f"{where} has tokens of width {m['token_dim']} at {m['token_rate']:g} Hz, the run was "
                              f"trained on width {width} at {rate:g} Hz")
         return
+    from jaxtalk.data.features import same_encoder
+
     for key, width in wanted.items():  # a model that reads speech features: their front end and width
-        if m["settings"]["audio"] != features.get("audio") or m.get(key) != width:
+        # The front end must be the run's; its waveform normalisation may differ (per turn as trained,
+        # or over the whole recording as the public TIMAR loader evaluates).
+        if not same_encoder(m["settings"]["audio"], features.get("audio")) or m.get(key) != width:
             raise ValueError(f"{where} has {m.get(key)}-d {m['settings']['audio']!r} speech features, the run was "
                              f"trained on {width}-d {features.get('audio')!r} features; prepare it with "
                              f"--features {features.get('audio')}")
@@ -278,7 +285,9 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
             raise ValueError(f"--real-voice streams recordings through {animated} runs (their output has a jaw); "
                              f"{opts.run_dir} is {article} {record.model} run")
         given = [flag for flag, value in (("--data", opts.data), ("--split", opts.split), ("--flame", opts.flame),
-                                          ("--offline", opts.offline or None)) if value is not None]
+                                          ("--offline", opts.offline or None),
+                                          ("--scoring", None if opts.scoring == ("jaxtalk",) else opts.scoring))
+                 if value is not None]
         if given:
             raise ValueError(f"{', '.join(given)}: not with --real-voice, which measures the recordings of "
                              f"{opts.real_voice}, not prepared data")
@@ -291,6 +300,10 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
             raise ValueError(f"--flame poses TokTalk's parameters on FLAME; {opts.run_dir} is a {record.model} run")
         if not Path(opts.flame).is_file():
             raise FileNotFoundError(f"FLAME model file not found: {str(opts.flame)!r}")
+    if opts.scoring != ("jaxtalk",) and "--scoring" not in spec.eval_options:
+        owners = _models_where(lambda s: "--scoring" in s.eval_options, words=lambda s: s.title)
+        raise ValueError(f"--scoring chooses how {owners} score conversation sides; {opts.run_dir} is a "
+                         f"{record.model} run")
     if opts.temperature is not None:
         if "--temperature" not in spec.eval_options:
             owners = _models_where(lambda s: "--temperature" in s.eval_options, words=lambda s: f"{s.title}'s")
@@ -315,7 +328,8 @@ def evaluate_run(opts: EvalOptions, *, echo: Callable[[str], None] = print) -> E
                           split=None, items=items, tables=tables)
     check_eval_data(record, run.features(), data)
     settings = EvalSettings(max_clips=opts.max_clips, seed=opts.seed, flame=opts.flame,
-                            sample_steps=tuple(opts.sample_steps), offline=opts.offline, temperature=opts.temperature)
+                            sample_steps=tuple(opts.sample_steps), offline=opts.offline, temperature=opts.temperature,
+                            scoring=tuple(opts.scoring))
     items, tables = protocol(run, data, split, settings, echo)
     return EvalReport(model=record.model, run_dir=str(opts.run_dir), step=run.step, data=str(data.root),
                       split=split, items=items, tables=tables)

@@ -32,7 +32,7 @@ import numpy as np
 
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS
 
-__all__ = ["AudioFeatures", "parse_audio_features", "normalize_recording", "SAMPLES_PER_FRAME", "TURN_FRAMES",
+__all__ = ["AudioFeatures", "parse_audio_features", "same_encoder", "normalize_recording", "SAMPLES_PER_FRAME", "TURN_FRAMES",
            "WAVEFORM_NORMS"]
 
 SAMPLES_PER_FRAME = AUDIO_SAMPLE_RATE // MOTION_FPS  # 640
@@ -153,6 +153,19 @@ def _fit(x: np.ndarray, n: int) -> np.ndarray:
     if x.ndim == 1:
         return np.pad(x, (0, n - x.shape[0]))
     return np.concatenate([x, np.repeat(x[-1:], n - x.shape[0], axis=0)])
+
+
+def same_encoder(spec: str | None, other: str | None) -> bool:
+    """Whether two feature specs name the same front end, whatever their waveform normalisation
+    (``wav2vec2:PATH`` and ``wav2vec2+recording:PATH`` do): a run trained on per-turn features
+    evaluates on data prepared the public loader's way. Reads nothing from disk."""
+    def encoder(text: str | None) -> tuple[str, str] | None:
+        if text is None:
+            return None
+        kind, _, path = text.partition(":")
+        return kind.partition("+")[0], path
+
+    return encoder(spec) == encoder(other)
 
 
 def parse_audio_features(spec: str) -> AudioFeatures:

@@ -23,6 +23,7 @@ SPEC = ModelSpec(
     defaults=DEFAULTS,
     preset_defaults=dict(PRESET_DEFAULTS),
     evaluate=evaluate,
+    eval_options=("--scoring",),
     sample_refusal="{run} is a DualTalk baseline run: an offline model scored with `jaxtalk eval {run}`; sample/stream "
                    "animate speech with toktalk or timar runs",
     data_fields=(("speech_dim", "turn_speech_dim"),),

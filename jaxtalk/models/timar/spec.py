@@ -28,7 +28,7 @@ SPEC = ModelSpec(
     guided=True,
     streamer=Streamer(init_stream, stream_step, stream),
     evaluate=evaluate,
-    eval_options=("--temperature",),
+    eval_options=("--temperature", "--scoring"),
     animator=SpeechAnimator(options=("--partner", "--cfg-scale", "--temperature"), read=read_speech, sample=sample_speech,
                             stream=stream_speech, step_frames=step_frames),
     data_fields=(("speech_dim", "turn_speech_dim"),),
