@@ -7,7 +7,8 @@ displacement statistics, STM's meshes; the DualTalk baseline's normaliser, as TI
 ``config.json`` (the resolved model config alone, for a reader without jaxtalk) and the inference
 assets copied from the data (``features.json``, the VQ ``tokenizer.npz``, TokTalk's default
 ``style.npy``), so a run samples without its dataset. Every recipe writes this one format when given a
-``run_dir`` (:func:`write_run`); the CLI, the demo and the experiments all read it.
+``run_dir``: it trains through :func:`fit_run`, which records the run (:func:`write_run`); the CLI, the
+demo and the experiments all read it.
 
 :data:`REGISTRY` names, for each model, its config class, its recipe and the recipe's default training
 settings as dotted import paths resolved on demand: this module sits below the models (it may not
@@ -48,6 +49,7 @@ __all__ = [
     "run_features",
     "default_style_clip",
     "write_run",
+    "fit_run",
 ]
 
 RUN_FILE = "run.json"
@@ -527,6 +529,53 @@ def write_run(run_dir: str | Path, model: str, config: Any, data: Any, optim: An
     else:
         save_run_assets(run_dir, model, data, config)
     return record
+
+
+def fit_run(recipe: Any, data: Any, loss_fn: Any, params: Any, optim: Any, *, config: Any, extra: dict[str, Any],
+            metadata: dict[str, Any], run_dir: str | Path | None = None, run_info: RunInfo | None = None,
+            ckpt_dir: Any = None, window_frames: int | None = None, eval_every: int | None = None,
+            **fit_kwargs: Any) -> Any:
+    """Train a model on a recipe's windows and, given a ``run_dir``, record the run: what every model
+    recipe calls once its windows, loss and initial parameters are set.
+
+    The training is :func:`jaxtalk.train.recipes.fit_recipe`'s (checkpoints in ``run_dir/checkpoint``
+    unless ``ckpt_dir`` says otherwise); the record is :func:`write_run`'s, written by process 0 only
+    (every process checkpoints, one writes the record), with the batch the run trained with (smaller
+    than asked on a small training split).
+
+    Args:
+        recipe, data, loss_fn, params, optim: as :func:`~jaxtalk.train.recipes.fit_recipe`.
+        config: the model config (recorded).
+        extra: what the recipe fitted on the training split (recorded, and the result's ``extra``).
+        metadata: saved with each checkpoint; ``metadata["model"]`` names the run's model.
+        run_dir: write a complete run here, or None.
+        run_info: how the run was asked for (None: a Python call).
+        ckpt_dir: checkpoint folder (default ``run_dir/checkpoint``), or None.
+        window_frames: the window setting the recipe was given (recorded).
+        eval_every: validation period in steps (recorded).
+        **fit_kwargs: passed to :func:`~jaxtalk.train.recipes.fit_recipe`.
+
+    Returns:
+        The :class:`~jaxtalk.train.recipes.RecipeResult`, ``extra`` included.
+    """
+    import jax
+
+    from jaxtalk.train.recipes import TrainSettings, fit_recipe
+
+    if run_dir is not None and ckpt_dir is None:
+        ckpt_dir = checkpoint_dir(run_dir)
+    result = fit_recipe(recipe, data, loss_fn, params, optim, ckpt_dir=ckpt_dir, eval_every=eval_every,
+                        metadata=metadata, **fit_kwargs)
+    result = dataclasses.replace(result, extra=extra)
+    if run_dir is not None and jax.process_index() == 0:  # every process checkpoints; one writes the record
+        info = run_info or RunInfo()
+        if info.settings is not None:  # the run records the batch it trained with
+            info = dataclasses.replace(info, settings=dataclasses.replace(info.settings, batch_size=result.batch_size))
+        settings = TrainSettings.of_run(optim, batch_size=result.batch_size, window_frames=window_frames,
+                                        eval_every=eval_every)
+        write_run(run_dir, metadata["model"], config, data, optim, seed=fit_kwargs["seed"], extra=extra,
+                  settings=settings, info=info)
+    return result
 
 
 @dataclasses.dataclass

@@ -1,4 +1,4 @@
-"""What the model recipes share: the result type, a validation-loss evaluator, the run they write.
+"""What the model recipes share: the result type, a validation-loss evaluator, the training on windows.
 
 A recipe (``jaxtalk.models.<model>.recipe``) is the one way a model is trained: it cuts windows from
 a prepared dataset (:mod:`jaxtalk.data.loader`), fits what the model needs from the training split
@@ -6,8 +6,9 @@ a prepared dataset (:mod:`jaxtalk.data.loader`), fits what the model needs from 
 
     train(config, data, optim, *, steps, key, batch_size=16, run_dir=None, ckpt_dir=None, mesh=None, ...) -> RecipeResult
 
-Given a ``run_dir``, a recipe checkpoints into ``run_dir/checkpoint`` and writes a complete run
-(:func:`jaxtalk.runs.write_run`) that ``jaxtalk sample``, ``eval`` and :func:`jaxtalk.runs.load_run` open.
+A recipe trains through :func:`jaxtalk.runs.fit_run`: :func:`fit_recipe` here (the training alone), then,
+given a ``run_dir``, the run record (:func:`jaxtalk.runs.write_run`) that ``jaxtalk sample``, ``eval`` and
+:func:`jaxtalk.runs.load_run` open. This layer sits below the run format and knows nothing of it.
 """
 
 from __future__ import annotations
@@ -292,11 +293,6 @@ def fit_recipe(
     mesh: Any,
     eval_every: int | None,
     metadata: dict[str, Any],
-    extra: dict[str, Any],
-    config: Any,
-    run_dir: Any = None,
-    run_info: Any = None,
-    window_frames: int | None = None,
     sample_eval: Callable[[Any, Any, int], dict[str, float]] | None = None,
     best_metric: str | None = None,
     best_mode: str = "min",
@@ -309,6 +305,9 @@ def fit_recipe(
     used). With ``ckpt_dir``, the run folder (its parent) gets ``metrics.jsonl`` and TensorBoard event files
     (:mod:`jaxtalk.train.writers`) unless ``loop_kwargs`` names another ``log_dir``.
 
+    It only trains: the run record (``run.json`` and the inference assets) is the runs layer's
+    (:func:`jaxtalk.runs.fit_run`, which the model recipes call).
+
     Args:
         recipe: the window recipe.
         data: the prepared dataset.
@@ -318,12 +317,6 @@ def fit_recipe(
         key: the loop's base key; eval_key: the validation key.
         steps, batch_size, seed, ckpt_dir, mesh, eval_every: as every recipe's ``train``.
         metadata: saved with each checkpoint (``metadata["model"]`` names the run's model).
-        extra: what the recipe fitted on the training split (goes into ``run.json``).
-        config: the model config.
-        run_dir: write a complete run here (checkpoints in ``run_dir/checkpoint`` unless ``ckpt_dir``
-            says otherwise), or None.
-        run_info: how the run was asked for (:class:`jaxtalk.runs.RunInfo`; None: a Python call).
-        window_frames: the window setting the recipe was given (recorded with the run).
         sample_eval: a validation that samples the model as users do (its metrics join the loss's at
             every evaluation), or None.
         best_metric: the evaluation metric the best checkpoint is chosen by (a metric of
@@ -334,10 +327,9 @@ def fit_recipe(
         **loop_kwargs: passed to :func:`jaxtalk.train.train`.
 
     Returns:
-        :class:`RecipeResult`.
+        :class:`RecipeResult` (``extra`` empty: what the recipe fitted is the caller's to add).
     """
     from jaxtalk.data.loader import make_loader
-    from jaxtalk.runs import checkpoint_dir, write_run
     from jaxtalk.train.loop import train
 
     windows = len(recipe.table(data, "train")) if data.split("train") else 0
@@ -348,8 +340,6 @@ def fit_recipe(
                       f"{f' x {jax.process_count()} processes' if jax.process_count() > 1 else ''}: training with "
                       f"the largest batch it allows (--set batch_size={fitted})", BatchSizeWarning, stacklevel=3)
         batch_size = fitted
-    if run_dir is not None and ckpt_dir is None:
-        ckpt_dir = checkpoint_dir(run_dir)
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     val_eval = split_validation(data, recipe, loss_fn, batch_size, eval_key)
     eval_fn = merged_eval(val_eval, sample_eval)
@@ -361,12 +351,5 @@ def fit_recipe(
         loop_kwargs.setdefault("log_dir", Path(ckpt_dir).parent)
     result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
                    mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir, selection, mode), **loop_kwargs)
-    if run_info is not None and run_info.settings is not None:  # the run records the batch it trained with
-        run_info = dataclasses.replace(run_info, settings=dataclasses.replace(run_info.settings, batch_size=batch_size))
-    if run_dir is not None and jax.process_index() == 0:  # every process checkpoints; one writes the record
-        settings = TrainSettings.of_run(optim, batch_size=batch_size, window_frames=window_frames,
-                                        eval_every=eval_every)
-        write_run(run_dir, metadata["model"], config, data, optim, seed=seed, extra=extra, settings=settings,
-                  info=run_info)
-    return RecipeResult(state=result.state, history=result.history, best=result.best, extra=extra,
+    return RecipeResult(state=result.state, history=result.history, best=result.best,
                         windows=loader.num_windows, batch_size=batch_size)

@@ -23,10 +23,10 @@ from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.models.freetalk.emotions import EMOTIONS
-from jaxtalk.runs import RunInfo
+from jaxtalk.runs import RunInfo, fit_run
 from jaxtalk.train import OptimConfig
 from jaxtalk.data.batching import window_starts
-from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "ATS_PRESET_DEFAULTS", "STM_PRESET_DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT",
@@ -176,7 +176,7 @@ def train_ats(
     from jaxtalk.models.freetalk.validation import SELECTION_METRIC, sampled_validation
 
     sample_eval = sampled_validation(config, data, recipe, "val", key=jax.random.fold_in(k_eval, 1), clips=val_clips)
-    return fit_recipe(recipe, data, ats.make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
+    return fit_run(recipe, data, ats.make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
                       sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed,
                       ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra,
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)
@@ -260,7 +260,7 @@ def train_stm(
 
     sample_eval = held_out_mesh_validation(config, data, held_out, "val", window=recipe.window, clips=val_clips,
                                            resolution=resolution)
-    return fit_recipe(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
+    return fit_run(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
                       eval_key=k_eval, sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size,
                       seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
                       config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)

@@ -30,9 +30,9 @@ from jaxtalk.data.batching import fit_length, window_starts
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.data.recordings import Recording
 from jaxtalk.models.toktalk.config import TokTalkConfig
-from jaxtalk.runs import RunInfo, checkpoint_dir
+from jaxtalk.runs import RunInfo, checkpoint_dir, fit_run
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, merged_eval, spread
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, merged_eval, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TokTalkWindows", "AdapterWindows", "default_window", "check_data", "base_trainable",
@@ -234,7 +234,7 @@ def train(
     sample_eval = streamed_validation(config, data, "val", key=jax.random.fold_in(k_eval, 1), clips=val_clips)
     if best_metric == SELECTION_METRIC and sample_eval is None:
         best_metric = None
-    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
+    return fit_run(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
                       sample_eval=merged_eval(sample_eval, real_eval), best_metric=best_metric, best_mode=best_mode,
                       steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
                       metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
@@ -353,7 +353,7 @@ def train_adapter(
     params["adapter"] = init_adapter(config, k_init, src_dim)
     loss = functools.partial(_adapter_loss, config, float(src_rate), float(flow_weight))
     extra = {"window_frames": recipe.window_frames, "adapter": {"src_rate": float(src_rate), "src_dim": src_dim}}
-    return fit_recipe(recipe, data, loss, params, optim, key=k_train, eval_key=k_eval, steps=steps,
+    return fit_run(recipe, data, loss, params, optim, key=k_train, eval_key=k_eval, steps=steps,
                       batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
                       metadata={"model": "toktalk", "stage": 2}, extra=extra, config=config, run_dir=run_dir,
                       run_info=run_info, window_frames=window_frames, trainable=adapter_trainable, **loop_kwargs)

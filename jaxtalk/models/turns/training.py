@@ -21,9 +21,9 @@ from jaxtalk.models.turns.windows import Normalizer, TurnWindows, agent_sides, m
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
 from jaxtalk.metrics.evaluation import EvalSettings, EvalTable
-from jaxtalk.runs import RunInfo
+from jaxtalk.runs import RunInfo, fit_run
 from jaxtalk.train.optim import OptimConfig
-from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, host_copy, spread
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["TURN_DEFAULTS", "TURN_PRESET_DEFAULTS", "train_on_turn_windows", "conversation_validation",
@@ -82,7 +82,7 @@ def train_on_turn_windows(
         model: the run's model name (``"timar"``, ``"dualtalk"``).
         config: the model's config (a :class:`TurnConfig`).
         init_params: ``(config, key) -> params`` (used when ``params`` is None).
-        make_loss_fn: ``config -> loss_fn`` for :func:`~jaxtalk.train.recipes.fit_recipe`.
+        make_loss_fn: ``config -> loss_fn`` for :func:`~jaxtalk.runs.fit_run`.
         normalizer: the standardisation to train with (a :class:`~jaxtalk.models.turns.windows.Normalizer`
             or its ``to_dict()``): a fine-tuned run keeps its starting run's; None: fitted on ``data``.
         predict: how the model predicts a conversation side as users run it (TIMAR: streamed turn by
@@ -104,7 +104,7 @@ def train_on_turn_windows(
         extra["init"] = True  # the normaliser came with the starting parameters: a resume keeps it
     sample_eval = None if predict is None else conversation_validation(
         data, recipe, "val", predict=predict, key=jax.random.fold_in(k_eval, 1), clips=val_clips)
-    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps,
+    return fit_run(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps,
                       sample_eval=sample_eval, best_metric=SELECTION_METRIC, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir,
                       mesh=mesh, eval_every=eval_every, metadata={"model": model}, extra=extra, config=config, run_dir=run_dir,
                       run_info=run_info, **loop_kwargs)
