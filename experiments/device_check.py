@@ -74,14 +74,17 @@ def timar_train(seconds: float, *, preset: str = "paper", data: str = "synthtalk
     from jaxtalk.bench import recipe_setup
     from jaxtalk.data.loader import open_data
     from jaxtalk.models.timar import init_params
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings
 
     prepared = open_data(data, cache_dir=cache_dir, progress=False)
     train_fn, config, settings = recipe_setup("timar", preset, prepared, overrides)
     budget = TimeBudget(seconds)
     steps = 1_000_000  # the budget ends the run
     try:
-        result = train_fn(config, prepared, settings.optim(steps), steps=steps, key=jax.random.key(0),
-                          batch_size=settings.batch_size, progress=False, observers=[budget])
+        result = train_fn(config, prepared, settings.optim(steps), key=jax.random.key(0),
+                          run=RunSettings(steps=steps, batch_size=settings.batch_size, loop=LoopSettings(progress=False),
+                                          observers=[budget]))
         raise RuntimeError(f"the run ended at step {int(result.state.step)} before the time budget")
     except _BudgetSpent:
         pass

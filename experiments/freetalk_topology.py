@@ -36,7 +36,8 @@ from jaxtalk.data.loader import open_data
 from jaxtalk.models.freetalk import data, stm
 from jaxtalk.models.freetalk import recipe as freetalk_recipe
 from jaxtalk.models.freetalk.config import STMConfig
-from jaxtalk.train import OptimConfig
+from jaxtalk.runs import RunSettings
+from jaxtalk.train import LoopSettings, OptimConfig
 
 # The recipe's training meshes (seen) and the held-out ones: the subdivided topology tests a
 # resolution never seen in training; each retriangulation is a fresh random remesh (seeded by the
@@ -69,9 +70,9 @@ def train_stm(prepared, corpus, cfg: STMConfig, meshes: list[tuple[int, str]], s
     ((identity, topology) pairs at ``resolution``); returns ``(params, mean vertex displacement of
     each mesh over the training clips)`` (the means are the mean-pose baseline)."""
     optim = OptimConfig(lr=LR, warmup_steps=min(50, steps // 10), total_steps=steps)
-    result = freetalk_recipe.train_stm(cfg, prepared, optim, steps=steps, key=jax.random.key(0), batch_size=batch_size,
-                                       meshes=tuple(meshes), resolution=resolution, progress=True,
-                                       log_every=max(1, steps // 20))
+    run = RunSettings(steps=steps, batch_size=batch_size, loop=LoopSettings(log_every=max(1, steps // 20)))
+    result = freetalk_recipe.train_stm(cfg, prepared, optim, key=jax.random.key(0), run=run, meshes=tuple(meshes),
+                                       resolution=resolution)
     faces = [data.face_mesh(i, k, resolution=resolution) for i, k in meshes]
     means = [np.concatenate([m.motion(data.without_head_pose(corpus.motion(c)))[1] for c in corpus.split("train")])
              .mean(axis=0) for m in faces]

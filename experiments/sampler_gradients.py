@@ -52,7 +52,8 @@ from jaxtalk.data.loader import open_data
 from jaxtalk.models.freetalk import recipe as freetalk_recipe
 from jaxtalk.models.freetalk.fit import FittedATS
 from jaxtalk.models.toktalk import recipe as toktalk_recipe
-from jaxtalk.train import OptimConfig
+from jaxtalk.runs import RunSettings
+from jaxtalk.train import LoopSettings, OptimConfig
 from toktalk_common import DATA, _load, _save, load_corpus
 
 Array = jax.Array
@@ -79,8 +80,9 @@ def toktalk_model(prepared, steps: int, path: str | None, seed: int = 0):
         return cfg, _load(Path(path), like), {"loaded": path}
     t0 = time.perf_counter()
     optim = OptimConfig(lr=5e-4, warmup_steps=min(50, steps // 5), total_steps=steps, weight_decay=0.0)
-    result = toktalk_recipe.train(cfg, prepared, optim, steps=steps, key=jax.random.key(seed), batch_size=16, seed=seed,
-                                  window_frames=WINDOW, progress=False, log_every=max(1, steps // 5))
+    run = RunSettings(steps=steps, batch_size=16, seed=seed, window_frames=WINDOW,
+                      loop=LoopSettings(progress=False, log_every=max(1, steps // 5)))
+    result = toktalk_recipe.train(cfg, prepared, optim, key=jax.random.key(seed), run=run)
     params = result.state.eval_params
     if path:
         _save(Path(path), params)
@@ -98,8 +100,9 @@ def ats_model(prepared, steps: int, path: str | None, seed: int = 0) -> tuple[Fi
         return FittedATS(cfg, _load(Path(path), like), stats, []), {"loaded": path}
     t0 = time.perf_counter()
     optim = OptimConfig(lr=1e-3, warmup_steps=min(100, steps // 10), total_steps=steps)
-    result = freetalk_recipe.train_ats(cfg, prepared, optim, steps=steps, key=jax.random.key(seed), batch_size=16,
-                                       seed=seed, window_frames=WINDOW, log_every=max(1, steps // 20))
+    run = RunSettings(steps=steps, batch_size=16, seed=seed, window_frames=WINDOW,
+                      loop=LoopSettings(log_every=max(1, steps // 20)))
+    result = freetalk_recipe.train_ats(cfg, prepared, optim, key=jax.random.key(seed), run=run)
     fitted = FittedATS(cfg, result.state.eval_params, stats, result.history)
     if path:
         _save(Path(path), fitted.params)

@@ -37,7 +37,8 @@ from jaxtalk.metrics.speech_sync import style_rest_jaw
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk import recipe
 from jaxtalk.models.toktalk.sampling import default_grid
-from jaxtalk.train import OptimConfig
+from jaxtalk.runs import RunSettings
+from jaxtalk.train import LoopSettings, OptimConfig
 
 SR = 16000
 LEVELS_DB = (-70, -60, -50, -40, -30, -20)
@@ -66,7 +67,8 @@ def _run(data: PreparedData, steps: int, seed: int) -> dict:
     t0 = time.perf_counter()
     result = recipe.train(cfg, data, OptimConfig(lr=recipe.DEFAULTS.lr, warmup_steps=50, total_steps=steps,
                                                  ema_decay=recipe.DEFAULTS.ema_decay),
-                          key=jax.random.key(seed), batch_size=16, progress=False, val_clips=0)
+                          key=jax.random.key(seed), run=RunSettings(batch_size=16, loop=LoopSettings(progress=False)),
+                          val_clips=0)
     train_s = time.perf_counter() - t0
     params = result.state.eval_params
     tokenizer = VQTokenizer.load(data.root / data.manifest["tokenizer"])

@@ -28,6 +28,7 @@ from jaxtalk.metrics.conversation import conversation_metrics
 from jaxtalk.models.timar import TimarConfig
 from jaxtalk.models.timar.data import Normalizer
 from jaxtalk.models.timar.streaming import stream
+from jaxtalk.runs import RunSettings
 from jaxtalk.train.recipes import TrainSettings
 
 
@@ -120,8 +121,9 @@ def train_model(args, config: TimarConfig, *, ckpt_dir=None, max_steps: int | No
 
     optim = TrainSettings(lr=args.lr, warmup_steps=args.warmup, final_lr_ratio=0.1).optim(args.steps)
     data = open_prepared(args)
-    result = recipe.train(config, data, optim, steps=max_steps or args.steps, key=jax.random.key(seed),
-                          batch_size=args.batch, seed=seed, ckpt_dir=ckpt_dir, progress=True)
+    result = recipe.train(config, data, optim, key=jax.random.key(seed),
+                          run=RunSettings(steps=max_steps or args.steps, batch_size=args.batch, seed=seed,
+                                          ckpt_dir=ckpt_dir))
     return result, Normalizer.from_dict(result.extra["normalizer"]), result.windows
 
 

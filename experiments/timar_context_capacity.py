@@ -29,6 +29,7 @@ from jaxtalk.models.timar.data import Normalizer
 from jaxtalk.models.timar.encoder import init_encoder
 from jaxtalk.models.timar.loss import STREAMS
 from jaxtalk.models.timar.model import encode_window
+from jaxtalk.runs import RunSettings
 from jaxtalk.train.recipes import TrainSettings
 from jaxtalk.models.turns.training import train_on_turn_windows
 
@@ -71,9 +72,8 @@ def main() -> None:
     t0 = time.perf_counter()
     result = train_on_turn_windows(
         "timar-neck-readout", config, open_prepared(args), optim, init_params,
-        lambda c: functools.partial(neck_loss, c), steps=args.steps, key=jax.random.key(args.seed),
-        batch_size=args.batch, seed=args.seed, params=None, run_dir=None, run_info=None, ckpt_dir=None, mesh=None,
-        eval_every=None, predict=None, val_clips=0, progress=True)
+        lambda c: functools.partial(neck_loss, c), key=jax.random.key(args.seed),
+        run=RunSettings(steps=args.steps, batch_size=args.batch, seed=args.seed), predict=None, val_clips=0)
     losses = [float(h["loss"]) for h in result.history if "loss" in h]
     print(f"{args.steps} steps in {time.perf_counter() - t0:.0f} s; loss {losses[0]:.4f} -> "
           f"{sum(losses[-50:]) / len(losses[-50:]):.4f} (last 50)")

@@ -89,8 +89,11 @@ def train(args) -> None:
     data = open_data(f"synthtalk:{SIZE}", cache_dir=CACHE)
     settings = dataclasses.replace(PRESET_DEFAULTS["small"], batch_size=args.batch)
     t0 = time.perf_counter()
-    result = train_fn(config, data, settings.optim(args.steps), steps=args.steps, key=jax.random.key(args.seed),
-                      batch_size=settings.batch_size, seed=args.seed, eval_every=args.eval_every, progress=True)
+    from jaxtalk.runs import RunSettings
+
+    result = train_fn(config, data, settings.optim(args.steps), key=jax.random.key(args.seed),
+                      run=RunSettings(steps=args.steps, batch_size=settings.batch_size, seed=args.seed,
+                                      eval_every=args.eval_every))
     train_s = time.perf_counter() - t0
     losses = [float(h["loss"]) for h in result.history if "loss" in h]
     evals = [h["eval"]["val_loss"] for h in result.history if "eval" in h and "val_loss" in h["eval"]]

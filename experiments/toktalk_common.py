@@ -26,7 +26,8 @@ from jaxtalk.demo import DemoOptions, cache_dir, data_spec, model_config, train_
 from jaxtalk.metrics import fdd, jitter, lve, mod
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.recipe import train_adapter
-from jaxtalk.train import OptimConfig
+from jaxtalk.runs import RunSettings
+from jaxtalk.train import LoopSettings, OptimConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CACHE = RESULTS / "toktalk_cache"
@@ -80,7 +81,8 @@ def trained_small(corpus, steps: int, adapter_steps: int, seed: int = 0, chunk_f
                             OptimConfig(lr=5e-4, warmup_steps=min(20, adapter_steps // 10), total_steps=adapter_steps,
                                         weight_decay=0.0),
                             base_params=base, src_tokens=stream_b, src_rate=25.0, key=jax.random.key(seed + 1),
-                            batch_size=16, seed=seed, window_frames=options.window_frames, progress=True, log_every=50)
+                            run=RunSettings(batch_size=16, seed=seed, window_frames=options.window_frames,
+                                            loop=LoopSettings(log_every=50)))
     params = adapted.state.params
     _save(path, params)
     return cfg, params, {**info, "stage2_s": time.perf_counter() - t1,

@@ -783,10 +783,13 @@ def train_step(
     probe = TrainProbe(repeats=repeats, loop_warmup=loop_warmup, loop_steps=loop_steps,
                        loader_batches=loader_batches, profile_dir=profile_dir)
     steps = probe.last_step + 1
-    kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames else {}
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings
+
+    run = RunSettings(steps=steps, batch_size=settings.batch_size, seed=0, window_frames=settings.window_frames or None,
+                      loop=LoopSettings(progress=False), observers=[probe])
     try:
-        train_fn(config, data, settings.optim(steps), steps=steps, key=jax.random.key(0),
-                 batch_size=settings.batch_size, seed=0, progress=False, observers=[probe], **kw)
+        train_fn(config, data, settings.optim(steps), key=jax.random.key(0), run=run)
     except _WindowDone:
         pass
     else:

@@ -7,7 +7,8 @@ displacement statistics, STM's meshes; the DualTalk baseline's normaliser, as TI
 ``config.json`` (the resolved model config alone, for a reader without jaxtalk) and the inference
 assets copied from the data (``features.json``, the VQ ``tokenizer.npz``, TokTalk's default
 ``style.npy``), so a run samples without its dataset. Every recipe writes this one format when given a
-``run_dir`` (:func:`write_run`); the CLI, the demo and the experiments all read it.
+``run_dir``: it trains through :func:`fit_run`, which records the run (:func:`write_run`); the CLI, the
+demo and the experiments all read it.
 
 :data:`REGISTRY` names, for each model, its config class, its recipe and the recipe's default training
 settings as dotted import paths resolved on demand: this module sits below the models (it may not
@@ -25,6 +26,17 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+if typing.TYPE_CHECKING:  # types only: this module imports no array library (``jaxtalk --help`` stays instant)
+    from jax.sharding import Mesh
+
+    from jaxtalk.data.loader import PreparedData, WindowRecipe
+    from jaxtalk.train.loop import EvalFn, LoopSettings
+    from jaxtalk.train.observers import StepObserver
+    from jaxtalk.train.optim import OptimConfig, Trainable
+    from jaxtalk.train.recipes import RecipeResult
+    from jaxtalk.train.step import LossFn
+    from jaxtalk.types import PRNGKeyArray
+
 __all__ = [
     "MODELS",
     "REGISTRY",
@@ -36,6 +48,7 @@ __all__ = [
     "SpeechConditions",
     "SPEC_PATHS",
     "RunInfo",
+    "RunSettings",
     "RunRecord",
     "LoadedRun",
     "model_spec",
@@ -50,6 +63,7 @@ __all__ = [
     "run_features",
     "default_style_clip",
     "write_run",
+    "fit_run",
 ]
 
 RUN_FILE = "run.json"
@@ -149,7 +163,8 @@ class ModelSpec:
         init_params: ``(config, key) -> params``.
         make_loss_fn: ``(config) -> (params, batch, key) -> (loss, metrics)`` for the training loop (STM
             binds its meshes: ``(config, meshes)``).
-        train: the recipe's ``train(config, data, optim, *, steps, key, ..., run_dir=None)``.
+        train: the recipe's ``train(config, data, optim, *, key, run=RunSettings(), params=None, ...)``
+            (:class:`RunSettings`; the keywords after ``params`` are the model's own).
         defaults: the recipe's default :class:`~jaxtalk.train.recipes.TrainSettings`.
         preset_defaults: ``{preset: TrainSettings}`` for presets whose settings differ (TIMAR's ``paper``).
         sample: ``sample(params, config, ..., key, *, sample_steps=..., ...)``, or None for the
@@ -623,6 +638,126 @@ def write_run(run_dir: str | Path, model: str, config: Any, data: Any, optim: An
     else:
         save_run_assets(run_dir, model, data, config)
     return record
+
+
+def _default_loop() -> LoopSettings:
+    from jaxtalk.train.loop import LoopSettings
+
+    return LoopSettings()
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSettings:
+    """How a recipe's run goes, besides the model, the data, the optimiser and the key: what every
+    recipe's ``train`` takes (``train(config, data, optim, *, key, run=RunSettings(...), ...)``).
+
+    Attributes:
+        steps: stop at this step (None: the optimiser's ``total_steps``).
+        batch_size: windows per batch on each process (a smaller training split trains with the largest
+            batch it allows, and the run records that one).
+        seed: data-order seed (and the recipe's own choices of windows, such as TokTalk's style clips).
+        window_frames: frames per training window (None: the model's default; 0: ATS's whole clips),
+            for the models whose windows have a length setting (not TIMAR's or the baseline's turns).
+        eval_every: validation period in steps (None: only at the end).
+        run_dir: write a complete run here (``run.json``, ``config.json``, the checkpoints in
+            ``run_dir/checkpoint``, the inference assets), or None.
+        ckpt_dir: checkpoint folder (exact resume); None: ``run_dir/checkpoint`` with a ``run_dir``,
+            else no checkpoints.
+        mesh: device mesh for data parallelism, or None.
+        info: how the run was asked for (:class:`RunInfo`: the CLI's preset, ``--set`` items and
+            settings), recorded in ``run.json``; None: a Python call.
+        loop: the rest of the loop's settings (:class:`~jaxtalk.train.LoopSettings`: ``progress``,
+            ``save_every``, ``log_every``, ...). Its length and evaluation period are ``steps`` and
+            ``eval_every`` here, and its best checkpoint is the recipe's choice, so those stay unset.
+        observers: :class:`~jaxtalk.train.StepObserver` s that watch the steps (a profiler trace, a
+            stop request, the benchmark's probe).
+
+    Raises:
+        ValueError: a count or period below 1 (``window_frames`` below 0), or ``loop`` settings that
+            are the run's or the recipe's (``max_steps``, ``eval_every``, ``best_metric``, ``best_mode``).
+    """
+
+    steps: int | None = None
+    batch_size: int = 16
+    seed: int = 0
+    window_frames: int | None = None
+    eval_every: int | None = None
+    run_dir: str | Path | None = None
+    ckpt_dir: str | Path | None = None
+    mesh: Mesh | None = None
+    info: RunInfo | None = None
+    loop: LoopSettings = dataclasses.field(default_factory=_default_loop)
+    observers: Sequence[StepObserver] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "eval_every"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"{name} must be >= 1 or None, got {value}")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.window_frames is not None and self.window_frames < 0:
+            raise ValueError(f"window_frames must be >= 0 or None, got {self.window_frames}")
+        loop = self.loop
+        taken = [name for name, value in (("max_steps", loop.max_steps), ("eval_every", loop.eval_every),
+                                          ("best_metric", loop.best_metric)) if value is not None]
+        taken += ["best_mode"] if loop.best_mode != "min" else []
+        if taken:
+            raise ValueError(f"RunSettings.loop sets {', '.join(taken)}: a run's length and validation period are "
+                             "RunSettings.steps and eval_every, and its recipe chooses the best checkpoint")
+        object.__setattr__(self, "observers", tuple(self.observers))  # settings compare by value
+
+    @property
+    def ckpt_path(self) -> Path | None:
+        """The checkpoint folder the run uses: ``ckpt_dir``, else ``run_dir/checkpoint``, else None."""
+        if self.ckpt_dir is not None:
+            return Path(self.ckpt_dir)
+        return None if self.run_dir is None else checkpoint_dir(self.run_dir)
+
+
+def fit_run(recipe: WindowRecipe, data: PreparedData, loss_fn: LossFn, params: Any, optim: OptimConfig, *,
+            config: Any, key: PRNGKeyArray, eval_key: PRNGKeyArray, run: RunSettings, metadata: dict[str, Any],
+            extra: dict[str, Any], sample_eval: EvalFn | None = None, best_metric: str | None = None,
+            best_mode: typing.Literal["min", "max"] = "min", trainable: Trainable = None) -> RecipeResult:
+    """Train a model on a recipe's windows and, given ``run.run_dir``, record the run: what every model
+    recipe calls once its windows, loss and initial parameters are set.
+
+    The training is :func:`jaxtalk.train.recipes.fit_recipe`'s (checkpoints in ``run.ckpt_path``); the
+    record is :func:`write_run`'s, written by process 0 only (every process checkpoints, one writes the
+    record), with the batch the run trained with (smaller than asked on a small training split).
+
+    Args:
+        recipe, data, loss_fn, params, optim, key, eval_key, sample_eval, trainable: as
+            :func:`~jaxtalk.train.recipes.fit_recipe`.
+        config: the model config (recorded).
+        run: the run's settings.
+        metadata: saved with each checkpoint; ``metadata["model"]`` names the run's model.
+        extra: what the recipe fitted on the training split (recorded, and the result's ``extra``).
+        best_metric: the metric of ``sample_eval`` the best checkpoint is chosen by (None: the
+            validation loss), in the direction of ``best_mode`` (``"min"``: lower is better, or ``"max"``).
+
+    Returns:
+        The :class:`~jaxtalk.train.recipes.RecipeResult`, ``extra`` included.
+    """
+    import jax
+
+    from jaxtalk.train.recipes import TrainSettings, fit_recipe
+
+    loop = dataclasses.replace(run.loop, max_steps=run.steps, eval_every=run.eval_every, best_metric=best_metric,
+                               best_mode=best_mode)
+    result = fit_recipe(recipe, data, loss_fn, params, optim, key=key, eval_key=eval_key, batch_size=run.batch_size,
+                        seed=run.seed, settings=loop, ckpt_dir=run.ckpt_path, mesh=run.mesh, metadata=metadata,
+                        sample_eval=sample_eval, trainable=trainable, observers=run.observers)
+    result = dataclasses.replace(result, extra=extra)
+    if run.run_dir is not None and jax.process_index() == 0:  # every process checkpoints; one writes the record
+        info = run.info or RunInfo()
+        if info.settings is not None:  # the run records the batch it trained with
+            info = dataclasses.replace(info, settings=dataclasses.replace(info.settings, batch_size=result.batch_size))
+        settings = TrainSettings.of_run(optim, batch_size=result.batch_size, window_frames=run.window_frames,
+                                        eval_every=run.eval_every)
+        write_run(run.run_dir, metadata["model"], config, data, optim, seed=run.seed, extra=extra, settings=settings,
+                  info=info)
+    return result
 
 
 @dataclasses.dataclass

@@ -26,7 +26,7 @@ START = time.perf_counter()
 
 jax.config.update("jax_numpy_rank_promotion", "raise")
 with install_import_hook(["jaxtalk"], "beartype.beartype"):
-    from jaxtalk.train import OptimConfig, make_mesh, replicate, shard_batch, train
+    from jaxtalk.train import LoopSettings, OptimConfig, make_mesh, replicate, shard_batch, train
     from jaxtalk.train.distributed import initialize, process_info
 
 N_EXAMPLES, GLOBAL_BATCH, STEPS = 32, 8, 5
@@ -109,7 +109,8 @@ def main() -> None:
     cfg = OptimConfig(lr=5e-2, warmup_steps=1, total_steps=STEPS, ema_decay=0.9)
     local_batches = (local_part(b, index, count) for b in global_batches(data))
     t_train = time.perf_counter()
-    res = train(loss_fn, params, local_batches, cfg, key=jax.random.key(5), mesh=mesh, progress=False, log_every=2)
+    res = train(loss_fn, params, local_batches, cfg, key=jax.random.key(5), mesh=mesh,
+                settings=LoopSettings(progress=False, log_every=2))
 
     checks["seconds"]["train"] = time.perf_counter() - t_train
     checks["replicated"] = bool(res.state.params["w"].sharding.is_fully_replicated)

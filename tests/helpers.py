@@ -10,6 +10,18 @@ import jax
 import numpy as np
 
 
+def with_loop_settings(**kw) -> dict:
+    """``kw`` as :func:`jaxtalk.train.train`'s keywords: the :class:`~jaxtalk.train.LoopSettings` fields
+    among them gathered into ``settings`` (for tests that vary both kinds through one helper)."""
+    import dataclasses
+
+    from jaxtalk.train import LoopSettings
+
+    fields = {f.name for f in dataclasses.fields(LoopSettings)}
+    return {**{k: v for k, v in kw.items() if k not in fields},
+            "settings": LoopSettings(**{k: v for k, v in kw.items() if k in fields})}
+
+
 @functools.partial(jax.jit, static_argnames="scale")
 def perturbed(params, key, scale: float = 0.05):
     """``params`` plus ``scale`` x standard-normal noise on every leaf.
@@ -182,8 +194,8 @@ def few_validation_windows(count: int = 4):
         recipes.VAL_WINDOWS = saved
 
 
-def assert_recipe_resumes_exactly(train, config, data, folder: Path, **kw) -> None:
-    """A recipe (``train(config, data, optim, *, steps, key, batch_size, ckpt_dir, ...)``) run for 4 steps
+def assert_recipe_resumes_exactly(train, config, data, folder: Path, window_frames: int | None = None, **kw) -> None:
+    """A recipe (``train(config, data, optim, *, key, run=RunSettings(...), ...)``) run for 4 steps
     with a checkpoint every 2, then its step-4 checkpoint deleted (as if the run had died after step 2):
     a fresh call with the same arguments resumes from step 2 and ends bitwise where the uninterrupted
     run did, with the same losses on steps 3 and 4 (the loader's position and the RNG resume too)."""
@@ -191,11 +203,17 @@ def assert_recipe_resumes_exactly(train, config, data, folder: Path, **kw) -> No
 
     import numpy as np
 
-    from jaxtalk.train import OptimConfig
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
 
     ckpt = Path(folder) / "checkpoint"
-    run = functools.partial(train, config, data, OptimConfig(lr=1e-3, warmup_steps=1, total_steps=4),
-                            key=jax.random.key(0), batch_size=2, ckpt_dir=ckpt, progress=False, **kw)
+
+    def run(save_every=None):
+        settings = RunSettings(batch_size=2, window_frames=window_frames, ckpt_dir=ckpt,
+                               loop=LoopSettings(progress=False, save_every=save_every))
+        return train(config, data, OptimConfig(lr=1e-3, warmup_steps=1, total_steps=4), key=jax.random.key(0),
+                     run=settings, **kw)
+
     with few_validation_windows():
         straight = run(save_every=2)
         assert sorted(p.name for p in ckpt.iterdir() if p.name.isdigit()) == ["2", "4"]

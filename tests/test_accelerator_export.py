@@ -99,13 +99,16 @@ class _CaptureStep(StepObserver):
 @pytest.mark.parametrize("model", MODELS)
 def test_the_train_step_lowers_for_cuda_and_tpu(model, prepared_tiny):
     from jaxtalk.bench import recipe_setup
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings
 
+    quiet = LoopSettings(progress=False)
     train_fn, config, settings = recipe_setup(model, "tiny" if model == "toktalk" else "small", prepared_tiny,
                                               TINY[model])
     capture = _CaptureStep()
     with pytest.raises(_Captured):
-        train_fn(config, prepared_tiny, settings.optim(2), steps=2, key=jax.random.key(0),
-                 batch_size=settings.batch_size, progress=False, observers=[capture])
+        train_fn(config, prepared_tiny, settings.optim(2), key=jax.random.key(0),
+                 run=RunSettings(steps=2, batch_size=settings.batch_size, loop=quiet, observers=[capture]))
     step_fn, state, batch = capture.got
     check_portable(step_fn, (state, batch), what=f"{model} train step")
     # The same program in bf16 (mixed precision) is as portable.
@@ -113,8 +116,9 @@ def test_the_train_step_lowers_for_cuda_and_tpu(model, prepared_tiny):
 
     capture = _CaptureStep()
     with pytest.raises(_Captured):
-        train_fn(dataclasses.replace(config, compute_dtype="bfloat16"), prepared_tiny, settings.optim(2), steps=2,
-                 key=jax.random.key(0), batch_size=settings.batch_size, progress=False, observers=[capture])
+        train_fn(dataclasses.replace(config, compute_dtype="bfloat16"), prepared_tiny, settings.optim(2),
+                 key=jax.random.key(0),
+                 run=RunSettings(steps=2, batch_size=settings.batch_size, loop=quiet, observers=[capture]))
     check_portable(capture.got[0], capture.got[1:], what=f"{model} bf16 train step")
 
 

@@ -18,7 +18,8 @@ from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.models.freetalk.fit import FittedATS, sample_displacements
 from jaxtalk.models.freetalk.recipe import train_ats, train_stm
-from jaxtalk.train import OptimConfig
+from jaxtalk.runs import RunSettings
+from jaxtalk.train import LoopSettings, OptimConfig
 
 LIPS = np.r_[48:68]
 
@@ -37,7 +38,8 @@ def test_ats_beats_the_mean_pose_on_held_out_clips(corpus, prepared_tiny):
     cfg = ATSConfig.small(width=64, num_layers=2, num_heads=4, ff_dim=128, max_frames=window,
                           displacement_scale=1.0, speech_dim=prepared_tiny.manifest["speech_dim"])
     optim = OptimConfig(lr=2e-3, warmup_steps=20, total_steps=150)
-    result = train_ats(cfg, prepared_tiny, optim, key=jax.random.key(0), window_frames=window, progress=False)
+    result = train_ats(cfg, prepared_tiny, optim, key=jax.random.key(0),
+                       run=RunSettings(window_frames=window, loop=LoopSettings(progress=False)))
     stats = result.extra["stats"]
     fitted = FittedATS(cfg, result.state.eval_params, DisplacementStats(np.asarray(stats["mean"], np.float32),
                        np.asarray(stats["std"], np.float32)), result.history, window=window)
@@ -71,9 +73,9 @@ def test_stm_transfers_motion_to_an_unseen_topology_and_identity(corpus, prepare
     optim = OptimConfig(lr=3e-3, warmup_steps=10, total_steps=120)
     # ONE training mesh (identity 0, base topology), 4-frame windows of the training motion.
     with few_validation_windows():  # the validation loss is not what this test measures
-        result = train_stm(cfg, prepared_tiny, optim, key=jax.random.key(0), batch_size=4, window_frames=4,
-                           meshes=((0, "base"),), resolution="low", progress=False, log_every=6,
-                           val_clips=0)  # the unseen mesh is scored below
+        run = RunSettings(batch_size=4, window_frames=4, loop=LoopSettings(progress=False, log_every=6))
+        result = train_stm(cfg, prepared_tiny, optim, key=jax.random.key(0), run=run, meshes=((0, "base"),),
+                           resolution="low", val_clips=0)  # the unseen mesh is scored below
     params, history = result.state.eval_params, [h for h in result.history if "loss" in h]
     assert history[-1]["loss"] < history[0]["loss"]
 

@@ -67,12 +67,14 @@ def test_zero_clips_or_a_split_without_windows_gets_no_sampled_validation(config
 
 def test_recipe_records_sampled_metrics_and_keeps_the_best_checkpoint_by_sampled_lve(config, prepared_tiny, tmp_path):
     from jaxtalk.models.freetalk.recipe import train_ats
-    from jaxtalk.train import OptimConfig
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
     from jaxtalk.train.checkpoint import read_best
 
-    result = train_ats(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=3), steps=3,
-                       key=jax.random.key(0), batch_size=2, window_frames=10, run_dir=tmp_path / "run", eval_every=1,
-                       val_clips=2, progress=False)
+    run = RunSettings(steps=3, batch_size=2, window_frames=10, run_dir=tmp_path / "run", eval_every=1,
+                      loop=LoopSettings(progress=False))
+    result = train_ats(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=3),
+                       key=jax.random.key(0), run=run, val_clips=2)
     evals = [h for h in result.history if "eval" in h]
     assert len(evals) == 3 and all({"val_loss", "LVE_mm2", "LE_mm", "jitter_mm"} <= set(h["eval"]) for h in evals)
     record = read_best(tmp_path / "run" / "checkpoint")
@@ -114,13 +116,15 @@ def test_held_out_mesh_validation_equals_a_hand_computation(stm_config, prepared
 @pytest.mark.slow
 def test_stm_recipe_keeps_the_best_checkpoint_by_the_held_out_mesh_lve(stm_config, prepared_tiny, tmp_path):
     from jaxtalk.models.freetalk.recipe import train_stm
-    from jaxtalk.train import OptimConfig
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
     from jaxtalk.train.checkpoint import read_best
 
-    result = train_stm(stm_config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2), steps=2,
-                       key=jax.random.key(0), batch_size=2, window_frames=4, meshes=((1, "decimated"),),
-                       held_out=((3, "retriangulated"),), run_dir=tmp_path / "run", eval_every=1, val_clips=1,
-                       progress=False)
+    run = RunSettings(steps=2, batch_size=2, window_frames=4, run_dir=tmp_path / "run", eval_every=1,
+                      loop=LoopSettings(progress=False))
+    result = train_stm(stm_config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2),
+                       key=jax.random.key(0), run=run, meshes=((1, "decimated"),), held_out=((3, "retriangulated"),),
+                       val_clips=1)
     evals = [h for h in result.history if "eval" in h]
     assert len(evals) == 2 and all({"val_loss", "LVE_mm2", "MVE_mm", "jitter_mm"} <= set(h["eval"]) for h in evals)
     record = read_best(tmp_path / "run" / "checkpoint")

@@ -59,10 +59,12 @@ def test_a_run_recorded_without_compute_dtype_loads_as_float32(stm_run):
 
 def _recipe_losses(config, data, steps):
     from jaxtalk.models.toktalk.recipe import train
-    from jaxtalk.train import OptimConfig
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
 
-    result = train(config, data, OptimConfig(lr=2e-3, warmup_steps=2, total_steps=steps), steps=steps,
-                   key=jax.random.key(0), batch_size=4, progress=False, val_clips=0)  # the loss is what is compared
+    result = train(config, data, OptimConfig(lr=2e-3, warmup_steps=2, total_steps=steps), key=jax.random.key(0),
+                   run=RunSettings(steps=steps, batch_size=4, loop=LoopSettings(progress=False)),
+                   val_clips=0)  # the loss is what is compared
     return result, np.asarray([h["loss"] for h in result.history if "loss" in h])
 
 

@@ -35,6 +35,18 @@ def test_every_registry_entry_is_its_models_spec_from_the_models_own_spec_module
 
 
 @pytest.mark.parametrize("model", MODELS)
+def test_every_recipe_takes_config_data_optim_a_key_and_one_run_settings(model):
+    from jaxtalk.runs import RunSettings
+
+    params = inspect.signature(REGISTRY[model].train).parameters
+    assert _positional(REGISTRY[model].train) == ["config", "data", "optim"]
+    assert {"key", "run", "params"} <= _keywords(REGISTRY[model].train)
+    assert isinstance(params["run"].default, RunSettings) and params["params"].default is None
+    # The model's own options are named: no catch-all passes settings through unchecked.
+    assert not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+
+
+@pytest.mark.parametrize("model", MODELS)
 def test_init_params_takes_config_and_key_and_nothing_more_is_required(model):
     params = inspect.signature(REGISTRY[model].init_params).parameters
     names = list(params)

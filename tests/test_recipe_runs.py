@@ -48,14 +48,16 @@ def _config(model: str, data):
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, prepared_tiny):
     """One two-step run per model, each trained by calling its recipe from Python."""
-    from jaxtalk.train import OptimConfig
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
 
     root = tmp_path_factory.mktemp("recipe_runs")
     out = {}
     for model, spec in REGISTRY.items():
-        spec.train(_config(model, prepared_tiny), prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0,
-                        total_steps=2), steps=2, key=jax.random.key(0), batch_size=2, progress=False,
-                        run_dir=root / model, **RECIPE_KW.get(model, {}))
+        spec.train(_config(model, prepared_tiny), prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2),
+                   key=jax.random.key(0), run=RunSettings(steps=2, batch_size=2, run_dir=root / model,
+                                                          loop=LoopSettings(progress=False)),
+                   **RECIPE_KW.get(model, {}))
         out[model] = root / model
     return out
 
@@ -146,3 +148,34 @@ def test_write_run_names_the_preset_a_config_equals_and_takes_the_callers_run_in
     assert (told.preset, told.items, told.data["spec"], told.train["batch_size"]) == (
         "small", ["decoder_blocks=1", "batch_size=4"], "synthtalk:tiny", 4)
     assert json.loads((tmp_path / "c" / CONFIG_FILE).read_text())["decoder_blocks"] == 1
+
+
+def test_run_settings_refuse_bad_values_and_loop_settings_that_are_the_runs():
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings
+
+    for bad, message in (({"steps": 0}, "steps must be >= 1"), ({"batch_size": 0}, "batch_size must be >= 1"),
+                         ({"eval_every": 0}, "eval_every must be >= 1"), ({"window_frames": -1}, "window_frames")):
+        with pytest.raises(ValueError, match=message):
+            RunSettings(**bad)
+    for loop, named in ((LoopSettings(max_steps=5), "max_steps"), (LoopSettings(eval_every=5), "eval_every"),
+                        (LoopSettings(best_metric="FD", best_mode="max"), "best_metric, best_mode")):
+        with pytest.raises(ValueError, match=f"RunSettings.loop sets {named}"):
+            RunSettings(loop=loop)
+    # (Under the suite's runtime type checking the Literal annotation rejects it first: a TypeError.)
+    with pytest.raises((ValueError, TypeError), match="best_mode"):
+        LoopSettings(best_mode="lowest")
+    assert RunSettings(run_dir="r").ckpt_path.as_posix() == "r/checkpoint"
+    assert RunSettings(run_dir="r", ckpt_dir="c").ckpt_path.as_posix() == "c" and RunSettings().ckpt_path is None
+    assert RunSettings(observers=[]) == RunSettings()  # a list of observers is kept as a tuple
+
+
+@pytest.mark.parametrize("model", ["timar", "dualtalk"])
+def test_a_turn_recipe_refuses_a_window_length(model, prepared_tiny):
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import OptimConfig
+
+    spec = REGISTRY[model]
+    with pytest.raises(ValueError, match=f"window_frames is not a {model} setting"):
+        spec.train(_config(model, prepared_tiny), prepared_tiny, OptimConfig(total_steps=1, warmup_steps=0),
+                   key=jax.random.key(0), run=RunSettings(window_frames=10))

@@ -22,7 +22,8 @@ from jaxtalk.layout import GROUPS
 from jaxtalk.models.timar import TimarConfig, recipe, sample
 from jaxtalk.models.timar.data import Normalizer, conversations
 from jaxtalk.models.timar.sampling import posterior_mean
-from jaxtalk.train import OptimConfig
+from jaxtalk.runs import RunSettings
+from jaxtalk.train import LoopSettings, OptimConfig
 
 JAW = GROUPS["jaw"]
 STEPS = 450
@@ -35,8 +36,8 @@ def test_posterior_mean_beats_the_mean_pose_on_the_jaw_of_held_out_speakers(synt
     cfg = TimarConfig.small(width=32, num_layers=2, num_heads=2, head_width=64, max_turns=1, mask_ratio_min=1.0)
     # AdamW 3e-3, 20 warm-up steps, cosine to a tenth (the small-model settings on CPU).
     optim = OptimConfig(lr=3e-3, warmup_steps=20, total_steps=STEPS, final_lr_ratio=0.1)
-    result = recipe.train(cfg, prepared_tiny, optim, key=jax.random.key(0), batch_size=16, eval_every=STEPS,
-                          progress=False)
+    result = recipe.train(cfg, prepared_tiny, optim, key=jax.random.key(0),
+                          run=RunSettings(batch_size=16, eval_every=STEPS, loop=LoopSettings(progress=False)))
     params, norm = result.state.eval_params, Normalizer.from_dict(result.extra["normalizer"])
 
     test = conversations(corpus, "test")

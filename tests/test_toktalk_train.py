@@ -13,7 +13,8 @@ import pytest
 
 from jaxtalk.models import toktalk as tt
 from jaxtalk.models.toktalk.recipe import AdapterWindows, adapter_trainable, base_trainable, train_adapter
-from jaxtalk.train import OptimConfig
+from jaxtalk.runs import RunSettings
+from jaxtalk.train import LoopSettings, OptimConfig
 
 CFG = tt.TokTalkConfig.tiny(num_mid_blocks=0)
 
@@ -58,8 +59,9 @@ def test_stage2_trains_only_the_adapter_and_writes_a_run(prepared_tiny, stream_b
     base = tt.init_params(CFG, jax.random.key(0))
     before = jax.tree.map(np.asarray, base)
     res = train_adapter(CFG, prepared_tiny, OptimConfig(lr=1e-2, warmup_steps=0, total_steps=3), base_params=base,
-                        src_tokens=stream_b, src_rate=25.0, steps=3, key=jax.random.key(1), batch_size=4,
-                        window_frames=32, progress=False, run_dir=tmp_path / "run")
+                        src_tokens=stream_b, src_rate=25.0, key=jax.random.key(1),
+                        run=RunSettings(steps=3, batch_size=4, window_frames=32, run_dir=tmp_path / "run",
+                                        loop=LoopSettings(progress=False)))
     after = res.state.params
     for name in ("decoder", "style", "norm"):
         same = jax.tree.map(lambda a, b: a.dtype == b.dtype and np.array_equal(a, np.asarray(b)), before[name],
@@ -109,7 +111,8 @@ def test_streamed_small_model_beats_the_mean_pose_on_held_out_monologues(prepare
     cfg = tt.TokTalkConfig.small()
     result = recipe.train(cfg, data, OptimConfig(lr=recipe.DEFAULTS.lr, warmup_steps=50, total_steps=LEARN_STEPS,
                                                  ema_decay=recipe.DEFAULTS.ema_decay),
-                          key=jax.random.key(0), batch_size=16, progress=False, val_clips=0)  # scored below
+                          key=jax.random.key(0), run=RunSettings(batch_size=16, loop=LoopSettings(progress=False)),
+                          val_clips=0)  # scored below
     params = result.state.eval_params
     face = builtin_face(0)
     lips = np.asarray(face.regions["lips"])

@@ -4,6 +4,8 @@ metrics, and choose the best checkpoint (lowest streamed LVE)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -70,12 +72,13 @@ def test_offline_model_or_zero_clips_gets_no_streamed_validation_and_an_unknown_
 @pytest.mark.slow
 def test_recipe_records_streamed_metrics_and_keeps_the_best_checkpoint_by_streamed_lve(config, prepared_tiny, tmp_path):
     from jaxtalk.models.toktalk import recipe
-    from jaxtalk.train import OptimConfig
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
     from jaxtalk.train.checkpoint import read_best
 
-    result = recipe.train(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=3), steps=3,
-                          key=jax.random.key(0), batch_size=2, run_dir=tmp_path / "run", eval_every=1, val_clips=1,
-                          progress=False)
+    run = RunSettings(steps=3, batch_size=2, run_dir=tmp_path / "run", eval_every=1, loop=LoopSettings(progress=False))
+    result = recipe.train(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=3),
+                          key=jax.random.key(0), run=run, val_clips=1)
     evals = [h for h in result.history if "eval" in h]
     assert len(evals) == 3 and all({"val_loss", SELECTION_METRIC, "LVE_mm2_1step"} <= set(h["eval"]) for h in evals)
     best_value = min(h["eval"][SELECTION_METRIC] for h in evals)
@@ -86,13 +89,16 @@ def test_recipe_records_streamed_metrics_and_keeps_the_best_checkpoint_by_stream
 @pytest.mark.slow
 def test_a_resumed_run_whose_best_was_chosen_by_the_loss_keeps_selecting_by_it(config, prepared_tiny, tmp_path):
     from jaxtalk.models.toktalk import recipe
-    from jaxtalk.train import OptimConfig
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
     from jaxtalk.train.checkpoint import read_best
 
     optim = OptimConfig(lr=1e-3, warmup_steps=0, total_steps=3)
-    kw = dict(key=jax.random.key(0), batch_size=2, run_dir=tmp_path / "run", eval_every=1, progress=False)
-    recipe.train(config, prepared_tiny, optim, steps=2, val_clips=0, **kw)  # as runs before streamed validation
+    run = RunSettings(batch_size=2, run_dir=tmp_path / "run", eval_every=1, loop=LoopSettings(progress=False))
+    key = jax.random.key(0)
+    recipe.train(config, prepared_tiny, optim, key=key, run=dataclasses.replace(run, steps=2),
+                 val_clips=0)  # as runs before streamed validation
     with pytest.warns(UserWarning, match="best checkpoint was chosen by 'val_loss'"):
-        result = recipe.train(config, prepared_tiny, optim, steps=3, val_clips=1, **kw)
+        result = recipe.train(config, prepared_tiny, optim, key=key, run=dataclasses.replace(run, steps=3), val_clips=1)
     assert SELECTION_METRIC in result.history[-1]["eval"]
     assert read_best(tmp_path / "run" / "checkpoint")["metric"] == "val_loss"

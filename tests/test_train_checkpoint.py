@@ -17,6 +17,7 @@ from jaxtalk.data.batching import BatchIterator
 from jaxtalk.train import (
     CheckpointMismatchError,
     Checkpointer,
+    LoopSettings,
     OptimConfig,
     create_train_state,
     latest_checkpoint_step,
@@ -133,8 +134,8 @@ def test_writes_go_to_a_tmp_dir_renamed_when_complete(tmp_path, run, monkeypatch
 
 def test_train_keeps_last_n_and_writes_metadata_json(tmp_path, key):
     ckpt = tmp_path / "run"
-    train(_loss, _params(), BatchIterator(_data(), 4, seed=0), CFG, key=key, ckpt_dir=ckpt, save_every=2,
-          keep_checkpoints=2, metadata={"model": "toy-linear"}, progress=False)
+    train(_loss, _params(), BatchIterator(_data(), 4, seed=0), CFG, key=key, ckpt_dir=ckpt, metadata={"model": "toy-linear"},
+          settings=LoopSettings(save_every=2, keep_checkpoints=2, progress=False))
     assert sorted(p.name for p in ckpt.iterdir()) == ["4", "6"]  # 2 dropped: keep the last 2
     meta = json.loads((ckpt / "6" / "meta" / "metadata").read_text())
     assert meta["model"] == "toy-linear" and meta["step"] == 6
@@ -146,18 +147,21 @@ def test_train_keeps_last_n_and_writes_metadata_json(tmp_path, key):
 
 def test_resume_checks_batches_against_the_saved_spec(tmp_path, key):
     ckpt = tmp_path / "run"
-    train(_loss, _params(), BatchIterator(_data(), 4, seed=0), CFG, key=key, ckpt_dir=ckpt, max_steps=2, progress=False)
+    train(_loss, _params(), BatchIterator(_data(), 4, seed=0), CFG, key=key, ckpt_dir=ckpt,
+          settings=LoopSettings(max_steps=2, progress=False))
     wider = iter([{"x": np.zeros((8, 3), np.float32), "y": np.zeros((8, 2), np.float32)}])
     with (
         pytest.raises(ValueError, match=r"\['x'\] at step 3 has shape \(8, 3\), but the model was set up for shape \(4, 3\)"),
         pytest.warns(UserWarning, match="no get_state/set_state"),
     ):
-        train(_loss, _params(), wider, CFG, key=key, ckpt_dir=ckpt, progress=False)
+        train(_loss, _params(), wider, CFG, key=key, ckpt_dir=ckpt, settings=LoopSettings(progress=False))
     with pytest.raises(ValueError, match="already holds checkpoints"):
-        train(_loss, _params(), BatchIterator(_data(), 4, seed=0), CFG, key=key, ckpt_dir=ckpt, resume=False, progress=False)
+        train(_loss, _params(), BatchIterator(_data(), 4, seed=0), CFG, key=key, ckpt_dir=ckpt,
+              settings=LoopSettings(resume=False, progress=False))
     # A position saved for another batch size is refused by the iterator itself.
     with pytest.raises(ValueError, match="saved with batch_size=4, this iterator has 8"):
-        train(_loss, _params(), BatchIterator(_data(), 8, seed=0), CFG, key=key, ckpt_dir=ckpt, progress=False)
+        train(_loss, _params(), BatchIterator(_data(), 8, seed=0), CFG, key=key, ckpt_dir=ckpt,
+              settings=LoopSettings(progress=False))
 
 
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # orbax's failed reader tasks
@@ -187,5 +191,6 @@ def test_missing_empty_and_corrupt_directories_raise_naming_the_path(tmp_path, r
     with pytest.raises(ValueError, match=f"checkpoint {tmp_path / 'c' / '1'} is corrupt"):
         restore_checkpoint(tmp_path / "c", state)
     with pytest.raises(ValueError, match=f"checkpoint {tmp_path / 'c' / '1'} is corrupt"):
-        train(_loss, _params(), BatchIterator(_data(), 4, seed=0), CFG, key=key, ckpt_dir=tmp_path / "c", progress=False)
+        train(_loss, _params(), BatchIterator(_data(), 4, seed=0), CFG, key=key, ckpt_dir=tmp_path / "c",
+              settings=LoopSettings(progress=False))
     gc.collect()  # let orbax's abandoned reader tasks report here, under this test's filter

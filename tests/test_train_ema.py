@@ -12,6 +12,7 @@ import pytest
 from jaxtalk.data.batching import BatchIterator
 from jaxtalk.train import (
     Checkpointer,
+    LoopSettings,
     OptimConfig,
     create_train_state,
     ema_decay_at,
@@ -122,7 +123,7 @@ def test_checkpoint_readers_get_the_debiased_ema(tmp_path, key):
 
     cfg = OptimConfig(lr=0.1, weight_decay=0.0, warmup_steps=0, total_steps=3, ema_decay=0.999)
     result = train(loss_fn, {"w": jnp.full((3, 2), 50.0)}, BatchIterator(data, 4, seed=0), cfg, key=key,
-                   ckpt_dir=tmp_path / "c", max_steps=1, progress=False)
+                   ckpt_dir=tmp_path / "c", settings=LoopSettings(max_steps=1, progress=False))
     # One update: the debiased EMA is the updated parameters themselves, not 0.999 x the init.
     np.testing.assert_array_equal(np.asarray(result.state.eval_params["w"]), np.asarray(result.state.params["w"]))
     with Checkpointer(tmp_path / "c", read_only=True) as ckpt:

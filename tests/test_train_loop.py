@@ -14,6 +14,7 @@ import pytest
 from jaxtalk.data.batching import BatchIterator
 from jaxtalk.train import (
     Checkpointer,
+    LoopSettings,
     NonFiniteLossError,
     OptimConfig,
     best_checkpoint_dir,
@@ -23,7 +24,7 @@ from jaxtalk.train import (
     train,
 )
 
-from helpers import crashing_batches
+from helpers import crashing_batches, with_loop_settings
 
 # Compile time dominates these tiny programs; all runs compared within a test share the setting.
 
@@ -54,6 +55,7 @@ def _mlp_loss(p, batch, key):
 
 
 CFG = OptimConfig(lr=1e-2, weight_decay=1e-3, warmup_steps=3, total_steps=12, clip_norm=1.0, ema_decay=0.8)
+QUIET = LoopSettings(progress=False)
 
 
 def _bitwise_equal(a, b):
@@ -70,7 +72,7 @@ def _run(tmp_path, name, **kw):
     opts = dict(key=jax.random.key(3), ckpt_dir=tmp_path / name, progress=False, log_every=5)
     opts.update(kw)
     it = opts.pop("data_iter", None) or BatchIterator(data, 8, seed=4)
-    return train(_mlp_loss, _mlp_params(jax.random.key(1)), it, CFG, **opts)
+    return train(_mlp_loss, _mlp_params(jax.random.key(1)), it, CFG, **with_loop_settings(**opts))
 
 
 # ---------------------------------------------------------------- behaviour
@@ -85,7 +87,8 @@ def test_linear_regression_reaches_the_true_weights(key):
         return jnp.mean(err**2), {}
 
     params = {"w": jnp.zeros((4, 2)), "b": jnp.zeros(2)}
-    result = train(loss_fn, params, BatchIterator(data, 16, seed=0), cfg, key=key, progress=False, log_every=50)
+    result = train(loss_fn, params, BatchIterator(data, 16, seed=0), cfg, key=key,
+                   settings=LoopSettings(progress=False, log_every=50))
     np.testing.assert_allclose(np.asarray(result.state.params["w"]), w_true, atol=2e-3)
     np.testing.assert_allclose(np.asarray(result.state.params["b"]), b_true, atol=2e-3)
     hist = result.history
@@ -163,7 +166,7 @@ def test_bucketed_variable_length_batches_train(key):
 
     it = BatchIterator(data, 2, seed=0, buckets=(4, 8))
     cfg = OptimConfig(lr=0.05, warmup_steps=1, total_steps=6)
-    result = train(loss_fn, {"w": jnp.zeros((3, 3))}, it, cfg, key=key, progress=False)  # T varies: 4 or 8
+    result = train(loss_fn, {"w": jnp.zeros((3, 3))}, it, cfg, key=key, settings=QUIET)  # T varies: 4 or 8
     assert result.history[-1]["loss"] < result.history[0]["loss"]
 
 
@@ -331,23 +334,24 @@ def test_nan_batch_is_rejected_before_its_step(key):
     bad["x"][3, 1] = np.nan
     batches = [_good_batch(0), _good_batch(1), bad]
     with pytest.raises(ValueError, match=r"\['x'\] at step 3 has 1 NaN/inf"):
-        train(_mlp_loss, _mlp_params(key), _Batches(batches), CFG, key=key, progress=False)
+        train(_mlp_loss, _mlp_params(key), _Batches(batches), CFG, key=key, settings=QUIET)
     # With the check off, the NaN reaches the loss and the loop stops naming the step.
     with pytest.raises(NonFiniteLossError, match="at step 3") as info, pytest.warns(UserWarning, match="ended after step 3"):
-        train(_mlp_loss, _mlp_params(key), _Batches(batches), CFG, key=key, progress=False, check_batches=False)
+        train(_mlp_loss, _mlp_params(key), _Batches(batches), CFG, key=key,
+              settings=LoopSettings(progress=False, check_batches=False))
     assert info.value.step == 3 and [h["step"] for h in info.value.history] == [1, 2]
 
 
 def test_batch_shape_or_structure_change_names_the_array(key):
     wide = {"x": np.zeros((8, 5), np.float32), "y": np.zeros((8, 2), np.float32)}
     with pytest.raises(ValueError, match=r"\['x'\] at step 2 has shape \(8, 5\), but the model was set up for shape \(8, 4\)"):
-        train(_mlp_loss, _mlp_params(key), _Batches([_good_batch(0), wide]), CFG, key=key, progress=False)
+        train(_mlp_loss, _mlp_params(key), _Batches([_good_batch(0), wide]), CFG, key=key, settings=QUIET)
     missing = {"x": np.zeros((8, 4), np.float32)}
     with pytest.raises(ValueError, match=r"missing arrays \[\"\['y'\]\"\]"):
-        train(_mlp_loss, _mlp_params(key), _Batches([_good_batch(0), missing]), CFG, key=key, progress=False)
+        train(_mlp_loss, _mlp_params(key), _Batches([_good_batch(0), missing]), CFG, key=key, settings=QUIET)
     as_f64 = {k: v.astype(np.float64) for k, v in _good_batch(1).items()}
     with pytest.raises(ValueError, match="dtype float64, expected float32"):
-        train(_mlp_loss, _mlp_params(key), _Batches([_good_batch(0), as_f64]), CFG, key=key, progress=False)
+        train(_mlp_loss, _mlp_params(key), _Batches([_good_batch(0), as_f64]), CFG, key=key, settings=QUIET)
 
 
 def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, key):
@@ -361,8 +365,8 @@ def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, ke
     ckpt = tmp_path / "run"
     with pytest.raises(NonFiniteLossError, match=r"loss is nan at step 5.*last good checkpoint is step 3") as info:
         # log_every=10: the NaN is found when step 6's checkpoint flushes the metrics, before it is written.
-        train(loss_fn, {"w": jnp.ones(3)}, _Batches(batches), cfg, key=key, ckpt_dir=ckpt, save_every=3, progress=False,
-              log_every=10)
+        train(loss_fn, {"w": jnp.ones(3)}, _Batches(batches), cfg, key=key, ckpt_dir=ckpt,
+              settings=LoopSettings(save_every=3, progress=False, log_every=10))
     assert info.value.step == 5 and info.value.last_checkpoint_step == 3
     assert sorted(p.name for p in ckpt.iterdir()) == ["3"]
 
@@ -378,4 +382,4 @@ def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, ke
 )
 def test_bad_settings_raise(key, kw, msg):
     with pytest.raises(ValueError, match=msg):
-        train(_mlp_loss, _mlp_params(key), _Batches([]), CFG, key=key, progress=False, **kw)
+        train(_mlp_loss, _mlp_params(key), _Batches([]), CFG, key=key, **with_loop_settings(progress=False, **kw))

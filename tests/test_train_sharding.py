@@ -22,7 +22,7 @@ from jaxtyping import install_import_hook
 jax.config.update("jax_numpy_rank_promotion", "raise")
 with install_import_hook(["jaxtalk"], "beartype.beartype"):
     from jaxtalk.data.batching import BatchIterator
-    from jaxtalk.train import (OptimConfig, create_train_state, make_mesh, make_optimizer,
+    from jaxtalk.train import (LoopSettings, OptimConfig, create_train_state, make_mesh, make_optimizer,
                                make_train_step, shard_batch, train)
 
 out = {"devices": len(jax.devices())}
@@ -44,7 +44,7 @@ out["init_params"] = {k: np.asarray(v).tolist() for k, v in params.items()}
 runs = {}
 for name, mesh in (("one", None), ("four", make_mesh())):
     res = train(loss_fn, params, BatchIterator(data, 8, seed=1), cfg, key=jax.random.key(5),
-                mesh=mesh, progress=False)
+                mesh=mesh, settings=LoopSettings(progress=False))
     runs[name] = res
     out[name + "_loss"] = [h["loss"] for h in res.history]
     out[name + "_max_err"] = [h["metrics"]["max_err"] for h in res.history]
@@ -63,7 +63,8 @@ try:
 except ValueError as e:
     errors.append(str(e))
 try:
-    train(loss_fn, params, BatchIterator(data, 6, seed=1), cfg, key=jax.random.key(5), mesh=mesh, progress=False)
+    train(loss_fn, params, BatchIterator(data, 6, seed=1), cfg, key=jax.random.key(5), mesh=mesh,
+          settings=LoopSettings(progress=False))
 except ValueError as e:
     errors.append(str(e))
 out["errors"] = errors

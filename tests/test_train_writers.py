@@ -19,10 +19,11 @@ import numpy as np
 import pytest
 
 from jaxtalk.data.batching import BatchIterator
-from jaxtalk.train import Checkpointer, OptimConfig, make_schedule, read_history, read_metrics, save_checkpoint, train
+from jaxtalk.train import (Checkpointer, OptimConfig, make_schedule, read_history, read_metrics, save_checkpoint,
+                           train)
 from jaxtalk.train.recipes import usable_batch_size
 from jaxtalk.train.writers import METRICS_FILE, RunMetrics
-from helpers import event_files, read_event_file, scalars, crashing_batches
+from helpers import event_files, read_event_file, scalars, crashing_batches, with_loop_settings
 
 
 CFG = OptimConfig(lr=1e-2, weight_decay=1e-3, warmup_steps=3, total_steps=12, clip_norm=1.0)
@@ -54,7 +55,7 @@ def _train(run_dir, data_iter=None, **kw):
     opts = dict(key=jax.random.key(0), ckpt_dir=run_dir / "checkpoint", log_dir=run_dir, progress=False,
                 log_every=2, eval_fn=_eval, eval_every=4, save_every=4)
     opts.update(kw)
-    return train(_loss, _params(), data_iter or BatchIterator(_data(), 8, seed=1), CFG, **opts)
+    return train(_loss, _params(), data_iter or BatchIterator(_data(), 8, seed=1), CFG, **with_loop_settings(**opts))
 
 
 # ---------------------------------------------------------------- the loop's rows

@@ -67,17 +67,17 @@ def test_zero_clips_gets_no_conversation_validation(windows, prepared_tiny):
 @pytest.mark.slow
 @pytest.mark.parametrize("model", ["timar", "dualtalk"])
 def test_recipe_records_conversation_metrics_and_keeps_the_best_checkpoint_by_fd(model, prepared_tiny, tmp_path):
-    from jaxtalk.runs import REGISTRY
-    from jaxtalk.train import OptimConfig
+    from jaxtalk.runs import REGISTRY, RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
     from jaxtalk.train.checkpoint import read_best
 
     spec = REGISTRY[model]
     fields = SMALL if model == "timar" else {"width": 16, "num_layers": 1, "num_heads": 2, "lstm_layers": 1, "max_turns": 2}
     widths = {field: prepared_tiny.manifest[key] for field, key in spec.data_fields}
     config = spec.config_class.small(**fields, **widths)
-    result = spec.train(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2), steps=2,
-                             key=jax.random.key(0), batch_size=2, run_dir=tmp_path / "run", eval_every=1, val_clips=1,
-                             progress=False)
+    run = RunSettings(steps=2, batch_size=2, run_dir=tmp_path / "run", eval_every=1, loop=LoopSettings(progress=False))
+    result = spec.train(config, prepared_tiny, OptimConfig(lr=1e-3, warmup_steps=0, total_steps=2),
+                        key=jax.random.key(0), run=run, val_clips=1)
     evals = [h for h in result.history if "eval" in h]
     assert len(evals) == 2 and all({"val_loss", "FD", "FD_jaw", "MSE_pose", "rPCC_exp"} <= set(h["eval"]) for h in evals)
     record = read_best(tmp_path / "run" / "checkpoint")

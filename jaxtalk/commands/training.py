@@ -43,6 +43,7 @@ from jaxtalk.runs import (
     load_run,
     RunInfo,
     RunRecord,
+    RunSettings,
     build_config,
     checkpoint_dir,
     config_class,
@@ -51,7 +52,7 @@ from jaxtalk.runs import (
     preset_names,
     split_overrides,
 )
-from jaxtalk.train.observers import StopRequest
+from jaxtalk.train.observers import StepObserver, StopRequest
 
 DEFAULT_DATA = "synthtalk:tiny"
 # Where ``--profile`` writes its trace, inside the run folder.
@@ -296,7 +297,7 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
         local = jax.local_device_count()
         if settings.batch_size % local:
             raise ValueError(f"batch_size {settings.batch_size} must divide by the {local} local devices")
-    kw: dict[str, Any] = {"window_frames": settings.window_frames} if settings.window_frames is not None else {}
+    kw: dict[str, Any] = {}
     if settings.val_clips is not None:
         if "val_clips" not in inspect.signature(train_fn).parameters:
             raise ValueError(f"val_clips is not a {opts.model} setting: its validation scores the loss only")
@@ -309,25 +310,30 @@ def _train_into(opts: TrainOptions, out: Path, spec: Any, stop: StopRequest, sta
                                                                existing.extra.get("init") else None)
     if started_from is not None and "normalizer" in started_from:
         kw["normalizer"] = started_from["normalizer"]
+    observers: list[StepObserver] = []
     if opts.profile is not None:
         from jaxtalk.train import TraceSteps
 
         if opts.profile[0] <= done or opts.profile[1] > opts.steps:
             raise ValueError(f"--profile {opts.profile[0]}:{opts.profile[1]} is outside the steps this run trains "
                              f"({done + 1}..{opts.steps})")
-        kw["observers"] = [TraceSteps(*opts.profile, out / PROFILE_DIR)]
-    kw["observers"] = [*kw.get("observers", ()), stop]
+        observers.append(TraceSteps(*opts.profile, out / PROFILE_DIR))
+    observers.append(stop)
     if spec.voice_validation is not None:  # None: no real voices, and a resumed run's own selection
         kw.update(real_voice=recordings, select=opts.select)
-    info = RunInfo(preset=preset, items=tuple(opts.overrides), data_spec=opts.data, settings=settings)
+    from jaxtalk.train import LoopSettings
+
+    run = RunSettings(steps=opts.steps, batch_size=settings.batch_size, seed=opts.seed,
+                      window_frames=settings.window_frames, eval_every=settings.period(opts.steps), run_dir=out,
+                      mesh=mesh, info=RunInfo(preset=preset, items=tuple(opts.overrides), data_spec=opts.data,
+                                              settings=settings),
+                      loop=LoopSettings(progress=opts.progress, save_every=opts.save_every or max(opts.steps // 5, 1)),
+                      observers=observers)
     with warnings.catch_warnings():
         # The library's warnings (a smaller batch than asked, ...) as one line each, not Python's
         # two-line "file:line: UserWarning" form.
         warnings.showwarning = lambda message, *_args, **_kw: echo(f"warning: {message}")
-        result = train_fn(config, data, optim, steps=opts.steps, key=jax.random.key(opts.seed),
-                          batch_size=settings.batch_size, seed=opts.seed, run_dir=out, run_info=info, mesh=mesh,
-                          eval_every=settings.period(opts.steps), progress=opts.progress,
-                          save_every=opts.save_every or max(opts.steps // 5, 1), **kw)
+        result = train_fn(config, data, optim, key=jax.random.key(opts.seed), run=run, **kw)
     losses = [h["loss"] for h in result.history[-10:] if "loss" in h]
     evals = [h["eval"]["val_loss"] for h in result.history if "eval" in h and "val_loss" in h["eval"]]
     return TrainSummary(run_dir=out, start_step=done, step=int(result.state.step),

@@ -2,7 +2,8 @@
 
 * :func:`train`: AdamW (warm-up + cosine), global-norm clipping, optional bias-corrected EMA, frozen
   parameters, data parallelism over a device mesh, tqdm progress, periodic evaluation, orbax
-  checkpoints with exact resumption, a best-validated checkpoint and a ``history.jsonl`` curve.
+  checkpoints with exact resumption, a best-validated checkpoint and a ``history.jsonl`` curve; how it
+  runs is one :class:`LoopSettings`.
 * Lower level: :class:`OptimConfig`, :func:`make_optimizer`, :func:`create_train_state`,
   :func:`make_train_step`, :func:`ema_update`, :class:`Checkpointer`, :func:`save_checkpoint`,
   :func:`restore_checkpoint`, :func:`make_mesh`, :func:`shard_batch`.
@@ -28,7 +29,7 @@ from jaxtalk.train.checkpoint import (
 )
 from jaxtalk.train.checks import BatchSpec, check_finite
 from jaxtalk.train.ema import ema_decay_at, ema_update
-from jaxtalk.train.loop import NonFiniteLossError, TrainResult, train
+from jaxtalk.train.loop import LoopSettings, NonFiniteLossError, TrainResult, train
 from jaxtalk.train.observers import StepObserver, StopRequest, TraceSteps
 from jaxtalk.train.optim import OptimConfig, make_optimizer, make_schedule, trainable_mask
 from jaxtalk.train.sharding import make_mesh, replicate, shard_batch
@@ -38,6 +39,7 @@ from jaxtalk.train.writers import METRICS_FILE, RunMetrics, read_metrics
 
 __all__ = [
     "train",
+    "LoopSettings",
     "TrainResult",
     "NonFiniteLossError",
     "OptimConfig",

@@ -4,7 +4,8 @@ The model supplies ``loss_fn(params, batch, key) -> (loss, metrics)``; the loop 
 EMA, frozen parameters, data-parallel sharding, progress bar, periodic evaluation, checkpoints and
 exact resumption (state, optimiser, EMA, RNG and data position).
 
-With ``best_metric`` the loop also keeps the best-validated state in ``<ckpt_dir>/best`` and, with
+How it runs is one :class:`LoopSettings` (length, checkpoints, evaluation, logging). With
+``best_metric`` the loop also keeps the best-validated state in ``<ckpt_dir>/best`` and, with
 evaluation, writes the training and validation curve to ``<ckpt_dir>/history.jsonl`` (layout:
 :mod:`jaxtalk.train.checkpoint`). With ``log_dir`` (the run folder) it writes ``metrics.jsonl`` and
 TensorBoard event files there (:mod:`jaxtalk.train.writers`).
@@ -42,7 +43,7 @@ from jaxtalk.train.step import LossFn, make_train_step
 from jaxtalk.train.writers import RunMetrics, json_line
 from jaxtalk.types import PRNGKeyArray
 
-__all__ = ["train", "TrainResult", "NonFiniteLossError"]
+__all__ = ["train", "LoopSettings", "TrainResult", "NonFiniteLossError"]
 
 PyTree = Any
 # eval_fn(params, ema_params_or_None, step) -> dict of scalar metrics
@@ -84,6 +85,74 @@ class TrainResult:
     best: dict[str, Any] | None = None
 
 
+@dataclasses.dataclass(frozen=True)
+class LoopSettings:
+    """How :func:`train` runs, besides what it trains: its length, checkpoints, evaluation and logging.
+
+    Attributes:
+        max_steps: stop when ``state.step`` reaches this (None: the optimiser's ``total_steps``).
+        save_every: also checkpoint every this many steps (the final step is always saved).
+        keep_checkpoints: how many recent checkpoints to keep.
+        async_checkpoints: write checkpoints in the background.
+        resume: continue from the newest checkpoint in ``ckpt_dir`` if there is one (False with
+            existing checkpoints is an error rather than a silent overwrite). An optimiser config with
+            another schedule length (``total_steps``, ``warmup_steps``) continues the run on the
+            stretched schedule; any other difference from the checkpoint's config warns.
+        eval_every: evaluation period in steps (None: only at the end); needs an ``eval_fn``.
+        best_metric: a key of ``eval_fn``'s metrics. Whenever an evaluation improves it (strictly;
+            a NaN/inf value never does), that state is saved to ``<ckpt_dir>/best`` (one
+            checkpoint, :func:`jaxtalk.train.best_checkpoint_dir`), its metadata recording
+            ``best = {metric, mode, value, step, eval}``. Resuming reads the best value back from
+            there, so a resumed run only replaces it with a better one. The regular checkpoints and
+            resumption are unaffected. Needs ``eval_fn`` and ``ckpt_dir``.
+        best_mode: ``"min"`` (lower is better, e.g. a loss) or ``"max"``.
+        write_history: append one JSON line per log flush (window-mean loss and metrics) and per
+            evaluation to ``<ckpt_dir>/history.jsonl`` (read with :func:`jaxtalk.train.read_history`).
+            None: when ``ckpt_dir`` and ``eval_fn`` are both given. On resume, rows after the
+            restored step (from a run killed after its last checkpoint) are dropped first.
+        log_dir: the run folder: ``metrics.jsonl`` and TensorBoard event files of the training
+            scalars (window-mean loss, gradient norm before clipping and model metrics; learning
+            rate; steps/s) and of every evaluation, flushed at each log flush, written by process 0
+            (:mod:`jaxtalk.train.writers`; a resume never repeats a step in them). None: neither.
+        progress: show a tqdm bar with loss and steps/s (on process 0 of a multi-process run).
+        log_every: fetch metrics from the device every this many steps.
+        check_batches: scan every batch for NaN/inf before its step (costs a host pass).
+        variable_axes: batch axes allowed to change size between batches (None: the iterator's
+            ``variable_axes`` attribute, else none). All other sizes must match the first batch.
+
+    Raises:
+        ValueError: a period or count below 1, or a ``best_mode`` other than ``"min"``/``"max"``.
+    """
+
+    max_steps: int | None = None
+    save_every: int | None = None
+    keep_checkpoints: int = 3
+    async_checkpoints: bool = True
+    resume: bool = True
+    eval_every: int | None = None
+    best_metric: str | None = None
+    best_mode: Literal["min", "max"] = "min"
+    write_history: bool | None = None
+    log_dir: str | os.PathLike | None = None
+    progress: bool = True
+    log_every: int = 10
+    check_batches: bool = True
+    variable_axes: tuple[int, ...] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("log_every", "keep_checkpoints"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("max_steps", "save_every", "eval_every"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"{name} must be >= 1 or None, got {value}")
+        if self.best_mode not in ("min", "max"):
+            raise ValueError(f"best_mode must be 'min' or 'max', got {self.best_mode!r}")
+        if self.variable_axes is not None:  # a tuple, so settings compare and hash by value
+            object.__setattr__(self, "variable_axes", tuple(int(axis) for axis in self.variable_axes))
+
+
 def train(
     loss_fn: LossFn,
     init_params: PyTree,
@@ -91,25 +160,12 @@ def train(
     config: OptimConfig,
     *,
     key: PRNGKeyArray,
-    max_steps: int | None = None,
+    settings: LoopSettings = LoopSettings(),
     ckpt_dir: str | os.PathLike | None = None,
-    resume: bool = True,
-    save_every: int | None = None,
-    keep_checkpoints: int = 3,
-    async_checkpoints: bool = True,
     metadata: dict[str, Any] | None = None,
     eval_fn: EvalFn | None = None,
-    eval_every: int | None = None,
-    best_metric: str | None = None,
-    best_mode: Literal["min", "max"] = "min",
-    write_history: bool | None = None,
-    log_dir: str | os.PathLike | None = None,
     trainable: Trainable = None,
     mesh: Mesh | None = None,
-    progress: bool = True,
-    log_every: int = 10,
-    check_batches: bool = True,
-    variable_axes: Sequence[int] | None = None,
     observers: Sequence[StepObserver] = (),
 ) -> TrainResult:
     """Train ``init_params`` on ``data_iter`` with AdamW (warm-up + cosine), clipping and optional EMA.
@@ -123,43 +179,16 @@ def train(
             restarts.
         config: optimiser settings; ``config.total_steps`` is the schedule length.
         key: base PRNG key (step ``s`` gets ``fold_in(key, s)``).
-        max_steps: stop when ``state.step`` reaches this (default ``config.total_steps``).
+        settings: how the loop runs (:class:`LoopSettings`: length, checkpoints, evaluation, logging).
         ckpt_dir: checkpoint directory (None: no checkpoints).
-        resume: continue from the newest checkpoint in ``ckpt_dir`` if there is one (False with
-            existing checkpoints is an error rather than a silent overwrite). A ``config`` with
-            another schedule length (``total_steps``, ``warmup_steps``) continues the run on the
-            stretched schedule; any other difference from the checkpoint's config warns.
-        save_every: also checkpoint every this many steps (the final step is always saved).
-        keep_checkpoints: how many recent checkpoints to keep.
-        async_checkpoints: write checkpoints in the background.
         metadata: JSON-serialisable record saved with each checkpoint (e.g. ``{"model": "toktalk"}``);
             the optimiser config and the batch spec are added.
-        eval_fn: ``(params, ema_params or None, step) -> metrics``, called every ``eval_every``
-            steps and at the end; its metrics go into the history and the progress bar.
-        eval_every: evaluation period in steps (default: only at the end).
-        best_metric: a key of ``eval_fn``'s metrics. Whenever an evaluation improves it (strictly;
-            a NaN/inf value never does), that state is saved to ``<ckpt_dir>/best`` (one
-            checkpoint, :func:`jaxtalk.train.best_checkpoint_dir`), its metadata recording
-            ``best = {metric, mode, value, step, eval}``. Resuming reads the best value back from
-            there, so a resumed run only replaces it with a better one. The regular checkpoints and
-            resumption are unaffected.
-        best_mode: ``"min"`` (lower is better, e.g. a loss) or ``"max"``.
-        write_history: append one JSON line per log flush (window-mean loss and metrics) and per
-            evaluation to ``<ckpt_dir>/history.jsonl`` (read with :func:`jaxtalk.train.read_history`).
-            Default: when ``ckpt_dir`` and ``eval_fn`` are both given. On resume, rows after the
-            restored step (from a run killed after its last checkpoint) are dropped first.
-        log_dir: the run folder: ``metrics.jsonl`` and TensorBoard event files of the training
-            scalars (window-mean loss, gradient norm before clipping and model metrics; learning
-            rate; steps/s) and of every evaluation, flushed at each log flush, written by process 0
-            (:mod:`jaxtalk.train.writers`; a resume never repeats a step in them). None: neither.
+        eval_fn: ``(params, ema_params or None, step) -> metrics``, called every
+            ``settings.eval_every`` steps and at the end; its metrics go into the history and the
+            progress bar.
         trainable: which parameters train: None (all), a predicate ``(path, leaf) -> bool`` on
             ``"a/b/kernel"`` paths, or a pytree of bools. Frozen leaves stay bitwise unchanged.
         mesh: device mesh for data parallelism (batch sharded, state replicated).
-        progress: show a tqdm bar with loss and steps/s (on process 0 of a multi-process run).
-        log_every: fetch metrics from the device every this many steps.
-        check_batches: scan every batch for NaN/inf before its step (costs a host pass).
-        variable_axes: batch axes allowed to change size between batches (default: the iterator's
-            ``variable_axes`` attribute, else none). All other sizes must match the first batch.
         observers: :class:`~jaxtalk.train.observers.StepObserver` s that watch the steps (a profiler
             trace of some steps, the benchmark's timing probe); each is closed when the loop ends. One
             whose ``should_stop()`` turns true ends the run after the current step: its state is
@@ -169,33 +198,29 @@ def train(
         :class:`TrainResult` with the final state, per-step history and best record.
 
     Raises:
-        ValueError: bad settings (incl. ``best_metric`` without ``eval_fn`` or ``ckpt_dir``, an
-            evaluation without the ``best_metric`` key, or a best checkpoint chosen by another
-            metric or mode on resume); a batch with NaN/inf, a different structure/shape/dtype than the
-            first batch (naming the array and both shapes), or a batch size not divisible by the
-            mesh's device count; a corrupt checkpoint (naming the path).
+        ValueError: settings that do not fit the call (``eval_every`` without ``eval_fn``,
+            ``best_metric`` without ``eval_fn`` or ``ckpt_dir``, ``write_history`` without
+            ``ckpt_dir``), an evaluation without the ``best_metric`` key, or a best checkpoint chosen
+            by another metric or mode on resume; a batch with NaN/inf, a different
+            structure/shape/dtype than the first batch (naming the array and both shapes), or a batch
+            size not divisible by the mesh's device count; a corrupt checkpoint (naming the path).
         NonFiniteLossError: the loss became NaN/inf (names the step; nothing after the last good
             checkpoint is saved).
         jaxtalk.files.FolderInUseError: another process is training into ``log_dir`` (or
             ``ckpt_dir`` without ``log_dir``).
     """
-    max_steps = config.total_steps if max_steps is None else int(max_steps)
-    for name, value in (("max_steps", max_steps), ("log_every", log_every)):
-        if value < 1:
-            raise ValueError(f"{name} must be >= 1, got {value}")
-    for name, value in (("save_every", save_every), ("eval_every", eval_every)):
-        if value is not None and value < 1:
-            raise ValueError(f"{name} must be >= 1 or None, got {value}")
+    max_steps = config.total_steps if settings.max_steps is None else settings.max_steps
+    eval_every, best_metric, log_dir = settings.eval_every, settings.best_metric, settings.log_dir
     if eval_every is not None and eval_fn is None:
         raise ValueError("eval_every is set but eval_fn is None")
-    if best_mode not in ("min", "max"):
-        raise ValueError(f"best_mode must be 'min' or 'max', got {best_mode!r}")
     if best_metric is not None and (eval_fn is None or ckpt_dir is None):
         raise ValueError(f"best_metric={best_metric!r} needs eval_fn and ckpt_dir (it saves to <ckpt_dir>/best)")
-    if write_history and ckpt_dir is None:
+    if settings.write_history and ckpt_dir is None:
         raise ValueError("write_history=True needs ckpt_dir (the history goes to <ckpt_dir>/history.jsonl)")
+    write_history = settings.write_history
     if write_history is None:
         write_history = ckpt_dir is not None and eval_fn is not None
+    variable_axes = settings.variable_axes
     if variable_axes is None:
         variable_axes = tuple(getattr(data_iter, "variable_axes", ()))
 
@@ -219,18 +244,19 @@ def train(
         locks.enter_context(folder_lock(lock_dir))
     try:
         if ckpt_dir is not None:
-            ckpt = Checkpointer(ckpt_dir, max_to_keep=keep_checkpoints, async_save=async_checkpoints)
+            ckpt = Checkpointer(ckpt_dir, max_to_keep=settings.keep_checkpoints, async_save=settings.async_checkpoints)
         if best_metric is not None:
-            best = _BestKeeper(best_checkpoint_dir(ckpt_dir), best_metric, best_mode, async_checkpoints)
+            best = _BestKeeper(best_checkpoint_dir(ckpt_dir), best_metric, settings.best_mode,
+                               settings.async_checkpoints)
         for existing in (ckpt, None if best is None else best.ckpt):
-            if existing is not None and not resume and existing.latest_step() is not None:
+            if existing is not None and not settings.resume and existing.latest_step() is not None:
                 raise ValueError(
                     f"checkpoint directory {existing.directory} already holds checkpoints (latest step "
-                    f"{existing.latest_step()}); pass resume=True to continue it or choose an empty directory"
+                    f"{existing.latest_step()}); resume it (LoopSettings(resume=True)) or choose an empty directory"
                 )
         if best is not None:
             best.load_record()  # the best-so-far survives a resume (and a restart from step 0)
-        if ckpt is not None and resume and ckpt.latest_step() is not None:
+        if ckpt is not None and settings.resume and ckpt.latest_step() is not None:
             state, data_state, saved_meta = ckpt.restore(state)
             if has_position and data_state:
                 data_iter.set_state(data_state)
@@ -263,13 +289,13 @@ def train(
             meta=meta,
             spec=spec,
             mesh=mesh,
-            check_batches=check_batches,
+            check_batches=settings.check_batches,
             variable_axes=tuple(variable_axes),
             eval_fn=eval_fn,
             eval_every=eval_every,
-            save_every=save_every,
-            log_every=log_every,
-            progress=progress,
+            save_every=settings.save_every,
+            log_every=settings.log_every,
+            progress=settings.progress,
             best=best,
             history_file=history_file,
             metrics_log=metrics_log,

@@ -1,27 +1,41 @@
-"""What the model recipes share: the result type, a validation-loss evaluator, the run they write.
+"""What the model recipes share: the result type, a validation-loss evaluator, the training on windows.
 
 A recipe (``jaxtalk.models.<model>.recipe``) is the one way a model is trained: it cuts windows from
 a prepared dataset (:mod:`jaxtalk.data.loader`), fits what the model needs from the training split
 (normalisers), and runs the shared loop. Every recipe's entry point has the same shape::
 
-    train(config, data, optim, *, steps, key, batch_size=16, run_dir=None, ckpt_dir=None, mesh=None, ...) -> RecipeResult
+    train(config, data, optim, *, key, run=RunSettings(), params=None, ...) -> RecipeResult
 
-Given a ``run_dir``, a recipe checkpoints into ``run_dir/checkpoint`` and writes a complete run
-(:func:`jaxtalk.runs.write_run`) that ``jaxtalk sample``, ``eval`` and :func:`jaxtalk.runs.load_run` open.
+where :class:`jaxtalk.runs.RunSettings` holds what every recipe takes (steps, batch, seed, window,
+validation period, where the run goes, the mesh, the :class:`~jaxtalk.train.LoopSettings`) and the
+keywords after ``params`` are the model's own.
+
+A recipe trains through :func:`jaxtalk.runs.fit_run`: :func:`fit_recipe` here (the training alone), then,
+given a ``run_dir``, the run record (:func:`jaxtalk.runs.write_run`) that ``jaxtalk sample``, ``eval`` and
+:func:`jaxtalk.runs.load_run` open. This layer sits below the run format and knows nothing of it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
+from jax.sharding import Mesh
 
-from jaxtalk.train.loop import TrainResult
+from jaxtalk.data.loader import PreparedData, WindowRecipe, make_loader
+from jaxtalk.train.loop import EvalFn, LoopSettings, TrainResult, train
+from jaxtalk.train.observers import StepObserver
+from jaxtalk.train.optim import OptimConfig, Trainable
+from jaxtalk.train.step import LossFn
+from jaxtalk.types import PRNGKeyArray
+
+PyTree = Any
 
 __all__ = ["TrainSettings", "RecipeResult", "BatchSizeWarning", "usable_batch_size", "validation_eval", "split_validation",
            "fixed_batches", "spread", "host_copy", "evaluation", "merged_eval", "fit_recipe", "VAL_WINDOWS", "VAL_CLIPS"]
@@ -253,16 +267,16 @@ def merged_eval(*eval_fns: Callable[[Any, Any, int], dict[str, float]] | None
     return eval_fn
 
 
-def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any, best_metric: str | None = "val_loss",
-               best_mode: str = "min") -> dict[str, Any]:
-    """The loop's evaluation arguments: validate every ``eval_every`` steps and, with checkpoints, keep
-    the state of the best ``best_metric`` (the lowest with ``best_mode="min"``, the highest with
-    ``"max"``) in ``<ckpt_dir>/best`` (nothing when there is no validation split; no best checkpoint
-    with ``best_metric=None``). A resumed run whose best checkpoint was chosen by another metric (a run
-    started before its model selected by sampling) keeps selecting by that one, and in its direction,
-    with a warning."""
+def evaluation(eval_fn: EvalFn | None, settings: LoopSettings, ckpt_dir: str | os.PathLike | None) -> LoopSettings:
+    """The loop's evaluation settings: validate every ``settings.eval_every`` steps and, with
+    checkpoints, keep the state of the best ``settings.best_metric`` (the lowest with ``best_mode="min"``,
+    the highest with ``"max"``) in ``<ckpt_dir>/best`` (no evaluation when there is no ``eval_fn``, no
+    best checkpoint with ``best_metric=None`` or without ``ckpt_dir``). A resumed run whose best checkpoint
+    was chosen by another metric (a run started before its model selected by sampling) keeps selecting by
+    that one, and in its direction, with a warning."""
     if eval_fn is None:
-        return {}
+        return dataclasses.replace(settings, eval_every=None, best_metric=None, best_mode="min")
+    best_metric, best_mode = settings.best_metric, settings.best_mode
     if ckpt_dir is not None and best_metric is not None:
         from jaxtalk.train.checkpoint import read_best
 
@@ -270,44 +284,42 @@ def evaluation(eval_fn: Any, eval_every: int | None, ckpt_dir: Any, best_metric:
         saved = None if record is None else record["metric"]
         if saved is not None and saved != best_metric:
             warnings.warn(f"this run's best checkpoint was chosen by {saved!r}; it keeps selecting by it rather "
-                          f"than {best_metric!r}", stacklevel=3)
+                          f"than {best_metric!r}", stacklevel=4)
             best_metric, best_mode = saved, record["mode"]
-    return {"eval_fn": eval_fn, "eval_every": eval_every,
-            "best_metric": best_metric if ckpt_dir is not None else None, "best_mode": best_mode}
+    return dataclasses.replace(settings, best_metric=best_metric if ckpt_dir is not None else None,
+                               best_mode=best_mode)
 
 
 def fit_recipe(
-    recipe: Any,
-    data: Any,
-    loss_fn: Any,
-    params: Any,
-    optim: Any,
+    recipe: WindowRecipe,
+    data: PreparedData,
+    loss_fn: LossFn,
+    params: PyTree,
+    optim: OptimConfig,
     *,
-    key: jax.Array,
-    eval_key: jax.Array,
-    steps: int | None,
+    key: PRNGKeyArray,
+    eval_key: PRNGKeyArray,
     batch_size: int,
-    seed: int,
-    ckpt_dir: Any,
-    mesh: Any,
-    eval_every: int | None,
-    metadata: dict[str, Any],
-    extra: dict[str, Any],
-    config: Any,
-    run_dir: Any = None,
-    run_info: Any = None,
-    window_frames: int | None = None,
-    sample_eval: Callable[[Any, Any, int], dict[str, float]] | None = None,
-    best_metric: str | None = None,
-    best_mode: str = "min",
-    **loop_kwargs: Any,
+    seed: int = 0,
+    settings: LoopSettings = LoopSettings(),
+    ckpt_dir: str | os.PathLike | None = None,
+    mesh: Mesh | None = None,
+    metadata: dict[str, Any] | None = None,
+    sample_eval: EvalFn | None = None,
+    trainable: Trainable = None,
+    observers: Sequence[StepObserver] = (),
 ) -> RecipeResult:
-    """What every recipe does once its windows, loss and initial parameters are set: the grain loader
-    over the training split, the validation loss on ``val`` (and the best checkpoint), the shared loop.
+    """Train on a recipe's windows: the grain loader over the training split, the validation loss on
+    ``val`` (and the best checkpoint), the shared loop. What every recipe does once its windows, loss and
+    initial parameters are set.
+
     A training split with fewer windows than one batch trains with the largest batch it allows
     (:func:`usable_batch_size`, a :class:`BatchSizeWarning`; ``RecipeResult.batch_size`` is the one
-    used). With ``ckpt_dir``, the run folder (its parent) gets ``metrics.jsonl`` and TensorBoard event files
-    (:mod:`jaxtalk.train.writers`) unless ``loop_kwargs`` names another ``log_dir``.
+    used). With ``ckpt_dir``, the run folder (its parent) gets ``metrics.jsonl`` and TensorBoard event
+    files (:mod:`jaxtalk.train.writers`) unless ``settings.log_dir`` names another folder.
+
+    It only trains: the run record (``run.json`` and the inference assets) is the runs layer's
+    (:func:`jaxtalk.runs.fit_run`, which the model recipes call).
 
     Args:
         recipe: the window recipe.
@@ -315,58 +327,44 @@ def fit_recipe(
         loss_fn: ``(params, batch, key) -> (loss, metrics)``.
         params: initial parameters.
         optim: optimiser settings.
-        key: the loop's base key; eval_key: the validation key.
-        steps, batch_size, seed, ckpt_dir, mesh, eval_every: as every recipe's ``train``.
+        key: the loop's base key.
+        eval_key: the validation key.
+        batch_size: windows per batch on this process (the largest the split allows when it is smaller).
+        seed: data-order seed.
+        settings: the loop's settings. Its ``best_metric`` is a metric of ``sample_eval`` the best
+            checkpoint is chosen by, in the direction of ``best_mode``; None, or no ``sample_eval``: the
+            validation loss (lower is better; no best checkpoint when there is no validation loss
+            either).
+        ckpt_dir: checkpoint folder (exact resume), or None.
+        mesh: device mesh for data parallelism, or None.
         metadata: saved with each checkpoint (``metadata["model"]`` names the run's model).
-        extra: what the recipe fitted on the training split (goes into ``run.json``).
-        config: the model config.
-        run_dir: write a complete run here (checkpoints in ``run_dir/checkpoint`` unless ``ckpt_dir``
-            says otherwise), or None.
-        run_info: how the run was asked for (:class:`jaxtalk.runs.RunInfo`; None: a Python call).
-        window_frames: the window setting the recipe was given (recorded with the run).
         sample_eval: a validation that samples the model as users do (its metrics join the loss's at
             every evaluation), or None.
-        best_metric: the evaluation metric the best checkpoint is chosen by (a metric of
-            ``sample_eval``); None: the validation loss (lower is better; no best checkpoint when there
-            is no validation loss either). Falls back to the validation loss when ``sample_eval`` is
-            None.
-        best_mode: ``"min"`` (lower is better) or ``"max"``: the direction of ``best_metric``.
-        **loop_kwargs: passed to :func:`jaxtalk.train.train`.
+        trainable: which parameters train (:func:`jaxtalk.train.train`'s ``trainable``).
+        observers: watch the steps (:func:`jaxtalk.train.train`'s ``observers``).
 
     Returns:
-        :class:`RecipeResult`.
+        :class:`RecipeResult` (``extra`` empty: what the recipe fitted is the caller's to add).
     """
-    from jaxtalk.data.loader import make_loader
-    from jaxtalk.runs import checkpoint_dir, write_run
-    from jaxtalk.train.loop import train
-
     windows = len(recipe.table(data, "train")) if data.split("train") else 0
     fitted = usable_batch_size(windows, batch_size, processes=jax.process_count(),
                                multiple=jax.local_device_count() if mesh is not None else 1) if windows else batch_size
     if fitted != batch_size:
         warnings.warn(f"the training split has {windows} windows, fewer than batch_size={batch_size}"
                       f"{f' x {jax.process_count()} processes' if jax.process_count() > 1 else ''}: training with "
-                      f"the largest batch it allows (--set batch_size={fitted})", BatchSizeWarning, stacklevel=3)
+                      f"the largest batch it allows (--set batch_size={fitted})", BatchSizeWarning, stacklevel=4)
         batch_size = fitted
-    if run_dir is not None and ckpt_dir is None:
-        ckpt_dir = checkpoint_dir(run_dir)
     loader = make_loader(data, recipe, "train", batch_size, seed=seed)
     val_eval = split_validation(data, recipe, loss_fn, batch_size, eval_key)
     eval_fn = merged_eval(val_eval, sample_eval)
-    if sample_eval is not None and best_metric is not None:
-        selection, mode = best_metric, best_mode
-    else:  # the validation loss, when there is one
-        selection, mode = ("val_loss" if val_eval is not None else None), "min"
-    if ckpt_dir is not None:  # the run folder of the run layout: <run>/checkpoint is the checkpoint directory
-        loop_kwargs.setdefault("log_dir", Path(ckpt_dir).parent)
-    result = train(loss_fn, params, loader, optim, key=key, max_steps=steps, metadata=metadata, ckpt_dir=ckpt_dir,
-                   mesh=mesh, **evaluation(eval_fn, eval_every, ckpt_dir, selection, mode), **loop_kwargs)
-    if run_info is not None and run_info.settings is not None:  # the run records the batch it trained with
-        run_info = dataclasses.replace(run_info, settings=dataclasses.replace(run_info.settings, batch_size=batch_size))
-    if run_dir is not None and jax.process_index() == 0:  # every process checkpoints; one writes the record
-        settings = TrainSettings.of_run(optim, batch_size=batch_size, window_frames=window_frames,
-                                        eval_every=eval_every)
-        write_run(run_dir, metadata["model"], config, data, optim, seed=seed, extra=extra, settings=settings,
-                  info=run_info)
-    return RecipeResult(state=result.state, history=result.history, best=result.best, extra=extra,
+    if sample_eval is None or settings.best_metric is None:  # the validation loss, when there is one
+        settings = dataclasses.replace(settings, best_metric="val_loss" if val_eval is not None else None,
+                                       best_mode="min")
+    if ckpt_dir is not None and settings.log_dir is None:
+        # The run folder of the run layout: <run>/checkpoint is the checkpoint directory.
+        settings = dataclasses.replace(settings, log_dir=Path(ckpt_dir).parent)
+    result = train(loss_fn, params, loader, optim, key=key, settings=evaluation(eval_fn, settings, ckpt_dir),
+                   ckpt_dir=ckpt_dir, metadata=metadata, eval_fn=eval_fn, trainable=trainable, mesh=mesh,
+                   observers=observers)
+    return RecipeResult(state=result.state, history=result.history, best=result.best,
                         windows=loader.num_windows, batch_size=batch_size)

@@ -9,16 +9,16 @@ shared a layer below both models): both models see identical data.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.dualtalk.config import DualTalkConfig
-from jaxtalk.runs import RunInfo
+from jaxtalk.runs import RunSettings
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings
 from jaxtalk.models.turns.training import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
+from jaxtalk.models.turns.windows import Normalizer
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "PRESET_DEFAULTS", "train"]
@@ -36,23 +36,20 @@ def train(
     data: PreparedData,
     optim: OptimConfig,
     *,
-    steps: int | None = None,
     key: PRNGKeyArray,
-    batch_size: int = 16,
-    seed: int = 0,
+    run: RunSettings = RunSettings(),
     params: PyTree | None = None,
-    run_dir: str | Path | None = None,
-    run_info: RunInfo | None = None,
-    ckpt_dir: Any = None,
-    mesh: Any = None,
-    eval_every: int | None = None,
     val_clips: int = VAL_CLIPS,
-    **loop_kwargs: Any,
+    normalizer: Normalizer | dict[str, Any] | None = None,
 ) -> RecipeResult:
     """Train the DualTalk baseline on ``data``'s training conversations (arguments as every recipe's
     ``train``). Each evaluation also predicts ``val_clips`` val conversation sides turn by turn (as
     ``jaxtalk eval``) and the best checkpoint is the one of the lowest FD
     (:func:`~jaxtalk.models.turns.training.conversation_validation`).
+
+    ``normalizer``: the standardisation to train with (a fine-tuned run keeps its starting run's, as
+    ``jaxtalk train --init`` does); None: fitted on ``data``'s training agents. ``run.window_frames`` must
+    be None (the windows are whole turns).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the normaliser, the window's
@@ -65,7 +62,5 @@ def train(
     def predict(p: PyTree, streams: Any, key: PRNGKeyArray, context: int) -> Any:
         return predict_turns(p, config, *streams, context=context)  # deterministic: no key
 
-    return train_on_turn_windows("dualtalk", config, data, optim, init_params, make_loss_fn, steps=steps,
-                                 key=key, batch_size=batch_size, seed=seed, params=params, run_dir=run_dir,
-                                 run_info=run_info, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
-                                 predict=predict, val_clips=val_clips, **loop_kwargs)
+    return train_on_turn_windows("dualtalk", config, data, optim, init_params, make_loss_fn, key=key, run=run,
+                                 params=params, normalizer=normalizer, predict=predict, val_clips=val_clips)

@@ -13,7 +13,6 @@ with its windows over a prepared dataset and the one way it is trained.
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 from typing import Any
 
 import jax
@@ -23,11 +22,13 @@ from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.freetalk.config import ATSConfig, STMConfig
 from jaxtalk.models.freetalk.data import DisplacementStats
 from jaxtalk.models.freetalk.emotions import EMOTIONS
-from jaxtalk.runs import RunInfo
+from jaxtalk.runs import RunSettings, fit_run
 from jaxtalk.train import OptimConfig
 from jaxtalk.data.batching import window_starts
-from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings
 from jaxtalk.types import PRNGKeyArray
+
+PyTree = Any
 
 __all__ = ["DEFAULTS", "ATS_PRESET_DEFAULTS", "STM_PRESET_DEFAULTS", "ATSWindows", "STMWindows", "STM_MESHES", "STM_HELD_OUT",
            "fit_displacement_stats", "train_ats", "train_stm"]
@@ -119,21 +120,13 @@ def train_ats(
     data: PreparedData,
     optim: OptimConfig,
     *,
-    steps: int | None = None,
     key: PRNGKeyArray,
-    batch_size: int = 16,
-    seed: int = 0,
-    window_frames: int | None = None,
-    params: Any = None,
-    run_dir: str | Path | None = None,
-    run_info: RunInfo | None = None,
-    ckpt_dir: Any = None,
-    mesh: Any = None,
-    eval_every: int | None = None,
+    run: RunSettings = RunSettings(),
+    params: PyTree | None = None,
     val_clips: int = VAL_CLIPS,
-    **loop_kwargs: Any,
 ) -> RecipeResult:
-    """Train ATS on ``data``'s training split (arguments as every recipe's ``train``).
+    """Train ATS on ``data``'s training split (arguments as every recipe's ``train``; ``run.window_frames``
+    default 50 frames, at most ``max_frames``; 0: whole clips, padded and masked).
 
     The model sees standardised displacements, so ``config.displacement_scale`` must be 1. Each
     evaluation computes the loss on up to :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of the
@@ -162,24 +155,22 @@ def train_ats(
                          f"({', '.join(config.emotions)}): set emotions to the data's (--set emotions=mead, or a "
                          "comma-separated list starting with neutral)")
     stats = fit_displacement_stats(data)
-    if window_frames == 0:  # whole clips, padded to the longest (at most max_frames) and masked
+    if run.window_frames == 0:  # whole clips, padded to the longest (at most max_frames) and masked
         if config.audio_frames_per_frame != 1:
             raise ValueError("whole-clip ATS training (window_frames=0) needs speech features at the motion rate "
                              f"(audio_frames_per_frame=1, got {config.audio_frames_per_frame})")
         longest = max(data.clips[i]["frames"] for i in data.split("train")) if data.split("train") else 1
         recipe = ATSWindows(0, stats, config.emotions, pad_to=min(longest, config.max_frames))
     else:
-        recipe = ATSWindows(window_frames or min(config.max_frames, 50), stats, config.emotions)
+        recipe = ATSWindows(run.window_frames or min(config.max_frames, 50), stats, config.emotions)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = ats.init_params(config, k_init) if params is None else params
     extra = {"window": recipe.window, "stats": {"mean": stats.mean.tolist(), "std": stats.std.tolist()}}
     from jaxtalk.models.freetalk.validation import SELECTION_METRIC, sampled_validation
 
     sample_eval = sampled_validation(config, data, recipe, "val", key=jax.random.fold_in(k_eval, 1), clips=val_clips)
-    return fit_recipe(recipe, data, ats.make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
-                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size, seed=seed,
-                      ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "ats"}, extra=extra,
-                      config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)
+    return fit_run(recipe, data, ats.make_loss_fn(config), params, optim, config=config, key=k_train, eval_key=k_eval,
+                   run=run, metadata={"model": "ats"}, extra=extra, sample_eval=sample_eval, best_metric=SELECTION_METRIC)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -218,25 +209,16 @@ def train_stm(
     data: PreparedData,
     optim: OptimConfig,
     *,
-    steps: int | None = None,
     key: PRNGKeyArray,
-    batch_size: int = 16,
-    seed: int = 0,
-    window_frames: int | None = None,
+    run: RunSettings = RunSettings(),
+    params: PyTree | None = None,
     meshes: tuple[tuple[int, str], ...] = STM_MESHES,
     held_out: tuple[tuple[int, str], ...] = STM_HELD_OUT,
     resolution: str = "low",
-    params: Any = None,
-    run_dir: str | Path | None = None,
-    run_info: RunInfo | None = None,
-    ckpt_dir: Any = None,
-    mesh: Any = None,
-    eval_every: int | None = None,
     val_clips: int = VAL_CLIPS,
-    **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train STM on ``data``'s training motion rendered on ``meshes`` (identity, topology) pairs
-    (arguments as every recipe's ``train``; ``window_frames`` default 16).
+    (arguments as every recipe's ``train``; ``run.window_frames`` default 16).
 
     Each evaluation computes the loss on val windows on the training meshes and maps the true
     landmarks of ``val_clips`` val clips onto the ``held_out`` meshes
@@ -252,7 +234,7 @@ def train_stm(
 
     faces = tuple(face_mesh(i, kind, resolution=resolution) for i, kind in meshes)
     prepared = stm.prepare_meshes([(m.vertices, m.faces) for m in faces], config)
-    recipe = STMWindows(faces, max(p.num_vertices for p in prepared), window=window_frames or 16)
+    recipe = STMWindows(faces, max(p.num_vertices for p in prepared), window=run.window_frames or 16)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     params = stm.init_params(config, k_init, prepared[0]) if params is None else params
     extra = {"meshes": [list(m) for m in meshes], "resolution": resolution, "window": recipe.window}
@@ -260,7 +242,6 @@ def train_stm(
 
     sample_eval = held_out_mesh_validation(config, data, held_out, "val", window=recipe.window, clips=val_clips,
                                            resolution=resolution)
-    return fit_recipe(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, key=k_train,
-                      eval_key=k_eval, sample_eval=sample_eval, best_metric=SELECTION_METRIC, steps=steps, batch_size=batch_size,
-                      seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, metadata={"model": "stm"}, extra=extra,
-                      config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames, **loop_kwargs)
+    return fit_run(recipe, data, stm.make_loss_fn(config, stm.stack_meshes(prepared)), params, optim, config=config,
+                   key=k_train, eval_key=k_eval, run=run, metadata={"model": "stm"}, extra=extra,
+                   sample_eval=sample_eval, best_metric=SELECTION_METRIC)

@@ -7,13 +7,13 @@ TIMAR's data; this module re-exports the window pieces as part of TIMAR's recipe
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
-from jaxtalk.models.turns.windows import TurnWindows, agent_sides, fit_data_normalizer, make_windows, window_turns
+from jaxtalk.models.turns.windows import (Normalizer, TurnWindows, agent_sides, fit_data_normalizer, make_windows,
+                                          window_turns)
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.models.timar.config import TimarConfig
-from jaxtalk.runs import RunInfo
+from jaxtalk.runs import RunSettings
 from jaxtalk.train import OptimConfig
 from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings
 from jaxtalk.models.turns.training import TURN_DEFAULTS, TURN_PRESET_DEFAULTS, train_on_turn_windows
@@ -34,22 +34,19 @@ def train(
     data: PreparedData,
     optim: OptimConfig,
     *,
-    steps: int | None = None,
     key: PRNGKeyArray,
-    batch_size: int = 16,
-    seed: int = 0,
+    run: RunSettings = RunSettings(),
     params: PyTree | None = None,
-    run_dir: str | Path | None = None,
-    run_info: RunInfo | None = None,
-    ckpt_dir: Any = None,
-    mesh: Any = None,
-    eval_every: int | None = None,
     val_clips: int = VAL_CLIPS,
-    **loop_kwargs: Any,
+    normalizer: Normalizer | dict[str, Any] | None = None,
 ) -> RecipeResult:
     """Train TIMAR on ``data``'s training conversations (arguments as every recipe's ``train``). Each
     evaluation also streams ``val_clips`` val conversation sides turn by turn (as ``jaxtalk eval``)
     and the best checkpoint is the one of the lowest FD (:func:`~jaxtalk.models.turns.training.conversation_validation`).
+
+    ``normalizer``: the standardisation to train with (a fine-tuned run keeps its starting run's, as
+    ``jaxtalk train --init`` does); None: fitted on ``data``'s training agents. ``run.window_frames`` must
+    be None (the windows are whole turns).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult`; ``extra`` holds the normaliser, the window's
@@ -62,7 +59,5 @@ def train(
     def predict(p: PyTree, streams: Any, key: PRNGKeyArray, context: int) -> Any:
         return stream(p, config, *streams, key, context=context)
 
-    return train_on_turn_windows("timar", config, data, optim, init_params, make_loss_fn, steps=steps, key=key,
-                                 batch_size=batch_size, seed=seed, params=params, run_dir=run_dir, run_info=run_info,
-                                 ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every, predict=predict,
-                                 val_clips=val_clips, **loop_kwargs)
+    return train_on_turn_windows("timar", config, data, optim, init_params, make_loss_fn, key=key, run=run,
+                                 params=params, normalizer=normalizer, predict=predict, val_clips=val_clips)

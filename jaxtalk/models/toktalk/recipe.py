@@ -30,9 +30,9 @@ from jaxtalk.data.batching import fit_length, window_starts
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.data.recordings import Recording
 from jaxtalk.models.toktalk.config import TokTalkConfig
-from jaxtalk.runs import RunInfo, checkpoint_dir
+from jaxtalk.runs import RunSettings, fit_run
 from jaxtalk.train import OptimConfig
-from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, merged_eval, spread
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, merged_eval, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["DEFAULTS", "TokTalkWindows", "AdapterWindows", "default_window", "check_data", "base_trainable",
@@ -148,45 +148,30 @@ def train(
     data: PreparedData,
     optim: OptimConfig,
     *,
-    steps: int | None = None,
     key: PRNGKeyArray,
-    batch_size: int = 16,
-    seed: int = 0,
-    window_frames: int | None = None,
+    run: RunSettings = RunSettings(),
     params: PyTree | None = None,
-    run_dir: str | Path | None = None,
-    run_info: RunInfo | None = None,
-    ckpt_dir: Any = None,
-    mesh: Any = None,
-    eval_every: int | None = None,
     val_clips: int = VAL_CLIPS,
     real_voice: str | Path | Sequence[Recording] | None = None,
     select: str | None = None,
-    **loop_kwargs: Any,
 ) -> RecipeResult:
     """Train the base model (decoder + style encoder) on ``data``'s training split with the CFM loss.
 
     Args:
         config: model settings (token width and rate must match the data's).
         data: a prepared dataset with a token stream.
-        optim: optimiser settings (``total_steps`` is the length unless ``steps``).
-        steps: stop at this step (default ``optim.total_steps``).
+        optim: optimiser settings (``total_steps`` is the length unless ``run.steps``).
         key: PRNG key (initialisation, per-step keys).
-        batch_size: windows per batch on this process.
-        seed: data-order and style-choice seed.
-        window_frames: frames per window (default :func:`default_window`).
+        run: the run's settings (:class:`~jaxtalk.runs.RunSettings`: steps, batch, seed, where the run
+            goes, the loop's settings); ``run.seed`` also chooses the style clips, ``run.window_frames``
+            defaults to :func:`default_window`. Each evaluation (every ``run.eval_every`` steps and at
+            the end) computes the loss on up to :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of
+            the ``val`` split and streams ``val_clips`` of its clips at 1 and ``config.sample_steps``
+            steps (:func:`~jaxtalk.models.toktalk.validation.streamed_validation`: LVE, MVE, jitter); the
+            best checkpoint is the one of the lowest streamed LVE (the validation loss when nothing
+            streams), or of the metric ``select`` names.
         params: initial parameters (default: fresh, with the motion standardiser fitted on the
             training split and the flow scale on its first windows).
-        run_dir: write a complete run here (:func:`jaxtalk.runs.write_run`), or None.
-        run_info: how the run was asked for (the CLI's preset, ``--set`` items and settings), or None.
-        ckpt_dir: checkpoint folder (exact resume; default ``run_dir/checkpoint``), or None.
-        mesh: device mesh for data parallelism, or None.
-        eval_every: validation period in steps (default: at the end). Each evaluation computes the loss
-            on up to :data:`~jaxtalk.train.recipes.VAL_WINDOWS` windows of the ``val`` split and
-            streams ``val_clips`` of its clips at 1 and ``config.sample_steps`` steps
-            (:func:`~jaxtalk.models.toktalk.validation.streamed_validation`: LVE, MVE, jitter); the best
-            checkpoint is the one of the lowest streamed LVE (the validation loss when nothing streams),
-            or of the metric ``select`` names.
         val_clips: clips streamed at each evaluation (0: the validation loss only).
         real_voice: a folder of real recordings (with their tracked motion as ``STEM.npz``), or the
             recordings already read (:func:`jaxtalk.data.recordings.read_recordings`): each evaluation
@@ -198,7 +183,6 @@ def train(
         select: the metric the best checkpoint is chosen by: ``LVE_mm2`` (the lowest) or ``real_corr``
             (the highest; needs ``real_voice`` with tracked motion). None: a resumed run's own, else
             ``LVE_mm2``.
-        **loop_kwargs: passed to :func:`jaxtalk.train.train` (``progress``, ``save_every``, ...).
 
     Returns:
         :class:`~jaxtalk.train.recipes.RecipeResult` (``extra``: the window size).
@@ -213,11 +197,9 @@ def train(
     from jaxtalk.models.toktalk.model import fit_flow_scale, init_params
 
     check_data(config, data)
-    real_eval, best_metric, best_mode = _real_voice_selection(config, data, real_voice, select,
-                                                              ckpt_dir if ckpt_dir is not None or run_dir is None
-                                                              else checkpoint_dir(run_dir))
-    window = window_frames or default_window(config)
-    recipe = TokTalkWindows(config, window, hop_frames=window // 4, seed=seed)
+    real_eval, best_metric, best_mode = _real_voice_selection(config, data, real_voice, select, run.ckpt_path)
+    window = run.window_frames or default_window(config)
+    recipe = TokTalkWindows(config, window, hop_frames=window // 4, seed=run.seed)
     k_init, k_train, k_eval = jax.random.split(key, 3)
     if params is None:
         params = init_params(config, k_init)
@@ -234,17 +216,15 @@ def train(
     sample_eval = streamed_validation(config, data, "val", key=jax.random.fold_in(k_eval, 1), clips=val_clips)
     if best_metric == SELECTION_METRIC and sample_eval is None:
         best_metric = None
-    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval,
-                      sample_eval=merged_eval(sample_eval, real_eval), best_metric=best_metric, best_mode=best_mode,
-                      steps=steps, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
-                      metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
-                      config=config, run_dir=run_dir, run_info=run_info, window_frames=window_frames,
-                      trainable=base_trainable, **loop_kwargs)
+    return fit_run(recipe, data, make_loss_fn(config), params, optim, config=config, key=k_train, eval_key=k_eval,
+                   run=run, metadata={"model": "toktalk", "stage": 1}, extra={"window_frames": recipe.window_frames},
+                   sample_eval=merged_eval(sample_eval, real_eval), best_metric=best_metric, best_mode=best_mode,
+                   trainable=base_trainable)
 
 
 def _real_voice_selection(config: TokTalkConfig, data: PreparedData,
                           real_voice: str | Path | Sequence[Recording] | None, select: str | None,
-                          ckpt_dir: Any) -> tuple[Any, str, str]:
+                          ckpt_dir: Path | None) -> tuple[Any, str, str]:
     """``(real-voice eval_fn or None, best metric, its mode)`` of :func:`train`, every setting checked
     before anything is trained."""
     from jaxtalk.data.recordings import read_recordings
@@ -306,21 +286,13 @@ def train_adapter(
     src_tokens: Mapping[str, np.ndarray],
     src_rate: float,
     flow_weight: float = 1.0,
-    steps: int | None = None,
     key: PRNGKeyArray,
-    batch_size: int = 16,
-    seed: int = 0,
-    window_frames: int | None = None,
-    run_dir: str | Path | None = None,
-    run_info: RunInfo | None = None,
-    ckpt_dir: Any = None,
-    mesh: Any = None,
-    eval_every: int | None = None,
-    **loop_kwargs: Any,
+    run: RunSettings = RunSettings(),
 ) -> RecipeResult:
     """Stage 2: train a fresh adapter from another token stream with the base model frozen.
 
-    Arguments as :func:`train`, plus:
+    Arguments as :func:`train` (no validation sampling: the best checkpoint is the one of the lowest
+    validation loss), plus:
 
     Args:
         base_params: stage-1 parameters (``decoder``, ``style``, ``norm``); left bitwise unchanged
@@ -344,8 +316,8 @@ def train_adapter(
     if not any(c["name"] in src_tokens for c in data.clips) or len(widths) != 1:
         raise ValueError(f"src_tokens must give tokens of one width for clips of {data.root} "
                          f"(widths {sorted(widths)}, {sum(c['name'] in src_tokens for c in data.clips)} clips named)")
-    window = window_frames or default_window(config)
-    recipe = AdapterWindows(config, window, hop_frames=window // 4, seed=seed, src_tokens=src_tokens,
+    window = run.window_frames or default_window(config)
+    recipe = AdapterWindows(config, window, hop_frames=window // 4, seed=run.seed, src_tokens=src_tokens,
                             src_rate=float(src_rate))
     k_init, k_train, k_eval = jax.random.split(key, 3)
     src_dim = widths.pop()
@@ -353,10 +325,8 @@ def train_adapter(
     params["adapter"] = init_adapter(config, k_init, src_dim)
     loss = functools.partial(_adapter_loss, config, float(src_rate), float(flow_weight))
     extra = {"window_frames": recipe.window_frames, "adapter": {"src_rate": float(src_rate), "src_dim": src_dim}}
-    return fit_recipe(recipe, data, loss, params, optim, key=k_train, eval_key=k_eval, steps=steps,
-                      batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir, mesh=mesh, eval_every=eval_every,
-                      metadata={"model": "toktalk", "stage": 2}, extra=extra, config=config, run_dir=run_dir,
-                      run_info=run_info, window_frames=window_frames, trainable=adapter_trainable, **loop_kwargs)
+    return fit_run(recipe, data, loss, params, optim, config=config, key=k_train, eval_key=k_eval, run=run,
+                   metadata={"model": "toktalk", "stage": 2}, extra=extra, trainable=adapter_trainable)
 
 
 def _adapter_loss(config: TokTalkConfig, src_rate: float, flow_weight: float, params: PyTree, batch: dict,

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import jax
@@ -21,9 +20,9 @@ from jaxtalk.models.turns.windows import Normalizer, TurnWindows, agent_sides, m
 from jaxtalk.data.loader import PreparedData
 from jaxtalk.metrics import CONVERSATION_GROUPS, PUBLISHED_SCALE, SID_CLUSTERS, conversation_metrics
 from jaxtalk.metrics.evaluation import SCORINGS, EvalSettings, EvalTable
-from jaxtalk.runs import RunInfo
+from jaxtalk.runs import RunSettings, fit_run
 from jaxtalk.train.optim import OptimConfig
-from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, fit_recipe, host_copy, spread
+from jaxtalk.train.recipes import VAL_CLIPS, RecipeResult, TrainSettings, host_copy, spread
 from jaxtalk.types import PRNGKeyArray
 
 __all__ = ["TURN_DEFAULTS", "TURN_PRESET_DEFAULTS", "train_on_turn_windows", "conversation_validation",
@@ -59,20 +58,12 @@ def train_on_turn_windows(
     init_params: Callable[[Any, PRNGKeyArray], PyTree],
     make_loss_fn: Callable[[Any], Callable[..., Any]],
     *,
-    steps: int | None,
     key: PRNGKeyArray,
-    batch_size: int,
-    seed: int,
-    params: PyTree | None,
-    run_dir: str | Path | None,
-    run_info: RunInfo | None,
-    ckpt_dir: Any,
-    mesh: Any,
-    eval_every: int | None,
-    normalizer: Any = None,
+    run: RunSettings,
+    params: PyTree | None = None,
+    normalizer: Normalizer | dict[str, Any] | None = None,
     predict: Predict | None = None,
     val_clips: int = VAL_CLIPS,
-    **loop_kwargs: Any,
 ) -> RecipeResult:
     """The training TIMAR and the DualTalk baseline share: :func:`make_windows`' turn windows and
     normaliser, one key split (init / train / eval) and the run's ``extra`` (normaliser, window turns,
@@ -82,7 +73,9 @@ def train_on_turn_windows(
         model: the run's model name (``"timar"``, ``"dualtalk"``).
         config: the model's config (a :class:`TurnConfig`).
         init_params: ``(config, key) -> params`` (used when ``params`` is None).
-        make_loss_fn: ``config -> loss_fn`` for :func:`~jaxtalk.train.recipes.fit_recipe`.
+        make_loss_fn: ``config -> loss_fn`` for :func:`~jaxtalk.runs.fit_run`.
+        run: the run's settings (:class:`~jaxtalk.runs.RunSettings`); its ``window_frames`` must be None
+            (the windows are ``num_turns`` whole turns).
         normalizer: the standardisation to train with (a :class:`~jaxtalk.models.turns.windows.Normalizer`
             or its ``to_dict()``): a fine-tuned run keeps its starting run's; None: fitted on ``data``.
         predict: how the model predicts a conversation side as users run it (TIMAR: streamed turn by
@@ -91,7 +84,12 @@ def train_on_turn_windows(
             :data:`SELECTION_METRIC`. None: the validation loss only.
         val_clips: conversation sides predicted at each evaluation (0: the validation loss only).
         others: as every recipe's ``train``.
+
+    Raises:
+        ValueError: ``run.window_frames`` set.
     """
+    if run.window_frames is not None:
+        raise ValueError(f"window_frames is not a {model} setting: its windows are whole turns (max_turns)")
     recipe = make_windows(config, data)
     if normalizer is not None:
         given = normalizer if isinstance(normalizer, Normalizer) else Normalizer.from_dict(normalizer)
@@ -104,10 +102,8 @@ def train_on_turn_windows(
         extra["init"] = True  # the normaliser came with the starting parameters: a resume keeps it
     sample_eval = None if predict is None else conversation_validation(
         data, recipe, "val", predict=predict, key=jax.random.fold_in(k_eval, 1), clips=val_clips)
-    return fit_recipe(recipe, data, make_loss_fn(config), params, optim, key=k_train, eval_key=k_eval, steps=steps,
-                      sample_eval=sample_eval, best_metric=SELECTION_METRIC, batch_size=batch_size, seed=seed, ckpt_dir=ckpt_dir,
-                      mesh=mesh, eval_every=eval_every, metadata={"model": model}, extra=extra, config=config, run_dir=run_dir,
-                      run_info=run_info, **loop_kwargs)
+    return fit_run(recipe, data, make_loss_fn(config), params, optim, config=config, key=k_train, eval_key=k_eval,
+                   run=run, metadata={"model": model}, extra=extra, sample_eval=sample_eval, best_metric=SELECTION_METRIC)
 
 
 def conversation_validation(
