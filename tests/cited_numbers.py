@@ -154,7 +154,8 @@ def check_page(page: Path, root: Path) -> list[str]:
     lines = text.splitlines()
     for n, line in enumerate(lines):
         start = 0
-        for marker in MARKER.finditer(line):
+        # A marker quoted in a code span is an example, not a citation (same length: positions hold).
+        for marker in MARKER.finditer(INLINE_CODE.sub(lambda m: " " * len(m.group(0)), line)):
             where = f"{page.name}:{n + 1}"
             try:
                 paths = _files(root, marker.group("files"))

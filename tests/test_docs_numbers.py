@@ -46,6 +46,7 @@ def _page(root: Path, text: str) -> Path:
     "from 137.0 to 116.6 mm, a 40% share, 4.68 s<!-- from: r/run.json -->",
     "<!-- from: r -->\n| method | LVE |\n|---|---|\n| 2 steps | 137.0 |\n| 10 steps | 116.6 |\n",
     "<!-- from: r; columns 3 -->\n| method | 20 clips | LVE |\n|---|---|---|\n| 2 steps | 20 | 137.0 |\n",
+    "a citation quoted as code, `<!-- from: r/missing.json -->`, is an example",
     "`137.5` in code and [a link](x/2.5.md) and wav2vec2 are not figures: 116.6<!-- from: r/run.json -->",
     "<!-- from: r; columns 2, 4 -->\n| method | LVE | clips | share |\n|---|---|---|---|\n| 2 steps | 137.0 | 20 | 40% |\n",
     "the update takes 3,423 ms<!-- from: r/run.json#/update_ms -->, or 3.4 s<!-- from: r/run.json#/update_ms -->",
