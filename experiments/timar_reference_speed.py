@@ -21,6 +21,9 @@ Set-up as for ``experiments/timar_reference_parity.py`` (the reference half runs
 
     python experiments/timar_reference_speed.py --reference-repo /work/timar-ref \\
         --torch-python /work/torchenv/bin/python --turns 4
+
+It writes ``results/timar_reference_speed.json`` (``--out``): both sides' seconds per turn, their
+medians and ratio, the FLOPs per turn and the measured peak.
 """
 
 from __future__ import annotations
@@ -131,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reference-repo", type=Path, required=True)
     p.add_argument("--torch-python", default=sys.executable)
     p.add_argument("--turns", type=int, default=4)
+    p.add_argument("--out", type=Path, default=HERE / "results" / "timar_reference_speed.json")
     p.add_argument("--reference-side", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.reference_side:
@@ -153,6 +157,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"median after turn 1: reference {r_med:.2f} s, jaxtalk {j_med:.2f} s: jaxtalk {r_med / j_med:.1f}x faster")
     print(f"jaxtalk: {flops / 1e9:.1f} GFLOP per turn, {flops / j_med / 1e9:.1f} GFLOP/s = "
           f"{flops / j_med / ours['peak']:.0%} of the measured matmul peak ({ours['peak'] / 1e9:.1f} GFLOP/s)")
+    from jaxtalk.benchmarking import machine_info, write_json
+
+    write_json(args.out, {"machine": machine_info(), "turns": args.turns, "steps": STEPS, "cfg": CFG,
+                          "reference_threads": ref["threads"], "reference_s": ref["times"], "jaxtalk_s": ours["times"],
+                          "reference_median_s": r_med, "jaxtalk_median_s": j_med, "reference_over_jaxtalk": r_med / j_med,
+                          "gflop_per_turn": flops / 1e9, "matmul_peak_gflop_s": ours["peak"] / 1e9,
+                          "of_peak": flops / j_med / ours["peak"]})
+    print(f"wrote {args.out}")
     return 0
 
 
