@@ -48,7 +48,7 @@ def test_presets_and_config_errors():
         0.0, False, "target", True, 1.0)
     # The small preset: the target's crop as the style, the anchor centring the flow, and the decoder
     # reading neither the anchor nor the latent (what keeps held-out speakers under the mean pose).
-    assert (small.noise_frames, small.style_anchor, small.style_source, small.temperature) == (2.0, True, "target", 0.5)
+    assert (small.noise_frames, small.style_anchor, small.style_source, small.temperature) == (2.0, True, "target", 0.25)
     assert (small.anchor_input, small.latent_input) == (False, False)
     assert tt.TokTalkConfig.paper(noise_frames=2.0).noise_frames == 2.0
     with pytest.raises(ValueError, match="chunk_frames=7 must be even"):

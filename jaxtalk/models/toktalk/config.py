@@ -100,8 +100,8 @@ class TokTalkConfig:
         temperature: default scale of the starting noise at inference (traced at sampling time; 1: the
             trained prior). Below 1 the sampler starts nearer the flow's mean and trades diversity for
             accuracy, as flow-matching TTS samplers do (Matcha-TTS samples at 0.667); 0 integrates the
-            flow from the mean of the prior. The ``small`` preset samples at 0.5 (its 10-step samples
-            beat the mean pose there, not at 1; see docs/design-decisions.md), the ``paper`` preset at
+            flow from the mean of the prior. The ``small`` preset samples at 0.25 (its 10-step samples
+            beat the mean pose and keep the data's smoothness there; see docs/design-decisions.md), the ``paper`` preset at
             the paper's 1 (``tiny``, for unit tests, at 1); ``--temperature`` of ``sample``,
             ``stream``, ``serve`` and ``eval`` overrides it.
         sigma_min: minimum noise of the CFM path.
@@ -227,7 +227,7 @@ class TokTalkConfig:
         """Learns SynthTalk in minutes on 2 CPU cores and streams in real time there; trains on the
         target clip's own crop as the style and shows the decoder neither the anchor nor the style
         latent (so held-out speakers stay under the mean pose as it trains; see ``style_source``);
-        samples at temperature 0.5 (see ``temperature``)."""
+        samples at temperature 0.25 (see ``temperature``)."""
         # Width 64 is enough once the decoder is preconditioned (``precondition``): the skip carries
         # the near-identity noise part of the velocity that a 64-wide U-Net alone learns far more slowly.
         base = cls(
@@ -248,7 +248,7 @@ class TokTalkConfig:
             style_source="target",
             anchor_input=False,
             latent_input=False,
-            temperature=0.5,
+            temperature=0.25,
         )
         return dataclasses.replace(base, **overrides)
 
