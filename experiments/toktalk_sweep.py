@@ -5,7 +5,9 @@ model is trained per chunk size (its chunk attention mask and streaming window) 
 chunk; ``--train-chunks 10 --infer-chunks 10,20,30`` instead streams one model at every chunk. Step
 count is an inference setting. Per cell: parameter MSE, LVE (mm^2, built-in face), FDD and MOD, jitter
 near chunk boundaries (mean |second difference| within 2 frames of a boundary) and over all frames,
-median per-chunk latency (compile excluded) and the compile time of the cell's program.
+median per-chunk latency (compile excluded) and the compile time of the cell's program. Beside the
+table: the ground truth's jitter at each chunk size, and the sampling settings (the preset's
+temperature, guidance weight, starting-noise correlation and overlap).
 
 The paper's claim to check: quality and smoothness improve with more steps and larger chunks.
 
@@ -75,14 +77,19 @@ def main() -> None:
     args.out = args.out or str(RESULTS / f"toktalk_sweep_seed{args.seed}.json")
     corpus = load_corpus(args.size, args.seed)
     clips = corpus.split("test")[: args.clips]
-    table = []
+    table, truth, sampling = [], [], {}
     for train_chunk in [int(c) for c in args.train_chunks.split(",")]:
         base_cfg, params, _ = trained_small(corpus, args.steps, args.adapter_steps, seed=args.seed,
                                             chunk_frames=train_chunk)
         rng = np.random.default_rng(0)
         styles = {c: tt.encode_style(params, base_cfg, style_clip_for(corpus, c, 8 * base_cfg.fps, rng)) for c in clips}
+        sampling = {k: getattr(base_cfg, k) for k in ("temperature", "cfg_scale", "noise_frames", "overlap_frames")}
         for chunk in [int(c) for c in args.infer_chunks.split(",") if c] or [train_chunk]:
             cfg = dataclasses.replace(base_cfg, chunk_frames=chunk, context_frames=max(20, 2 * chunk))
+            # The data's own jitter at this chunk's boundaries, the scale the samples' jitter is read on.
+            gt_rows = [evaluate(corpus, np.asarray(corpus.motion(c)), c, chunk) for c in clips]
+            truth.append({"chunk_s": chunk / cfg.fps, "jitter_boundary": weighted_mean(gt_rows, "jitter_boundary"),
+                          "jitter_all": weighted_mean(gt_rows, "jitter")})
             for n in STEPS:
                 table.append({"train_chunk_s": train_chunk / cfg.fps,
                               **_cell(cfg, params, corpus, clips, styles, chunk, n)})
@@ -90,7 +97,8 @@ def main() -> None:
     print_table(table, f"TokTalk Table 5 on SynthTalk {args.size} test ({len(clips)} clips, streaming)")
     grid = {(r["chunk_s"], r["steps"]): r for r in table}
     if len({r["chunk_s"] for r in table}) < len(CHUNKS):
-        write_json(args.out, {"machine": machine_info(), "args": vars(args), "table": table})
+        write_json(args.out, {"machine": machine_info(), "args": vars(args), "sampling": sampling, "table": table,
+                              "ground_truth": truth})
         return
     more_steps = all(grid[(c / 25, 20)]["jitter_boundary"] < grid[(c / 25, 1)]["jitter_boundary"] for c in CHUNKS)
     bigger_chunk = all(grid[(CHUNKS[-1] / 25, n)]["jitter_boundary"] < grid[(CHUNKS[0] / 25, n)]["jitter_boundary"]
@@ -100,7 +108,8 @@ def main() -> None:
     claims = {"jitter_improves_with_steps": more_steps, "jitter_improves_with_chunk": bigger_chunk,
               "mse_improves_with_steps": mse_steps, "mse_improves_with_chunk": mse_chunk}
     print_table([{k: str(v) for k, v in claims.items()}], "Paper claims (20 vs 1 steps; 1.2 s vs 0.4 s chunks)")
-    write_json(args.out, {"machine": machine_info(), "args": vars(args), "table": table, "claims": claims})
+    write_json(args.out, {"machine": machine_info(), "args": vars(args), "sampling": sampling, "table": table,
+                          "ground_truth": truth, "claims": claims})
 
 
 if __name__ == "__main__":
