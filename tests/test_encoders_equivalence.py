@@ -10,7 +10,6 @@ float32).
 from __future__ import annotations
 
 import functools
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +19,7 @@ transformers = pytest.importorskip("transformers")
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+from helpers import DUALTALK_DEMO  # noqa: E402
 from safetensors.numpy import load_file, save_file  # noqa: E402
 
 from jaxtalk.audio.encoders import (  # noqa: E402
@@ -189,6 +189,17 @@ def _leaves(tree, prefix=()):
             yield (*prefix, key), np.asarray(value)
 
 
+def _hf_interpolated(hf, audio: np.ndarray, frames: int) -> np.ndarray:
+    """HF's model the way TIMAR's public ``SpeechEncoder`` runs it (FaceFormer's order): the conv features
+    of each row, linearly interpolated (align_corners) to ``frames``, then projection and encoder."""
+    with torch.no_grad():
+        conv = hf.feature_extractor(torch.from_numpy(audio))  # (rows, channels, conv frames)
+        conv = torch.nn.functional.interpolate(conv, size=frames, mode="linear", align_corners=True)
+        projected = hf.feature_projection(conv.transpose(1, 2))
+        projected = projected[0] if isinstance(projected, tuple) else projected
+        return hf.encoder(projected).last_hidden_state.numpy()
+
+
 @pytest.mark.parametrize("name", ["wav2vec2-large", "hubert-base"])
 def test_interpolated_variant_matches_faceformer_reference(name, tmp_path):
     """TIMAR/DualTalk: HF conv features -> F.interpolate(linear, align_corners) -> projection + encoder."""
@@ -198,12 +209,7 @@ def test_interpolated_variant_matches_faceformer_reference(name, tmp_path):
     ckpt = load_checkpoint(tmp_path)
     audio = _audio(1, 4321, seed=4)
     motion_frames = 91  # any count: here about 0.42 x the 215 conv frames
-    with torch.no_grad():
-        conv = hf.feature_extractor(torch.from_numpy(audio))  # (1, channels, frames)
-        conv = torch.nn.functional.interpolate(conv, size=motion_frames, mode="linear", align_corners=True)
-        projected = hf.feature_projection(conv.transpose(1, 2))
-        projected = projected[0] if isinstance(projected, tuple) else projected
-        reference = hf.encoder(projected).last_hidden_state.numpy()
+    reference = _hf_interpolated(hf, audio, motion_frames)
     run = functools.partial(encoder_features, config=config, interpolate_frames=motion_frames)
     ours, mask = jax.jit(run)(ckpt.params, jnp.asarray(audio))
     assert bool(np.all(np.asarray(mask)))
@@ -238,8 +244,7 @@ def test_base_size_hubert_matches_transformers_on_every_layer(tmp_path):
 
 
 # A real conversation recording (DualTalk's demo clips live outside the repository; skipped without them).
-_DUALTALK_RECORDING = (Path(__file__).resolve().parents[2] / "shared" / "data" / "dualtalk_demo"
-                       / "UbjUDM1MiGE_sub_video_72_speaker1.wav")
+_DUALTALK_RECORDING = DUALTALK_DEMO / "UbjUDM1MiGE_sub_video_72_speaker1.wav"
 
 
 @pytest.mark.parametrize("source", ["made"] + (["real DualTalk recording"] if _DUALTALK_RECORDING.exists() else []))
@@ -269,12 +274,7 @@ def test_recording_level_turn_speech_equals_the_public_timar_loader_and_speech_e
     spt = TURN_FRAMES * SAMPLES_PER_FRAME
     # The public path: the processor normalises the whole recording; the model encodes turn by turn.
     values = extractor(audio, sampling_rate=16_000, return_tensors="np").input_values[0]
-    with torch.no_grad():
-        conv = hf.feature_extractor(torch.from_numpy(values[: turns * spt].reshape(turns, spt)))
-        conv = torch.nn.functional.interpolate(conv, size=TURN_FRAMES, mode="linear", align_corners=True)
-        projected = hf.feature_projection(conv.transpose(1, 2))
-        projected = projected[0] if isinstance(projected, tuple) else projected
-        reference = hf.encoder(projected).last_hidden_state.numpy().reshape(turns * TURN_FRAMES, -1)
+    reference = _hf_interpolated(hf, values[: turns * spt].reshape(turns, spt), TURN_FRAMES).reshape(turns * TURN_FRAMES, -1)
     ours = parse_audio_features(f"wav2vec2+recording:{tmp_path}").turn_speech(audio, turns)
     _assert_close(ours, reference, f"{source}: recording-level turn speech")
     # Per turn, jaxtalk's streaming default, differs on this recording: the check can fail.

@@ -101,9 +101,9 @@ class TokTalkConfig:
             trained prior). Below 1 the sampler starts nearer the flow's mean and trades diversity for
             accuracy, as flow-matching TTS samplers do (Matcha-TTS samples at 0.667); 0 integrates the
             flow from the mean of the prior. The ``small`` preset samples at 0.25 (its 10-step samples
-            beat the mean pose and keep the data's smoothness there; see docs/design-decisions.md), the ``paper`` preset at
-            the paper's 1 (``tiny``, for unit tests, at 1); ``--temperature`` of ``sample``,
-            ``stream``, ``serve`` and ``eval`` overrides it.
+            beat the mean pose and keep the data's smoothness there; see docs/design-decisions.md), the
+            ``paper`` preset at the paper's 1 (``tiny``, for unit tests, at 1); ``--temperature`` of
+            ``sample``, ``stream``, ``serve`` and ``eval`` overrides it.
         sigma_min: minimum noise of the CFM path.
         cfg_dropout: probability of dropping audio, style and known frames together (CFG training).
         known_prob: probability that a training example gets a known-frames segment.
