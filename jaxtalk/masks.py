@@ -226,7 +226,7 @@ def combine(
     static = jnp.asarray(static_mask)[None, :, :]
     v = jnp.asarray(valid)
     allowed = static & v[:, :, None] & v[:, None, :]
-    eye = jnp.eye(static_mask.shape[0], dtype=bool)[None, :, :]
+    eye = np.eye(static_mask.shape[0], dtype=bool)[None, :, :]  # a static constant (every converter folds it)
     allowed = allowed | (eye & ~v[:, :, None])
     return allowed[:, None, :, :]
 

@@ -206,6 +206,9 @@ class ModelSpec:
             option.
         fine_tune_refusal: why ``jaxtalk train --init RUN`` cannot fine-tune the model (what its recipe fits
             on the new data that the starting weights were not trained with), or None when it can.
+        export_stream: writes the live model's stream as ONNX graphs and a manifest into a folder
+            (``export_stream(live_model, folder, run_name=...) -> manifest``: ``jaxtalk export-model``), or None.
+        export_refusal: for a model without ``export_stream``, why ``jaxtalk export-model`` does not export it.
     """
 
     name: str
@@ -233,6 +236,8 @@ class ModelSpec:
     reads: str = "speech features"
     voice_validation: Callable[..., Any] | None = None
     fine_tune_refusal: str | None = None
+    export_stream: Callable[..., Any] | None = None
+    export_refusal: str | None = None
 
     def settings(self, preset: str = "small") -> Any:
         """The recipe's default :class:`~jaxtalk.train.recipes.TrainSettings` for a config preset."""

@@ -52,7 +52,8 @@ from jaxtalk.audio.kmeans import kmeans, nearest_centroid
 from jaxtalk.audio.melspec import _log_mel, mel_filterbank, num_frames
 from jaxtalk.types import AUDIO_SAMPLE_RATE, MOTION_FPS, Array
 
-__all__ = ["TokenStream", "TokenizerStream", "VQTokenizer", "FLOOR_MIN", "noise_floor", "above_floor"]
+__all__ = ["TokenStream", "TokenizerStream", "VQTokenizer", "FLOOR_MIN", "noise_floor", "above_floor", "GroupLayout",
+           "group_tokens"]
 
 _FORMAT_VERSION = 3
 _OLDEST_FORMAT = 1  # version 1 files have no normaliser (floor_window 0)
@@ -638,6 +639,31 @@ class TokenizerStream:
         """The first log-mel frame that belongs to ``token`` (or to a later one)."""
         return math.ceil(token * self.tokenizer.stack / self._step)
 
+    def _segment(self, k0: int) -> np.ndarray:
+        """The sub-window (within the group starting at token ``k0``) of each log-mel frame of its window;
+        ``group * stack`` for frames that belong to a later group (dropped)."""
+        frames = self._first_frame(k0) + np.arange(self._frames, dtype=np.int64)
+        segment = (frames * self._step.numerator) // self._step.denominator - k0 * self.tokenizer.stack
+        return np.where(segment < self.group * self.tokenizer.stack, segment, self.group * self.tokenizer.stack)
+
+    def layout(self) -> GroupLayout:
+        """The fixed layout of every group's window (:class:`GroupLayout`), for a host that computes the tokens
+        itself (:func:`group_tokens`, an exported front end).
+
+        Raises:
+            ValueError: when groups start at different phases of the log-mel hop (a group that is not a whole
+                number of log-mel frames), so that no one layout serves every group.
+        """
+        t = self.tokenizer
+        hop = self._first_frame(self.group)  # frames a group advances, when the layout is fixed
+        if any(self._first_frame((n + 1) * self.group) - self._first_frame(n * self.group) != hop
+               or not np.array_equal(self._segment(n * self.group), self._segment(0)) for n in range(self._step.denominator)):
+            raise ValueError(f"a group of {self.group} tokens at {t.rate} Hz is not a whole number of {t.hop_length}-sample "
+                             f"log-mel hops, so its windows differ from group to group: choose a group (chunk) that is")
+        return GroupLayout(group=self.group, window_samples=self._window, hop_samples=hop * t.hop_length,
+                           offset_samples=-self._reach, lookahead_samples=self._needed(self.group) - hop * t.hop_length,
+                           segment=self._segment(0).astype(np.int32))
+
     def _needed(self, tokens: int) -> int:
         """Samples that tokens ``0 .. tokens - 1`` read (the last frame's centre plus its reach)."""
         last = self._first_frame(tokens) - 1
@@ -686,9 +712,7 @@ class TokenizerStream:
             lo, hi = max(start, self._buffer_start), min(start + self._window, self._buffer_start + self._buffer.size)
             if hi > lo:
                 window[lo - start:hi - start] = self._buffer[lo - self._buffer_start:hi - self._buffer_start]
-            frames = f0 + np.arange(self._frames, dtype=np.int64)
-            segment = (frames * self._step.numerator) // self._step.denominator - k0 * t.stack
-            segment = np.where(segment < self.group * t.stack, segment, self.group * t.stack)  # dropped
+            segment = self._segment(k0)
             feats.append(np.asarray(_pooled_features(
                 jnp.asarray(window), jnp.asarray(segment, jnp.int32), num_tokens=self.group, stack=t.stack,
                 sample_rate=t.sample_rate, n_mels=t.n_mels, n_fft=t.n_fft, hop_length=t.hop_length, center=False)))
@@ -705,6 +729,61 @@ class TokenizerStream:
             self._past = np.concatenate([self._past, features])[-(t.floor_window - 1):]
         ids = t.quantize(normalised)
         return ids, t.lookup(ids)
+
+
+@dataclasses.dataclass(frozen=True)
+class GroupLayout:
+    """Where each group of a :class:`TokenizerStream` reads its audio, when every group reads alike.
+
+    Group ``n`` (tokens ``n * group .. (n + 1) * group - 1``) is computed from the ``window_samples`` samples
+    starting at ``n * hop_samples + offset_samples`` of the utterance (zeros before its start and past its
+    end), and can be computed once ``(n + 1) * hop_samples + lookahead_samples`` samples have arrived.
+
+    Attributes:
+        group: tokens per group.
+        window_samples: samples of one group's window.
+        hop_samples: samples from one group's window to the next.
+        offset_samples: where group 0's window starts (negative: before the utterance).
+        lookahead_samples: samples past a group's end that its last token reads.
+        segment: ``(frames,)`` the sub-window of each log-mel frame of a window (``group * stack``: dropped).
+    """
+
+    group: int
+    window_samples: int
+    hop_samples: int
+    offset_samples: int
+    lookahead_samples: int
+    segment: np.ndarray
+
+
+def group_tokens(
+    tokenizer: VQTokenizer,
+    layout: GroupLayout,
+    audio: Float[Array, " window"],
+    history: Float[Array, "past mels"] | None,
+) -> tuple[Int[Array, " group"], Float[Array, "group width"], Float[Array, "past mels"] | None]:
+    """One group of a :class:`TokenizerStream` on fixed shapes (traced, no checks): the token ids and
+    embeddings of the group whose window is ``audio`` (:meth:`TokenizerStream.layout`), and the
+    normaliser's history after it.
+
+    The normaliser's history is, for each of the last ``floor_window - 1`` tokens, the minimum of its raw
+    features over its sub-windows per mel channel (``+inf`` for tokens before the utterance); None for a
+    tokenizer without normaliser (or ``floor_window == 1``).
+    """
+    t, group = tokenizer, layout.group
+    raw = _pooled_features(audio, jnp.asarray(layout.segment), num_tokens=group, stack=t.stack, sample_rate=t.sample_rate,
+                           n_mels=t.n_mels, n_fft=t.n_fft, hop_length=t.hop_length, center=False)
+    features = raw
+    if t.floor_window:
+        per_mel = raw.reshape(group, t.stack, t.n_mels).min(axis=1)
+        padded = per_mel if history is None else jnp.concatenate([history, per_mel], axis=0)
+        w = t.floor_window
+        floor = jnp.stack([padded[g:g + w].min(axis=0) for g in range(group)])
+        floor = jnp.tile(jnp.maximum(floor, FLOOR_MIN), (1, t.stack))
+        features = (jnp.maximum(raw, FLOOR_MIN) if t.floor_clip else raw) - floor
+        history = None if history is None else padded[group:]
+    ids = nearest_centroid((features - t.feature_mean[None, :]) / t.feature_scale[None, :], t.codebook)
+    return ids, jnp.take(jnp.asarray(t.embedding), ids, axis=0), history
 
 
 def _check_layout(rate: float | int, sample_rate: int, hop_length: int, stack: int) -> None:

@@ -23,6 +23,7 @@ from jaxtalk.export.gltf import (
     export_face_model,
     export_rig_animation,
     export_vertex_sequence,
+    face_model_morph,
     face_model_rotations,
     face_model_targets,
     face_model_weights,
@@ -50,4 +51,4 @@ __all__ = ["DEFAULT_MAX_ERROR", "ExportSummary", "GlbAnimation", "export_face_mo
            "Retargeter", "RetargetResult", "StreamState", "retarget", "DEFAULT_PENALTIES", "DEFAULT_WINDOW",
            "write_live_link_csv",
            "read_live_link_csv", "write_weights_json", "face_model_rotations", "face_model_targets",
-           "face_model_weights"]
+           "face_model_weights", "face_model_morph"]

@@ -42,7 +42,7 @@ import pygltflib
 from jaxtalk.checks import check_finite
 from jaxtalk.face.model import LinearFaceModel
 from jaxtalk.files import atomic_output, check_output_path
-from jaxtalk.types import MOTION_FPS, Float, Int
+from jaxtalk.types import MOTION_FPS, Array, Float, Int
 
 # Inputs are annotated loosely ("..."), as in LinearFaceModel, so that a wrong shape reaches the explicit
 # ValueError that names the expected layout; outputs carry their exact shapes.
@@ -284,24 +284,25 @@ def _times(writer: _GlbWriter, frames: int, fps: float | int) -> int:
     return writer.streamed(frames, 1, rows, bounds=([0.0], [float(np.float32(frames - 1) / rate)]))
 
 
-def _quaternions(rotations: np.ndarray) -> np.ndarray:
+def _quaternions(rotations: np.ndarray, xp=np) -> np.ndarray:
     """``(T, 3, 3)`` rotation matrices -> ``(T, 4)`` unit quaternions ``(x, y, z, w)``, glTF's order.
 
     Shepperd's method, as scipy's ``Rotation.from_matrix`` (the same quaternions, with the same sign: the
     largest component positive) without its checks of each matrix, which cost a live stream's morph output
     more than the rest of its chunk: each row of ``4 q_i q`` comes from the matrix's diagonal and
-    off-diagonal sums, and the one of the largest ``q_i`` is normalised.
+    off-diagonal sums, and the one of the largest ``q_i`` is normalised. ``xp``: NumPy (float64) or
+    ``jax.numpy`` (traced, in the input's dtype: :func:`face_model_morph`).
     """
-    m = np.asarray(rotations, np.float64)
+    m = np.asarray(rotations, np.float64) if xp is np else rotations
     a, b, c = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
-    squares = np.stack([1 + a - b - c, 1 - a + b - c, 1 - a - b + c, 1 + a + b + c], axis=1)  # 4 q_i^2
+    squares = xp.stack([1 + a - b - c, 1 - a + b - c, 1 - a - b + c, 1 + a + b + c], axis=1)  # 4 q_i^2
     xy, xz, yz = m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1]
     wx, wy, wz = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
-    rows = np.stack([np.stack([squares[:, 0], xy, xz, wx], axis=1), np.stack([xy, squares[:, 1], yz, wy], axis=1),
-                     np.stack([xz, yz, squares[:, 2], wz], axis=1), np.stack([wx, wy, wz, squares[:, 3]], axis=1)],
+    rows = xp.stack([xp.stack([squares[:, 0], xy, xz, wx], axis=1), xp.stack([xy, squares[:, 1], yz, wy], axis=1),
+                     xp.stack([xz, yz, squares[:, 2], wz], axis=1), xp.stack([wx, wy, wz, squares[:, 3]], axis=1)],
                     axis=1)  # (T, 4, 4): row i is 4 q_i q
-    q = rows[np.arange(m.shape[0]), np.argmax(squares, axis=1)]
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    q = xp.take_along_axis(rows, xp.argmax(squares, axis=1)[:, None, None], axis=1)[:, 0]
+    return q / xp.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _continuous(quaternions: np.ndarray) -> np.ndarray:
@@ -443,6 +444,32 @@ def face_model_rotations(
     """
     local_r, _ = _local_joint_motion(face, np.asarray(params, np.float32))
     return _rotation_channels(face, local_r, previous)
+
+
+def face_model_morph(face: LinearFaceModel, params: Float[Array, "frames 56"]) -> Float[Array, "frames channels"]:
+    """The values that pose a ``.glb`` of ``face`` written from still frames (unit target scales), traced
+    (JAX, no checks): :func:`face_model_weights` followed by the jaw's, then the neck's local rotation as
+    ``(x, y, z, w)``: the channels of ``jaxtalk serve``'s ``morph`` output, for a graph that runs without
+    Python (an exported stream). The quaternions carry Shepperd's sign (largest component positive); keeping
+    consecutive ones on one side (:func:`face_model_rotations`' ``previous``) is the caller's.
+
+    Raises:
+        ValueError: a face with pose correctives (FLAME), whose file has more targets than the expression's.
+    """
+    import jax.numpy as jnp
+
+    if face.pose_basis is not None:
+        raise ValueError("face_model_morph poses faces without pose correctives (the built-in face), not FLAME")
+    k = int(np.shape(face.exp_basis)[-1])
+    weights = params[:, :k]
+    sided = jnp.stack([jnp.maximum(weights, 0.0), jnp.maximum(-weights, 0.0)], axis=2).reshape(params.shape[0], 2 * k)
+    rot = face.joint_transforms(params)[..., :9].reshape(params.shape[0], -1, 3, 3)
+    quats = []
+    for j in (face.jaw_joint, face.neck_joint):
+        parent = face.parents[j]
+        local = rot[:, j] if parent < 0 else jnp.swapaxes(rot[:, parent], -1, -2) @ rot[:, j]
+        quats.append(_quaternions(local, jnp))
+    return jnp.concatenate([sided, *quats], axis=1)
 
 
 def export_face_model(

@@ -317,7 +317,7 @@ def sample_euler(
 
 def _check_cond(cond: Any, uncond: Any, batch: int) -> None:
     for leaf in jax.tree.leaves(cond):
-        shape = jnp.shape(leaf)
+        shape = np.shape(leaf)
         if len(shape) == 0 or shape[0] != batch:
             raise ValueError(f"every cond leaf needs leading batch axis {batch}, got shape {shape}")
     if uncond is not None:
@@ -327,8 +327,8 @@ def _check_cond(cond: Any, uncond: Any, batch: int) -> None:
                 f"{jax.tree.structure(cond)}"
             )
         for c, u in zip(jax.tree.leaves(cond), jax.tree.leaves(uncond)):
-            if jnp.shape(c) != jnp.shape(u):
-                raise ValueError(f"uncond leaf shape {jnp.shape(u)} != cond leaf shape {jnp.shape(c)}")
+            if np.shape(c) != np.shape(u):
+                raise ValueError(f"uncond leaf shape {np.shape(u)} != cond leaf shape {np.shape(c)}")
 
 
 def _check_known(known: Any, known_mask: Any, noise: Any) -> tuple[Any, Any]:

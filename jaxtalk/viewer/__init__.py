@@ -36,7 +36,7 @@ from pathlib import Path
 from urllib.parse import unquote, urlparse
 
 __all__ = ["ViewerError", "ViewerServer", "WEB_DIR", "clips", "install_web_dependencies", "start_live_server",
-           "start_server"]
+           "start_server", "write_stream_page"]
 
 WEB_DIR = Path(__file__).with_name("web")
 DEFAULT_CACHE = Path.home() / ".cache" / "jaxtalk" / "viewer"
@@ -68,7 +68,7 @@ def install_web_dependencies(cache_dir: str | os.PathLike | None = None, *, npm:
     lock = (WEB_DIR / "package-lock.json").read_bytes()
     root = Path(cache_dir or DEFAULT_CACHE) / hashlib.sha256(lock).hexdigest()[:16]
     modules = root / "node_modules"
-    if (modules / "three" / "package.json").is_file():
+    if (modules / "three" / "package.json").is_file() and (modules / "onnxruntime-web" / "package.json").is_file():
         return modules
     npm = npm or shutil.which("npm")
     if npm is None or shutil.which("node") is None:
@@ -94,6 +94,39 @@ def install_web_dependencies(cache_dir: str | os.PathLike | None = None, *, npm:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return modules
+
+
+# The stream page's files: its own (source -> name in the folder), and what it loads of the installed packages.
+_STREAM_PAGE_FILES = {"stream.html": "index.html", "stream.js": "stream.js", "capture.js": "capture.js",
+                      "stage.js": "stage.js", "viewer.css": "viewer.css"}
+_STREAM_VENDOR_FILES = ("three/build/three.module.js", "three/build/three.core.js",
+                        "three/examples/jsm/loaders/GLTFLoader.js", "three/examples/jsm/utils/BufferGeometryUtils.js",
+                        "three/examples/jsm/utils/SkeletonUtils.js", "three/examples/jsm/controls/OrbitControls.js",
+                        "onnxruntime-web/dist/ort.wasm.min.mjs", "onnxruntime-web/dist/ort-wasm-simd-threaded.mjs",
+                        "onnxruntime-web/dist/ort-wasm-simd-threaded.wasm",
+                        "three/LICENSE")
+
+
+def write_stream_page(folder: str | os.PathLike, cache_dir: str | os.PathLike | None = None) -> Path:
+    """Write the static page that runs an exported stream (``jaxtalk export-model``) into ``folder``: its HTML
+    and scripts, and the three.js and onnxruntime-web files it loads (``vendor/``, from
+    :func:`install_web_dependencies`). Any static file server serves the folder; nothing answers but files.
+
+    Returns:
+        The page, ``folder/index.html``.
+
+    Raises:
+        ViewerError: npm is not installed, or its install failed.
+    """
+    modules = install_web_dependencies(cache_dir)
+    folder = Path(folder)
+    for source, name in _STREAM_PAGE_FILES.items():
+        shutil.copyfile(WEB_DIR / source, folder / name)
+    for name in _STREAM_VENDOR_FILES:
+        target = folder / "vendor" / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(modules / name, target)
+    return folder / "index.html"
 
 
 def clips(folder: str | os.PathLike) -> list[dict]:

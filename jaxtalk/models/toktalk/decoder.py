@@ -58,7 +58,9 @@ def attention_bias(
     t = valid.shape[1]
     full = combine(np.ones((t, t), dtype=bool), valid)
     chunk = combine(chunk_mask(t, chunk_frames), valid)
-    allowed = jnp.where(chunked[:, None, None, None], chunk, full)
+    # A boolean select as logic: the same values, and ONNX runtimes have no Where for booleans.
+    pick = chunked[:, None, None, None]
+    allowed = (pick & chunk) | (~pick & full)
     return mask_to_bias(allowed, jnp.float32)
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxtalk.types import Array, Float, Int, PRNGKeyArray
 
-__all__ = ["noise_kernel", "prior_noise", "frame_noise"]
+__all__ = ["noise_kernel", "prior_noise", "frame_noise", "frame_white_noise", "smooth_noise"]
 
 
 def noise_kernel(frames: float) -> Float[np.ndarray, " taps"]:
@@ -88,10 +88,24 @@ def frame_noise(
     Returns:
         ``(batch, frames, dim)`` noise, ``N(0, 1)`` per frame.
     """
-    kernel = noise_kernel(noise_frames)
-    r = (kernel.shape[0] - 1) // 2
-    index = jnp.asarray(first_frame, jnp.int32) - r + jnp.arange(frames + 2 * r, dtype=jnp.int32)
+    r = (noise_kernel(noise_frames).shape[0] - 1) // 2
+    return smooth_noise(frame_white_noise(key, jnp.asarray(first_frame, jnp.int32) - r, frames + 2 * r, batch, dim, dtype),
+                        noise_frames)
+
+
+def frame_white_noise(
+    key: PRNGKeyArray, first_frame: Int[Array, ""] | int, frames: int, batch: int, dim: int, dtype=jnp.float32,
+) -> Float[Array, "batch time dim"]:
+    """The white noise of absolute frames ``first_frame .. first_frame + frames - 1`` of a stream: frame
+    ``f``'s is ``normal(fold_in(key, f), (batch, dim))`` (what :func:`frame_noise` smooths)."""
+    index = jnp.asarray(first_frame, jnp.int32) + jnp.arange(frames, dtype=jnp.int32)
     # fold_in takes 32-bit data: negative frames map to distinct large values (two's complement).
     draw = lambda f: jax.random.normal(jax.random.fold_in(key, f.astype(jnp.uint32)), (batch, dim), dtype)  # noqa: E731
-    white = jax.vmap(draw, out_axes=1)(index)
-    return white if r == 0 else _smooth(white, kernel)
+    return jax.vmap(draw, out_axes=1)(index)
+
+
+def smooth_noise(white: Float[Array, "batch time dim"], noise_frames: float) -> Float[Array, "batch frames dim"]:
+    """White noise of ``T + 2r`` consecutive frames -> the starting noise of the ``T`` middle ones (``r`` the
+    half-width of :func:`noise_kernel`; the white noise itself for ``noise_frames == 0``)."""
+    kernel = noise_kernel(noise_frames)
+    return white if kernel.shape[0] == 1 else _smooth(white, kernel)

@@ -8,6 +8,7 @@ from jaxtalk.models.toktalk.inference import TOKEN_INPUT, read_speech, rest_note
 from jaxtalk.models.toktalk.live import live_model
 from jaxtalk.models.toktalk.loss import make_loss_fn
 from jaxtalk.models.toktalk.model import init_params
+from jaxtalk.models.toktalk.portable import export_stream
 from jaxtalk.models.toktalk.recipe import DEFAULTS, train
 from jaxtalk.models.toktalk.sampling import sample
 from jaxtalk.models.toktalk.streaming import init_stream, stream, stream_step
@@ -38,4 +39,5 @@ SPEC = ModelSpec(
     style_asset=True,
     reads="audio tokens (the clips' own, or a VQ tokenizer's of the log-mel)",
     voice_validation=plan_voice_validation,
+    export_stream=export_stream,
 )

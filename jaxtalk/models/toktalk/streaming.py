@@ -57,6 +57,7 @@ __all__ = [
     "source_tokens_per_chunk",
     "overlap_window_mask",
     "stream_noise",
+    "advance_window",
 ]
 
 PyTree = Any
@@ -285,30 +286,65 @@ def _adapter_step(params, config, state: AdapterState, chunk_src, src_rate):
     return AdapterState(window[:, keep:], valid[:, keep:], state.position + ct), out
 
 
-@functools.partial(jax.jit, static_argnames=("config", "src_rate"))
-def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, temperature, ts, config, src_rate):
-    adapter = state.adapter
-    if adapter is not None:
-        adapter, chunk_tokens = _adapter_step(params, config, adapter, chunk_tokens, src_rate)
+def advance_window(
+    params: PyTree,
+    config: TokTalkConfig,
+    tokens: Float[Array, "batch window_tokens token"],
+    motion: Float[Array, "batch window param"],
+    valid: Bool[Array, "batch window"],
+    chunk_tokens: Float[Array, "batch chunk_tokens token"],
+    style_vec: Float[Array, "batch vector"],
+    noise: Float[Array, "batch window param"],
+    cfg_scale: Float[Array, ""],
+    ts: Float[Array, " grid"],
+) -> tuple[Float[Array, "batch window_tokens token"], Float[Array, "batch window param"], Bool[Array, "batch window"],
+           Float[Array, "batch chunk param"]]:
+    """One chunk of the streaming engine on explicit arrays (traced, no checks): the window moves on by
+    one chunk, the new chunk is sampled from ``noise`` (the starting noise of the moved window's frames,
+    already scaled by the temperature) with the overlap inpainted, and is returned with the new window.
+
+    :func:`stream_step` and the portable export (:mod:`jaxtalk.models.toktalk.portable`) both run this.
+
+    Args:
+        params, config: the model.
+        tokens, motion, valid: the window before the chunk (:class:`StreamState`'s fields).
+        chunk_tokens: ``(B, tokens_per_chunk, speech_dim)`` base-space tokens of the new chunk.
+        style_vec: ``(B, style_vector_dim)``.
+        noise: ``(B, window_frames, param_dim)`` starting noise of the moved window.
+        cfg_scale: ``()`` guidance weight w.
+        ts: ``(N + 1,)`` time grid.
+
+    Returns:
+        ``(tokens, motion, valid, chunk)``: the moved window and the chunk's ``(B, chunk_frames, param_dim)``.
+    """
     c, ctx = config.chunk_frames, config.context_frames
-    w = config.window_frames
-    batch = state.motion.shape[0]
+    batch = motion.shape[0]
     ct = chunk_tokens.shape[1]
-    tokens = jnp.concatenate([state.tokens[:, ct:], chunk_tokens], axis=1)
-    valid = jnp.concatenate([state.valid[:, c:], jnp.ones((batch, c), bool)], axis=1)
-    motion = jnp.concatenate([state.motion[:, c:], jnp.zeros((batch, c, config.param_dim), state.motion.dtype)], axis=1)
+    tokens = jnp.concatenate([tokens[:, ct:], chunk_tokens], axis=1)
+    valid = jnp.concatenate([valid[:, c:], jnp.ones((batch, c), bool)], axis=1)
+    motion = jnp.concatenate([motion[:, c:], jnp.zeros((batch, c, config.param_dim), motion.dtype)], axis=1)
     known_mask = valid & overlap_window_mask(config)[None, :]
-    noise = temperature * frame_noise(state.noise_key, state.position - ctx, w, batch, config.param_dim,
-                                      config.noise_frames, state.motion.dtype)
     x = generate_frames(
         params, config, tokens, style_vec, noise, ts, cfg_scale,
         known=motion, known_mask=known_mask, mask=valid, chunked=jnp.ones((), bool),
     )
     out = x[:, ctx:]
-    motion = jnp.concatenate([motion[:, :ctx], out], axis=1)
+    return tokens, jnp.concatenate([motion[:, :ctx], out], axis=1), valid, out
+
+
+@functools.partial(jax.jit, static_argnames=("config", "src_rate"))
+def _stream_step(params, state, chunk_tokens, style_vec, cfg_scale, temperature, ts, config, src_rate):
+    adapter = state.adapter
+    if adapter is not None:
+        adapter, chunk_tokens = _adapter_step(params, config, adapter, chunk_tokens, src_rate)
+    batch = state.motion.shape[0]
+    noise = temperature * frame_noise(state.noise_key, state.position - config.context_frames, config.window_frames,
+                                      batch, config.param_dim, config.noise_frames, state.motion.dtype)
+    tokens, motion, valid, out = advance_window(params, config, state.tokens, state.motion, state.valid, chunk_tokens,
+                                                style_vec, noise, cfg_scale, ts)
     new_state = StreamState(
         tokens=tokens, motion=motion, valid=valid, noise_key=state.noise_key,
-        position=state.position + c, step=state.step + 1, adapter=adapter,
+        position=state.position + config.chunk_frames, step=state.step + 1, adapter=adapter,
     )
     return new_state, out
 
