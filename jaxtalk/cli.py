@@ -525,6 +525,26 @@ def export(
     typer.echo(f"written {result.audio}" if result.audio is not None else "no audio: pass --audio to write it beside the .glb")
 
 
+@app.command(name="export-model")
+@_user_errors
+def export_model(
+    run: Annotated[Path, typer.Argument(help="Run folder written by `jaxtalk train` (toktalk).")],
+    out: Annotated[Path, typer.Option(help="Folder to write: new, empty, or an earlier export (with --overwrite).")],
+    format_: Annotated[str, typer.Option("--format", help="Model file format.")] = "onnx",
+    style: _STYLE = None, cfg_scale: _CFG = None, sample_steps: _SAMPLE_STEPS = None,
+    temperature: _TEMPERATURE = None, best: _BEST = False,
+    page: Annotated[bool, typer.Option(help="Write the browser page (three.js and onnxruntime-web from npm).")] = True,
+    overwrite: Annotated[bool, typer.Option(help="Replace an earlier export in --out.")] = False,
+) -> None:
+    """Export the run's live stream to run without Python: ONNX graphs, a manifest, a reference host (host.py)
+    and a static page that animates the microphone in the browser."""
+    from jaxtalk.commands.portable import ExportModelOptions, export_model_run
+
+    export_model_run(ExportModelOptions(run_dir=run, out=out, format=format_, style=style, cfg_scale=cfg_scale,
+                                        sample_steps=sample_steps, temperature=temperature, best=best, page=page,
+                                        overwrite=overwrite), echo=typer.echo)
+
+
 @app.command()
 @_user_errors
 def retarget(

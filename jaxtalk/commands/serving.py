@@ -47,9 +47,10 @@ class ServeCommandOptions:
     origins: tuple[str, ...] = ()
 
 
-def live_model_of_run(opts: ServeCommandOptions) -> Any:
+def live_model_of_run(opts: Any) -> Any:
     """The run's live model (the registry's ``live`` factory with the style, guidance, steps and
-    temperature given).
+    temperature given): ``opts`` is a :class:`ServeCommandOptions` or any settings with its ``run_dir``,
+    ``best``, ``style``, ``cfg_scale``, ``sample_steps`` and ``temperature`` (``jaxtalk export-model``'s).
 
     Raises:
         FileNotFoundError: not a run, no checkpoint, a missing style file.

@@ -72,7 +72,9 @@ class OnnxStream:
         if m.get("format") != "jaxtalk-onnx-stream" or m.get("version") != 1:
             raise ValueError(f"{self.folder} holds no jaxtalk ONNX stream (format {m.get('format')!r}, "
                              f"version {m.get('version')!r})")
-        session = lambda name: onnxruntime.InferenceSession(str(self.folder / m[name]["file"]),  # noqa: E731
+        options = onnxruntime.SessionOptions()
+        options.log_severity_level = 3  # errors only, not notes on the graph's unused constants
+        session = lambda name: onnxruntime.InferenceSession(str(self.folder / m[name]["file"]), options,  # noqa: E731
                                                             providers=list(providers))
         self.frontend = session("frontend") if m["frontend"] else None
         self.step = session("step")
