@@ -350,3 +350,17 @@ def real_voices(folder: Path) -> dict[str, np.ndarray]:
     pose[:, 3] = jaws["b"]
     np.savez(folder / "b.npz", pose=pose)
     return {k: v.astype(np.float32).astype(np.float64) for k, v in jaws.items()}
+
+
+def cli_user_error(args: list, message: str) -> str:
+    """Run ``jaxtalk ARGS`` in-process; it must end with exit code 2 and one ``error:`` line holding
+    ``message``, no traceback. Returns its output."""
+    from typer.testing import CliRunner
+
+    from jaxtalk.cli import app
+
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code == 2, result.output
+    assert result.output.strip().splitlines()[-1].startswith("error:") and message in result.output, result.output
+    assert "Traceback" not in result.output
+    return result.output

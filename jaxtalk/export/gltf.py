@@ -284,7 +284,7 @@ def _times(writer: _GlbWriter, frames: int, fps: float | int) -> int:
     return writer.streamed(frames, 1, rows, bounds=([0.0], [float(np.float32(frames - 1) / rate)]))
 
 
-def _quaternions(rotations: np.ndarray, xp=np) -> np.ndarray:
+def _quaternions(rotations: Float[np.ndarray | Array, "frames 3 3"], xp=np) -> Float[np.ndarray | Array, "frames 4"]:
     """``(T, 3, 3)`` rotation matrices -> ``(T, 4)`` unit quaternions ``(x, y, z, w)``, glTF's order.
 
     Shepperd's method, as scipy's ``Rotation.from_matrix`` (the same quaternions, with the same sign: the
