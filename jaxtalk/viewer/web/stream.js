@@ -45,7 +45,7 @@ ort.env.wasm.wasmPaths = new URL("vendor/onnxruntime-web/dist/", location.href).
 // Threads need a cross-origin-isolated page (SharedArrayBuffer); a plain static server gives one thread.
 ort.env.wasm.numThreads = self.crossOriginIsolated ? Math.min(4, navigator.hardwareConcurrency || 1) : 1;
 page.backend = `wasm, ${ort.env.wasm.numThreads} thread(s)`;
-const open = (entry) => (entry ? ort.InferenceSession.create(entry.file, { executionProviders: ["wasm"] }) : null);
+const open = (entry) => (entry ? ort.InferenceSession.create(entry.file, { executionProviders: ["wasm"], logSeverityLevel: 3 }) : null);
 const [frontend, step, morph] = await Promise.all([open(manifest.frontend), open(manifest.step), open(manifest.morph)]);
 
 // Standard normal noise: mulberry32 uniforms through Box-Muller (the model needs only independence).
