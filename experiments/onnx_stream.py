@@ -12,7 +12,9 @@ corpus's layout (128 codes, the 2-s noise-floor normaliser):
 * **Speed per chunk** on this machine's CPU, the same chunks for both: the library's jitted step (tokenizer
   group + model step, compile excluded: the first ``--warmup`` chunks are not timed) and onnxruntime's
   (frontend + step graph, one session each, default threads), medians over the rest of the 100 chunks, and
-  the model step alone (median of ``--repeats`` calls on one window). The step's FLOPs (XLA's count) give
+  the model step alone (median of ``--repeats`` calls on one window). The host runs in a process of its own
+  without JAX, as an engine's would: beside JAX's idle threads in one process onnxruntime ran 3x slower.
+  The step's FLOPs (XLA's count) give
   both runtimes' achieved FLOP/s, next to the matmul peak measured in the same run. There is no public
   TokTalk code to compare against.
 * ``--browser``: the ``small`` export's page in headless Chromium (Debian's; the test tools' Chromium driver
@@ -31,6 +33,7 @@ import json
 import shutil
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -83,8 +86,39 @@ def _pieces(audio: np.ndarray, size: int) -> list[np.ndarray]:
     return [audio[i:i + size] for i in range(0, audio.size, size)]
 
 
+# The host's side, in a process of its own with no JAX (as a game engine's or a page's would be): the exported
+# folder's host.py streams the utterances, fed the white noise of the library's stream key, and times each
+# push that computes a chunk and the step graph alone on one window.
+HOST_SCRIPT = r"""
+import sys, time, statistics, numpy as np
+sys.path.insert(0, sys.argv[1])
+from host import OnnxStream
+data = np.load(sys.argv[2])
+first, table = int(data["first_frame"]), data["white"]
+host = OnnxStream(sys.argv[1], white=lambda f, n: table[f - first:f - first + n])
+frames, times = [], []
+for u in range(int(data["utterances"])):
+    audio, chunk = data[f"audio_{u}"], int(data["chunk"])
+    for i in range(0, audio.size, chunk):
+        t0 = time.perf_counter()
+        out = host.push(audio[i:i + chunk])
+        if out.shape[0]:
+            times.append(time.perf_counter() - t0)
+        frames.append(out)
+    frames.append(host.finish())
+feed = {k[5:]: data[k] for k in data.files if k.startswith("feed_")}
+for _ in range(3):
+    host.step.run(None, feed)
+step = []
+for _ in range(int(data["repeats"])):
+    t0 = time.perf_counter()
+    host.step.run(None, feed)
+    step.append(time.perf_counter() - t0)
+np.savez(sys.argv[3], frames=np.concatenate(frames), times=np.asarray(times), step=np.asarray(step))
+"""
+
+
 def measure(preset: str, folder: Path, warmup: int, repeats: int, peak: float) -> tuple[dict, np.ndarray]:
-    from jaxtalk.export.onnx_host import OnnxStream
     from jaxtalk.models.toktalk.noise import frame_white_noise
     from jaxtalk.models.toktalk.portable import export_stream, portable_layout, portable_step
     from jaxtalk.models.toktalk.sampling import default_grid
@@ -100,65 +134,64 @@ def measure(preset: str, folder: Path, warmup: int, repeats: int, peak: float) -
     cut = FIRST_UTTERANCE * chunk + chunk // 2  # the first utterance ends in the middle of a chunk
     utterances = [audio[:cut], audio[cut:]]
     key = jax.random.key(1)
-    white = lambda first, frames: np.asarray(frame_white_noise(key, first, frames, 1, config.param_dim))[0]  # noqa: E731
-    host, live = OnnxStream(folder, white=white), model.open(key)
-    got, want, ort_ms, jax_ms = [], [], [], []
-    for audio_part in utterances:
-        for piece in _pieces(audio_part, chunk):
-            t0 = time.perf_counter()
-            a = host.push(piece)
-            t1 = time.perf_counter()
-            b = live.push(piece)
-            t2 = time.perf_counter()
-            if a.shape[0]:  # a chunk was computed
-                ort_ms.append(1e3 * (t1 - t0))
-                jax_ms.append(1e3 * (t2 - t1))
-            got.append(a)
-            want.append(b)
-        got.append(host.finish())
-        want.append(live.finish())
-    got, want = np.concatenate(got), np.concatenate(want)
-    assert got.shape == want.shape, (got.shape, want.shape)
-    # Steady state: the first chunks of each utterance compile (JAX) or warm up (onnxruntime).
-    steady = slice(warmup, None)
 
-    # The model step alone, on one window, both runtimes.
+    # The library's live stream, chunk by chunk (the first chunks compile).
+    live = model.open(key)
+    want, jax_ms = [], []
+    for part in utterances:
+        for piece in _pieces(part, chunk):
+            t0 = time.perf_counter()
+            out = live.push(piece)
+            if out.shape[0]:
+                jax_ms.append(1e3 * (time.perf_counter() - t0))
+            want.append(out)
+        want.append(live.finish())
+    want = np.concatenate(want)
+
+    # The model step alone on one window.
     layout = portable_layout(config)
     ts = jnp.asarray(default_grid(config), jnp.float32)
     rng = np.random.default_rng(0)
-    inputs = dict(tokens=rng.standard_normal((1, layout.window_tokens, config.speech_dim)).astype(np.float32),
-                  motion=np.zeros((1, layout.window_frames, config.param_dim), np.float32),
-                  valid=np.ones((1, layout.window_frames), bool),
-                  white=rng.standard_normal((1, layout.white_frames, config.param_dim)).astype(np.float32),
-                  chunk_tokens=rng.standard_normal((1, layout.chunk_tokens, config.speech_dim)).astype(np.float32),
-                  white_chunk=rng.standard_normal((1, config.chunk_frames, config.param_dim)).astype(np.float32),
-                  cfg_scale=np.asarray(config.cfg_scale, np.float32), temperature=np.asarray(config.temperature, np.float32))
+    feed = dict(tokens=rng.standard_normal((1, layout.window_tokens, config.speech_dim)).astype(np.float32),
+                motion=np.zeros((1, layout.window_frames, config.param_dim), np.float32),
+                valid=np.ones((1, layout.window_frames), bool),
+                white=rng.standard_normal((1, layout.white_frames, config.param_dim)).astype(np.float32),
+                chunk_tokens=rng.standard_normal((1, layout.chunk_tokens, config.speech_dim)).astype(np.float32),
+                white_chunk=rng.standard_normal((1, config.chunk_frames, config.param_dim)).astype(np.float32),
+                cfg_scale=np.asarray(config.cfg_scale, np.float32), temperature=np.asarray(config.temperature, np.float32))
     style = jnp.asarray(model.style)
 
     def step(*args):
         return portable_step(model.params, config, style, ts, *args)
 
-    jax_step = bm.time_jitted(step, *inputs.values(), repeats=repeats)
-    flops = bm.xla_flops(step, *inputs.values())
-    session = host.step
-    for _ in range(3):
-        session.run(None, inputs)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        session.run(None, inputs)
-        times.append(time.perf_counter() - t0)
-    ort_step_s = statistics.median(times)
+    jax_step = bm.time_jitted(step, *feed.values(), repeats=repeats)
+    flops = bm.xla_flops(step, *feed.values())
+
+    # The host, in its own process: the white noise of every absolute frame the stream asks for.
+    last = -(-max(u.size for u in utterances) // chunk) * config.chunk_frames + layout.white_lead_frames + 2 * config.chunk_frames
+    table = np.asarray(frame_white_noise(key, layout.white_first_frame, last - layout.white_first_frame, 1,
+                                         config.param_dim))[0]
+    with tempfile.TemporaryDirectory() as scratch:
+        inputs, outputs = Path(scratch) / "in.npz", Path(scratch) / "out.npz"
+        np.savez(inputs, first_frame=layout.white_first_frame, white=table, utterances=len(utterances), chunk=chunk,
+                 repeats=repeats, **{f"audio_{i}": u for i, u in enumerate(utterances)},
+                 **{f"feed_{k}": v for k, v in feed.items()})
+        subprocess.run([sys.executable, "-c", HOST_SCRIPT, str(folder), str(inputs), str(outputs)], check=True)
+        host = np.load(outputs)
+        got, ort_ms, ort_step_s = host["frames"], 1e3 * host["times"], float(np.median(host["step"]))
+    assert got.shape == want.shape, (got.shape, want.shape)
+    steady = slice(warmup, None)  # the first chunks compile (JAX) or warm up (onnxruntime)
+    ort_chunk, jax_chunk = statistics.median(ort_ms[steady]), statistics.median(jax_ms[steady])
     result = {
         "preset": preset, "chunk_frames": config.chunk_frames, "chunk_s": chunk / 16000, "window_frames": config.window_frames,
         "sample_steps": config.sample_steps, "cfg_scale": config.cfg_scale, "temperature": config.temperature,
         "export_s": export_s, "onnx_bytes": sizes,
-        "equality": {"chunks": len(ort_ms), "frames": int(got.shape[0]), "utterances": 2,
+        "equality": {"chunks": len(jax_ms), "frames": int(got.shape[0]), "utterances": len(utterances),
                      "max_abs_diff": float(np.abs(got - want).max()), "max_abs_value": float(np.abs(want).max())},
-        "per_chunk_ms": {"onnxruntime": statistics.median(ort_ms[steady]), "jaxtalk_jit": statistics.median(jax_ms[steady]),
-                         "ratio_onnxruntime_to_jax": statistics.median(ort_ms[steady]) / statistics.median(jax_ms[steady]),
-                         "first_chunk_onnxruntime": ort_ms[0], "first_chunk_jaxtalk_incl_compile": jax_ms[0]},
+        "per_chunk_ms": {"onnxruntime": ort_chunk, "jaxtalk_jit": jax_chunk, "ratio_onnxruntime_to_jax": ort_chunk / jax_chunk,
+                         "first_chunk_onnxruntime": float(ort_ms[0]), "first_chunk_jaxtalk_incl_compile": jax_ms[0]},
         "step_only_ms": {"onnxruntime": 1e3 * ort_step_s, "jaxtalk_jit": 1e3 * jax_step.run_median_s,
+                         "ratio_onnxruntime_to_jax": ort_step_s / jax_step.run_median_s,
                          "jaxtalk_compile_s": jax_step.compile_s},
         "step_flops": flops,
         "achieved_gflops": {"onnxruntime": None if flops is None else flops / ort_step_s / 1e9,

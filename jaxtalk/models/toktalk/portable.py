@@ -215,12 +215,13 @@ def export_stream(
     manifest["step"] = {"file": "step.onnx", "inputs": inputs, "outputs": outputs}
     face = builtin_face(0) if face is None else face
     channels = [*face_model_targets(face), *(f"{j}.q{c}" for j in ("jaw", "neck") for c in "xyzw")]
-    write_onnx(lambda params: (face_model_morph(face, params),),
-               [io_spec("params", (config.chunk_frames, config.param_dim), np.float32)], ["morph"], out / "morph.onnx")
+    morph_inputs = [io_spec("params", (config.chunk_frames, config.param_dim), np.float32)]
+    write_onnx(lambda params: (face_model_morph(face, params),), morph_inputs, ["morph"], out / "morph.onnx")
     export_face_model(face, np.zeros((1, config.param_dim), np.float32), out / "face.glb", name="rest")
     k = len(channels) - 8
     manifest["morph"] = {"file": "morph.onnx", "face": "face.glb", "frames": config.chunk_frames, "channels": channels,
-                         "quaternions": [k, k + 4], "joints": ["jaw", "neck"]}
+                         "quaternions": [k, k + 4], "joints": ["jaw", "neck"], "inputs": morph_inputs,
+                         "outputs": ["morph"]}
     # The reference host (imports onnxruntime, which the export itself does not need): copied as a file.
     shutil.copyfile(Path(jaxtalk.export.__file__).with_name("onnx_host.py"), out / "host.py")
     atomic_write_json(out / "manifest.json", manifest)

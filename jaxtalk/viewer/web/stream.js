@@ -48,6 +48,16 @@ page.backend = `wasm, ${ort.env.wasm.numThreads} thread(s)`;
 const open = (entry) => (entry ? ort.InferenceSession.create(entry.file, { executionProviders: ["wasm"], logSeverityLevel: 3 }) : null);
 const [frontend, step, morph] = await Promise.all([open(manifest.frontend), open(manifest.step), open(manifest.morph)]);
 
+// One call of each graph on placeholder inputs before any audio: WebAssembly compiles and allocates on a session's
+// first run (hundreds of ms), which would otherwise delay the first chunk of speech. The state is not touched.
+async function warmUp() {
+  const placeholder = (spec) => (spec.dtype === "bool" ? new ort.Tensor("bool", new Uint8Array(size(spec.shape)), spec.shape)
+    : new ort.Tensor("float32", new Float32Array(size(spec.shape)), spec.shape));
+  for (const [session, entry] of [[frontend, manifest.frontend], [step, manifest.step], [morph, manifest.morph]]) {
+    if (session) await session.run(Object.fromEntries(entry.inputs.map((i) => [i.name, placeholder(i)])));
+  }
+}
+
 // Standard normal noise: mulberry32 uniforms through Box-Muller (the model needs only independence).
 let seed = (Number(query.get("seed") ?? 0) >>> 0) || 0x9e3779b9;
 function uniform() {
@@ -282,6 +292,7 @@ if (!manifest.frontend) {
        + "make them from audio; stream the tokens with host.py instead");
   throw new Error(page.errors[0]);
 }
+await warmUp();
 buttons.mic.disabled = buttons.file.disabled = false;
 page.state = "ready";
 statusLine.textContent = `${manifest.model} (${manifest.run}): ${manifest.fps} fps, chunks of ${manifest.chunk_frames} frames, `
