@@ -6,7 +6,7 @@ run by onnxruntime on the same inputs as JAX:
 
 * ``timar_stream_step``: one turn of TIMAR's streaming engine (:mod:`jaxtalk.models.timar.streaming`, the
   filling mode, 5 DDIM steps with the initial noise given, eta 0, guidance on);
-* ``ats_sample``: FreeTalk's landmark diffusion (DDIM, 4 steps, the starting noise given, eta 0) on 2 s;
+* ``ats_sample``: FreeTalk's landmark diffusion (DDIM, 4 steps, the starting noise given, eta 0) on 100 frames;
 * ``ats_denoiser``: one call of ATS's denoising transformer (no sampler);
 * ``stm_decode``: Sparse-To-Mesh on the built-in face (low resolution), 10 frames of landmark motion, the
   mesh's precomputed DiffusionNet operators as constants.
@@ -70,13 +70,13 @@ def ats_sample():
     rng = np.random.default_rng(0)
     frames = 50
     audio = rng.standard_normal((1, 2 * frames, config.speech_dim)).astype(np.float32)
-    noise = rng.standard_normal((1, frames, config.motion_dim)).astype(np.float32)
     cond = ats.make_condition(config, audio, "neutral", 1.0)
+    noise = rng.standard_normal((*cond.mask.shape, config.motion_dim)).astype(np.float32)
     leaves, tree = jax.tree.flatten(cond)
 
     def fn(*a):
         c = jax.tree.unflatten(tree, list(a[:-1]))
-        return (ats._sample.__wrapped__(params, config, c, None, jnp.float32(0.0), a[-1], 4, False),)
+        return (ats.sample(params, config, c, None, noise=a[-1], sample_steps=4),)
 
     return fn, [*[np.asarray(x) for x in leaves], noise]
 
@@ -92,7 +92,7 @@ def ats_denoiser():
     audio = rng.standard_normal((1, 2 * frames, config.speech_dim)).astype(np.float32)
     cond = ats.make_condition(config, audio, "neutral", 1.0)
     leaves, tree = jax.tree.flatten(cond)
-    x = rng.standard_normal((1, frames, config.motion_dim)).astype(np.float32)
+    x = rng.standard_normal((*cond.mask.shape, config.motion_dim)).astype(np.float32)
 
     def fn(*a):
         c = jax.tree.unflatten(tree, list(a[:-2]))
@@ -130,9 +130,9 @@ def probe(name: str, folder: Path) -> dict:
 
     fn, args = CANDIDATES[name]()
     want = [np.asarray(x) for x in jax.jit(fn)(*args)]
-    inputs = [io_spec(f"in_{i}", np.shape(a), np.asarray(a).dtype) for i, a in enumerate(args)]
+    inputs = [io_spec(f"input{i}", np.shape(a), np.asarray(a).dtype) for i, a in enumerate(args)]
     try:
-        write_onnx(fn, inputs, [f"out_{i}" for i in range(len(want))], folder / f"{name}.onnx")
+        write_onnx(fn, inputs, [f"result{i}" for i in range(len(want))], folder / f"{name}.onnx")
     except Exception as error:  # the converter's refusal is the result
         frames = [f for f in traceback.extract_tb(error.__traceback__) if "jaxtalk" in f.filename]
         return {"converted": False, "error": f"{type(error).__name__}: {str(error).splitlines()[0]}",
@@ -153,7 +153,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=Path("experiments/results/onnx_other_models.json"))
     args = parser.parse_args()
-    import jax2onnx
+    from importlib.metadata import version
+
     import onnxruntime
 
     results = {}
@@ -161,7 +162,7 @@ def main() -> None:
         for name in CANDIDATES:
             results[name] = probe(name, Path(scratch))
             print(name, json.dumps(results[name]))
-    bm.write_json(args.out, {"jax2onnx": jax2onnx.__version__ if hasattr(jax2onnx, "__version__") else None,
+    bm.write_json(args.out, {"jax2onnx": version("jax2onnx"),
                              "onnxruntime": onnxruntime.__version__, "models": results})
     print(f"written {args.out}")
 

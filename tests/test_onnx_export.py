@@ -175,3 +175,11 @@ def test_export_model_writes_the_graphs_manifest_host_and_refuses_to_write_over_
 
 def test_export_model_refuses_a_model_without_an_export_with_the_reason(trained_timar, tmp_path):
     cli_user_error(["export-model", str(trained_timar.dir), "--out", str(tmp_path / "web")], "TIMAR has no ONNX export (")
+
+
+def test_every_model_either_exports_its_stream_or_says_why_not():
+    from jaxtalk.runs import REGISTRY, model_spec
+
+    for name in REGISTRY:
+        spec = model_spec(name)
+        assert (spec.export_stream is None) != (spec.export_refusal is None), name

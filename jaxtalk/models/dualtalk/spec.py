@@ -28,4 +28,5 @@ SPEC = ModelSpec(
                    "animate speech with toktalk or timar runs",
     data_fields=(("speech_dim", "turn_speech_dim"),),
     windows="whole turns (max_turns)",
+    export_refusal="an offline baseline, scored with jaxtalk eval; it has no live stream to export",
 )

@@ -31,6 +31,8 @@ ATS = ModelSpec(
     family="freetalk",
     fine_tune_refusal="its recipe standardises the displacements with statistics of the new data, which the "
                       "starting weights were not trained with",
+    export_refusal="its denoiser converts, but its DDIM sampler splits PRNG keys, which ONNX has no operator for "
+                   "(docs/onnx.md)",
 )
 
 STM = ModelSpec(
@@ -48,4 +50,6 @@ STM = ModelSpec(
                    "runs; an stm run goes after an ats run: jaxtalk sample RUN_ATS AUDIO --stm RUN_STM",
     family="freetalk",
     reads="landmarks",
+    export_refusal="its graph converts, but onnxruntime rejects the attention's einsum inside the per-frame loop "
+                   "(docs/onnx.md)",
 )

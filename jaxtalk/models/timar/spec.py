@@ -33,4 +33,6 @@ SPEC = ModelSpec(
                             stream=stream_speech, step_frames=step_frames),
     data_fields=(("speech_dim", "turn_speech_dim"),),
     windows="whole turns (max_turns)",
+    export_refusal="its per-frame diffusion head is vmapped, and jax2onnx's Dense has no batching rule; the sampler "
+                   "also splits PRNG keys, which ONNX has no operator for (docs/onnx.md)",
 )
