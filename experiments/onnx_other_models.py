@@ -61,17 +61,22 @@ def timar_stream_step():
     return fn, args
 
 
-def ats_sample():
+def _ats():
+    """A small ATS with random weights and the condition of 2 s of random features."""
     from jaxtalk.models.freetalk import ats
     from jaxtalk.models.freetalk.config import ATSConfig
 
     config = ATSConfig(width=32, num_layers=1, num_heads=2, ff_dim=32)
     params = ats.init_params(config, jax.random.key(0))
     rng = np.random.default_rng(0)
-    frames = 50
-    audio = rng.standard_normal((1, 2 * frames, config.speech_dim)).astype(np.float32)
+    audio = rng.standard_normal((1, 100, config.speech_dim)).astype(np.float32)
     cond = ats.make_condition(config, audio, "neutral", 1.0)
-    noise = rng.standard_normal((*cond.mask.shape, config.motion_dim)).astype(np.float32)
+    motion = rng.standard_normal((*cond.mask.shape, config.motion_dim)).astype(np.float32)
+    return ats, config, params, cond, motion
+
+
+def ats_sample():
+    ats, config, params, cond, noise = _ats()
     leaves, tree = jax.tree.flatten(cond)
 
     def fn(*a):
@@ -82,17 +87,8 @@ def ats_sample():
 
 
 def ats_denoiser():
-    from jaxtalk.models.freetalk import ats
-    from jaxtalk.models.freetalk.config import ATSConfig
-
-    config = ATSConfig(width=32, num_layers=1, num_heads=2, ff_dim=32)
-    params = ats.init_params(config, jax.random.key(0))
-    rng = np.random.default_rng(0)
-    frames = 50
-    audio = rng.standard_normal((1, 2 * frames, config.speech_dim)).astype(np.float32)
-    cond = ats.make_condition(config, audio, "neutral", 1.0)
+    ats, config, params, cond, x = _ats()
     leaves, tree = jax.tree.flatten(cond)
-    x = rng.standard_normal((*cond.mask.shape, config.motion_dim)).astype(np.float32)
 
     def fn(*a):
         c = jax.tree.unflatten(tree, list(a[:-2]))

@@ -43,7 +43,7 @@ DEFAULT_CACHE = Path.home() / ".cache" / "jaxtalk" / "viewer"
 _SHARED_FILES = {"/stage.js": "stage.js", "/viewer.css": "viewer.css"}
 _PAGE_FILES = {"/": "index.html", "/index.html": "index.html", "/viewer.js": "viewer.js", **_SHARED_FILES}
 _LIVE_FILES = {"/": "live.html", "/index.html": "live.html", "/live.js": "live.js", "/capture.js": "capture.js",
-               **_SHARED_FILES}
+               "/sources.js": "sources.js", **_SHARED_FILES}
 _TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html; charset=utf-8", ".glb": "model/gltf-binary",
           ".wav": "audio/wav", ".json": "application/json"}
 
@@ -98,7 +98,7 @@ def install_web_dependencies(cache_dir: str | os.PathLike | None = None, *, npm:
 
 # The stream page's files: its own (source -> name in the folder), and what it loads of the installed packages.
 _STREAM_PAGE_FILES = {"stream.html": "index.html", "stream.js": "stream.js", "capture.js": "capture.js",
-                      "stage.js": "stage.js", "viewer.css": "viewer.css"}
+                      "sources.js": "sources.js", "stage.js": "stage.js", "viewer.css": "viewer.css"}
 _STREAM_VENDOR_FILES = ("three/build/three.module.js", "three/build/three.core.js",
                         "three/examples/jsm/loaders/GLTFLoader.js", "three/examples/jsm/utils/BufferGeometryUtils.js",
                         "three/examples/jsm/utils/SkeletonUtils.js", "three/examples/jsm/controls/OrbitControls.js",

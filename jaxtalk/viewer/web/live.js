@@ -15,6 +15,7 @@
 // and the drawn frames (what the browser test reads).
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { stage } from "/stage.js";
+import { audioInput } from "/sources.js";
 
 const RATE = 16000;
 const KEEP_FRAMES = 3000; // drawn frames kept for inspection (two minutes at 25 fps)
@@ -100,7 +101,7 @@ function onReady(m) {
   live.state = "ready";
   buttons.mic.disabled = buttons.file.disabled = false;
   statusLine.textContent = `connected to ${serverUrl}: ${m.model}, ${fps} fps, chunks of ${chunkFrames} frames`;
-  if (query.get("source") === "mic") startMicrophone().catch(fail);
+  if (query.get("source") === "mic") input.startMicrophone().catch(fail);
 }
 
 function onFrames(m) {
@@ -123,8 +124,6 @@ function onFrames(m) {
 }
 
 // ------------------------------------------------------------------ audio
-let audio = null; // {context, node, stop}
-
 function send(samples) {
   const captured = performance.now();
   if (ws.readyState !== WebSocket.OPEN || live.ready === null) return;
@@ -144,60 +143,14 @@ function send(samples) {
   ws.send(samples.buffer);
 }
 
-async function startAudio(connect) {
-  await stopAudio();
-  let context;
-  try { context = new AudioContext({ sampleRate: RATE }); } catch { context = new AudioContext(); }
-  await context.audioWorklet.addModule("/capture.js");
-  const node = new AudioWorkletNode(context, "jaxtalk-capture", { numberOfInputs: 1, numberOfOutputs: 1, channelCount: 1,
-                                                                  channelCountMode: "explicit",
-                                                                  processorOptions: { targetRate: RATE, block: sendSamples } });
-  node.port.onmessage = (e) => send(e.data);
-  const sink = context.createGain();
-  sink.gain.value = 0; // the worklet runs only when pulled: through a silent gain to the speakers
-  node.connect(sink).connect(context.destination);
-  const stop = await connect(context, node);
-  await context.resume();
-  audio = { context, stop };
-  live.state = "streaming";
-  buttons.stop.disabled = false;
-}
-
-async function stopAudio() {
-  if (!audio) return;
-  audio.stop();
-  await audio.context.close();
-  audio = null;
-  if (ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify({ type: "end" }));
-  live.state = "ready";
-  buttons.stop.disabled = true;
-}
-
-async function startMicrophone() {
-  await startAudio(async (context, node) => {
-    const stream = await navigator.mediaDevices.getUserMedia({ audio: { channelCount: 1, echoCancellation: false,
-                                                                         noiseSuppression: false, autoGainControl: false } });
-    context.createMediaStreamSource(stream).connect(node);
-    return () => stream.getTracks().forEach((t) => t.stop());
-  });
-}
-
-async function playFile(file) {
-  await startAudio(async (context, node) => {
-    const buffer = await context.decodeAudioData(await file.arrayBuffer());
-    const source = context.createBufferSource();
-    source.buffer = buffer;
-    source.connect(node);
-    source.connect(context.destination); // and heard
-    source.onended = () => stopAudio();
-    source.start();
-    return () => { source.onended = null; try { source.stop(); } catch { /* already ended */ } };
-  });
-}
-
-buttons.mic.onclick = () => startMicrophone().catch(fail);
-buttons.file.onchange = () => { if (buttons.file.files[0]) playFile(buttons.file.files[0]).catch(fail); };
-buttons.stop.onclick = () => stopAudio().catch(fail);
+const input = audioInput({
+  rate: RATE, block: sendSamples, worklet: "/capture.js", buttons, onBlock: send, fail,
+  onStart: () => { live.state = "streaming"; },
+  onStop: () => {
+    if (ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify({ type: "end" }));
+    live.state = "ready";
+  },
+});
 
 // ------------------------------------------------------------------ drawing
 const median = (xs) => { const s = [...xs].sort((a, b) => a - b); return s.length ? s[Math.floor(s.length / 2)] : NaN; };

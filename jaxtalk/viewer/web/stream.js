@@ -14,6 +14,7 @@
 import * as ort from "./vendor/onnxruntime-web/dist/ort.wasm.min.mjs";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { stage } from "./stage.js";
+import { audioInput } from "./sources.js";
 
 const KEEP_FRAMES = 3000; // drawn frames kept for inspection (two minutes at 25 fps)
 const query = new URLSearchParams(location.search);
@@ -185,7 +186,6 @@ function show(rows, first, captured, compute) {
 
 // ------------------------------------------------------------------ audio
 let work = Promise.resolve(); // model calls run one after another, in the order the audio came
-let audio = null;
 
 function onAudio(samples) {
   const captured = performance.now();
@@ -203,60 +203,14 @@ function onAudio(samples) {
   work = work.then(() => consume(samples, captured)).catch(fail);
 }
 
-async function startAudio(connect) {
-  await stopAudio();
-  let context;
-  try { context = new AudioContext({ sampleRate: RATE }); } catch { context = new AudioContext(); }
-  await context.audioWorklet.addModule("capture.js");
-  const node = new AudioWorkletNode(context, "jaxtalk-capture", { numberOfInputs: 1, numberOfOutputs: 1, channelCount: 1,
-                                                                  channelCountMode: "explicit",
-                                                                  processorOptions: { targetRate: RATE, block: Math.round(RATE * 0.04) } });
-  node.port.onmessage = (e) => onAudio(e.data);
-  const sink = context.createGain();
-  sink.gain.value = 0; // the worklet runs only when pulled: through a silent gain to the speakers
-  node.connect(sink).connect(context.destination);
-  const stop = await connect(context, node);
-  await context.resume();
-  audio = { context, stop };
-  page.state = "streaming";
-  buttons.stop.disabled = false;
-}
-
-async function stopAudio() {
-  if (!audio) return;
-  audio.stop();
-  await audio.context.close();
-  audio = null;
-  work = work.then(reset).catch(fail); // the next utterance starts afresh
-  page.state = "ready";
-  buttons.stop.disabled = true;
-}
-
-async function startMicrophone() {
-  await startAudio(async (context, node) => {
-    const stream = await navigator.mediaDevices.getUserMedia({ audio: { channelCount: 1, echoCancellation: false,
-                                                                         noiseSuppression: false, autoGainControl: false } });
-    context.createMediaStreamSource(stream).connect(node);
-    return () => stream.getTracks().forEach((t) => t.stop());
-  });
-}
-
-async function playFile(file) {
-  await startAudio(async (context, node) => {
-    const buffer = await context.decodeAudioData(await file.arrayBuffer());
-    const source = context.createBufferSource();
-    source.buffer = buffer;
-    source.connect(node);
-    source.connect(context.destination); // and heard
-    source.onended = () => stopAudio();
-    source.start();
-    return () => { source.onended = null; try { source.stop(); } catch { /* already ended */ } };
-  });
-}
-
-buttons.mic.onclick = () => startMicrophone().catch(fail);
-buttons.file.onchange = () => { if (buttons.file.files[0]) playFile(buttons.file.files[0]).catch(fail); };
-buttons.stop.onclick = () => stopAudio().catch(fail);
+const input = audioInput({
+  rate: RATE, block: Math.round(RATE * 0.04), worklet: "capture.js", buttons, onBlock: onAudio, fail,
+  onStart: () => { page.state = "streaming"; },
+  onStop: () => {
+    work = work.then(reset).catch(fail); // the next utterance starts afresh
+    page.state = "ready";
+  },
+});
 
 // ------------------------------------------------------------------ drawing
 const median = (xs) => { const v = [...xs].sort((a, b) => a - b); return v.length ? v[Math.floor(v.length / 2)] : NaN; };
@@ -297,4 +251,4 @@ buttons.mic.disabled = buttons.file.disabled = false;
 page.state = "ready";
 statusLine.textContent = `${manifest.model} (${manifest.run}): ${manifest.fps} fps, chunks of ${manifest.chunk_frames} frames, `
   + `${manifest.sample_steps} steps, in the browser (${page.backend})`;
-if (query.get("source") === "mic") startMicrophone().catch(fail);
+if (query.get("source") === "mic") input.startMicrophone().catch(fail);
