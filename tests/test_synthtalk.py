@@ -41,14 +41,31 @@ def test_same_seed_same_bytes_different_seed_differs():
     assert not np.array_equal(c.audio(0)[:16000], a.audio(0)[:16000])
 
 
-# The bytes of the built-in "tiny" corpus (audio, motion, oracle) at generator VERSION 2. Published
-# numbers depend on the built-in sizes: a change here must be deliberate and bump VERSION.
-TINY_SEED0_FINGERPRINT = "bfcfc916685735bfacb74bc5a38a9b43b077b6b7046ce6bce447105a651756f8"
+# The bytes of the built-in "tiny" corpus (audio, motion, oracle) at generator VERSION 3. Published
+# numbers depend on the built-in sizes: a change here must be deliberate and bump VERSION. The last bits of
+# NumPy's matmuls depend on the OpenBLAS kernel the machine runs (one corpus per kernel family, from the same
+# code and seed): the fingerprints measured, by the kernel threadpoolctl names (OPENBLAS_CORETYPE picks it).
+TINY_SEED0_FINGERPRINTS = {
+    "SkylakeX": "bfcfc916685735bfacb74bc5a38a9b43b077b6b7046ce6bce447105a651756f8",
+    "Haswell": "d593681f5d487b2e5ae190a4645a15ce7d94c2dcbf4aaeaf4e0de9149a82b6a9",
+    "Zen": "d593681f5d487b2e5ae190a4645a15ce7d94c2dcbf4aaeaf4e0de9149a82b6a9",
+    "Katmai": "d593681f5d487b2e5ae190a4645a15ce7d94c2dcbf4aaeaf4e0de9149a82b6a9",  # OPENBLAS_CORETYPE=Prescott
+}
+
+
+def _openblas_kernel() -> str | None:
+    import threadpoolctl
+
+    return next((i.get("architecture") for i in threadpoolctl.threadpool_info() if i.get("internal_api") == "openblas"),
+                None)
 
 
 def test_builtin_tiny_corpus_bytes_are_unchanged(corpus):
     assert synthtalk.VERSION == 3
-    assert corpus.fingerprint(tokens=False) == TINY_SEED0_FINGERPRINT
+    kernel = _openblas_kernel()
+    if kernel not in TINY_SEED0_FINGERPRINTS:
+        pytest.skip(f"no fingerprint of the tiny corpus is recorded for NumPy's OpenBLAS kernel {kernel!r}")
+    assert corpus.fingerprint(tokens=False) == TINY_SEED0_FINGERPRINTS[kernel]
 
 
 def test_tokenizers_are_deterministic(corpus):
