@@ -280,3 +280,32 @@ def trained_timar(tmp_path_factory, prepared_tiny) -> TrainedRun:
 def trained_ats(tmp_path_factory, prepared_tiny) -> TrainedRun:
     """A one-layer, 32-wide ATS (four sampling steps), two steps through ``jaxtalk train``."""
     return _trained_run(tmp_path_factory, prepared_tiny, "ats")
+
+
+@pytest.fixture(scope="session")
+def learned_toktalk_small(tmp_path_factory, prepared_tiny):
+    """``(config, params)``: TokTalk ``small`` trained 200 steps on SynthTalk tiny (batch 16, the recipe's
+    learning rate, 50 warm-up steps, its EMA, key 0), with XLA's optimisations on (run time dominates). The
+    learning test and the exported page's test read it; the xdist workers share it: the first trains it
+    under a file lock, the others wait for it and read it."""
+    import pickle
+
+    from jaxtalk.files import atomic_write_bytes
+    from jaxtalk.models import toktalk as tt
+    from jaxtalk.models.toktalk import recipe
+    from jaxtalk.runs import RunSettings
+    from jaxtalk.train import LoopSettings, OptimConfig
+
+    config = tt.TokTalkConfig.small()
+    folder = _session_shared(tmp_path_factory, "learned_toktalk_small")
+    path = folder / "params.pkl"
+    with _exclusive(folder):
+        if not path.is_file():
+            with jax_flag("jax_disable_most_optimizations", False), xla_options(xla_cpu_use_fusion_emitters=True):
+                result = recipe.train(config, prepared_tiny,
+                                      OptimConfig(lr=recipe.DEFAULTS.lr, warmup_steps=50, total_steps=200,
+                                                  ema_decay=recipe.DEFAULTS.ema_decay),
+                                      key=jax.random.key(0),
+                                      run=RunSettings(batch_size=16, loop=LoopSettings(progress=False)), val_clips=0)
+            atomic_write_bytes(path, pickle.dumps(jax.device_get(result.state.eval_params)))
+    return config, pickle.loads(path.read_bytes())

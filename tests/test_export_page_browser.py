@@ -18,7 +18,6 @@ from __future__ import annotations
 import base64
 import json
 
-import jax
 import numpy as np
 import pytest
 import soundfile
@@ -44,33 +43,24 @@ def wav(tmp_path_factory, synthtalk_tiny) -> str:
     return str(path)
 
 
-def _learned_model(prepared_tiny):
-    """TokTalk ``small`` trained 200 steps on SynthTalk tiny (the learning test's recipe), with the data's tokenizer."""
+def _learned_model(prepared_tiny, learned):
+    """conftest's ``learned_toktalk_small`` (200 steps) as a live model, with the data's tokenizer."""
     from jaxtalk.models import toktalk as tt
-    from jaxtalk.models.toktalk import recipe
     from jaxtalk.models.toktalk.live import LiveModel
-    from jaxtalk.runs import RunSettings
-    from jaxtalk.train import LoopSettings, OptimConfig
 
-    config = tt.TokTalkConfig.small()
-    result = recipe.train(config, prepared_tiny, OptimConfig(lr=recipe.DEFAULTS.lr, warmup_steps=50, total_steps=200,
-                                                             ema_decay=recipe.DEFAULTS.ema_decay),
-                          key=jax.random.key(0), run=RunSettings(batch_size=16, loop=LoopSettings(progress=False)),
-                          val_clips=0)
-    params = result.state.eval_params
+    config, params = learned
     clip = prepared_tiny.record(prepared_tiny.split("train")[0], ("motion",))["motion"][None, : 4 * config.style_frames]
     return LiveModel(params, config, prepared_tiny.tokenizer(), tt.encode_style(params, config, clip))
 
 
-@pytest.mark.optimized  # 200 training steps: run time dominates
 def test_the_page_runs_the_model_in_the_browser_and_the_jaw_follows_the_microphones_loudness(
-        node_tools, wav, prepared_tiny, tmp_path, capsys):  # noqa: F811
+        node_tools, wav, prepared_tiny, learned_toktalk_small, tmp_path, capsys):  # noqa: F811
     from jaxtalk.export.onnx_host import OnnxStream
     from jaxtalk.models.toktalk.portable import export_stream
     from jaxtalk.viewer import write_stream_page
 
     folder = tmp_path / "web"
-    manifest = export_stream(_learned_model(prepared_tiny), folder, run_name="small-200")
+    manifest = export_stream(_learned_model(prepared_tiny, learned_toktalk_small), folder, run_name="small-200")
     write_stream_page(folder, tmp_path / "viewer-cache")
     out = tmp_path / "page.json"
     summary = run_browser("stream_page.mjs", chromium(), SIZE, SIZE, folder, wav, STREAM_S, out)

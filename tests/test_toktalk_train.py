@@ -91,33 +91,27 @@ def test_stage2_trains_only_the_adapter_and_writes_a_run(prepared_tiny, stream_b
 # (Those figures are of the earlier small recipe sampling at temperature 1. At 0.5 seed 0's 200-step
 # ratios were 0.38 and 0.52; with today's small recipe, the target clip's crop as the style and neither
 # the anchor nor the style latent read by the decoder, 0.33 and 0.42.)
-# Longer training overfits the tiny corpus's training speakers, so the test trains 200 steps and its
+# Longer training overfits the tiny corpus's training speakers, so the test's model (conftest's
+# learned_toktalk_small, shared with the exported page's test) trains 200 steps and its
 # bars, 0.6 at 1 step and 0.75 at 10 (which a temperature-1 sampler misses), hold for the seed it
 # trains. A 10-step sample scores worse than a 1-step one: its samples spread over what so brief a
 # training has not learned (see experiments/toktalk_sample_quality.py). The held-out conversation sides are left out: their head
 # motion repeats the partner's (delayed mimicry), which one voice cannot predict.
-LEARN_STEPS = 200
 
 
 @pytest.mark.slow
 @pytest.mark.optimized  # hundreds of training steps: run time dominates
-def test_streamed_small_model_beats_the_mean_pose_on_held_out_monologues(prepared_tiny):
+def test_streamed_small_model_beats_the_mean_pose_on_held_out_monologues(prepared_tiny, learned_toktalk_small):
     from jaxtalk.face import builtin_face
     from jaxtalk.metrics import lve
-    from jaxtalk.models.toktalk import recipe
     from jaxtalk.models.toktalk.sampling import default_grid
 
     data = prepared_tiny
-    cfg = tt.TokTalkConfig.small()
-    result = recipe.train(cfg, data, OptimConfig(lr=recipe.DEFAULTS.lr, warmup_steps=50, total_steps=LEARN_STEPS,
-                                                 ema_decay=recipe.DEFAULTS.ema_decay),
-                          key=jax.random.key(0), run=RunSettings(batch_size=16, loop=LoopSettings(progress=False)),
-                          val_clips=0)  # scored below
-    params = result.state.eval_params
+    cfg, params = learned_toktalk_small
     face = builtin_face(0)
     lips = np.asarray(face.regions["lips"])
     mean_pose = np.asarray(params["norm"]["mean"], np.float32)
-    # Monologues only: TokTalk maps one voice to its face (see LEARN_STEPS' comment).
+    # Monologues only: TokTalk maps one voice to its face (see the comment above the test).
     test = [i for i in data.split("test") if data.clips[i]["tokens"] and not data.clips[i]["partner"]]
     by_speaker = {}
     for i in test:

@@ -20,8 +20,8 @@ the same JAX computation the live model runs, converted by ``jax2onnx`` (:func:`
 
 ``manifest.json`` says everything a host needs (shapes, rates, the window layout, each state's initial
 value); :mod:`jaxtalk.export.onnx_host` is the reference host. Not exported: source-space tokens through the
-adaptation layer (export the base-token stream and adapt on the host), and the ARKit output (its retargeting
-solver iterates to a tolerance per chunk).
+adaptation layer (export the base-token stream and adapt on the host), and the ARKit output (the converter
+did not finish converting the retargeting solver's Newton loop: docs/onnx.md).
 """
 
 from __future__ import annotations
