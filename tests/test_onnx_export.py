@@ -183,3 +183,16 @@ def test_every_model_either_exports_its_stream_or_says_why_not():
     for name in REGISTRY:
         spec = model_spec(name)
         assert (spec.export_stream is None) != (spec.export_refusal is None), name
+
+
+def test_the_step_graphs_sampler_loop_carries_only_what_changes_from_step_to_step(exported):
+    # The weights the Euler loop closes over are read from outside the loop (hoist_loop_constants), not carried
+    # through it as state: the sample being transported and the step's counters are all that is carried.
+    _, folder, _ = exported
+    graph = onnx.load(str(folder / "step.onnx")).graph
+    loops = [node for node in graph.node if node.op_type == "Loop"]
+    assert len(loops) == 1
+    body = next(a.g for a in loops[0].attribute if a.name == "body")
+    carried = len(body.input) - 2
+    assert 1 <= carried <= 4, carried
+    assert not [n for n in body.node if n.op_type == "Identity" and n.input[0] in {i.name for i in body.input[2:]}]
