@@ -13,7 +13,7 @@ corpus's layout (128 codes, the 2-s noise-floor normaliser):
   group + model step, compile excluded: the first ``--warmup`` chunks are not timed) and onnxruntime's
   (frontend + step graph, one session each, default threads), medians over the rest of the 100 chunks, and
   the model step alone (median of ``--repeats`` calls on one window). The host runs in a process of its own
-  without JAX, as an engine's would: beside JAX's idle threads in one process onnxruntime ran 3x slower.
+  without JAX, as an engine's would (in one process, JAX's threads and onnxruntime's compete for the cores).
   The step's FLOPs (XLA's count) give
   both runtimes' achieved FLOP/s, next to the matmul peak measured in the same run. There is no public
   TokTalk code to compare against.

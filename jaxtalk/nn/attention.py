@@ -143,8 +143,8 @@ class _MergeHeads(nn.Module):
         )
         x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
         # One (heads * head_dim) -> features matmul: the einsum over two contracted axes is the same sum, but
-        # ONNX converters lower it by broadcasting the kernel over every batch and frame (52 MB a call at the
-        # paper size), which made the exported stream 5x slower than XLA's.
+        # ONNX converters lower it by broadcasting the kernel over every batch and frame, which made the
+        # exported stream far slower than XLA's (docs/onnx.md).
         y = x.reshape(*x.shape[:-2], heads * head_dim) @ kernel.reshape(heads * head_dim, features)
         if bias is not None:
             y = y + bias.reshape((1,) * (y.ndim - 1) + bias.shape)
