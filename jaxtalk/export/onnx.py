@@ -89,7 +89,7 @@ def hoist_loop_constants(model: Any) -> Any:
     """Loop-invariant values out of every ``Loop``'s carried state, in place (returns ``model``).
 
     The converter lowers a ``lax.scan`` to a ``Loop`` and threads everything the scan closes over (the model's
-    weights: 199 of the 201 values a TokTalk Euler step carries) through the loop as state, passed on by an
+    weights: almost all a TokTalk Euler step carries) through the loop as state, passed on by an
     ``Identity`` each iteration. Read from the outer scope instead, they are constants that onnxruntime folds
     once (the convolutions' kernel transposes) rather than copying and transposing them at every step, with
     bitwise the same outputs (the speed-up: docs/onnx.md).
