@@ -158,6 +158,8 @@ def main() -> None:
         for name in CANDIDATES:
             results[name] = probe(name, Path(scratch))
             print(name, json.dumps(results[name]))
+    bm.print_table([{"core": name, "converts": r["converted"], "runs": r.get("runs"), "max |diff|": r.get("max_abs_diff"),
+                     "error": r.get("error", "")[:90]} for name, r in results.items()], "Other models through jax2onnx")
     bm.write_json(args.out, {"jax2onnx": version("jax2onnx"),
                              "onnxruntime": onnxruntime.__version__, "models": results})
     print(f"written {args.out}")

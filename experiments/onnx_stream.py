@@ -231,6 +231,14 @@ def browser(folder: Path, audio: np.ndarray, seconds: float) -> dict:
             "websocket_upgrades": [s for s in report["served"] if s["upgrade"]]}
 
 
+def _table_row(row: dict) -> dict:
+    chunk, flops = row["per_chunk_ms"], row["achieved_gflops"]
+    return {"preset": row["preset"], "steps": row["sample_steps"], "max |diff|": row["equality"]["max_abs_diff"],
+            "onnxruntime ms/chunk": chunk["onnxruntime"], "jaxtalk ms/chunk": chunk["jaxtalk_jit"],
+            "ratio": chunk["ratio_onnxruntime_to_jax"], "onnxruntime GFLOP/s": flops["onnxruntime"],
+            "jaxtalk GFLOP/s": flops["jaxtalk_jit"], "matmul peak GFLOP/s": row["matmul_peak_gflops"]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--presets", nargs="+", default=["tiny", "small", "paper"])
@@ -255,6 +263,12 @@ def main() -> None:
             if args.browser and preset == "small":
                 payload["browser_small"] = browser(folder, audio, args.browser_seconds)
                 print(json.dumps(payload["browser_small"]))
+    bm.print_table([_table_row(r) for r in rows], "The exported stream against the library's (per chunk, this machine's CPU)")
+    if "browser_small" in payload:
+        page = payload["browser_small"]
+        bm.print_table([{"page": "small", "backend": page["backend"], "compute ms (median)": page["compute_ms"]["median"],
+                         "compute ms (max)": page["compute_ms"]["max"], "chunk ms": 400,
+                         "first frame ms": page["first_frame_ms_after_first_sample"]}], "The page in headless Chromium")
     bm.write_json(args.out, payload)
     print(f"written {args.out}")
 

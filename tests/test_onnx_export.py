@@ -196,3 +196,34 @@ def test_the_step_graphs_sampler_loop_carries_only_what_changes_from_step_to_ste
     carried = len(body.input) - 2
     assert 1 <= carried <= 4, carried
     assert not [n for n in body.node if n.op_type == "Identity" and n.input[0] in {i.name for i in body.input[2:]}]
+
+
+def test_the_reference_host_refuses_a_folder_without_a_manifest_stereo_audio_and_nan(exported, tmp_path):
+    _, folder, _ = exported
+    with pytest.raises(FileNotFoundError, match="holds no manifest.json"):
+        OnnxStream(tmp_path)
+    host = OnnxStream(folder)
+    with pytest.raises(ValueError, match="audio must be mono"):
+        host.push(np.zeros((1600, 2), np.float32))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        host.push(np.full(1600, np.nan, np.float32))
+    with pytest.raises(ValueError, match=r"tokens must have shape \(n, 64\)"):
+        host.push_tokens(np.zeros((5, 32), np.float32))
+
+
+def test_the_exported_streams_past_frames_do_not_change_with_future_audio(exported):
+    # Causality through the graphs: two recordings that agree for 2 s and then differ, each pushed whole (every
+    # window could read the future), give bitwise the same frames for the chunks that the common 2 s complete
+    # (as many as pushing the 2 s alone returns), and different frames after them.
+    _, folder, _ = exported
+    key = jax.random.key(5)
+    white = lambda first, frames: np.asarray(frame_white_noise(key, first, frames, 1, 56))[0]  # noqa: E731
+    common = _speech(2.0, 3)
+    past = OnnxStream(folder, white=white).push(common).shape[0]
+    whole = {}
+    for seed in (4, 5):
+        host = OnnxStream(folder, white=white)
+        whole[seed] = np.concatenate([host.push(np.concatenate([common, _speech(2.0, seed)])), host.finish()])
+    assert past >= 40
+    np.testing.assert_array_equal(whole[4][:past], whole[5][:past])
+    assert np.abs(whole[4][past:] - whole[5][past:]).max() > 1e-3

@@ -92,7 +92,7 @@ def hoist_loop_constants(model: Any) -> Any:
     weights: almost all a TokTalk Euler step carries) through the loop as state, passed on by an
     ``Identity`` each iteration. Read from the outer scope instead, they are constants that onnxruntime folds
     once (the convolutions' kernel transposes) rather than copying and transposing them at every step, with
-    bitwise the same outputs (the speed-up: docs/onnx.md).
+    bitwise the same outputs (docs/onnx.md).
 
     Args:
         model: an ``onnx.ModelProto``.

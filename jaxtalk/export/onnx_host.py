@@ -68,6 +68,8 @@ class OnnxStream:
                  cfg_scale: float | None = None, temperature: float | None = None,
                  providers: tuple[str, ...] = ("CPUExecutionProvider",)):
         self.folder = Path(folder)
+        if not (self.folder / "manifest.json").is_file():
+            raise FileNotFoundError(f"{self.folder} holds no manifest.json: not a folder jaxtalk export-model wrote")
         self.manifest = m = json.loads((self.folder / "manifest.json").read_text())
         if m.get("format") != "jaxtalk-onnx-stream" or m.get("version") != 1:
             raise ValueError(f"{self.folder} holds no jaxtalk ONNX stream (format {m.get('format')!r}, "
@@ -130,7 +132,9 @@ class OnnxStream:
         of every chunk it completes."""
         if self.frontend is None:
             raise ValueError("this export takes token embeddings (the run has no tokenizer): push_tokens")
-        audio = np.asarray(audio, np.float32).reshape(-1)
+        audio = np.asarray(audio, np.float32)
+        if audio.ndim != 1:
+            raise ValueError(f"audio must be mono, shape (samples,), got {audio.shape}: mix the channels first")
         if not np.all(np.isfinite(audio)):
             raise ValueError("audio contains NaN or inf")
         f = self.manifest["frontend"]
