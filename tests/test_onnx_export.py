@@ -227,3 +227,16 @@ def test_the_exported_streams_past_frames_do_not_change_with_future_audio(export
     assert past >= 40
     np.testing.assert_array_equal(whole[4][:past], whole[5][:past])
     assert np.abs(whole[4][past:] - whole[5][past:]).max() > 1e-3
+
+
+def test_an_export_that_fails_leaves_no_folder_behind(trained_toktalk, tmp_path, monkeypatch):
+    import jaxtalk.viewer
+    from jaxtalk.viewer import ViewerError
+
+    def no_npm(folder, cache_dir=None):
+        raise ViewerError("no npm here")
+
+    monkeypatch.setattr(jaxtalk.viewer, "write_stream_page", no_npm)
+    cli_user_error(["export-model", str(trained_toktalk.dir), "--out", str(tmp_path / "web"), "--sample-steps", "1"],
+                   "no npm here")
+    assert list(tmp_path.iterdir()) == []  # neither the folder nor the half-made one beside it

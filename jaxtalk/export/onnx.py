@@ -20,7 +20,10 @@ import numpy as np
 
 from jaxtalk.files import atomic_output
 
-__all__ = ["OPSET", "IOSpec", "io_spec", "write_onnx", "require_converter", "hoist_loop_constants"]
+__all__ = ["OPSET", "MANIFEST_FORMAT", "IOSpec", "io_spec", "write_onnx", "require_converter", "hoist_loop_constants"]
+
+# What an exported folder's manifest.json says it is (``format``, ``version``); the reference host checks it.
+MANIFEST_FORMAT = ("jaxtalk-onnx-stream", 1)
 
 # The ONNX opset written: onnxruntime 1.2x (Python, C++, C#) and onnxruntime-web run it.
 OPSET = 21

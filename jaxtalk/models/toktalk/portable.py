@@ -43,9 +43,7 @@ from jaxtalk.models.toktalk.sampling import default_grid
 from jaxtalk.models.toktalk.streaming import advance_window, tokens_per_chunk
 from jaxtalk.types import Array, Bool, Float
 
-__all__ = ["MANIFEST_FORMAT", "PortableLayout", "portable_layout", "portable_step", "export_stream"]
-
-MANIFEST_FORMAT = ("jaxtalk-onnx-stream", 1)
+__all__ = ["PortableLayout", "portable_layout", "portable_step", "export_stream"]
 
 PyTree = Any
 
@@ -183,7 +181,7 @@ def export_stream(
     # The export package (glTF, rigs) loads only when a stream is exported, not with the model.
     import jaxtalk.export
     from jaxtalk.export import export_face_model, face_model_morph, face_model_targets
-    from jaxtalk.export.onnx import io_spec, write_onnx
+    from jaxtalk.export.onnx import MANIFEST_FORMAT, io_spec, write_onnx
     from jaxtalk.face import builtin_face
 
     config = model.config
