@@ -206,11 +206,13 @@ def one_sided_targets(
     return np.repeat(targets, 2, axis=0) * scales[:, None, None], _sided(weights, scales), scales
 
 
-def _sided(weights: np.ndarray, scales: np.ndarray) -> np.ndarray:
+def _sided(weights: Float[np.ndarray | Array, "frames k"], scales: Float[np.ndarray, " k2"], xp=np
+           ) -> Float[np.ndarray | Array, "frames k2"]:
     """``(T, K)`` signed component weights -> ``(T, 2K)`` weights of targets with signed ``scales``
-    (positive side first): ``max(w, 0) / s+`` and ``max(-w, 0) / -s-``."""
-    pairs = np.asarray(scales, np.float64).reshape(-1, 2)
-    return np.stack([np.maximum(weights, 0.0) / pairs[:, 0], np.maximum(-weights, 0.0) / -pairs[:, 1]],
+    (positive side first): ``max(w, 0) / s+`` and ``max(-w, 0) / -s-``. ``xp``: NumPy, or ``jax.numpy``
+    (traced, in the weights' dtype: :func:`face_model_morph`)."""
+    pairs = np.asarray(scales, np.float64 if xp is np else np.float32).reshape(-1, 2)
+    return xp.stack([xp.maximum(weights, 0.0) / pairs[:, 0], xp.maximum(-weights, 0.0) / -pairs[:, 1]],
                     axis=2).reshape(weights.shape[0], -1)
 
 
@@ -461,8 +463,7 @@ def face_model_morph(face: LinearFaceModel, params: Float[Array, "frames 56"]) -
     if face.pose_basis is not None:
         raise ValueError("face_model_morph poses faces without pose correctives (the built-in face), not FLAME")
     k = int(np.shape(face.exp_basis)[-1])
-    weights = params[:, :k]
-    sided = jnp.stack([jnp.maximum(weights, 0.0), jnp.maximum(-weights, 0.0)], axis=2).reshape(params.shape[0], 2 * k)
+    sided = _sided(params[:, :k], np.tile([1.0, -1.0], k), jnp)  # a still frame's file: unit scales
     rot = face.joint_transforms(params)[..., :9].reshape(params.shape[0], -1, 3, 3)
     quats = []
     for j in (face.jaw_joint, face.neck_joint):
